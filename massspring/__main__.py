@@ -1,0 +1,5 @@
+import sys
+
+from massspring.cli import main
+
+sys.exit(main())

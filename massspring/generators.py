@@ -1,0 +1,156 @@
+"""Scene generators: particles and springs of a spring, a chain, a cloth and a cube lattice.
+
+Each generator takes keyword parameters (checked by ``scene.py`` against
+``PARAMETERS``) and returns the keyword arguments of :class:`massspring.Model`.
+
+Resolution scaling: a generator's ``mass`` is the total mass, shared equally by
+its particles, and its ``stiffness`` and ``damping`` are moduli of the continuum
+the springs stand for, so that changing the resolution keeps the physical
+behaviour. With spacing h, each spring gets
+
+    ks = stiffness * h**(d - 2),   kd = damping * h**(d - 2)
+
+where d is the dimension of the lattice: a chain (d = 1) has stiffness in N
+(force per unit strain: ks = EA / h), a cloth (d = 2) in N/m (per spring ks is
+independent of resolution), a cube (d = 3) in N/m^2 (ks = E h).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+# name -> {parameter: default}; the default's type is the parameter's type.
+PARAMETERS = {
+    "spring": {"length": 1.0, "displacement": 0.1, "mass": 1.0, "stiffness": 100.0,
+               "damping": 0.5, "gravity": [0.0, 0.0, 0.0]},
+    "chain": {"count": 20, "length": 1.0, "mass": 0.1, "stiffness": 1000.0, "damping": 0.0,
+              "gravity": [0.0, 0.0, -9.81]},
+    "grid": {"resolution": 32, "size": 1.0, "mass": 1.0, "stiffness": 1e4, "damping": 0.0,
+             "shear": 1.0, "bend": 0.1, "pin": "corners", "gravity": [0.0, 0.0, -9.81]},
+    "lattice": {"resolution": 6, "size": 0.5, "mass": 1.0, "stiffness": 2e4, "damping": 0.0,
+                "squash": 0.8, "spin": 2.0, "gravity": [0.0, 0.0, -9.81]},
+}
+
+PIN_CHOICES = ("none", "corners", "edge")
+
+
+def spring(length, displacement, mass, stiffness, damping, gravity):
+    """One spring along x: particle 0 fixed at the origin, particle 1 pulled to
+    x = length + displacement. ``mass`` is particle 1's mass (kg); ``stiffness``
+    (N/m) and ``damping`` (N s/m) are the spring's own ks and kd."""
+    _positive("length", length)
+    _positive("mass", mass)
+    return dict(positions=[[0.0, 0.0, 0.0], [length + displacement, 0.0, 0.0]], springs=[[0, 1]],
+                masses=[mass, mass], stiffness=stiffness, damping=damping, rest_lengths=length,
+                gravity=gravity, fixed=[0])
+
+
+def chain(count, length, mass, stiffness, damping, gravity):
+    """A rope of ``count`` particles, initially straight along x, its first particle
+    fixed: it swings down under gravity. ``stiffness`` in N (EA), ``damping`` in N s."""
+    _at_least("count", count, 2)
+    _positive("length", length)
+    _positive("mass", mass)
+    h = length / (count - 1)
+    x = np.zeros((count, 3))
+    x[:, 0] = np.arange(count) * h
+    springs = np.stack([np.arange(count - 1), np.arange(1, count)], axis=1)
+    return dict(positions=x, springs=springs, masses=mass / count, stiffness=stiffness / h,
+                damping=damping / h, gravity=gravity, fixed=[0])
+
+
+def grid(resolution, size, mass, stiffness, damping, shear, bend, pin, gravity):
+    """A square cloth of resolution x resolution particles in the z = 0 plane, with
+    structural, shear (diagonal) and bend (skip-one) springs. ``shear`` and ``bend``
+    scale their stiffness and damping relative to the structural springs.
+    ``pin``: "corners" (the two corners at y = size), "edge" (the whole y = size
+    edge) or "none". ``stiffness`` in N/m, ``damping`` in N s/m."""
+    _at_least("resolution", resolution, 2)
+    _positive("size", size)
+    _positive("mass", mass)
+    if pin not in PIN_CHOICES:
+        raise ValueError(f"pin: expected one of {', '.join(PIN_CHOICES)}, got {pin!r}")
+    r = resolution
+    h = size / (r - 1)
+    idx = np.arange(r * r).reshape(r, r)  # idx[row (y), column (x)]
+    gx, gy = np.meshgrid(np.arange(r) * h, np.arange(r) * h)
+    x = np.stack([gx.ravel(), gy.ravel(), np.zeros(r * r)], axis=1)
+    pairs, factors = [], []
+    for a, b, factor in (
+        (idx[:, :-1], idx[:, 1:], 1.0), (idx[:-1, :], idx[1:, :], 1.0),           # structural
+        (idx[:-1, :-1], idx[1:, 1:], shear), (idx[:-1, 1:], idx[1:, :-1], shear),  # shear
+        (idx[:, :-2], idx[:, 2:], bend), (idx[:-2, :], idx[2:, :], bend),          # bend
+    ):
+        if factor > 0 and a.size:
+            pairs.append(np.stack([a.ravel(), b.ravel()], axis=1))
+            factors.append(np.full(a.size, float(factor)))
+    springs = np.concatenate(pairs)
+    factor = np.concatenate(factors)
+    fixed = {"none": [], "corners": [idx[-1, 0], idx[-1, -1]], "edge": list(idx[-1, :])}[pin]
+    return dict(positions=x, springs=springs, masses=mass / (r * r), stiffness=stiffness * factor,
+                damping=damping * factor, gravity=gravity, fixed=np.array(fixed, dtype=np.int64))
+
+
+def lattice(resolution, size, mass, stiffness, damping, squash, spin, gravity):
+    """A jelly cube of resolution^3 particles with edge, face-diagonal and body-diagonal
+    springs, free to fall. It starts squashed along z by the factor ``squash`` (1 =
+    at rest) and spinning about z at ``spin`` rad/s, so it wobbles as it drops.
+    ``stiffness`` in N/m^2, ``damping`` in N s/m^2."""
+    _at_least("resolution", resolution, 2)
+    _positive("size", size)
+    _positive("mass", mass)
+    _positive("squash", squash)
+    r = resolution
+    h = size / (r - 1)
+    idx = np.arange(r ** 3).reshape(r, r, r)
+    grid_axes = np.meshgrid(*(np.arange(r) * h,) * 3, indexing="ij")
+    rest = np.stack([g.ravel() for g in grid_axes], axis=1) - size / 2
+    pairs = []
+    for offset in _neighbour_offsets():
+        a = idx[_slices(offset, start=True)]
+        b = idx[_slices(offset, start=False)]
+        pairs.append(np.stack([a.ravel(), b.ravel()], axis=1))
+    springs = np.concatenate(pairs)
+    rest_lengths = np.linalg.norm(rest[springs[:, 1]] - rest[springs[:, 0]], axis=1)
+    x = rest * np.array([1.0, 1.0, squash])
+    v = spin * np.stack([-x[:, 1], x[:, 0], np.zeros(len(x))], axis=1)
+    return dict(positions=x, springs=springs, masses=mass / r ** 3, stiffness=stiffness * h,
+                damping=damping * h, rest_lengths=rest_lengths, velocities=v, gravity=gravity)
+
+
+def _neighbour_offsets():
+    """Lattice offsets (one of each +-pair) with coordinates in {-1, 0, 1}: 13 directions."""
+    out = []
+    for dx in (-1, 0, 1):
+        for dy in (-1, 0, 1):
+            for dz in (-1, 0, 1):
+                o = (dx, dy, dz)
+                if o > (0, 0, 0):
+                    out.append(o)
+    return out
+
+
+def _slices(offset, start):
+    """Index slices pairing each lattice site with its neighbour at ``offset``."""
+    out = []
+    for o in offset:
+        if o == 0:
+            out.append(slice(None))
+        elif (o > 0) == start:
+            out.append(slice(None, -1))
+        else:
+            out.append(slice(1, None))
+    return tuple(out)
+
+
+GENERATORS = {"spring": spring, "chain": chain, "grid": grid, "lattice": lattice}
+
+
+def _positive(name, value):
+    if not value > 0:
+        raise ValueError(f"{name}: must be > 0, got {value!r}")
+
+
+def _at_least(name, value, low):
+    if value < low:
+        raise ValueError(f"{name}: must be >= {low}, got {value!r}")

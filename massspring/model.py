@@ -1,0 +1,228 @@
+"""The static description of a mass-spring system: plain, validated numpy data.
+
+A :class:`Model` never touches Taichi. Everything is checked in the constructor so
+that bad input fails with a ``ValueError`` naming the argument before any kernel
+is compiled or launched.
+
+Units are SI by convention (m, kg, s, N): positions in m, masses in kg, stiffness
+in N/m, damping in N s/m, gravity in m/s^2. Nothing in the code depends on the
+choice as long as it is consistent.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+
+def _finite_array(name, value, dtype=np.float64):
+    try:
+        arr = np.array(value, dtype=dtype)
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"{name}: cannot be read as an array of numbers ({exc})") from None
+    if arr.dtype.kind == "f" and not np.all(np.isfinite(arr)):
+        bad = np.argwhere(~np.isfinite(arr))[0]
+        raise ValueError(f"{name}: contains a non-finite value (NaN or Inf) at index {tuple(int(b) for b in bad)}")
+    return arr
+
+
+def _per_item(name, value, count, what):
+    """A scalar broadcast to ``count`` items, or an array of shape (count,)."""
+    arr = _finite_array(name, value)
+    if arr.ndim == 0:
+        arr = np.full(count, float(arr))
+    elif arr.shape != (count,):
+        raise ValueError(f"{name}: expected a scalar or shape ({count},) (one per {what}), got shape {arr.shape}")
+    return arr
+
+
+def _readonly(arr):
+    arr.setflags(write=False)
+    return arr
+
+
+@dataclass(frozen=True, eq=False)
+class Model:
+    """Particles joined by damped springs (seed Eq. 1-3).
+
+    Parameters
+    ----------
+    positions : (n, 3) float, m
+        Initial particle positions.
+    springs : (m, 2) int
+        Particle indices of each spring's two ends.
+    masses : float or (n,) float, kg
+        Particle masses, all > 0 (fixed particles too: the value is unused for them).
+    stiffness : float or (m,) float, N/m
+        Spring constants ``ks`` (>= 0).
+    damping : float or (m,) float, N s/m
+        Spring damping constants ``kd`` (>= 0), acting along each spring (Eq. 2).
+    rest_lengths : None, float or (m,) float, m
+        Rest lengths ``l0`` (>= 0); ``None`` takes the initial distances.
+    velocities : None or (n, 3) float, m/s
+        Initial velocities (zero if None). A fixed particle's velocity is set to 0.
+    gravity : (3,) float, m/s^2
+        Uniform gravitational acceleration ``g`` (Eq. 3).
+    fixed : None, indices (k,) int, or a bool mask (n,)
+        Pinned particles: their velocity is exactly 0 at all times.
+
+    All arrays are stored as read-only float64/int64 copies under the constructor's
+    argument names; ``fixed`` is stored as sorted unique indices.
+    """
+
+    positions: np.ndarray
+    springs: np.ndarray
+    masses: np.ndarray
+    stiffness: np.ndarray
+    damping: np.ndarray
+    rest_lengths: np.ndarray
+    velocities: np.ndarray
+    gravity: np.ndarray
+    fixed: np.ndarray
+
+    def __init__(self, positions, springs, masses=1.0, stiffness=1e3, damping=0.0,
+                 rest_lengths=None, velocities=None, gravity=(0.0, 0.0, -9.81), fixed=None):
+        x = _finite_array("positions", positions)
+        if x.ndim != 2 or x.shape[1] != 3 or x.shape[0] < 1:
+            raise ValueError(f"positions: expected shape (n, 3) with n >= 1, got shape {x.shape}")
+        n = x.shape[0]
+
+        s = np.array(springs)
+        if s.size == 0:
+            s = s.reshape(0, 2)
+        if s.ndim != 2 or s.shape[1] != 2:
+            raise ValueError(f"springs: expected shape (m, 2), got shape {s.shape}")
+        if s.dtype.kind == "f":
+            if not np.all(np.isfinite(s)) or np.any(s != np.round(s)):
+                raise ValueError("springs: particle indices must be integers")
+        elif s.dtype.kind not in "iu":
+            raise ValueError(f"springs: particle indices must be integers, got dtype {s.dtype}")
+        s = s.astype(np.int64)
+        m = s.shape[0]
+        if m and (s.min() < 0 or s.max() >= n):
+            k = int(np.argwhere((s < 0) | (s >= n))[0][0])
+            raise ValueError(f"springs: spring {k} = {s[k].tolist()} has an index outside 0..{n - 1}")
+        self_loops = np.flatnonzero(s[:, 0] == s[:, 1])
+        if self_loops.size:
+            k = int(self_loops[0])
+            raise ValueError(f"springs: spring {k} joins particle {s[k, 0]} to itself")
+
+        mass = _per_item("masses", masses, n, "particle")
+        if np.any(mass <= 0):
+            k = int(np.argmax(mass <= 0))
+            raise ValueError(f"masses: must be > 0, particle {k} has mass {mass[k]}")
+        ks = _per_item("stiffness", stiffness, m, "spring")
+        kd = _per_item("damping", damping, m, "spring")
+        for name, arr in (("stiffness", ks), ("damping", kd)):
+            if np.any(arr < 0):
+                k = int(np.argmax(arr < 0))
+                raise ValueError(f"{name}: must be >= 0, spring {k} has {arr[k]}")
+        if rest_lengths is None:
+            l0 = np.linalg.norm(x[s[:, 1]] - x[s[:, 0]], axis=1) if m else np.zeros(0)
+        else:
+            l0 = _per_item("rest_lengths", rest_lengths, m, "spring")
+            if np.any(l0 < 0):
+                k = int(np.argmax(l0 < 0))
+                raise ValueError(f"rest_lengths: must be >= 0, spring {k} has {l0[k]}")
+
+        if velocities is None:
+            v = np.zeros((n, 3))
+        else:
+            v = _finite_array("velocities", velocities)
+            if v.shape != (n, 3):
+                raise ValueError(f"velocities: expected shape ({n}, 3), got shape {v.shape}")
+            v = v.copy()
+
+        g = _finite_array("gravity", gravity)
+        if g.shape != (3,):
+            raise ValueError(f"gravity: expected 3 components, got shape {g.shape}")
+
+        fixed_idx = _fixed_indices(fixed, n)
+        v[fixed_idx] = 0.0
+
+        for name, value in (("positions", x), ("springs", s), ("masses", mass), ("stiffness", ks),
+                            ("damping", kd), ("rest_lengths", l0), ("velocities", v),
+                            ("gravity", g), ("fixed", fixed_idx)):
+            object.__setattr__(self, name, _readonly(np.ascontiguousarray(value)))
+
+    @property
+    def n_particles(self) -> int:
+        return self.positions.shape[0]
+
+    @property
+    def n_springs(self) -> int:
+        return self.springs.shape[0]
+
+    @property
+    def has_damping(self) -> bool:
+        """True if any spring has kd > 0 (otherwise no damping term is compiled)."""
+        return bool(np.any(self.damping > 0))
+
+    @property
+    def has_gravity(self) -> bool:
+        return bool(np.any(self.gravity != 0))
+
+    @property
+    def has_fixed(self) -> bool:
+        return self.fixed.size > 0
+
+    def free_mask(self) -> np.ndarray:
+        """(n,) bool: True for particles that move."""
+        mask = np.ones(self.n_particles, dtype=bool)
+        mask[self.fixed] = False
+        return mask
+
+    def adjacency(self):
+        """Per-particle spring lists in CSR form, for gather kernels.
+
+        Returns ``(offsets, other, spring)``: for particle ``i`` the entries
+        ``offsets[i]:offsets[i+1]`` list each spring ``spring[e]`` touching ``i``
+        and the particle ``other[e]`` at its other end. Shapes (n+1,), (2m,), (2m,).
+        """
+        n, m = self.n_particles, self.n_springs
+        ends = self.springs
+        owner = np.concatenate([ends[:, 0], ends[:, 1]])
+        other = np.concatenate([ends[:, 1], ends[:, 0]])
+        spring = np.concatenate([np.arange(m), np.arange(m)])
+        order = np.argsort(owner, kind="stable")
+        offsets = np.zeros(n + 1, dtype=np.int64)
+        np.cumsum(np.bincount(owner, minlength=n), out=offsets[1:])
+        return offsets, other[order], spring[order]
+
+    def energy(self, positions, velocities) -> dict:
+        """Kinetic, spring and gravitational potential energy (J) of a state.
+
+        Gravity potential is ``-sum_i m_i g . x_i`` (zero at the origin); fixed
+        particles have zero velocity and constant potential.
+        """
+        x = np.asarray(positions, dtype=np.float64)
+        v = np.asarray(velocities, dtype=np.float64)
+        kinetic = 0.5 * float(np.sum(self.masses * np.sum(v * v, axis=1)))
+        if self.n_springs:
+            length = np.linalg.norm(x[self.springs[:, 1]] - x[self.springs[:, 0]], axis=1)
+            spring = 0.5 * float(np.sum(self.stiffness * (length - self.rest_lengths) ** 2))
+        else:
+            spring = 0.0
+        gravity = -float(np.sum(self.masses * (x @ self.gravity)))
+        return {"kinetic": kinetic, "spring": spring, "gravity": gravity,
+                "total": kinetic + spring + gravity}
+
+
+def _fixed_indices(fixed, n):
+    if fixed is None:
+        return np.zeros(0, dtype=np.int64)
+    arr = np.asarray(fixed)
+    if arr.dtype == bool:
+        if arr.shape != (n,):
+            raise ValueError(f"fixed: a bool mask must have shape ({n},), got shape {arr.shape}")
+        return np.flatnonzero(arr).astype(np.int64)
+    arr = arr.reshape(-1)
+    if arr.size == 0:
+        return np.zeros(0, dtype=np.int64)
+    if arr.dtype.kind not in "iu":
+        raise ValueError(f"fixed: expected particle indices (int) or a bool mask, got dtype {arr.dtype}")
+    if arr.min() < 0 or arr.max() >= n:
+        bad = int(arr[(arr < 0) | (arr >= n)][0])
+        raise ValueError(f"fixed: index {bad} is outside 0..{n - 1}")
+    return np.unique(arr.astype(np.int64))

@@ -1,0 +1,184 @@
+"""``Simulation``: a Model turned into Taichi arrays, stepped by one integrator."""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import numbers
+
+import numpy as np
+import taichi as ti
+from taichi.lang import impl
+
+from massspring.integrators import (NUMPY_REAL, REAL, DeviceModel, ExplicitEuler, ImplicitEuler,
+                                    State, SymplecticEuler)
+from massspring.model import Model
+
+INTEGRATORS = {"explicit": ExplicitEuler, "symplectic": SymplecticEuler, "implicit": ImplicitEuler}
+PRECISIONS = tuple(REAL)
+PRECONDITIONERS = ("block-jacobi", "none")
+ARCHS = ("cpu", "gpu", "cuda", "vulkan", "metal", "opengl", "x64", "arm64")
+
+
+def ensure_taichi(arch="cpu"):
+    """Initialise Taichi once per process on ``arch``; later calls must agree with it."""
+    if arch not in ARCHS:
+        raise ValueError(f"arch: unknown value {arch!r}, expected one of {', '.join(ARCHS)}")
+    if impl.get_runtime().prog is None:
+        with contextlib.redirect_stdout(io.StringIO()):  # "[Taichi] Starting on arch=..."
+            ti.init(arch=getattr(ti, arch), default_fp=ti.f64, log_level=ti.WARN)
+        return
+    current = impl.current_cfg().arch
+    wanted = getattr(ti, arch)
+    accepted = wanted if isinstance(wanted, list) else [wanted]
+    if arch == "cpu":
+        accepted = [ti.x64, ti.arm64]
+    if current not in accepted:
+        raise ValueError(f"arch: Taichi already runs on {current.name} in this process; "
+                         f"cannot switch to {arch!r}")
+
+
+def default_cg_max_iter(model: Model) -> int:
+    """3 x (free particles): the exact-arithmetic bound of CG on the free DOFs, at least 100."""
+    free = model.n_particles - model.fixed.size
+    return max(100, 3 * free)
+
+
+class Simulation:
+    """Steps a :class:`Model` with one integrator on Taichi kernels.
+
+    Parameters
+    ----------
+    model : Model
+    integrator : "explicit" | "symplectic" | "implicit"
+    dt : float, s, > 0
+    precision : "f64" (default) | "f32"
+    cg_tol : float in (0, 1)
+        Implicit only: relative tolerance on the true residual ||b - A v|| / ||b||.
+    cg_max_iter : int or None
+        Implicit only: iteration limit per step; None means ``default_cg_max_iter``.
+    definiteness_fix : bool
+        Implicit only: clamp the transverse stiffness of compressed springs so that
+        the system stays positive definite (see kernels/operator.py).
+    preconditioner : "block-jacobi" (default) | "none"
+    arch : Taichi arch name, "cpu" by default.
+
+    Only what the run needs is allocated and compiled: no CG vectors for the
+    explicit integrators, no damping term with kd = 0, no gravity term with g = 0,
+    no fixed-particle filter without fixed particles (see ``info()``).
+    """
+
+    def __init__(self, model, integrator="implicit", dt=1e-2, precision="f64", cg_tol=1e-6,
+                 cg_max_iter=None, definiteness_fix=True, preconditioner="block-jacobi", arch="cpu"):
+        if not isinstance(model, Model):
+            raise ValueError(f"model: expected a massspring.Model, got {type(model).__name__}")
+        if integrator not in INTEGRATORS:
+            raise ValueError(f"integrator: unknown value {integrator!r}, expected one of "
+                             f"{', '.join(INTEGRATORS)}")
+        if precision not in PRECISIONS:
+            raise ValueError(f"precision: unknown value {precision!r}, expected one of {', '.join(PRECISIONS)}")
+        dt = _positive_float("dt", dt)
+        cg_tol = _positive_float("cg_tol", cg_tol)
+        if cg_tol >= 1:
+            raise ValueError(f"cg_tol: must be < 1, got {cg_tol}")
+        if cg_max_iter is None:
+            cg_max_iter = default_cg_max_iter(model)
+        elif isinstance(cg_max_iter, bool) or not isinstance(cg_max_iter, numbers.Integral) or cg_max_iter < 1:
+            raise ValueError(f"cg_max_iter: expected a positive integer or None, got {cg_max_iter!r}")
+        if preconditioner not in PRECONDITIONERS:
+            raise ValueError(f"preconditioner: unknown value {preconditioner!r}, expected one of "
+                             f"{', '.join(PRECONDITIONERS)}")
+        ensure_taichi(arch)
+
+        self.model = model
+        self.integrator = integrator
+        self.dt = dt
+        self.precision = precision
+        self.cg_tol = cg_tol
+        self.cg_max_iter = int(cg_max_iter)
+        self.definiteness_fix = bool(definiteness_fix)
+        self.preconditioner = preconditioner
+        self.arch = arch
+        self.steps = 0
+        self.cg_iterations = []
+        self.cg_failures = 0
+
+        self._dev = DeviceModel.upload(model, precision)
+        self._state = State.upload(self._dev.real, model.positions, model.velocities)
+        if integrator == "implicit":
+            self._integrator = ImplicitEuler(self._dev, self._state, cg_tol=cg_tol, cg_max_iter=self.cg_max_iter,
+                                             definiteness_fix=self.definiteness_fix,
+                                             preconditioner=preconditioner)
+        else:
+            self._integrator = INTEGRATORS[integrator](self._dev, self._state)
+
+    @property
+    def time(self) -> float:
+        """Simulated time (s): steps x dt."""
+        return self.steps * self.dt
+
+    @property
+    def positions(self) -> np.ndarray:
+        """(n, 3) float64 copy of the current positions (m)."""
+        return self._state.x.to_numpy().astype(np.float64)
+
+    @property
+    def velocities(self) -> np.ndarray:
+        """(n, 3) float64 copy of the current velocities (m/s)."""
+        return self._state.v.to_numpy().astype(np.float64)
+
+    @property
+    def solver_stats(self):
+        """The last implicit step's ``SolverStats`` (None before the first step or if explicit)."""
+        return getattr(self._integrator, "stats", None)
+
+    def step(self, n=1):
+        """Advance ``n`` steps of size ``dt``."""
+        if isinstance(n, bool) or not isinstance(n, numbers.Integral) or n < 0:
+            raise ValueError(f"n: expected a non-negative integer, got {n!r}")
+        if self.integrator != "implicit":
+            if n:
+                self._state = self._integrator.advance(self._state, self.dt, n)
+                self.steps += n
+            return self
+        for _ in range(n):
+            self._state = self._integrator.advance(self._state, self.dt)
+            self.steps += 1
+            stats = self._integrator.stats
+            self.cg_iterations.append(stats.iterations)
+            self.cg_failures += not stats.converged
+        return self
+
+    def energy(self) -> dict:
+        """Kinetic, spring, gravity and total energy (J) of the current state."""
+        return self.model.energy(self.positions, self.velocities)
+
+    def info(self) -> dict:
+        """What this run compiled and allocated: force terms and work arrays."""
+        fields = ["x", "v"] + list(self._integrator.work_arrays)
+        return {"integrator": self.integrator, "precision": self.precision, "dt": self.dt,
+                "particles": self.model.n_particles, "springs": self.model.n_springs,
+                "terms": self._dev.terms(), "arrays": fields,
+                "bytes": _bytes(self)}
+
+
+def _bytes(sim):
+    """Approximate device bytes of the per-particle and per-spring arrays of a run."""
+    real = np.dtype(NUMPY_REAL[sim.precision]).itemsize
+    n, m = sim.model.n_particles, sim.model.n_springs
+    total = 2 * 3 * n * real + real * n + 4 * (n + 1) + 2 * 4 * 2 * m + 2 * 4 * m + 2 * real * m
+    total += real * m * sim.model.has_damping + 4 * n * sim.model.has_fixed
+    per_array = {"x_next": 3 * n, "v_next": 3 * n, "b": 3 * n, "r": 3 * n, "z": 3 * n, "p": 3 * n,
+                 "q": 3 * n, "minv": 9 * n, "coef": 5 * m}
+    total += sum(per_array[a] * real for a in sim._integrator.work_arrays)
+    return total
+
+
+def _positive_float(name, value):
+    try:
+        out = float(value)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name}: expected a number, got {value!r}") from None
+    if not np.isfinite(out) or out <= 0:
+        raise ValueError(f"{name}: must be a finite number > 0, got {value!r}")
+    return out

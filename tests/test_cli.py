@@ -1,0 +1,93 @@
+"""The command line: every built-in scene runs, bad input exits 2 with a one-line message."""
+
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from massspring.cli import main
+from massspring.scene import builtin_scenes
+
+
+def run_cli(*args):
+    """The CLI in a subprocess (as a user runs it): (exit code, stdout, stderr)."""
+    proc = subprocess.run([sys.executable, "-m", "massspring", *args], capture_output=True, text=True)
+    return proc.returncode, proc.stdout, proc.stderr
+
+
+@pytest.mark.parametrize("integrator", ["explicit", "symplectic", "implicit"])
+@pytest.mark.parametrize("scene", sorted(builtin_scenes()))
+def test_run_every_scene(scene, integrator, tmp_path, capsys):
+    out = tmp_path / "state.npz"
+    small = {"cloth": ["--set", "resolution=6"], "cube": ["--set", "resolution=3"],
+             "chain": ["--set", "count=5"]}.get(scene, [])
+    code = main(["run", scene, "--integrator", integrator, "--steps", "3", "--quiet", "--out", str(out), *small])
+    assert code == 0
+    text = capsys.readouterr().out
+    assert "steps       3" in text
+    assert ("CG " in text) == (integrator == "implicit")
+    data = np.load(out)
+    assert data["positions"].shape == data["velocities"].shape
+    assert np.all(np.isfinite(data["positions"]))
+    assert data["steps"] == 3
+
+
+def test_scenes_lists_builtins():
+    code, out, err = run_cli("scenes")
+    assert code == 0, err
+    names = [line.split()[0] for line in out.splitlines()]
+    assert names == sorted(builtin_scenes())
+
+
+def test_info_names_compiled_terms(capsys):
+    assert main(["info", "spring"]) == 0
+    text = capsys.readouterr().out
+    assert "terms       spring, damping, fixed-filter" in text  # spring scene: no gravity
+    assert main(["info", "cube", "--integrator", "explicit", "--set", "resolution=3"]) == 0
+    text = capsys.readouterr().out
+    terms = next(line for line in text.splitlines() if line.startswith("terms"))
+    assert "fixed-filter" not in terms and "gravity" in terms
+    arrays = next(line for line in text.splitlines() if line.startswith("arrays"))
+    assert "minv" not in arrays and " p," not in arrays
+
+
+def test_bad_scene_file_names_key(tmp_path):
+    path = tmp_path / "bad.toml"
+    path.write_text('integrator = "implicit"\nduration = 1.0\n[dt]\nexplicit = 1e-3\nsymplectic = 1e-3\n'
+                    'implicit = 1e-2\n[model]\ngenerator = "chain"\ncount = 5\nstifness = 10.0\n')
+    code, out, err = run_cli("run", str(path), "--steps", "1")
+    assert code == 2
+    assert "stifness" in err and str(path) in err
+    assert "Traceback" not in err and len(err.strip().splitlines()) == 1
+
+
+@pytest.mark.parametrize("args, word", [
+    (["run", "no-such-scene"], "no-such-scene"),
+    (["run", "spring", "--dt", "0"], "dt"),
+    (["run", "spring", "--set", "mass=-1"], "mass"),
+    (["run", "spring", "--set", "stiffness=[1, 2]"], "stiffness"),
+    (["run", "spring", "--set", "nonsense"], "--set"),
+    (["run", "spring", "--steps", "-1"], "--steps"),
+    (["run", "spring", "--out", "/nonexistent-dir/x.npz"], "--out"),
+])
+def test_bad_input_exit_2(args, word, capsys):
+    assert main(args) == 2
+    err = capsys.readouterr().err
+    assert word in err and len(err.strip().splitlines()) == 1
+
+
+def test_wrong_type_in_scene(tmp_path, capsys):
+    path = tmp_path / "typed.toml"
+    path.write_text('integrator = "implicit"\nduration = "long"\n[dt]\nexplicit = 1e-3\nsymplectic = 1e-3\n'
+                    'implicit = 1e-2\n[model]\ngenerator = "spring"\n')
+    assert main(["run", str(path)]) == 2
+    assert "duration" in capsys.readouterr().err
+
+
+def test_missing_key_in_scene(tmp_path, capsys):
+    path = tmp_path / "missing.toml"
+    path.write_text('integrator = "implicit"\nduration = 1.0\n[dt]\nexplicit = 1e-3\nimplicit = 1e-2\n'
+                    '[model]\ngenerator = "spring"\n')
+    assert main(["run", str(path)]) == 2
+    assert "dt.symplectic" in capsys.readouterr().err

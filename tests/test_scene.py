@@ -1,0 +1,74 @@
+"""Scenes: generators keep total mass and physics across resolutions; loading and overrides."""
+
+import numpy as np
+import pytest
+
+import massspring as ms
+from massspring import generators
+
+
+def test_load_builtin_and_path(tmp_path):
+    scene = ms.load_scene("cloth")
+    assert scene.generator == "grid" and scene.integrator == "implicit"
+    copy = tmp_path / "mine.toml"
+    copy.write_text(open(scene.source).read())
+    assert ms.load_scene(copy).params == scene.params
+
+
+@pytest.mark.parametrize("name, key", [("cloth", "resolution"), ("cube", "resolution"), ("chain", "count")])
+def test_resolution_keeps_total_mass(name, key):
+    scene = ms.load_scene(name)
+    for value in (3, 5):
+        model = scene.with_params(**{key: value}).model()
+        assert model.masses.sum() == pytest.approx(scene.params["mass"], rel=1e-12)
+
+
+def test_chain_stiffness_scales_with_spacing():
+    # A chain of N springs in series with ks = EA / h stretches by the same total
+    # amount under the same end load at any resolution: 1/sum(1/ks) = EA / length.
+    scene = ms.load_scene("chain")
+    for count in (5, 17):
+        model = scene.with_params(count=count).model()
+        series = 1.0 / np.sum(1.0 / model.stiffness)
+        assert series == pytest.approx(scene.params["stiffness"] / scene.params["length"], rel=1e-12)
+
+
+def test_cloth_springs_and_pins():
+    model = ms.load_scene("cloth").with_params(resolution=4).model()
+    r = 4
+    structural, shear, bend = 2 * r * (r - 1), 2 * (r - 1) ** 2, 2 * r * (r - 2)
+    assert model.n_springs == structural + shear + bend
+    assert model.fixed.tolist() == [12, 15]  # the two corners of the last row (y = size)
+    assert np.allclose(model.positions[model.fixed, 1], 1.0)
+
+
+def test_cube_has_all_13_directions():
+    model = ms.load_scene("cube").with_params(resolution=2, squash=1.0, spin=0.0).model()
+    assert model.n_springs == 28  # every pair of the 8 corners of one cell
+    assert np.allclose(model.rest_lengths, np.linalg.norm(
+        model.positions[model.springs[:, 1]] - model.positions[model.springs[:, 0]], axis=1))
+
+
+def test_settings_are_typed():
+    scene = ms.load_scene("cloth").with_settings(["resolution=8", "stiffness=1e5", "pin=edge"])
+    assert scene.params["resolution"] == 8 and scene.params["stiffness"] == 1e5
+    assert scene.params["pin"] == "edge"
+    with pytest.raises(ValueError, match="pin"):
+        scene.with_settings(["pin=middle"]).model()
+    with pytest.raises(ValueError, match="resolution"):
+        scene.with_settings(["resolution=abc"])
+
+
+def test_simulation_uses_scene_dt():
+    scene = ms.load_scene("spring")
+    assert scene.simulation(integrator="explicit").dt == scene.dt["explicit"]
+    assert scene.simulation().dt == scene.dt["implicit"]
+    assert scene.simulation(dt=0.5).dt == 0.5
+    with pytest.raises(ValueError, match="integrator"):
+        scene.simulation(integrator="rk4")
+
+
+def test_generators_parameters_match_signatures():
+    import inspect
+    for name, fn in generators.GENERATORS.items():
+        assert list(inspect.signature(fn).parameters) == list(generators.PARAMETERS[name])
