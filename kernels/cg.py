@@ -27,6 +27,7 @@ Shapes: ``x, b, r, z, p, q`` (n,) of vec3 (velocities in m/s, b in kg m/s);
 
 import taichi as ti
 
+from .divergence import OK, check_code, state_sums
 from .forces import particle_force
 from .operator import apply_row, diagonal_block
 
@@ -262,8 +263,30 @@ def cg_solve_serial(x: ti.types.ndarray(), b: ti.types.ndarray(),
 
 
 @ti.kernel
-def advance_positions(pos: ti.types.ndarray(), v: ti.types.ndarray(), dt: ti.f64, real: ti.template()):
-    """x_{n+1} = x_n + dt v_{n+1} (seed Eq. 9)."""
+def advance_positions(pos: ti.types.ndarray(), v: ti.types.ndarray(), keep: ti.types.ndarray(),
+                      mass: ti.types.ndarray(), g: ti.types.vector(3, ti.f64), dt: ti.f64,
+                      check: ti.types.vector(3, ti.f64), serial: ti.template(),
+                      real: ti.template()) -> ti.types.vector(2, ti.f64):
+    """x_{n+1} = x_n + dt v_{n+1} (seed Eq. 9), committed only if the new state passes the check.
+
+    The first loop reduces ``divergence.state_sums`` of (x_n + dt v_{n+1}, v_{n+1})
+    without storing anything; if ``divergence.check_code`` accepts it, the second
+    loop stores x_{n+1} and copies v_{n+1} into ``keep``, so ``keep`` always holds
+    the velocity of the last accepted state. If the check fails, x_n is untouched
+    and the caller restores v_n from ``keep``. ``serial`` serialises both loops
+    (small systems, where a parallel loop's launch costs more than its work).
+    Returns (check code, kinetic energy of the new state).
+    """
     h = ti.cast(dt, real)
+    sums = ti.Vector.zero(real, 3)
+    ti.loop_config(serialize=serial)
     for i in range(pos.shape[0]):
-        pos[i] += h * v[i]
+        sums += state_sums(pos[i] + h * v[i], v[i], mass[i], g, real)
+    s = ti.cast(sums, ti.f64)
+    code = check_code(s[0], s[1], s[2], check[0], check[1], check[2])
+    ti.loop_config(serialize=serial)
+    for i in range(pos.shape[0]):
+        if code == OK:
+            pos[i] += h * v[i]
+            keep[i] = v[i]
+    return ti.Vector([code, s[0]], ti.f64)

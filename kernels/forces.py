@@ -17,6 +17,8 @@ Array shapes (n particles, m springs): ``x, v`` (n,) of vec3 [m, m/s];
 
 import taichi as ti
 
+from .divergence import OK, check_code, state_sums
+
 
 @ti.func
 def tiny_length(real: ti.template()):
@@ -70,6 +72,7 @@ def euler_row(i, x_in: ti.template(), v_in: ti.template(), x_out: ti.template(),
     x' = x + dt v, v' = v + dt f(x, v) / m.
     ``symplectic=True``: semi-implicit Euler: v' = v + dt f(x, v) / m, x' = x + dt v'.
     Fixed particles keep their position and zero velocity.
+    Returns particle i's ``divergence.state_sums`` of the new state (the step's check).
     """
     moving = True
     if ti.static(has_fixed):
@@ -86,6 +89,7 @@ def euler_row(i, x_in: ti.template(), v_in: ti.template(), x_out: ti.template(),
     else:
         x_out[i] = x_in[i]
         v_out[i] = ti.Vector.zero(real, 3)
+    return state_sums(x_out[i], v_out[i], mass[i], g, real)
 
 
 @ti.kernel
@@ -96,12 +100,17 @@ def euler_step(x_in: ti.types.ndarray(), v_in: ti.types.ndarray(),
                ks: ti.types.ndarray(), kd: ti.types.ndarray(), l0: ti.types.ndarray(),
                g: ti.types.vector(3, ti.f64), dt: ti.f64,
                symplectic: ti.template(), has_damping: ti.template(), has_gravity: ti.template(),
-               has_fixed: ti.template(), real: ti.template()):
-    """One step from (x_in, v_in) to (x_out, v_out), a parallel loop; buffers must not alias."""
+               has_fixed: ti.template(), real: ti.template()) -> ti.types.vector(3, ti.f64):
+    """One step from (x_in, v_in) to (x_out, v_out), a parallel loop; buffers must not alias.
+
+    Returns the new state's ``divergence.state_sums`` summed over particles.
+    """
     h = ti.cast(dt, real)
+    sums = ti.Vector.zero(real, 3)
     for i in range(x_in.shape[0]):
-        euler_row(i, x_in, v_in, x_out, v_out, mass, free, offsets, other, spring, ks, kd, l0, g, h,
-                  symplectic, has_damping, has_gravity, has_fixed, real)
+        sums += euler_row(i, x_in, v_in, x_out, v_out, mass, free, offsets, other, spring, ks, kd, l0,
+                          g, h, symplectic, has_damping, has_gravity, has_fixed, real)
+    return ti.cast(sums, ti.f64)
 
 
 @ti.kernel
@@ -111,21 +120,36 @@ def euler_steps_serial(x_a: ti.types.ndarray(), v_a: ti.types.ndarray(),
                        offsets: ti.types.ndarray(), other: ti.types.ndarray(), spring: ti.types.ndarray(),
                        ks: ti.types.ndarray(), kd: ti.types.ndarray(), l0: ti.types.ndarray(),
                        g: ti.types.vector(3, ti.f64), dt: ti.f64, steps: ti.i32,
+                       check: ti.types.vector(3, ti.f64),
                        symplectic: ti.template(), has_damping: ti.template(), has_gravity: ti.template(),
-                       has_fixed: ti.template(), real: ti.template()):
-    """``steps`` steps in one launch with serial loops, alternating a -> b and b -> a.
+                       has_fixed: ti.template(), real: ti.template()) -> ti.types.vector(3, ti.f64):
+    """Up to ``steps`` steps in one launch with serial loops, alternating a -> b and b -> a.
 
-    The state ends in (x_a, v_a) if ``steps`` is even, else in (x_b, v_b).
+    Each step's new state is checked (``divergence.check_code`` with ``check``); the
+    loop stops at the first state that fails. Returns (good steps done k, check code,
+    kinetic energy of the last state computed). The last good state is in (x_a, v_a)
+    if k is even, else in (x_b, v_b); a failed state is in the other pair.
     """
     h = ti.cast(dt, real)
     n = x_a.shape[0]
+    done = 0
+    code = OK
+    kinetic = 0.0
     ti.loop_config(serialize=True)
-    for k in range(steps):
-        if k % 2 == 0:
-            for i in range(n):
-                euler_row(i, x_a, v_a, x_b, v_b, mass, free, offsets, other, spring, ks, kd, l0, g, h,
-                          symplectic, has_damping, has_gravity, has_fixed, real)
-        else:
-            for i in range(n):
-                euler_row(i, x_b, v_b, x_a, v_a, mass, free, offsets, other, spring, ks, kd, l0, g, h,
-                          symplectic, has_damping, has_gravity, has_fixed, real)
+    for _ in range(1):
+        while done < steps and code == OK:
+            sums = ti.Vector.zero(real, 3)
+            if done % 2 == 0:
+                for i in range(n):
+                    sums += euler_row(i, x_a, v_a, x_b, v_b, mass, free, offsets, other, spring, ks, kd,
+                                      l0, g, h, symplectic, has_damping, has_gravity, has_fixed, real)
+            else:
+                for i in range(n):
+                    sums += euler_row(i, x_b, v_b, x_a, v_a, mass, free, offsets, other, spring, ks, kd,
+                                      l0, g, h, symplectic, has_damping, has_gravity, has_fixed, real)
+            s = ti.cast(sums, ti.f64)
+            kinetic = s[0]
+            code = check_code(s[0], s[1], s[2], check[0], check[1], check[2])
+            if code == OK:
+                done += 1
+    return ti.Vector([done, code, kinetic], ti.f64)

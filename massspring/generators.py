@@ -24,9 +24,10 @@ PARAMETERS = {
     "spring": {"length": 1.0, "displacement": 0.1, "mass": 1.0, "stiffness": 100.0,
                "damping": 0.5, "gravity": [0.0, 0.0, 0.0]},
     "chain": {"count": 20, "length": 1.0, "mass": 0.1, "stiffness": 1000.0, "damping": 0.0,
-              "gravity": [0.0, 0.0, -9.81]},
+              "gravity": [0.0, 0.0, -9.81], "mass_ratio": 1.0, "rest_scale": 1.0, "spread": 1.0},
     "grid": {"resolution": 32, "size": 1.0, "mass": 1.0, "stiffness": 1e4, "damping": 0.0,
-             "shear": 1.0, "bend": 0.1, "pin": "corners", "gravity": [0.0, 0.0, -9.81]},
+             "shear": 1.0, "bend": 0.1, "pin": "corners", "gravity": [0.0, 0.0, -9.81],
+             "compress": 1.0, "crumple": 0.0, "seed": 0},
     "lattice": {"resolution": 6, "size": 0.5, "mass": 1.0, "stiffness": 2e4, "damping": 0.0,
                 "squash": 0.8, "spin": 2.0, "gravity": [0.0, 0.0, -9.81]},
 }
@@ -45,36 +46,62 @@ def spring(length, displacement, mass, stiffness, damping, gravity):
                 gravity=gravity, fixed=[0])
 
 
-def chain(count, length, mass, stiffness, damping, gravity):
+def chain(count, length, mass, stiffness, damping, gravity, mass_ratio=1.0, rest_scale=1.0, spread=1.0):
     """A rope of ``count`` particles, initially straight along x, its first particle
-    fixed: it swings down under gravity. ``stiffness`` in N (EA), ``damping`` in N s."""
+    fixed: it swings down under gravity. ``stiffness`` in N (EA), ``damping`` in N s.
+
+    Extreme variants: ``mass_ratio`` is the last (free end) particle's mass over
+    each other particle's (a heavy weight on a light rope; ``mass`` stays the
+    total); ``rest_scale`` scales the springs' rest lengths (0: zero-length
+    springs); ``spread`` scales the initial spacing (0: every particle starts at
+    the fixed one, coincident)."""
     _at_least("count", count, 2)
     _positive("length", length)
     _positive("mass", mass)
+    _positive("mass_ratio", mass_ratio)
+    _at_least("rest_scale", rest_scale, 0.0)
+    _at_least("spread", spread, 0.0)
     h = length / (count - 1)
     x = np.zeros((count, 3))
-    x[:, 0] = np.arange(count) * h
+    x[:, 0] = np.arange(count) * h * spread
     springs = np.stack([np.arange(count - 1), np.arange(1, count)], axis=1)
-    return dict(positions=x, springs=springs, masses=mass / count, stiffness=stiffness / h,
-                damping=damping / h, gravity=gravity, fixed=[0])
+    masses = np.ones(count)
+    masses[-1] = mass_ratio
+    return dict(positions=x, springs=springs, masses=mass * masses / masses.sum(), stiffness=stiffness / h,
+                damping=damping / h, rest_lengths=h * rest_scale, gravity=gravity, fixed=[0])
 
 
-def grid(resolution, size, mass, stiffness, damping, shear, bend, pin, gravity):
+def grid(resolution, size, mass, stiffness, damping, shear, bend, pin, gravity,
+         compress=1.0, crumple=0.0, seed=0):
     """A square cloth of resolution x resolution particles in the z = 0 plane, with
     structural, shear (diagonal) and bend (skip-one) springs. ``shear`` and ``bend``
     scale their stiffness and damping relative to the structural springs.
     ``pin``: "corners" (the two corners at y = size), "edge" (the whole y = size
-    edge) or "none". ``stiffness`` in N/m, ``damping`` in N s/m."""
+    edge) or "none". ``stiffness`` in N/m, ``damping`` in N s/m.
+
+    Extreme initial states (rest lengths stay those of the flat square of side
+    ``size``): ``compress`` scales the initial positions about the pinned edge's
+    middle (0.5: half the rest size, every spring compressed); ``crumple`` in [0, 1]
+    blends each particle towards a uniformly random point of a cube of side
+    ``size * compress`` (1: fully crumpled; pinned particles stay put), drawn from a
+    generator seeded by ``seed``."""
     _at_least("resolution", resolution, 2)
     _positive("size", size)
     _positive("mass", mass)
+    _positive("compress", compress)
+    if not 0.0 <= crumple <= 1.0:
+        raise ValueError(f"crumple: must be in [0, 1], got {crumple!r}")
     if pin not in PIN_CHOICES:
         raise ValueError(f"pin: expected one of {', '.join(PIN_CHOICES)}, got {pin!r}")
     r = resolution
     h = size / (r - 1)
     idx = np.arange(r * r).reshape(r, r)  # idx[row (y), column (x)]
     gx, gy = np.meshgrid(np.arange(r) * h, np.arange(r) * h)
-    x = np.stack([gx.ravel(), gy.ravel(), np.zeros(r * r)], axis=1)
+    rest = np.stack([gx.ravel(), gy.ravel(), np.zeros(r * r)], axis=1)
+    anchor = np.array([size / 2, size, 0.0])
+    flat = anchor + compress * (rest - anchor)
+    cube = anchor + compress * size * (np.random.default_rng(seed).random((r * r, 3)) - [0.5, 1.0, 0.5])
+    x = (1.0 - crumple) * flat + crumple * cube
     pairs, factors = [], []
     for a, b, factor in (
         (idx[:, :-1], idx[:, 1:], 1.0), (idx[:-1, :], idx[1:, :], 1.0),           # structural
@@ -87,8 +114,11 @@ def grid(resolution, size, mass, stiffness, damping, shear, bend, pin, gravity):
     springs = np.concatenate(pairs)
     factor = np.concatenate(factors)
     fixed = {"none": [], "corners": [idx[-1, 0], idx[-1, -1]], "edge": list(idx[-1, :])}[pin]
+    x[fixed] = flat[fixed]  # pins are not crumpled
+    rest_lengths = np.linalg.norm(rest[springs[:, 1]] - rest[springs[:, 0]], axis=1)
     return dict(positions=x, springs=springs, masses=mass / (r * r), stiffness=stiffness * factor,
-                damping=damping * factor, gravity=gravity, fixed=np.array(fixed, dtype=np.int64))
+                damping=damping * factor, rest_lengths=rest_lengths, gravity=gravity,
+                fixed=np.array(fixed, dtype=np.int64))
 
 
 def lattice(resolution, size, mass, stiffness, damping, squash, spin, gravity):
@@ -144,6 +174,28 @@ def _slices(offset, start):
 
 
 GENERATORS = {"spring": spring, "chain": chain, "grid": grid, "lattice": lattice}
+
+
+def surface(generator, params) -> np.ndarray:
+    """(t, 3) int particle indices of the surface triangles of a generator's model,
+    for drawing only (the physics never reads them): two per grid cell of a cloth,
+    two per boundary cell of a lattice's six faces, none for a spring or chain.
+    Triangle edges are structural or diagonal springs (diagonals only with shear > 0)."""
+    if generator == "grid":
+        r = params["resolution"]
+        return _cell_triangles(np.arange(r * r).reshape(r, r))
+    if generator == "lattice":
+        r = params["resolution"]
+        idx = np.arange(r ** 3).reshape(r, r, r)
+        faces = (idx[0], idx[-1], idx[:, 0], idx[:, -1], idx[:, :, 0], idx[:, :, -1])
+        return np.concatenate([_cell_triangles(face) for face in faces])
+    return np.zeros((0, 3), dtype=np.int64)
+
+
+def _cell_triangles(idx):
+    """Two triangles per cell of a 2D index grid, split along the (0, 0)-(1, 1) diagonal."""
+    a, b, c, d = idx[:-1, :-1].ravel(), idx[:-1, 1:].ravel(), idx[1:, 1:].ravel(), idx[1:, :-1].ravel()
+    return np.concatenate([np.stack([a, b, c], axis=1), np.stack([a, c, d], axis=1)]).astype(np.int64)
 
 
 def _positive(name, value):

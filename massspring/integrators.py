@@ -15,7 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 import taichi as ti
 
-from massspring.kernels import cg, forces, operator
+from massspring.kernels import cg, divergence, forces, operator
 
 REAL = {"f32": ti.f32, "f64": ti.f64}
 NUMPY_REAL = {"f32": np.float32, "f64": np.float64}
@@ -139,21 +139,32 @@ class _EulerIntegrator:
         self.spare = State(ti.Vector.ndarray(3, dev.real, shape=n), ti.Vector.ndarray(3, dev.real, shape=n))
         self.serial = dev.n_springs < serial_below
 
-    def advance(self, state: State, dt: float, steps: int) -> State:
-        """``steps`` steps from ``state``; returns the state holding the result."""
+    def advance(self, state: State, dt: float, steps: int, check):
+        """Up to ``steps`` steps from ``state``, each checked with ``check`` (see kernels/divergence.py).
+
+        Returns (state holding the last good step, good steps done, check code of
+        the first failed step or OK, its kinetic energy in J). A failed step's state
+        is left in the spare buffer and never returned.
+        """
         d, out = self.dev, self.spare
         args = (d.mass, d.free, d.offsets, d.other, d.spring, d.ks, d.kd, d.l0, d.gravity, dt)
         flags = (self.symplectic, d.has_damping, d.has_gravity, d.has_fixed, d.real)
+        done, code, kinetic = 0, divergence.OK, 0.0
         if self.serial:
-            forces.euler_steps_serial(state.x, state.v, out.x, out.v, *args, steps, *flags)
-            if steps % 2:
+            result = forces.euler_steps_serial(state.x, state.v, out.x, out.v, *args, steps, check, *flags)
+            done, code, kinetic = int(result[0]), int(result[1]), float(result[2])
+            if done % 2:
                 state, out = out, state
         else:
-            for _ in range(steps):
-                forces.euler_step(state.x, state.v, out.x, out.v, *args, *flags)
-                state, out = out, state
+            while done < steps and code == divergence.OK:
+                sums = forces.euler_step(state.x, state.v, out.x, out.v, *args, *flags)
+                kinetic = float(sums[0])
+                code = divergence.divergence_code(kinetic, float(sums[1]), float(sums[2]), *check)
+                if code == divergence.OK:
+                    state, out = out, state
+                    done += 1
         self.spare = out
-        return state
+        return state, done, code, kinetic
 
 
 class ExplicitEuler(_EulerIntegrator):
@@ -175,6 +186,12 @@ class ImplicitEuler:
     def __init__(self, dev: DeviceModel, state: State, *, cg_tol, cg_max_iter,
                  definiteness_fix=True, preconditioner="block-jacobi", serial_below=SERIAL_BELOW):
         self.dev = dev
+        # CG overwrites v in place (v_n is its warm start). ``keep`` holds the velocity
+        # of the last accepted state: cg.advance_positions writes it in the same loop
+        # that commits x_{n+1}, so keeping it costs one store per particle and no
+        # launch, and a rejected step is undone by copying it back (x_n was never
+        # overwritten). Cheaper than copying v_n before every solve: no extra pass.
+        self.keep = _vec3_array(dev.real, state.v.to_numpy())
         self.tol = cg_tol
         self.max_iter = cg_max_iter
         self.fix = definiteness_fix
@@ -186,11 +203,15 @@ class ImplicitEuler:
         self.b, self.r, self.z, self.p, self.q = vec(), vec(), vec(), vec(), vec()
         self.minv = ti.Matrix.ndarray(3, 3, dev.real, shape=n if self.precondition else 1)
         self.coef = ti.Vector.ndarray(5, dev.real, shape=max(n_springs, 1))
-        self.work_arrays = ("b", "r", "z", "p", "q", "coef") + (("minv",) if self.precondition else ())
+        self.work_arrays = ("b", "r", "z", "p", "q", "coef", "keep") + (("minv",) if self.precondition else ())
         self.stats = None
 
-    def advance(self, state: State, dt: float, steps: int = 1) -> State:
-        """One implicit step (``steps`` must be 1: each step has its own solver stats)."""
+    def advance(self, state: State, dt: float, steps: int, check):
+        """One implicit step (``steps`` must be 1: each step has its own solver stats).
+
+        Returns (state, good steps done (0 or 1), check code, kinetic energy in J) as
+        ``_EulerIntegrator.advance``; on a failed check the state is the previous one.
+        """
         assert steps == 1
         d = self.dev
         if self.n_springs:
@@ -206,8 +227,12 @@ class ImplicitEuler:
             iterations, residual, reason = self._solve_parallel(state, dt)
         self.stats = SolverStats(int(iterations), float(residual), reason == cg.CONVERGED,
                                  cg.REASONS[reason])
-        cg.advance_positions(state.x, state.v, dt, d.real)
-        return state
+        code, kinetic = cg.advance_positions(state.x, state.v, self.keep, d.mass, d.gravity, dt, check,
+                                             self.serial, d.real)
+        code = int(code)
+        if code != divergence.OK:
+            state.v.copy_from(self.keep)
+        return state, int(code == divergence.OK), code, float(kinetic)
 
     def _begin(self, state, dt, with_rhs):
         d = self.dev

@@ -15,6 +15,11 @@ A scene file looks like::
     generator = "grid"               # one of massspring.generators.GENERATORS
     resolution = 32                  # generator parameters; see generators.PARAMETERS
 
+    [view]                           # optional: camera of GIF/PNG export (see render.View)
+    azimuth = -60.0                  # degrees about +z, 0 = looking from +x
+    elevation = 20.0                 # degrees above the xy plane
+    projection = "orthographic"      # or "perspective"
+
 Unknown keys, wrong types and missing values raise ``SceneError`` (a
 ``ValueError``) naming the key and the file.
 """
@@ -29,6 +34,7 @@ from pathlib import Path
 
 from massspring import generators
 from massspring.model import Model
+from massspring.render import View
 from massspring.simulation import INTEGRATORS, Simulation
 
 
@@ -36,7 +42,9 @@ class SceneError(ValueError):
     """A scene file or override is invalid; the message names the key and the file."""
 
 
-TOP_KEYS = {"description": str, "integrator": str, "duration": float, "dt": dict, "model": dict}
+TOP_KEYS = {"description": str, "integrator": str, "duration": float, "dt": dict, "model": dict,
+            "view": dict}
+VIEW_KEYS = {"azimuth": float, "elevation": float, "projection": str}  # optional [view]: see render.View
 
 
 def builtin_scenes() -> dict:
@@ -57,6 +65,11 @@ class Scene:
     dt: dict
     generator: str
     params: dict = field(default_factory=dict)
+    view: View = field(default_factory=View)
+
+    def triangles(self):
+        """(t, 3) int surface triangles of the scene's model, for drawing (see generators.surface)."""
+        return generators.surface(self.generator, self.params)
 
     def with_params(self, **overrides) -> "Scene":
         """A copy with some generator parameters replaced (checked like the file's)."""
@@ -153,7 +166,18 @@ def parse_scene(data: dict, name: str, source: str) -> Scene:
         params[key] = _check_param(generator, key, value, source)
     return Scene(name=name, source=source, description=data.get("description", ""),
                  integrator=integrator, duration=float(data["duration"]), dt=dt,
-                 generator=generator, params=params)
+                 generator=generator, params=params, view=_parse_view(data.get("view", {}), source))
+
+
+def _parse_view(table, source):
+    for key, value in table.items():
+        if key not in VIEW_KEYS:
+            raise SceneError(f"{source}: view.{key}: unknown key (expected {', '.join(VIEW_KEYS)})")
+        _check_type(f"view.{key}", value, VIEW_KEYS[key], source)
+    try:
+        return View(**table)
+    except ValueError as exc:
+        raise SceneError(f"{source}: {exc}") from None
 
 
 def _check_param(generator, key, value, source):

@@ -10,8 +10,10 @@ import numpy as np
 import taichi as ti
 from taichi.lang import impl
 
+from massspring.errors import DivergenceError
 from massspring.integrators import (NUMPY_REAL, REAL, DeviceModel, ExplicitEuler, ImplicitEuler,
                                     State, SymplecticEuler)
+from massspring.kernels import divergence
 from massspring.model import Model
 
 INTEGRATORS = {"explicit": ExplicitEuler, "symplectic": SymplecticEuler, "implicit": ImplicitEuler}
@@ -36,6 +38,30 @@ def ensure_taichi(arch="cpu"):
     if current not in accepted:
         raise ValueError(f"arch: Taichi already runs on {current.name} in this process; "
                          f"cannot switch to {arch!r}")
+
+
+DIVERGENCE_FACTOR = 100.0  # see divergence_check
+
+
+def divergence_check(model: Model, factor=DIVERGENCE_FACTOR):
+    """The (base, gx0, factor) of the per-step divergence check (kernels/divergence.py).
+
+    A state is rejected if a position or velocity is not finite, or if its kinetic
+    energy exceeds ``factor * (base + W)`` with W >= 0 the work gravity has done
+    since the start (sum m g . (x - x0)). ``base`` (J) is the initial kinetic plus
+    spring energy plus a floor, the kinetic energy of the whole mass moving at one
+    scene size per second (size: the diagonal of the initial bounding box, or the
+    longest rest length if larger; 1 m if both are 0). Physically kinetic energy
+    never exceeds base - floor + W (springs only store and dampers only dissipate),
+    so ``factor`` = 100 leaves room for the energy error of a stable integrator
+    (symplectic Euler's oscillates by up to ~40x just below its limit) while an
+    unstable mode, growing geometrically, crosses it within a few dozen steps.
+    """
+    energy = model.energy(model.positions, model.velocities)
+    extent = float(np.linalg.norm(np.ptp(model.positions, axis=0)))
+    size = max(extent, float(model.rest_lengths.max(initial=0.0))) or 1.0
+    floor = 0.5 * float(model.masses.sum()) * size ** 2
+    return (energy["kinetic"] + energy["spring"] + floor, -energy["gravity"], float(factor))
 
 
 def default_cg_max_iter(model: Model) -> int:
@@ -102,6 +128,7 @@ class Simulation:
         self.steps = 0
         self.cg_iterations = []
         self.cg_failures = 0
+        self.check = divergence_check(model)
 
         self._dev = DeviceModel.upload(model, precision)
         self._state = State.upload(self._dev.real, model.positions, model.velocities)
@@ -133,21 +160,40 @@ class Simulation:
         return getattr(self._integrator, "stats", None)
 
     def step(self, n=1):
-        """Advance ``n`` steps of size ``dt``."""
+        """Advance ``n`` steps of size ``dt``.
+
+        Every step is checked (``divergence_check``). A step whose state has a
+        non-finite value or runaway kinetic energy raises ``DivergenceError``
+        naming it; the simulation then holds the last good state (``steps``,
+        ``time``, ``positions`` and ``velocities`` are those of the step before).
+        """
         if isinstance(n, bool) or not isinstance(n, numbers.Integral) or n < 0:
             raise ValueError(f"n: expected a non-negative integer, got {n!r}")
         if self.integrator != "implicit":
             if n:
-                self._state = self._integrator.advance(self._state, self.dt, n)
-                self.steps += n
+                self._state, done, code, kinetic = self._integrator.advance(self._state, self.dt, n, self.check)
+                self.steps += done
+                self._raise_if_diverged(code, kinetic)
             return self
         for _ in range(n):
-            self._state = self._integrator.advance(self._state, self.dt)
-            self.steps += 1
-            stats = self._integrator.stats
-            self.cg_iterations.append(stats.iterations)
-            self.cg_failures += not stats.converged
+            self._state, done, code, kinetic = self._integrator.advance(self._state, self.dt, 1, self.check)
+            if done:
+                self.steps += 1
+                stats = self._integrator.stats
+                self.cg_iterations.append(stats.iterations)
+                self.cg_failures += not stats.converged
+            self._raise_if_diverged(code, kinetic)
         return self
+
+    def _raise_if_diverged(self, code, kinetic):
+        if code == divergence.OK:
+            return
+        positions = self.positions
+        work = max(0.0, float(np.sum(self.model.masses * (positions @ self.model.gravity))) - self.check[1])
+        bound = self.check[2] * (self.check[0] + work)
+        failed = self.steps + 1
+        raise DivergenceError(failed, failed * self.dt, divergence.CAUSES[code], kinetic, bound,
+                              self.integrator, self.dt)
 
     def energy(self) -> dict:
         """Kinetic, spring, gravity and total energy (J) of the current state."""
@@ -169,7 +215,7 @@ def _bytes(sim):
     total = 2 * 3 * n * real + real * n + 4 * (n + 1) + 2 * 4 * 2 * m + 2 * 4 * m + 2 * real * m
     total += real * m * sim.model.has_damping + 4 * n * sim.model.has_fixed
     per_array = {"x_next": 3 * n, "v_next": 3 * n, "b": 3 * n, "r": 3 * n, "z": 3 * n, "p": 3 * n,
-                 "q": 3 * n, "minv": 9 * n, "coef": 5 * m}
+                 "q": 3 * n, "minv": 9 * n, "coef": 5 * m, "keep": 3 * n}
     total += sum(per_array[a] * real for a in sim._integrator.work_arrays)
     return total
 

@@ -1,0 +1,26 @@
+"""Errors a run can raise after its input was accepted."""
+
+from __future__ import annotations
+
+
+class DivergenceError(RuntimeError):
+    """A step produced a non-finite or runaway state; the simulation kept the last good one.
+
+    Attributes: ``step`` (1-based number of the step that failed), ``time`` (s,
+    simulated time that step would have reached), ``cause`` ("non-finite" or
+    "runaway"), ``kinetic`` (J, kinetic energy of the rejected state), ``bound``
+    (J, the kinetic-energy bound it was checked against), ``integrator`` and ``dt``.
+    After the error ``Simulation.positions``/``velocities`` are those of step
+    ``step - 1`` and ``Simulation.steps == step - 1``.
+    """
+
+    def __init__(self, step, time, cause, kinetic, bound, integrator, dt):
+        self.step, self.time, self.cause = int(step), float(time), cause
+        self.kinetic, self.bound = float(kinetic), float(bound)
+        self.integrator, self.dt = integrator, float(dt)
+        if cause == "non-finite":
+            what = "non-finite position or velocity (NaN or Inf)"
+        else:
+            what = f"runaway growth: kinetic energy {self.kinetic:.3g} J above the bound {self.bound:.3g} J"
+        super().__init__(f"{integrator} diverged at step {self.step} (t = {self.time:.6g} s, dt = {self.dt:g} s): "
+                         f"{what}; the state of step {self.step - 1} is kept")

@@ -1,0 +1,403 @@
+"""Headless pictures of a run: camera and projection, strain colour map, frames, GIF and PNG.
+
+Frames are drawn offscreen on Taichi's ``ti.GUI(..., show_gui=False)`` canvas (lines,
+circles, triangles and text in C++, no display, GPU, Vulkan or ffmpeg needed) and
+encoded with Pillow. Everything here takes and returns numpy arrays: positions are
+(n, 3) float in m, images are (H, W, 3) uint8 with row 0 at the top.
+
+How a run becomes a GIF: a :class:`Recording` keeps the positions (float32) at chosen
+steps while the run goes; afterwards a :class:`FrameRenderer` frames the bounding box
+of *all* recorded frames (so nothing leaves the picture), and :func:`export` draws
+each frame and writes the files. A run without a recording pays nothing.
+
+Memory: a recording holds frames x particles x 12 bytes (150 frames of a 32 x 32
+cloth: 1.8 MB); rendered frames are kept as 8-bit palette images (W x H bytes each).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from massspring.files import atomic_output
+
+PROJECTIONS = ("orthographic", "perspective")
+PERSPECTIVE_DISTANCE = 3.0  # perspective camera distance from the run's centre, in bounding radii
+MARGIN = 0.05               # fraction of the plot area's width and height kept free on each side
+MAX_DOTS = 200              # free particles are dots when a model without a surface has at most this many
+MAX_FPS = 50                # GIF delays are in 1/100 s; viewers slow down delays below 2/100 s
+DEFAULT_MAX_FRAMES = 150    # cap of the default frame count
+STRAIN_FLOOR = 1e-3         # smallest colour-scale limit: strains below 0.1% stay near neutral
+STRAIN_QUANTILE = 0.995     # colour-scale limit: this quantile of |strain| over the run
+
+BACKGROUND = (24, 26, 32)
+TEXT = (225, 225, 225)
+FIXED = (255, 190, 0)
+FREE = (250, 250, 250)
+# Diverging map from compression (blue, -1) through neutral grey (0) to extension (red, +1).
+DIVERGING = np.array([(59, 76, 192), (141, 176, 254), (221, 221, 221), (244, 154, 123), (180, 4, 38)],
+                     dtype=np.float64)
+
+
+@dataclass(frozen=True)
+class View:
+    """A camera looking at the centre of the run from ``azimuth`` degrees about +z
+    (0 = from +x, 90 = from +y) and ``elevation`` degrees above the xy plane (90 =
+    from above), with an orthographic or perspective projection. +z is up on screen
+    (for elevation 90, the screen's up is the horizontal direction away from the camera's azimuth)."""
+
+    azimuth: float = -60.0
+    elevation: float = 20.0
+    projection: str = "orthographic"
+
+    def __post_init__(self):
+        for key in ("azimuth", "elevation"):
+            value = getattr(self, key)
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+                raise ValueError(f"view.{key}: expected a finite number of degrees, got {value!r}")
+            object.__setattr__(self, key, float(value))
+        if not -90.0 <= self.elevation <= 90.0:
+            raise ValueError(f"view.elevation: must be within [-90, 90] degrees, got {self.elevation:g}")
+        if self.projection not in PROJECTIONS:
+            raise ValueError(f"view.projection: unknown value {self.projection!r}, expected one of "
+                             f"{', '.join(PROJECTIONS)}")
+
+    def basis(self):
+        """Unit vectors (right, up, toward) in world coordinates; ``toward`` points from
+        the scene to the camera, so a larger ``p . toward`` is nearer."""
+        az, el = math.radians(self.azimuth), math.radians(self.elevation)
+        toward = np.array([math.cos(el) * math.cos(az), math.cos(el) * math.sin(az), math.sin(el)])
+        right = np.array([-math.sin(az), math.cos(az), 0.0])
+        up = np.cross(toward, right)
+        return right, up, toward
+
+    def project(self, points, centre, radius):
+        """Camera coordinates of ``points`` (..., 3) around ``centre`` (3,): returns
+        ``xy`` (..., 2) on the screen plane (m, +y up) and ``depth`` (...,) (m, larger
+        is nearer). Perspective divides by the distance to a camera placed
+        ``PERSPECTIVE_DISTANCE * radius`` from the centre, scaled to be exact at the centre."""
+        right, up, toward = self.basis()
+        p = np.asarray(points, dtype=np.float64) - centre
+        xy = np.stack([p @ right, p @ up], axis=-1)
+        depth = p @ toward
+        if self.projection == "perspective":
+            distance = PERSPECTIVE_DISTANCE * radius
+            xy *= (distance / (distance - depth))[..., None]
+        return xy, depth
+
+
+def diverging_colours(values):
+    """RGB (k, 3) float in 0..255 of ``values`` in [-1, 1] (clipped) on the DIVERGING map."""
+    t = (np.clip(np.asarray(values, dtype=np.float64), -1.0, 1.0) + 1.0) * (len(DIVERGING) - 1) / 2.0
+    lo = np.minimum(t.astype(np.int64), len(DIVERGING) - 2)
+    w = (t - lo)[:, None]
+    return DIVERGING[lo] * (1.0 - w) + DIVERGING[lo + 1] * w
+
+
+def packed(rgb):
+    """0xRRGGBB of RGB values in 0..255: an int for one colour, a uint32 array for (k, 3)."""
+    rgb = np.clip(np.rint(np.asarray(rgb, dtype=np.float64)), 0, 255).astype(np.uint32)
+    value = (rgb[..., 0] << 16) | (rgb[..., 1] << 8) | rgb[..., 2]
+    return int(value) if value.ndim == 0 else value
+
+
+def spring_strain(positions, springs, rest_lengths):
+    """Strain l / l0 - 1 of each spring (m,), 0 for springs of rest length 0."""
+    x = np.asarray(positions, dtype=np.float64)
+    length = np.linalg.norm(x[springs[:, 1]] - x[springs[:, 0]], axis=1)
+    rest = np.asarray(rest_lengths, dtype=np.float64)
+    out = np.zeros(len(springs))
+    np.divide(length, rest, out=out, where=rest > 0)
+    return np.where(rest > 0, out - 1.0, 0.0)
+
+
+def edge_springs(springs, triangles, n_particles):
+    """(t, 3) index of the spring along each triangle edge (a-b, b-c, c-a), -1 where none."""
+    springs = np.asarray(springs, dtype=np.int64)
+    keys = np.minimum(springs[:, 0], springs[:, 1]) * n_particles + np.maximum(springs[:, 0], springs[:, 1])
+    order = np.argsort(keys, kind="stable")
+    sorted_keys = keys[order]
+    a, b = triangles, np.roll(triangles, -1, axis=1)
+    wanted = np.minimum(a, b) * n_particles + np.maximum(a, b)
+    if not len(sorted_keys):
+        return np.full(wanted.shape, -1, dtype=np.int64)
+    pos = np.minimum(np.searchsorted(sorted_keys, wanted), len(sorted_keys) - 1)
+    return np.where(sorted_keys[pos] == wanted, order[pos], -1)
+
+
+def frame_steps(steps, frames=None, every=None, duration=None, fps=30.0, max_frames=DEFAULT_MAX_FRAMES):
+    """Steps (sorted int array, from 0 to ``steps``) at which to record a frame.
+
+    ``every`` K: steps 0, K, 2K, ... and the last step. ``frames`` N: N steps spread
+    evenly from 0 to ``steps`` (N <= steps + 1; N = 1 is the last step alone).
+    Neither: enough frames to play the simulated ``duration`` (s) in real time at
+    ``fps``, at most ``max_frames``.
+    """
+    if frames is not None and every is not None:
+        raise ValueError("frames, every: give at most one")
+    if every is not None:
+        if every < 1:
+            raise ValueError(f"every: must be >= 1, got {every}")
+        out = list(range(0, steps + 1, every))
+        if out[-1] != steps:
+            out.append(steps)
+        return np.array(out, dtype=np.int64)
+    if frames is None:
+        frames = max(2, min(max_frames, int(round(duration * fps)) + 1))
+        frames = min(frames, steps + 1)
+    elif frames < 1 or frames > steps + 1:
+        raise ValueError(f"frames: must be within 1..{steps + 1} (steps + 1), got {frames}")
+    if frames == 1:
+        return np.array([steps], dtype=np.int64)
+    return np.arange(frames, dtype=np.int64) * steps // (frames - 1)
+
+
+class Recording:
+    """Positions of a run at chosen steps: ``record(sim)`` is the frame callback of the
+    CLI's ``advance``. Frames with non-finite positions (a diverged state) are skipped."""
+
+    def __init__(self, steps):
+        self.steps = np.asarray(steps, dtype=np.int64)
+        self.positions = []  # (n, 3) float32 each
+        self.times = []      # simulated time (s) of each kept frame
+        self.skipped = 0
+
+    def record(self, sim):
+        x = sim.positions
+        if not np.all(np.isfinite(x)):
+            self.skipped += 1
+            return
+        self.positions.append(x.astype(np.float32))
+        self.times.append(sim.time)
+
+    def __len__(self):
+        return len(self.positions)
+
+
+@dataclass(frozen=True)
+class Framing:
+    """World -> pixel mapping of a run: ``view``'s projection around the run's bounding
+    box, scaled uniformly to fit ``plot`` (left, top, width, height in pixels) with
+    ``MARGIN`` kept free, and centred there."""
+
+    view: View
+    centre: np.ndarray
+    radius: float
+    middle: np.ndarray
+    scale: float
+    plot: tuple
+
+    @classmethod
+    def fit(cls, view, frames, plot):
+        """The framing of ``frames`` (k, n, 3): their 3D box gives the centre and radius,
+        their projections' 2D box the scale."""
+        frames = np.asarray(frames, dtype=np.float64)
+        lo, hi = frames.reshape(-1, 3).min(axis=0), frames.reshape(-1, 3).max(axis=0)
+        centre = (lo + hi) / 2
+        radius = float(np.linalg.norm(hi - lo)) / 2 or 1.0
+        xy, _ = view.project(frames, centre, radius)
+        lo2, hi2 = xy.reshape(-1, 2).min(axis=0), xy.reshape(-1, 2).max(axis=0)
+        extent = hi2 - lo2
+        room = np.array(plot[2:], dtype=np.float64) * (1 - 2 * MARGIN)
+        fits = [room[i] / extent[i] for i in range(2) if extent[i] > 1e-9 * radius]
+        scale = min(fits) if fits else float(min(room)) / (2 * radius)
+        return cls(view, centre, radius, (lo2 + hi2) / 2, scale, tuple(plot))
+
+    def pixels(self, points):
+        """Pixel coordinates (..., 2) (x right, y down; pixel (i, j) covers [i, i+1) x
+        [j, j+1)) and depth (...,) (m, larger is nearer) of ``points`` (..., 3)."""
+        xy, depth = self.view.project(points, self.centre, self.radius)
+        left, top, width, height = self.plot
+        px = left + width / 2 + (xy[..., 0] - self.middle[0]) * self.scale
+        py = top + height / 2 - (xy[..., 1] - self.middle[1]) * self.scale
+        return np.stack([px, py], axis=-1), depth
+
+
+def layout(size):
+    """(font size, caption band height, legend band height) in pixels of a (W, H) picture."""
+    font = max(9, round(min(size) / 34))
+    return font, round(font * 1.8), round(font * 3.6)
+
+
+def plot_box(size):
+    """(left, top, width, height) in pixels of the plot area of a (W, H) picture: the
+    whole width, between the caption band (top) and the legend band (bottom)."""
+    _, caption, legend = layout(size)
+    return 0, caption, size[0], size[1] - caption - legend
+
+
+class FrameRenderer:
+    """Draws frames of one run of ``model`` on an offscreen Taichi canvas.
+
+    ``frames`` (k, n, 3): every position the picture must hold (framing and the strain
+    colour scale come from all of them). ``triangles`` (t, 3) int: surface triangles,
+    drawn in painter's order (far to near) shaded and coloured by the mean strain of
+    their edge springs, with those springs as thin lines; without a surface every
+    spring is a line coloured by its strain. Fixed particles are amber dots; free
+    particles are white dots in a model without a surface and at most ``MAX_DOTS`` of them. ``label`` starts
+    each frame's caption (followed by the simulated time).
+    """
+
+    def __init__(self, model, frames, triangles=None, view=View(), size=(480, 480), label=""):
+        import taichi as ti  # the canvas; no ti.init needed, nothing is compiled
+
+        self.model = model
+        self.width, self.height = size
+        self.label = label
+        self.font, _, self.legend_h = layout(size)
+        self.framing = Framing.fit(view, frames, plot_box(size))
+        tris = np.zeros((0, 3), dtype=np.int64) if triangles is None else np.asarray(triangles, dtype=np.int64)
+        self.triangles = tris
+        self.tri_springs = edge_springs(model.springs, tris, model.n_particles)
+        if len(tris):
+            self.lines = np.unique(self.tri_springs[self.tri_springs >= 0])
+        else:
+            self.lines = np.arange(model.n_springs)
+        self.strain_limit = self._strain_limit(frames)
+        self.line_width = max(1.0, min(self.width, self.height) / (480 if len(tris) else 160))
+        self.dot = max(2.0, min(self.width, self.height) / 120)
+        few = not len(tris) and model.n_particles - model.fixed.size <= MAX_DOTS
+        self.free = np.flatnonzero(model.free_mask()) if few else np.zeros(0, dtype=np.int64)
+        self.gui = ti.GUI("massspring", res=(self.width, self.height), show_gui=False,
+                          background_color=packed(BACKGROUND))
+
+    def _strain_limit(self, frames):
+        """Colour-scale limit: the STRAIN_QUANTILE of |strain| over (up to 50) frames, >= STRAIN_FLOOR."""
+        if not self.model.n_springs:
+            return STRAIN_FLOOR
+        picks = np.unique(np.linspace(0, len(frames) - 1, min(len(frames), 50)).astype(np.int64))
+        strains = np.concatenate([np.abs(spring_strain(frames[i], self.model.springs, self.model.rest_lengths))
+                                  for i in picks])
+        return max(STRAIN_FLOOR, float(np.quantile(strains, STRAIN_QUANTILE)))
+
+    def _to_canvas(self, px):
+        """Pixel coordinates -> the canvas's [0, 1]^2 with y up."""
+        return np.stack([px[..., 0] / self.width, 1.0 - px[..., 1] / self.height], axis=-1)
+
+    def render(self, positions, time):
+        """The frame of ``positions`` (n, 3) at simulated ``time`` (s): (H, W, 3) uint8."""
+        gui = self.gui
+        gui.clear()
+        px, depth = self.framing.pixels(positions)
+        uv = self._to_canvas(px)
+        strain = spring_strain(positions, self.model.springs, self.model.rest_lengths) / self.strain_limit
+        springs = self.model.springs[self.lines]
+        line_rgb = diverging_colours(strain[self.lines])
+        line_depth = (depth[springs[:, 0]] + depth[springs[:, 1]]) / 2
+        if len(self.triangles):
+            self._draw_surface(positions, uv, depth, strain, springs, line_rgb, line_depth)
+        else:
+            order = np.argsort(line_depth, kind="stable")
+            gui.lines(uv[springs[order, 0]], uv[springs[order, 1]], radius=self.line_width,
+                      color=packed(line_rgb[order]))
+        if len(self.free):
+            gui.circles(uv[self.free], radius=self.dot, color=packed(FREE))
+        if self.model.has_fixed:
+            gui.circles(uv[self.model.fixed], radius=self.dot * 1.5, color=packed(FIXED))
+        self._draw_text(time)
+        image = gui.get_image()  # (W, H, 4) float in [0, 1], column-major with y up
+        return np.ascontiguousarray(np.rint(image[:, ::-1, :3].transpose(1, 0, 2) * 255).astype(np.uint8))
+
+    def _draw_surface(self, positions, uv, depth, strain, springs, line_rgb, line_depth, buckets=16):
+        """Triangles far to near, in ``buckets`` depth slices; each slice's edge lines are
+        drawn right after its triangles, so nearer surface covers farther lines."""
+        tris = self.triangles
+        x = np.asarray(positions, dtype=np.float64)
+        normal = np.cross(x[tris[:, 1]] - x[tris[:, 0]], x[tris[:, 2]] - x[tris[:, 0]])
+        norm = np.linalg.norm(normal, axis=1)
+        facing = np.abs(normal @ self.framing.view.basis()[2]) / np.where(norm > 0, norm, 1.0)
+        has = self.tri_springs >= 0
+        edge_strain = np.where(has, strain[np.maximum(self.tri_springs, 0)], 0.0)
+        tri_strain = edge_strain.sum(axis=1) / np.maximum(has.sum(axis=1), 1)
+        tri_rgb = diverging_colours(tri_strain) * (0.35 + 0.65 * facing)[:, None]
+        tri_depth = depth[tris].mean(axis=1)
+        order = np.argsort(tri_depth, kind="stable")
+        edges = np.quantile(tri_depth, np.linspace(0, 1, buckets + 1)[1:-1])
+        tri_bucket = np.searchsorted(edges, tri_depth[order])
+        line_bucket = np.searchsorted(edges, line_depth)
+        line_col = packed(line_rgb * 0.7)
+        for k in range(buckets):
+            sel = order[tri_bucket == k]
+            if len(sel):
+                a, b, c = (uv[tris[sel, i]] for i in range(3))
+                self.gui.triangles(a, b, c, color=packed(tri_rgb[sel]))
+            lsel = np.flatnonzero(line_bucket == k)
+            if len(lsel):
+                self.gui.lines(uv[springs[lsel, 0]], uv[springs[lsel, 1]], radius=self.line_width,
+                               color=line_col[lsel])
+
+    def _draw_text(self, time):
+        """Caption (label, simulated time) at the top; strain colour bar and legend at the bottom."""
+        gui, w, h, f = self.gui, self.width, self.height, self.font
+        gui.text(f"{self.label}  t = {time:.3f} s", (0.015, 1 - 0.25 * f / h), font_size=f, color=packed(TEXT))
+        bar_left, bar_right = 0.2 * w, 0.8 * w
+        bar_top, bar_bottom = h - self.legend_h + 1.5 * f, h - self.legend_h + 2.3 * f
+        steps = 64
+        xs = np.linspace(bar_left, bar_right, steps + 1)
+        colours = packed(diverging_colours(np.linspace(-1, 1, steps)))
+        ends = (xs[:-1], xs[1:] + 1)  # each segment overlaps the next by a pixel: no seams
+        corners = [np.stack([ends[i], np.full(steps, y)], axis=1)
+                   for i, y in ((0, bar_top), (1, bar_top), (1, bar_bottom), (0, bar_bottom))]
+        uv = [self._to_canvas(c) for c in corners]
+        gui.triangles(uv[0], uv[1], uv[2], color=colours)
+        gui.triangles(uv[0], uv[2], uv[3], color=colours)
+        percent = 100 * self.strain_limit
+        limit = f"{percent:.2g}%" if percent < 100 else f"{percent:,.0f}%"
+        gui.text("spring strain l/l0 - 1", (0.5 - 5.5 * f / w, 1 - (h - self.legend_h + 0.2 * f) / h),
+                 font_size=f, color=packed(TEXT))
+        label_y = 1 - (h - self.legend_h + 2.4 * f) / h
+        for text, x in ((f"-{limit}", max(2.0, bar_left - (len(limit) + 2) * 0.6 * f)), ("0", w / 2 - 0.3 * f),
+                        (f"+{limit}", bar_right + 0.4 * f)):
+            gui.text(text, (x / w, 1 - (h - self.legend_h + 1.3 * f) / h), font_size=f, color=packed(TEXT))
+        if self.model.has_fixed:
+            gui.circle((0.85, label_y - 0.4 * f / h), radius=self.dot * 1.5, color=packed(FIXED))
+            gui.text("fixed", (0.87, label_y), font_size=f, color=packed(TEXT))
+
+
+def to_palette(image):
+    """An (H, W, 3) uint8 frame as an 8-bit adaptive-palette PIL image (fast octree, no
+    dithering: 10x faster than median cut here, mean error under 1 level of 255)."""
+    from PIL import Image
+
+    return Image.fromarray(image, "RGB").quantize(colors=256, method=Image.Quantize.FASTOCTREE,
+                                                  dither=Image.Dither.NONE)
+
+
+def write_gif(path, frames, fps):
+    """Write PIL palette ``frames`` as a looping GIF at ``fps`` frames/s, atomically."""
+    if not frames:
+        raise ValueError("frames: a GIF needs at least one frame")
+    with atomic_output(path) as fh:
+        frames[0].save(fh, format="GIF", save_all=True, append_images=frames[1:],
+                       duration=round(1000 / fps), loop=0)
+
+
+def write_png(path, image):
+    """Write an (H, W, 3) uint8 image as PNG, atomically."""
+    from PIL import Image
+
+    with atomic_output(path) as fh:
+        Image.fromarray(image, "RGB").save(fh, format="PNG")
+
+
+def export(renderer, recording, gif=None, png=None, fps=30.0):
+    """Render ``recording`` with ``renderer`` and write the GIF (every frame) and/or the
+    PNG (the last frame). A Ctrl-C while rendering stops it, and what was rendered is
+    still written. Returns ``(frames written, interrupted)``."""
+    frames, last, interrupted = [], None, False
+    todo = range(len(recording)) if gif else range(len(recording) - 1, len(recording))
+    try:
+        for i in todo:
+            last = renderer.render(recording.positions[i], recording.times[i])
+            if gif:
+                frames.append(to_palette(last))
+    except KeyboardInterrupt:
+        interrupted = True
+    if gif and frames:
+        write_gif(gif, frames, fps)
+    if png and last is not None:
+        write_png(png, last)
+    return (len(frames) if gif else int(last is not None)), interrupted
+

@@ -1,0 +1,405 @@
+"""Stability from the spectrum: predicted dt limits, and a ladder of runs to check them.
+
+``spectrum`` estimates the largest eigenvalue lambda_max = omega_max^2 of M^-1 K
+(K the stiffness of seed Eq. 13 as written, no definiteness fix: that is the
+Jacobian the explicit integrators see) at a state, by Lanczos on the symmetric
+M^-1/2 (-K) M^-1/2 over the free degrees of freedom. K is applied matrix-free by
+the implicit solver's own kernels: ``operator.spring_coefficients`` with dt = 1
+and no damping gives per-spring blocks S = -K_ii, and ``cg.cg_apply`` with zero
+masses applies sum_s S_s (p_i - p_j) = -K p. The same with ks = 0 and the
+damping gives -D p, for the stiffest mode's damping rate c = u^T M^-1/2 (-D) M^-1/2 u.
+
+``predict`` turns (omega, c) into limits for the stiffest mode, x'' + c x' + omega^2 x = 0:
+
+* symplectic Euler is stable while omega^2 dt^2 + 2 c dt < 4, i.e. for
+  dt < (sqrt(c^2 + 4 omega^2) - c) / omega^2 (= 2 / omega without damping);
+* explicit Euler multiplies the mode by rho(dt) per step, the spectral radius of
+  [[1, dt], [-omega^2 dt, 1 - c dt]]: sqrt(1 - c dt + omega^2 dt^2) when complex,
+  sqrt(1 + (omega dt)^2) undamped, so it grows at every dt unless dt < c / omega^2.
+  ``doubling_dt`` is the dt at which rho^(2/dt) = 2: the stiffest mode's energy
+  doubles within one second of simulated time.
+
+``ladder`` runs every integrator at dts around these predictions and tabulates the
+outcome (``run_case``).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+import taichi as ti
+
+from massspring.errors import DivergenceError
+from massspring.integrators import DeviceModel, _scalar_array, _vec3_array
+from massspring.kernels import cg, operator
+from massspring.model import Model
+from massspring.simulation import divergence_check, ensure_taichi
+
+
+@dataclass(frozen=True)
+class Spectrum:
+    """lambda_max (1/s^2) of M^-1 K, omega_max = sqrt(lambda_max) (rad/s), the stiffest
+    mode's damping rate c (1/s, = 2 zeta omega), Lanczos iterations and the Ritz
+    residual ||M^-1/2 K M^-1/2 u - lambda u|| (1/s^2) of the estimate."""
+
+    lambda_max: float
+    omega_max: float
+    damping_rate: float
+    iterations: int
+    residual: float
+
+
+def spectrum(model: Model, positions=None, iterations=40, seed=0) -> Spectrum:
+    """Estimate the stiffest mode of ``model`` at ``positions`` ((n, 3) m; default the
+    model's) with ``iterations`` Lanczos steps (full reorthogonalisation, seeded)."""
+    if isinstance(iterations, bool) or not isinstance(iterations, int) or iterations < 1:
+        raise ValueError(f"iterations: expected a positive integer, got {iterations!r}")
+    ensure_taichi()
+    x = model.positions if positions is None else np.asarray(positions, dtype=np.float64)
+    if x.shape != model.positions.shape or not np.all(np.isfinite(x)):
+        raise ValueError(f"positions: expected finite values of shape {model.positions.shape}")
+    free = model.free_mask()
+    if model.n_springs == 0 or not free.any():
+        return Spectrum(0.0, 0.0, 0.0, 0, 0.0)
+    dev = DeviceModel.upload(model, "f64")
+    pos = _vec3_array(ti.f64, x)
+    zeros = _scalar_array(ti.f64, np.zeros(model.n_particles))
+    p, q = _vec3_array(ti.f64, np.zeros_like(x)), _vec3_array(ti.f64, np.zeros_like(x))
+
+    def coefficients(ks, kd, has_damping):
+        coef = ti.Vector.ndarray(5, ti.f64, shape=model.n_springs)
+        operator.spring_coefficients(pos, dev.ends, ks, kd, dev.l0, coef, 1.0, False, has_damping, ti.f64)
+        return coef
+
+    stiffness = coefficients(dev.ks, dev.kd, False)
+    damping = coefficients(_scalar_array(ti.f64, np.zeros(model.n_springs)), dev.kd, True) \
+        if model.has_damping else None
+    scale = np.where(free, 1.0 / np.sqrt(model.masses), 0.0)[:, None]
+
+    def apply(coef, u):
+        """M^-1/2 (-K or -D) M^-1/2 u on the free DOFs, u of shape (n, 3)."""
+        p.from_numpy(scale * u)
+        cg.cg_apply(p, q, zeros, dev.free, dev.offsets, dev.other, dev.spring, coef, dev.has_fixed, ti.f64)
+        return scale * q.to_numpy()
+
+    u = np.random.default_rng(seed).standard_normal(x.shape) * free[:, None]
+    basis = [u / np.linalg.norm(u)]
+    alphas, betas = [], []
+    for _ in range(min(iterations, 3 * int(free.sum()))):
+        w = apply(stiffness, basis[-1])
+        alphas.append(float(np.vdot(basis[-1], w)))
+        for _pass in range(2):  # full reorthogonalisation, twice is enough
+            for b in basis:
+                w -= np.vdot(b, w) * b
+        beta = float(np.linalg.norm(w))
+        betas.append(beta)
+        if beta <= 1e-12 * max(abs(a) for a in alphas) or not math.isfinite(beta):
+            break
+        basis.append(w / beta)
+    k = len(alphas)
+    tri = np.diag(alphas) + np.diag(betas[:k - 1], 1) + np.diag(betas[:k - 1], -1)
+    values, vectors = np.linalg.eigh(tri)
+    lam, y = float(values[-1]), vectors[:, -1]
+    mode = sum(c * b for c, b in zip(y, basis[:k]))
+    rate = float(np.vdot(mode, apply(damping, mode))) if damping is not None else 0.0
+    return Spectrum(lam, math.sqrt(max(lam, 0.0)), rate, k, abs(betas[k - 1] * y[-1]))
+
+
+def explicit_growth(omega, rate, dt):
+    """Per-step amplification of explicit Euler on x'' + rate x' + omega^2 x = 0: the
+    spectral radius of [[1, dt], [-omega^2 dt, 1 - rate dt]] (dimensionless)."""
+    return math.exp(log_explicit_growth(omega, rate, dt))
+
+
+def log_explicit_growth(omega, rate, dt):
+    """log of ``explicit_growth``, accurate for tiny dt (no 1 + tiny round-off).
+
+    The eigenvalues are 1 + dt (-rate +- sqrt(rate^2 - 4 omega^2)) / 2: complex
+    with |lambda|^2 = 1 + dt (omega^2 dt - rate) when rate < 2 omega, else real.
+    """
+    disc = rate * rate - 4.0 * omega * omega
+    if disc < 0:
+        return 0.5 * math.log1p(dt * (omega * omega * dt - rate))
+    root = math.sqrt(disc)
+    return max(_log_abs_one_plus(0.5 * dt * (root - rate)), _log_abs_one_plus(-0.5 * dt * (root + rate)))
+
+
+def _log_abs_one_plus(a):
+    if a > -0.5:
+        return math.log1p(a)
+    return math.log(abs(1.0 + a)) if a != -1.0 else -math.inf
+
+
+def symplectic_limit(omega, rate):
+    """Largest stable dt (s) of symplectic Euler on the mode: omega^2 dt^2 + 2 rate dt = 4."""
+    if omega == 0:
+        return math.inf
+    return (math.sqrt(rate * rate + 4.0 * omega * omega) - rate) / (omega * omega)
+
+
+def explicit_stable_dt(omega, rate):
+    """Largest dt (s) at which explicit Euler does not amplify the mode (rho <= 1).
+
+    Jury's conditions on the 2x2 step matrix: det <= 1, i.e. dt <= rate / omega^2,
+    and 4 - 2 rate dt + omega^2 dt^2 >= 0, which cuts in first for an overdamped
+    mode (rate > 2 omega) at dt = (rate - sqrt(rate^2 - 4 omega^2)) / omega^2.
+    """
+    if omega == 0:
+        return 2.0 / rate if rate > 0 else math.inf
+    limit = rate / omega ** 2
+    if rate > 2.0 * omega:
+        limit = min(limit, (rate - math.sqrt(rate * rate - 4.0 * omega * omega)) / omega ** 2)
+    return limit
+
+
+def doubling_dt(omega, rate):
+    """The smallest dt (s) at which explicit Euler doubles the mode's energy within one
+    second: rho(dt)^(2/dt) >= 2. Found on a geometric grid of dt (factor 2^(1/4),
+    from 2^-60 / omega up), then refined by bisection in the first bracketing interval."""
+    if omega == 0:
+        return math.inf
+
+    def doubles(dt):
+        return 2.0 * log_explicit_growth(omega, rate, dt) >= dt * math.log(2.0)
+
+    low = 0.0
+    for k in range(-240, 80):
+        high = 2.0 ** (k / 4) / omega
+        if doubles(high):
+            break
+        low = high
+    else:
+        return math.inf
+    for _ in range(200):
+        mid = 0.5 * (low + high)
+        if mid in (low, high):
+            break
+        low, high = (mid, high) if not doubles(mid) else (low, mid)
+    return high
+
+
+@dataclass(frozen=True)
+class Prediction:
+    """Predicted limits for a model at a state (see the module docstring). dts in s."""
+
+    omega_max: float
+    damping_rate: float
+    symplectic_dt: float
+    symplectic_dt_undamped: float
+    explicit_doubling_dt: float
+    explicit_stable_dt: float
+    lanczos_iterations: int
+    lanczos_residual: float
+
+    def explicit_growth(self, dt):
+        """Predicted per-step growth factor of the stiffest mode under explicit Euler."""
+        return explicit_growth(self.omega_max, self.damping_rate, dt)
+
+
+def predict(model: Model, positions=None, iterations=40) -> Prediction:
+    spec = spectrum(model, positions, iterations)
+    w, c = spec.omega_max, spec.damping_rate
+    return Prediction(omega_max=w, damping_rate=c, symplectic_dt=symplectic_limit(w, c),
+                      symplectic_dt_undamped=2.0 / w if w else math.inf,
+                      explicit_doubling_dt=doubling_dt(w, c),
+                      explicit_stable_dt=explicit_stable_dt(w, c),
+                      lanczos_iterations=spec.iterations, lanczos_residual=spec.residual)
+
+
+# Ladder: integrator, definiteness fix, the prediction its dt is relative to, multiples.
+LADDER = (
+    ("symplectic", True, "symplectic_dt", (0.5, 0.9, 1.1, 1.5, 3.0)),
+    ("explicit", True, "explicit_doubling_dt", (0.5, 1.0, 2.0, 10.0, 100.0)),
+    ("implicit", True, "symplectic_dt", (1.0, 10.0, 100.0, 1000.0)),
+    ("implicit", False, "symplectic_dt", (1.0, 10.0, 100.0, 1000.0)),
+)
+COLUMNS = ("integrator", "definiteness_fix", "dt", "dt_ratio", "relative_to", "outcome", "steps",
+           "simulated_time", "energy_ratio", "max_strain", "cg_iterations_mean", "cg_iterations_max",
+           "cg_failures")
+
+
+def energy_ratio(model: Model, positions, velocities, check) -> float:
+    """(kinetic + spring energy) / (initial kinetic + spring energy + work done by gravity).
+
+    1 for an exactly conservative run, below 1 when damped, above 1 when the
+    integrator added energy; NaN when the denominator is 0 (nothing to move).
+    """
+    e0 = model.energy(model.positions, model.velocities)
+    e = model.energy(positions, velocities)
+    work = -e["gravity"] - check[1]
+    available = e0["kinetic"] + e0["spring"] + work
+    return (e["kinetic"] + e["spring"]) / available if available > 0 else math.nan
+
+
+def max_strain(model: Model, positions) -> float:
+    """max over springs with l0 > 0 of |l - l0| / l0 (0 if there are none)."""
+    s = model.springs[model.rest_lengths > 0]
+    if not len(s):
+        return 0.0
+    length = np.linalg.norm(positions[s[:, 1]] - positions[s[:, 0]], axis=1)
+    l0 = model.rest_lengths[model.rest_lengths > 0]
+    return float(np.max(np.abs(length - l0) / l0))
+
+
+def run_case(scene, integrator, dt, definiteness_fix=True, duration=1.0, max_steps=1000, samples=20,
+             **sim_kwargs) -> dict:
+    """Run ``scene`` for min(ceil(duration / dt), max_steps) steps and report the outcome.
+
+    Returns a row of ``COLUMNS`` (without dt_ratio/relative_to): outcome "stable" or
+    "diverged at step k"; energy_ratio and max_strain (the largest over ``samples``
+    evenly spaced checks) of the last good state.
+    """
+    sim = scene.simulation(integrator=integrator, dt=dt, definiteness_fix=definiteness_fix, **sim_kwargs)
+    model = sim.model
+    steps = max(1, min(int(math.ceil(duration / dt - 1e-9)), int(max_steps)))
+    chunk = max(1, steps // samples)
+    strain = max_strain(model, model.positions)
+    outcome = "stable"
+    while sim.steps < steps:
+        try:
+            sim.step(min(chunk, steps - sim.steps))
+        except DivergenceError as exc:
+            outcome = f"diverged at step {exc.step}"
+            break
+        finally:
+            strain = max(strain, max_strain(model, sim.positions))
+    its = np.array(sim.cg_iterations) if sim.cg_iterations else None
+    return {"integrator": integrator, "definiteness_fix": bool(definiteness_fix), "dt": dt,
+            "outcome": outcome, "steps": sim.steps, "simulated_time": sim.time,
+            "energy_ratio": energy_ratio(model, sim.positions, sim.velocities, sim.check),
+            "max_strain": strain,
+            "cg_iterations_mean": float(its.mean()) if its is not None else None,
+            "cg_iterations_max": int(its.max()) if its is not None else None,
+            "cg_failures": sim.cg_failures if integrator == "implicit" else None}
+
+
+def ladder(scene, prediction: Prediction, duration=1.0, max_steps=1000, cases=LADDER, progress=None,
+           **sim_kwargs) -> list:
+    """Rows of ``COLUMNS``: every (integrator, fix, multiple) of ``cases`` run by ``run_case``
+    at dt = multiple x the named prediction, plus the scene's own default dt for each."""
+    rows = []
+    for integrator, fix, relative_to, multiples in cases:
+        reference = getattr(prediction, relative_to)
+        dts = [m * reference for m in multiples if math.isfinite(m * reference)]
+        dts.append(scene.default_dt(integrator))
+        for dt in dts:
+            row = run_case(scene, integrator, dt, fix, duration, max_steps, **sim_kwargs)
+            row["dt_ratio"] = dt / reference if math.isfinite(reference) else math.nan
+            row["relative_to"] = relative_to
+            rows.append({key: row[key] for key in COLUMNS})
+            if progress:
+                progress(rows[-1])
+    return rows
+
+
+def prediction_lines(prediction: Prediction, scene_name) -> list:
+    """The predictions as printed by ``massspring stability``."""
+    p = prediction
+    return [
+        f"scene {scene_name}: stiffest mode of M^-1 K (Lanczos, {p.lanczos_iterations} iterations, "
+        f"residual {p.lanczos_residual:.2g} 1/s^2)",
+        f"  omega_max                {p.omega_max:.6g} rad/s, damping rate c = 2 zeta omega {p.damping_rate:.4g} 1/s",
+        f"  symplectic stable below  dt = {p.symplectic_dt:.4g} s (2/omega_max = {p.symplectic_dt_undamped:.4g} s)",
+        f"  explicit: growth/step    sqrt(1 - c dt + (omega dt)^2) (undamped sqrt(1 + (omega dt)^2)); "
+        f"no growth below dt = {p.explicit_stable_dt:.4g} s",
+        f"  explicit doubles energy  within 1 s at dt = {p.explicit_doubling_dt:.4g} s "
+        f"(growth/step {p.explicit_growth(p.explicit_doubling_dt):.10g})",
+        "  implicit                 no limit predicted (linearised backward Euler)",
+    ]
+
+
+def _cell(value, digits=3):
+    if value is None:
+        return "-"
+    if isinstance(value, bool):
+        return "on" if value else "off"
+    if isinstance(value, float):
+        return "-" if math.isnan(value) else f"{value:.{digits}g}"
+    return str(value)
+
+
+def format_table(rows) -> str:
+    """The ladder as a text table (one line per run)."""
+    head = ("integrator", "fix", "dt (s)", "dt/pred", "pred", "outcome", "steps", "time (s)", "E ratio",
+            "max strain", "CG mean", "CG max", "CG fail")
+    keys = ("integrator", "definiteness_fix", "dt", "dt_ratio", "relative_to", "outcome", "steps",
+            "simulated_time", "energy_ratio", "max_strain", "cg_iterations_mean", "cg_iterations_max", "cg_failures")
+    short = {"symplectic_dt": "sympl", "explicit_doubling_dt": "double"}
+    cells = [head] + [tuple(short.get(r[k], _cell(r[k])) if k == "relative_to" else
+                            _cell(r[k], 4 if k in ("dt", "dt_ratio") else 3)
+                            if not (k == "definiteness_fix" and r["integrator"] != "implicit") else "-"
+                            for k in keys) for r in rows]
+    widths = [max(len(c[i]) for c in cells) for i in range(len(head))]
+    return "\n".join("  ".join(c[i].ljust(widths[i]) for i in range(len(head))).rstrip() for c in cells)
+
+
+def write_outputs(rows, prediction: Prediction, scene_name, prefix) -> list:
+    """PREFIX.csv (the table) and PREFIX.json (predictions and table), written atomically."""
+    import csv
+    import io
+    import json
+
+    from massspring.files import atomic_output
+
+    text = io.StringIO()
+    writer = csv.DictWriter(text, fieldnames=COLUMNS, lineterminator="\n")
+    writer.writeheader()
+    for row in rows:
+        writer.writerow({k: "" if v is None else v for k, v in row.items()})
+    clean = [{k: (None if isinstance(v, float) and not math.isfinite(v) else v) for k, v in row.items()}
+             for row in rows]
+    pred = {k: (None if isinstance(v, float) and not math.isfinite(v) else float(v) if isinstance(v, float)
+                else v) for k, v in asdict(prediction).items()}
+    data = json.dumps({"scene": scene_name, "prediction": pred, "runs": clean}, indent=1)
+    written = []
+    for suffix, payload in ((".csv", text.getvalue()), (".json", data)):
+        path = Path(f"{prefix}{suffix}")
+        with atomic_output(path) as fh:
+            fh.write(payload.encode())
+        written.append(path)
+    return written
+
+
+def plot(rows, path, title):
+    """PNG: energy ratio against dt / prediction, log-log, one line per integrator (and
+    fix setting); diverged runs marked with an x. Needs matplotlib (ImportError if absent)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from massspring.files import atomic_output
+
+    fig, ax = plt.subplots(figsize=(6.4, 4.4), dpi=90)
+    lines = {}
+    for row in rows:
+        if row["integrator"] == "implicit":
+            label = f"implicit (fix {'on' if row['definiteness_fix'] else 'off'}) vs symplectic limit"
+        else:
+            label = f"{row['integrator']} vs {'symplectic limit' if row['relative_to'] == 'symplectic_dt' else 'doubling dt'}"
+        if math.isfinite(row["dt_ratio"]) and math.isfinite(row["energy_ratio"]) and row["energy_ratio"] > 0:
+            lines.setdefault(label, []).append(row)
+    for label, members in lines.items():
+        members.sort(key=lambda r: r["dt_ratio"])
+        x = [r["dt_ratio"] for r in members]
+        y = [r["energy_ratio"] for r in members]
+        (line,) = ax.plot(x, y, marker="o", markersize=4, linewidth=1.2, label=label)
+        bad = [(r["dt_ratio"], r["energy_ratio"]) for r in members if r["outcome"] != "stable"]
+        if bad:
+            ax.plot(*zip(*bad), linestyle="none", marker="x", markersize=10, color=line.get_color())
+    ax.axvline(1.0, color="grey", linewidth=0.8, linestyle="--")
+    ax.set_xscale("log")
+    ax.set_yscale("log")
+    ax.set_xlabel("dt / predicted limit")
+    ax.set_ylabel("energy end / (start + gravity work)")
+    ax.set_title(title + " (x: diverged, last good state)", fontsize=9)
+    ax.grid(True, which="both", linewidth=0.3, alpha=0.5)
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    with atomic_output(path) as fh:
+        fig.savefig(fh, format="png")
+    plt.close(fig)
+    return Path(path)

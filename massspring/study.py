@@ -1,0 +1,550 @@
+"""Work-precision study: error against run time for every integrator, dt and CG tolerance.
+
+``run_study`` runs a scene with each integrator over a ladder of dt values (a
+factor of 2 apart), the implicit one also at several CG tolerances, all to the
+same end time, and measures each run against a reference solution
+(``massspring.reference``: exact for one spring, else RK4 checked by halving its dt).
+
+Measures of a run (all dimensionless unless stated):
+
+* ``error``: RMS over the moving particles of |x - x_ref| at the end time, divided by
+  the scene's size (the largest side of the bounding box of the initial positions;
+  1 m if that is 0).
+* ``error_over_time``: the same RMS taken over all particles and all save instants.
+* ``energy_error``: |E(T) - E_ref(T)| / E_scale, E the total energy (``Model.energy``)
+  and E_scale the largest kinetic + spring energy of the reference at any save
+  instant or at t = 0 (gravity potential has an arbitrary zero, so it is no scale).
+* ``wall_s``: seconds of stepping alone (``Simulation.step``): after one warm-up run
+  per integrator (compilation), the minimum over timed runs. The first timed run is the
+  measured one (it steps between save instants; readbacks are not timed); more runs,
+  each after one untimed step on its fresh Simulation, follow while fewer than
+  ``repeats`` were timed and their total is under ``time_budget`` seconds.
+* ``steps``, ``cg_iterations`` (total over the run; 0 for the explicit integrators).
+* ``diverged``: the run raised ``DivergenceError``, reached a non-finite state, or
+  its RMS error at a save instant exceeded the scene's size (runaway). Its error,
+  energy error and wall time are None, and it is left out of plots and fits.
+
+``order``: the least-squares slope of log(error) against log(dt) over a line's
+non-diverged runs (about 1 for all three Euler variants on smooth problems).
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+import math
+import sys
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from massspring import reference
+from massspring.files import atomic_output
+from massspring.simulation import INTEGRATORS, Simulation
+from massspring.simulation import _positive_float as _positive
+
+try:
+    from massspring.errors import DivergenceError
+except ImportError:  # pragma: no cover - the divergence check is a separate feature
+    class DivergenceError(Exception):
+        pass
+
+DEFAULT_CG_TOLS = (1e-2, 1e-4, 1e-6)
+DEFAULT_RUNGS = 7            # dt values per line: 2^6 = 64, about 2 decades
+DEFAULT_DURATION_FRACTION = 0.1  # of the scene's duration (see default_duration)
+MAX_SAVES = 100
+DEFAULT_REPEATS = 3
+DEFAULT_TIME_BUDGET = 2.0    # s of timed runs per configuration before repeats stop
+REFERENCE_RATIO = 1e-3       # RK4 halving change / smallest reported error must be below this
+REFERENCE_HALVINGS = 4       # extra RK4 refinements tried before the check is reported failed
+TARGETS = (1e-2, 1e-4)
+COLUMNS = ("integrator", "dt", "cg_tol", "error", "error_over_time", "energy_error", "wall_s",
+           "steps", "cg_iterations", "diverged", "timed_runs", "status")
+
+
+@dataclass
+class Run:
+    """One run of the study; see the module docstring for what each measure means."""
+
+    integrator: str
+    dt: float
+    cg_tol: float | None
+    error: float | None = None
+    error_over_time: float | None = None
+    energy_error: float | None = None
+    wall_s: float | None = None
+    steps: int = 0
+    cg_iterations: int = 0
+    diverged: bool = False
+    timed_runs: int = 0
+    status: str = "ok"
+    positions: np.ndarray | None = field(default=None, repr=False)   # (k, n, 3) at save instants
+    velocities: np.ndarray | None = field(default=None, repr=False)  # (n, 3) at the end
+
+    def row(self) -> dict:
+        return {key: getattr(self, key) for key in COLUMNS}
+
+    @property
+    def line(self) -> str:
+        """The plot line (and slope fit) this run belongs to."""
+        return self.integrator if self.cg_tol is None else f"{self.integrator} cg_tol={self.cg_tol:g}"
+
+
+@dataclass
+class ReferenceCheck:
+    """How the reference was obtained and whether it is accurate enough.
+
+    For RK4: ``change`` is the largest of the end-time and over-time RMS differences
+    (divided by the scene's size) between RK4 at ``dt`` and at ``2 dt``; ``passed`` when
+    it is below ``ratio`` x ``smallest`` (the smallest error the study reports).
+    """
+
+    method: str
+    dt: float | None = None
+    change: float | None = None
+    smallest: float | None = None
+    ratio: float = REFERENCE_RATIO
+    passed: bool = True
+
+    def describe(self) -> str:
+        if self.method == "exact":
+            return "reference: exact solution (damped oscillator)"
+        verdict = "PASS" if self.passed else "FAIL"
+        return (f"reference: RK4 at dt = {self.dt:.4g} s; RK4 at twice that dt differs from it by {self.change:.3g}, "
+                f"{self.change / self.smallest:.3g} x the smallest reported error {self.smallest:.3g} "
+                f"(must be < {self.ratio:g}): {verdict}")
+
+
+@dataclass
+class Study:
+    scene: str
+    params: dict
+    duration: float
+    times: np.ndarray
+    size: float
+    runs: list
+    reference: ReferenceCheck
+    orders: dict
+
+    def summary(self) -> dict:
+        return {"scene": self.scene, "params": self.params, "duration": self.duration,
+                "save_instants": self.times.tolist(), "size": self.size,
+                "reference": asdict(self.reference), "orders": self.orders,
+                "cheapest": {f"{t:g}": cheapest(self.runs, t) for t in TARGETS}}
+
+
+def default_duration(scene) -> float:
+    """The study's end time (s): a tenth of the scene's duration.
+
+    Explicit Euler must run at 64x below its largest stable dt on the smallest rung;
+    a tenth keeps `massspring study cloth` (and chain) to a few minutes on 2 cores.
+    """
+    return scene.duration * DEFAULT_DURATION_FRACTION
+
+
+def save_instants(duration, top_dts, max_saves=MAX_SAVES) -> np.ndarray:
+    """Equally spaced instants (s) ending at ``duration``, no closer than the largest dt."""
+    count = max(1, min(max_saves, int(math.floor(duration / max(top_dts) + 1e-9))))
+    return duration * np.arange(1, count + 1) / count
+
+
+def dt_ladder(top, interval, rungs=DEFAULT_RUNGS) -> list:
+    """``rungs`` dt values halving from at most ``top``, each dividing ``interval`` (s)."""
+    first = interval / math.ceil(interval / top - 1e-9)
+    return [first / 2 ** k for k in range(rungs)]
+
+
+def ladder_tops(scene, model, integrators, duration) -> dict:
+    """The largest dt (s) of each integrator's ladder, from the stability prediction
+    (``massspring.stability.predict``, at the initial state) with a 10% margin:
+
+    * explicit: 0.9 x the largest dt at which the stiffest mode does not grow, or, if
+      larger, at which its energy doubles in one second (there is no stable dt without damping);
+    * symplectic: 0.9 x its predicted stability limit;
+    * implicit: the scene's default dt (it has no stability limit);
+
+    and at most ``duration`` / 10 (s), so that every run has at least 10 steps.
+    """
+    from massspring import stability
+
+    tops = {name: scene.dt[name] for name in integrators}
+    if "explicit" in tops or "symplectic" in tops:
+        pred = stability.predict(model)
+        limits = {"explicit": max(pred.explicit_stable_dt, pred.explicit_doubling_dt),
+                  "symplectic": pred.symplectic_dt}
+        for name, limit in limits.items():
+            if name in tops and math.isfinite(limit) and limit > 0:
+                tops[name] = 0.9 * limit
+    return {name: min(top, duration / 10) for name, top in tops.items()}
+
+
+def scene_size(model) -> float:
+    """Largest side (m) of the bounding box of the initial positions (1 if 0)."""
+    extent = float(np.max(np.ptp(model.positions, axis=0)))
+    return extent if extent > 0 else 1.0
+
+
+def run_study(scene, *, integrators=tuple(INTEGRATORS), duration=None, rungs=DEFAULT_RUNGS,
+              ladders=None, cg_tols=DEFAULT_CG_TOLS, repeats=DEFAULT_REPEATS,
+              time_budget=DEFAULT_TIME_BUDGET, cache=None, use_cache=True,
+              reference_ratio=REFERENCE_RATIO, reference_dt=None, progress=None) -> Study:
+    """Run the sweep on ``scene`` (a Scene) and measure every run against the reference.
+
+    ``ladders``: optional {integrator: [dt, ...]} replacing the default ladders (from
+    the scene's default dt per integrator, ``dt_ladder``); save instants then follow
+    the largest dt given. ``reference_dt``: the RK4 step to start the self-check from
+    (default: the scene's explicit dt). ``progress``: a callable given each finished Run.
+    """
+    integrators = _check_integrators(integrators)
+    duration = default_duration(scene) if duration is None else _positive("duration", duration)
+    rungs = _positive_int("rungs", rungs)
+    repeats = _positive_int("repeats", repeats)
+    cg_tols = [_fraction("cg_tols", t) for t in cg_tols] or list(DEFAULT_CG_TOLS)
+    model = scene.model()
+    if ladders is None:
+        tops = ladder_tops(scene, model, integrators, duration)
+        times = save_instants(duration, list(tops.values()))
+        ladders = {name: dt_ladder(tops[name], times[0], rungs) for name in integrators}
+    else:
+        missing = [name for name in integrators if not ladders.get(name)]
+        if missing:
+            raise ValueError(f"ladders: no dt values for {', '.join(missing)}")
+        ladders = {name: [_positive(f"ladders[{name!r}]", dt) for dt in ladders[name]] for name in integrators}
+        times = save_instants(duration, [dt for name in integrators for dt in ladders[name]])
+        for name in integrators:
+            for dt in ladders[name]:
+                reference.steps_between(times, dt, name=f"ladders[{name!r}]")
+    size = scene_size(model)
+
+    runs = []
+    for name in integrators:
+        _warm_up(model, name, ladders[name][0])
+        for tol in (cg_tols if name == "implicit" else [None]):
+            for dt in ladders[name]:
+                run = _measure(model, name, dt, tol, times, size, repeats, time_budget)
+                runs.append(run)
+                if progress:
+                    progress(run)
+    ref, check = _reference(model, times, scene.dt["explicit"] if reference_dt is None else reference_dt,
+                            runs, size, cache, use_cache, reference_ratio)
+    for run in runs:
+        _score(run, ref, model, size)
+    return Study(scene.name, dict(scene.params), duration, times, size, runs, check, fit_orders(runs))
+
+
+def _warm_up(model, integrator, dt):
+    """Compile this integrator's kernels (one step on a throwaway Simulation)."""
+    sim = Simulation(model, integrator=integrator, dt=dt)
+    try:
+        sim.step(1)
+    except DivergenceError:
+        pass
+    sim.positions  # noqa: B018 - compiles the readback too
+
+
+def _measure(model, integrator, dt, cg_tol, times, size, repeats, time_budget) -> Run:
+    """The measured run (states at the save instants, stepping timed) and the extra timed runs."""
+    kwargs = {} if cg_tol is None else {"cg_tol": cg_tol}
+    run = Run(integrator, dt, cg_tol)
+    counts = reference.steps_between(times, dt)
+    sim = Simulation(model, integrator=integrator, dt=dt, **kwargs)
+    positions, wall = [], 0.0
+    for count in counts:
+        start = time.perf_counter()
+        try:
+            sim.step(int(count - sim.steps))
+        except DivergenceError as exc:
+            run.diverged, run.status = True, f"diverged ({exc.cause}, step {exc.step})"
+            break
+        wall += time.perf_counter() - start
+        x = sim.positions
+        if not np.all(np.isfinite(x)):
+            run.diverged, run.status = True, "diverged (non-finite)"
+            break
+        positions.append(x)
+    run.steps = sim.steps
+    run.cg_iterations = int(sum(sim.cg_iterations))
+    if run.diverged:
+        return run
+    run.positions, run.velocities = np.array(positions), sim.velocities
+    if not np.all(np.isfinite(run.velocities)):
+        run.diverged, run.status = True, "diverged (non-finite)"
+        return run
+    walls = [wall]
+    while len(walls) < repeats and sum(walls) < time_budget:
+        timed = Simulation(model, integrator=integrator, dt=dt, **kwargs)
+        timed.step(1)  # untimed: first launch on this Simulation's arrays
+        start = time.perf_counter()
+        timed.step(int(counts[-1]))
+        walls.append(time.perf_counter() - start)
+    run.wall_s, run.timed_runs = min(walls), len(walls)
+    return run
+
+
+def _rms(diff):
+    """RMS over particles (and instants) of the length of (..., 3) differences."""
+    return float(np.sqrt(np.mean(np.sum(diff * diff, axis=-1))))
+
+
+def _score(run, ref, model, size):
+    """Fill in a finished run's errors against the reference; mark runaways as diverged."""
+    if run.diverged:
+        return
+    moving = model.free_mask()
+    diff = run.positions[:, moving] - ref.positions[:, moving]
+    per_instant = np.sqrt(np.mean(np.sum(diff * diff, axis=-1), axis=1)) / size
+    if np.any(per_instant > 1):
+        k = int(np.argmax(per_instant > 1))
+        run.diverged, run.status = True, f"diverged (runaway: error {per_instant[k]:.3g} at t = {ref.times[k]:.4g} s)"
+        run.wall_s = None
+        return
+    run.error = float(per_instant[-1])
+    run.error_over_time = _rms(diff) / size
+    end = model.energy(run.positions[-1], run.velocities)["total"]
+    ref_end = model.energy(ref.positions[-1], ref.velocities[-1])["total"]
+    run.energy_error = abs(end - ref_end) / _energy_scale(model, ref)
+
+
+def _energy_scale(model, ref):
+    scale = 0.0
+    for x, v in [(model.positions, model.velocities)] + list(zip(ref.positions, ref.velocities)):
+        energy = model.energy(x, v)
+        scale = max(scale, energy["kinetic"] + energy["spring"])
+    return scale if scale > 0 else 1.0
+
+
+def _smallest_error(runs):
+    values = [value for run in runs if not run.diverged
+              for value in (run.error, run.error_over_time) if value is not None and value > 0]
+    return min(values) if values else math.inf
+
+
+def _reference(model, times, dt0, runs, size, cache, use_cache, ratio):
+    """The reference trajectory and its check: exact if the model has one, else RK4.
+
+    RK4 starts at ``dt0`` (made to divide the save interval) and compares it with RK4
+    at half that dt; while the change is not below ``ratio`` x the smallest error of
+    the (provisionally scored) runs, it halves again, up to REFERENCE_HALVINGS times.
+    The finer of the last pair is the reference.
+    """
+    exact = reference.exact_spring(model, times)
+    if exact is not None:
+        return exact, ReferenceCheck("exact")
+    moving = model.free_mask()
+    dt = times[0] / math.ceil(times[0] / dt0 - 1e-9)
+    coarse = reference.rk4(model, times, dt, cache=cache, use_cache=use_cache)
+    for _ in range(REFERENCE_HALVINGS + 1):
+        dt /= 2
+        fine = reference.rk4(model, times, dt, cache=cache, use_cache=use_cache)
+        diff = coarse.positions[:, moving] - fine.positions[:, moving]
+        change = max(_rms(diff[-1]), _rms(diff)) / size if np.all(np.isfinite(diff)) else math.inf
+        provisional = [Run(r.integrator, r.dt, r.cg_tol, positions=r.positions, velocities=r.velocities,
+                           diverged=r.diverged) for r in runs]
+        for run in provisional:
+            _score(run, fine, model, size)
+        smallest = _smallest_error(provisional)
+        if change < ratio * smallest:
+            break
+        coarse = fine
+    return fine, ReferenceCheck("rk4", dt=dt, change=change, smallest=smallest, ratio=ratio,
+                                passed=change < ratio * smallest)
+
+
+def fit_orders(runs, finest=3) -> dict:
+    """{line: {"integrator", "cg_tol", "order", "order_finest", "points"}}.
+
+    ``order``: least-squares slope of log(error) against log(dt) over the line's
+    non-diverged runs with a positive error (None with fewer than 2 dt values);
+    ``order_finest``: the same over its ``finest`` smallest dts only (the asymptotic
+    order, free of runs near the stability limit).
+    """
+    lines = {}
+    for run in runs:
+        lines.setdefault(run.line, []).append(run)
+    out = {}
+    for line, members in lines.items():
+        good = sorted((r for r in members if not r.diverged and r.error is not None and r.error > 0),
+                      key=lambda r: r.dt)
+        out[line] = {"integrator": members[0].integrator, "cg_tol": members[0].cg_tol,
+                     "order": _slope(good), "order_finest": _slope(good[:finest]), "points": len(good)}
+    return out
+
+
+def _slope(runs):
+    if len({r.dt for r in runs}) < 2:
+        return None
+    return float(np.polyfit(np.log([r.dt for r in runs]), np.log([r.error for r in runs]), 1)[0])
+
+
+def integrator_orders(orders) -> dict:
+    """One order per integrator: for the implicit one, the line with the tightest CG tolerance."""
+    out = {}
+    for entry in orders.values():
+        name = entry["integrator"]
+        best = out.get(name)
+        if best is None or (entry["cg_tol"] is not None and entry["cg_tol"] < best["cg_tol"]):
+            out[name] = entry
+    return {name: entry["order"] for name, entry in out.items()}
+
+
+def cheapest(runs, target) -> dict | None:
+    """The non-diverged run with the least wall time whose end-time error is <= target."""
+    good = [r for r in runs if not r.diverged and r.error is not None and r.error <= target
+            and r.wall_s is not None]
+    if not good:
+        return None
+    best = min(good, key=lambda r: r.wall_s)
+    return {"integrator": best.integrator, "dt": best.dt, "cg_tol": best.cg_tol,
+            "error": best.error, "wall_s": best.wall_s}
+
+
+# ---------------------------------------------------------------- output
+
+
+def _fmt(value, spec=".3g"):
+    if value is None:
+        return "-"
+    if isinstance(value, bool):
+        return "yes" if value else "no"
+    if isinstance(value, float):
+        return format(value, spec)
+    return str(value)
+
+
+def table(study) -> str:
+    """The runs as a fixed-width text table."""
+    head = ("integrator", "cg_tol", "dt", "steps", "error", "err(t)", "energy", "wall_s", "CG its", "status")
+    rows = [(r.integrator, _fmt(r.cg_tol, ".0e"), _fmt(r.dt, ".4g"), str(r.steps), _fmt(r.error),
+             _fmt(r.error_over_time), _fmt(r.energy_error), _fmt(r.wall_s, ".4g"),
+             str(r.cg_iterations), r.status) for r in study.runs]
+    widths = [max(len(h), *(len(row[i]) for row in rows)) if rows else len(h) for i, h in enumerate(head)]
+    lines = ["  ".join(h.ljust(w) for h, w in zip(head, widths))]
+    lines += ["  ".join(c.ljust(w) for c, w in zip(row, widths)) for row in rows]
+    return "\n".join(line.rstrip() for line in lines)
+
+
+def report(study) -> str:
+    """Table, reference check, orders and cheapest choices, as printed by the CLI."""
+    out = [f"study of {study.scene}: end time {study.duration:g} s, {len(study.times)} save instants, "
+           f"size {study.size:g} m", "", table(study), "", study.reference.describe(), "",
+           "measured order (slope of log error vs log dt):"]
+    for line, entry in study.orders.items():
+        order, finest = (_fmt(entry[key], ".2f") for key in ("order", "order_finest"))
+        out.append(f"  {line:28s} {order}  ({entry['points']} runs; over the 3 smallest dt: {finest})")
+    out.append("")
+    for target in TARGETS:
+        best = cheapest(study.runs, target)
+        if best is None:
+            out.append(f"error <= {target:g}: no run reached it")
+        else:
+            tol = "" if best["cg_tol"] is None else f", cg_tol {best['cg_tol']:g}"
+            out.append(f"error <= {target:g}: cheapest {best['integrator']} dt {best['dt']:.4g} s{tol} "
+                       f"(error {best['error']:.3g}, {best['wall_s']:.3g} s)")
+    return "\n".join(out)
+
+
+def write_outputs(study, out_dir) -> list:
+    """runs.csv, runs.json, summary.json and (with matplotlib) work_precision.png in ``out_dir``.
+
+    Returns the paths written; a missing matplotlib is reported by ``plot`` raising ImportError.
+    """
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    rows = [run.row() for run in study.runs]
+    text = io.StringIO()
+    writer = csv.DictWriter(text, fieldnames=COLUMNS, lineterminator="\n")
+    writer.writeheader()
+    for row in rows:
+        writer.writerow({k: "" if v is None else v for k, v in row.items()})
+    written = []
+    for name, data in (("runs.csv", text.getvalue()), ("runs.json", json.dumps(rows, indent=1)),
+                       ("summary.json", json.dumps(study.summary(), indent=1))):
+        with atomic_output(out_dir / name) as fh:
+            fh.write(data.encode())
+        written.append(out_dir / name)
+    return written
+
+
+def plot(study, path, title=None):
+    """Work-precision PNG: end-time error against wall time, log-log, one line per
+    integrator and CG tolerance, each point labelled with its dt. Needs matplotlib."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6.4, 4.4), dpi=90)
+    lines = {}
+    for run in study.runs:
+        if not run.diverged and run.error and run.wall_s:
+            lines.setdefault(run.line, []).append(run)
+    markers = {"explicit": "o", "symplectic": "s", "implicit": "^"}
+    for line, members in lines.items():
+        members.sort(key=lambda r: r.dt)
+        ax.plot([r.wall_s for r in members], [r.error for r in members], marker=markers[members[0].integrator],
+                markersize=4, linewidth=1.2, label=line)
+        for r in members:
+            ax.annotate(f"{r.dt:.2g}", (r.wall_s, r.error), textcoords="offset points", xytext=(3, 3),
+                        fontsize=5.5, color=ax.lines[-1].get_color())
+    ax.set_xscale("log")
+    ax.set_yscale("log")
+    ax.set_xlabel("wall time of stepping (s)")
+    ax.set_ylabel("RMS position error at end / scene size")
+    ax.set_title(title or f"{study.scene}: work-precision, end time {study.duration:g} s (labels: dt in s)",
+                 fontsize=9)
+    ax.grid(True, which="both", linewidth=0.3, alpha=0.5)
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    buffer = io.BytesIO()
+    fig.savefig(buffer, format="png")
+    plt.close(fig)
+    with atomic_output(path) as fh:
+        fh.write(buffer.getvalue())
+    return Path(path)
+
+
+def new_out_dir(scene_name, base=".") -> Path:
+    """A directory that does not exist yet: ``study-<scene>``, else ``study-<scene>-2``, ..."""
+    base = Path(base)
+    candidate = base / f"study-{scene_name}"
+    k = 2
+    while candidate.exists():
+        candidate = base / f"study-{scene_name}-{k}"
+        k += 1
+    return candidate
+
+
+def progress_line(run) -> str:
+    what = f"{run.integrator:10s} dt {run.dt:<10.4g}" + ("" if run.cg_tol is None else f" cg_tol {run.cg_tol:g}")
+    done = run.status if run.diverged else f"{run.steps} steps in {run.wall_s:.3g} s"
+    return f"  {what}: {done}"
+
+
+def _check_integrators(integrators):
+    names = list(integrators)
+    if not names:
+        raise ValueError("integrators: at least one is needed")
+    for name in names:
+        if name not in INTEGRATORS:
+            raise ValueError(f"integrators: unknown value {name!r}, expected some of {', '.join(INTEGRATORS)}")
+    return names
+
+
+def _positive_int(name, value):
+    if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+        raise ValueError(f"{name}: expected a positive integer, got {value!r}")
+    return value
+
+
+def _fraction(name, value):
+    out = _positive(name, value)
+    if out >= 1:
+        raise ValueError(f"{name}: must be < 1, got {value!r}")
+    return out
+
+
+def print_progress(run):
+    print(progress_line(run), file=sys.stderr, flush=True)

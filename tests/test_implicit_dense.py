@@ -1,0 +1,338 @@
+"""One step of each integrator against an independent dense numpy evaluation.
+
+The implicit step is compared with the dense 3n x 3n system of seed Eq. 15,
+
+    (M - dt D - dt^2 K) v' = M v + dt f - dt D v,    x' = x + dt v',
+
+assembled block by block from Eq. 1-3 and 13-14 (typos fixed), with the fixed
+particles' rows and columns dropped and solved by ``np.linalg.solve``. Nothing here
+uses the package's kernels or its algebraic shortcuts (the right-hand side keeps
+the -dt D v term instead of cancelling it against the damping force).
+
+The helpers are also used by test_operator.py.
+"""
+
+import numpy as np
+import pytest
+
+import massspring as ms
+
+ZERO_LENGTH = 1e-12  # f64 zero-length rule: such a spring has no direction, force or stiffness
+
+# Each integrator has two drivers running the same algorithm: serial kernels (one
+# launch for a whole step or solve; chosen for systems below
+# ``massspring.integrators.SERIAL_BELOW`` springs, i.e. every system here) and
+# parallel kernels (one launch per phase; large systems). Tests run both on small
+# systems by overriding the integrator's choice.
+PATHS = ("serial", "parallel")
+
+
+def simulation(model, path, **kw):
+    """A Simulation whose integrator uses the ``path`` driver."""
+    sim = ms.Simulation(model, **kw)
+    integ = sim._integrator
+    assert isinstance(integ.serial, bool), "the integrator no longer has a serial/parallel switch"
+    integ.serial = path == "serial"
+    return sim
+
+
+def random_system(seed, n=None, rest=(0.6, 1.4), n_fixed=None, gravity=(0.0, 0.0, -9.81)):
+    """A random 3D system: n in 6..12 particles, about 2n random distinct springs with
+    rest lengths ``rest`` x their current length (< 1 stretched, > 1 compressed),
+    random ks, kd > 0, masses and velocities, 1-2 fixed particles."""
+    rng = np.random.default_rng(seed)
+    n = int(rng.integers(6, 13)) if n is None else n
+    x = rng.uniform(-1.0, 1.0, size=(n, 3))
+    pairs = np.array([(i, j) for i in range(n) for j in range(i + 1, n)])
+    springs = pairs[rng.choice(len(pairs), size=min(2 * n, len(pairs)), replace=False)]
+    springs = np.where(rng.random((len(springs), 1)) < 0.5, springs, springs[:, ::-1])  # both orders
+    length = np.linalg.norm(x[springs[:, 1]] - x[springs[:, 0]], axis=1)
+    k = len(springs)
+    n_fixed = int(rng.integers(1, 3)) if n_fixed is None else n_fixed
+    return ms.Model(
+        x, springs,
+        masses=rng.uniform(0.5, 2.0, n),
+        stiffness=rng.uniform(50.0, 500.0, k),
+        damping=rng.uniform(0.5, 5.0, k),
+        rest_lengths=length * rng.uniform(rest[0], rest[1], k),
+        velocities=rng.normal(size=(n, 3)),
+        gravity=gravity,
+        fixed=rng.choice(n, size=n_fixed, replace=False),
+    )
+
+
+def spring_geometry(x, i, j):
+    d = x[j] - x[i]
+    length = np.linalg.norm(d)
+    if length <= ZERO_LENGTH:
+        return None, length
+    return d / length, length
+
+
+def numpy_forces(model, x, v, magnitude=False):
+    """Total force (n, 3) of Eq. 1-3: spring + damping + gravity. With ``magnitude``,
+    also the per-particle sum of the terms' absolute values (n,) (the scale of the
+    round-off in summing them)."""
+    f = model.masses[:, None] * model.gravity[None, :]
+    mag = model.masses * np.linalg.norm(model.gravity)
+    for s, (i, j) in enumerate(model.springs):
+        nvec, length = spring_geometry(x, i, j)
+        if nvec is None:
+            continue
+        fs = model.stiffness[s] * (length - model.rest_lengths[s]) * nvec
+        fd = model.damping[s] * np.dot(v[j] - v[i], nvec) * nvec
+        f[i] += fs + fd
+        f[j] -= fs + fd
+        size = np.linalg.norm(fs) + np.linalg.norm(fd)
+        mag[i] += size
+        mag[j] += size
+    return (f, mag) if magnitude else f
+
+
+def dense_jacobians(model, x, definiteness_fix):
+    """K = df/dx (Eq. 13, damping's x-derivative ignored) and D = df/dv (Eq. 14), 3n x 3n.
+
+    K_ii = ks ((l0/l - 1) I - (l0/l) n n^T) = ks (c I - (1 + c) n n^T), c = l0/l - 1;
+    the definiteness fix uses min(c, 0) for c, i.e. drops the transverse part
+    c (I - n n^T) of compressed springs and keeps the axial part -ks n n^T.
+    """
+    n = model.n_particles
+    K = np.zeros((3 * n, 3 * n))
+    D = np.zeros((3 * n, 3 * n))
+    eye = np.eye(3)
+    for s, (i, j) in enumerate(model.springs):
+        nvec, length = spring_geometry(x, i, j)
+        if nvec is None:
+            continue
+        nn = np.outer(nvec, nvec)
+        l0, ks, kd = model.rest_lengths[s], model.stiffness[s], model.damping[s]
+        if definiteness_fix:
+            c = min(l0 / length - 1.0, 0.0)
+            kb = ks * (c * eye - (1.0 + c) * nn)
+        else:
+            kb = ks * ((l0 / length - 1.0) * eye - (l0 / length) * nn)  # Eq. 13 as written
+        db = -kd * nn
+        for blocks, sign in (((i, i), 1), ((j, j), 1), ((i, j), -1), ((j, i), -1)):
+            a, b = blocks
+            K[3 * a:3 * a + 3, 3 * b:3 * b + 3] += sign * kb
+            D[3 * a:3 * a + 3, 3 * b:3 * b + 3] += sign * db
+    return K, D
+
+
+def free_dofs(model):
+    return np.repeat(model.free_mask(), 3)
+
+
+def dense_system(model, dt, definiteness_fix, x=None, v=None):
+    """(A, b) of Eq. 15 restricted to the free particles' degrees of freedom."""
+    x = model.positions if x is None else x
+    v = model.velocities if v is None else v
+    K, D = dense_jacobians(model, x, definiteness_fix)
+    M = np.diag(np.repeat(model.masses, 3))
+    A = M - dt * D - dt * dt * K
+    vf = v.reshape(-1)
+    b = M @ vf + dt * numpy_forces(model, x, v).reshape(-1) - dt * D @ vf
+    keep = free_dofs(model)
+    return A[np.ix_(keep, keep)], b[keep]
+
+
+DT = 2e-2
+CG_TOL = 1e-10
+
+
+def implicit_reference(model, definiteness_fix):
+    A, b = dense_system(model, DT, definiteness_fix)
+    v_free = np.linalg.solve(A, b)
+    v = np.zeros(3 * model.n_particles)
+    v[free_dofs(model)] = v_free
+    v = v.reshape(-1, 3)
+    return A, b, v, model.positions + DT * v
+
+
+def check_implicit_step(model, definiteness_fix, path="serial"):
+    A, b, v_ref, x_ref = implicit_reference(model, definiteness_fix)
+    # the comparison is meaningful only on an SPD system (CG's domain)
+    np.testing.assert_allclose(A, A.T, rtol=0, atol=1e-14 * np.abs(A).max())
+    assert np.linalg.eigvalsh(A).min() > 0
+
+    sim = simulation(model, path, integrator="implicit", dt=DT, cg_tol=CG_TOL, definiteness_fix=definiteness_fix)
+    sim.step()
+    stats = sim.solver_stats
+    assert stats.converged and stats.reason == "converged", stats
+    assert stats.residual <= CG_TOL
+    assert sim.cg_iterations == [stats.iterations] and stats.iterations >= 1
+    v, x = sim.velocities, sim.positions
+    keep = free_dofs(model)
+
+    # (1) v' satisfies the independently assembled Eq. 15 to the CG tolerance. The
+    # residual is evaluated here in f64 with the dense A; its round-off, about
+    # eps ||A|| ||v'|| / ||b||, is added to the bound (tiny: A is diagonally
+    # dominated by M for these dt and ks).
+    vf = v.reshape(-1)[keep]
+    roundoff = 64 * np.finfo(float).eps * np.linalg.norm(A, 2) * np.linalg.norm(vf) / np.linalg.norm(b)
+    residual = np.linalg.norm(b - A @ vf) / np.linalg.norm(b)
+    assert residual <= CG_TOL + roundoff, (residual, CG_TOL, roundoff)
+
+    # (2) hence v' is close to the direct solution: ||v' - v*|| / ||v*|| <=
+    # cond_2(A) * ||b - A v'|| / ||b|| (standard perturbation bound for A e = r),
+    # with the direct solve's own error (cond eps) covered by the roundoff term.
+    # The bound uses the measured residual, not a looser constant, and cond(A) is
+    # computed, not guessed (it is about 2-5 here: M dominates, so the bound is tight).
+    cond = np.linalg.cond(A)
+    vref = v_ref.reshape(-1)[keep]
+    err = np.linalg.norm(vf - vref) / np.linalg.norm(vref)
+    assert err <= cond * (residual + roundoff), (err, cond, residual)
+
+    # (3) x' = x + dt v' to round-off, and so x' is as close to x* as dt v' is to dt v*
+    scale = np.abs(model.positions).max() + DT * np.abs(v).max()
+    np.testing.assert_allclose(x, model.positions + DT * v, rtol=0, atol=4 * np.finfo(float).eps * scale)
+    np.testing.assert_allclose(x, x_ref, rtol=0, atol=DT * cond * (residual + roundoff) * np.linalg.norm(vref)
+                               + 4 * np.finfo(float).eps * scale)
+
+    # (4) fixed particles: zero velocity and unchanged position, exactly
+    fixed = model.fixed
+    assert np.all(v[fixed] == 0) and np.all(x[fixed] == model.positions[fixed])
+    return sim
+
+
+def has_compressed(model, factor=1.0):
+    length = np.linalg.norm(model.positions[model.springs[:, 1]] - model.positions[model.springs[:, 0]], axis=1)
+    return np.any(model.rest_lengths > factor * length)
+
+
+@pytest.mark.parametrize("path", PATHS)
+@pytest.mark.parametrize("seed", range(4))
+def test_implicit_step_matches_dense_solve_with_fix(seed, path):
+    model = random_system(seed)
+    assert has_compressed(model), "the system should contain compressed springs (fix active)"
+    # the fix changes the matrix for this system, so the test distinguishes fix/no fix
+    A_fix, _ = dense_system(model, DT, True)
+    A_raw, _ = dense_system(model, DT, False)
+    assert np.abs(A_fix - A_raw).max() > 1e-6
+    sim = check_implicit_step(model, definiteness_fix=True, path=path)
+    assert_far_from_other_variant(sim, model, definiteness_fix=True)
+
+
+def assert_far_from_other_variant(sim, model, definiteness_fix):
+    """The step is much closer to its own reference than the two references are to
+    each other: the comparison can tell the fixed from the unfixed matrix."""
+    _, _, v_own, _ = implicit_reference(model, definiteness_fix)
+    _, _, v_other, _ = implicit_reference(model, not definiteness_fix)
+    gap = np.linalg.norm(v_own - v_other)
+    assert gap > 1e-4 * np.linalg.norm(v_own)
+    assert np.linalg.norm(sim.velocities - v_own) < 1e-3 * gap
+
+
+@pytest.mark.parametrize("path", PATHS)
+@pytest.mark.parametrize("seed", range(2))
+def test_implicit_step_matches_dense_solve_without_fix_stretched(seed, path):
+    """Stretched springs only (l0 < l): Eq. 13 as written is SPD-compatible."""
+    model = random_system(100 + seed, rest=(0.5, 0.95))
+    assert not has_compressed(model)
+    check_implicit_step(model, definiteness_fix=False, path=path)
+
+
+@pytest.mark.parametrize("path", PATHS)
+def test_implicit_step_matches_dense_solve_without_fix_mildly_compressed(path):
+    """Mildly compressed springs, small enough that M keeps Eq. 13's matrix SPD: the
+    unclamped transverse term is used (this matrix differs from the fixed one)."""
+    model = random_system(200, rest=(0.9, 1.2))
+    assert has_compressed(model)
+    A_fix, _ = dense_system(model, DT, True)
+    A_raw, _ = dense_system(model, DT, False)
+    assert np.abs(A_fix - A_raw).max() > 1e-6
+    sim = check_implicit_step(model, definiteness_fix=False, path=path)
+    assert_far_from_other_variant(sim, model, definiteness_fix=False)
+
+
+@pytest.mark.parametrize("path", PATHS)
+def test_implicit_several_steps_match_dense_solves(path):
+    """Three steps: each step's state is the previous step's output (warm start from
+    v_n, positions and Jacobians updated)."""
+    model = random_system(300)
+    sim = simulation(model, path, integrator="implicit", dt=DT, cg_tol=CG_TOL)
+    x, v = model.positions.copy(), model.velocities.copy()
+    keep = free_dofs(model)
+    for _ in range(3):
+        A, b = dense_system(model, DT, True, x=x, v=v)
+        v = np.zeros_like(v)
+        v.reshape(-1)[keep] = np.linalg.solve(A, b)
+        x = x + DT * v
+        sim.step()
+        stats = sim.solver_stats
+        assert stats.converged and stats.residual <= CG_TOL
+        # relative 2-norm error <= cond(A) * relative residual (see check_implicit_step),
+        # with 1e-13 for round-off in both solutions
+        bound = np.linalg.cond(A) * (CG_TOL + 1e-13) * np.linalg.norm(v)
+        assert np.linalg.norm(sim.velocities - v) <= bound
+        assert np.linalg.norm(sim.positions - x) <= DT * bound + 1e-14
+        x, v = sim.positions, sim.velocities  # continue from the simulated state
+
+
+@pytest.mark.parametrize("path", PATHS)
+@pytest.mark.parametrize("integrator", ["explicit", "symplectic"])
+@pytest.mark.parametrize("seed", range(3))
+def test_euler_step_matches_numpy(integrator, seed, path):
+    """explicit: x' = x + dt v, v' = v + dt f(x, v)/m; symplectic: x' = x + dt v'.
+    Both are a few f64 operations per particle, so they agree to round-off: the sum
+    of a particle's force terms (in another order than here) is exact to within
+    (number of terms) eps times the sum of their magnitudes, at most ~8 terms here,
+    and the update adds a few roundings; 16 eps times the scale covers both."""
+    model = random_system(seed)
+    x, v = model.positions, model.velocities
+    f, mag = numpy_forces(model, x, v, magnitude=True)
+    free = model.free_mask()
+    v_new = v + DT * f / model.masses[:, None]
+    v_new[~free] = 0.0
+    x_new = x + DT * (v_new if integrator == "symplectic" else v)
+    x_new[~free] = x[~free]
+
+    sim = simulation(model, path, integrator=integrator, dt=DT)
+    sim.step()
+    eps = np.finfo(float).eps
+    assert np.bincount(model.springs.ravel()).max() <= 8
+    v_scale = np.abs(v).max() + DT * (mag / model.masses).max()
+    np.testing.assert_allclose(sim.velocities, v_new, rtol=0, atol=16 * eps * v_scale)
+    np.testing.assert_allclose(sim.positions, x_new, rtol=0, atol=16 * eps * (np.abs(x).max() + DT * v_scale))
+    assert np.all(sim.velocities[~free] == 0) and np.all(sim.positions[~free] == x[~free])
+    # the forces matter: the change of v is far above the tolerance
+    assert np.abs(v_new - v).max() > 1e6 * 16 * eps * v_scale
+
+
+@pytest.mark.parametrize("integrator", ["explicit", "symplectic", "implicit"])
+def test_serial_and_parallel_drivers_agree(integrator):
+    """Both drivers run the same algorithm on the same data: over 10 steps of a
+    random system they agree to round-off (they may sum in different orders; the
+    state is O(1), so 1e-12 is a few hundred eps of accumulated difference, while
+    the step's own change is O(dt))."""
+    model = random_system(400)
+    out = []
+    for path in PATHS:
+        sim = simulation(model, path, integrator=integrator, dt=DT, cg_tol=1e-12)
+        sim.step(3)  # multi-step calls of odd and even length
+        sim.step(7)
+        sim.step(0)
+        out.append((sim.positions, sim.velocities, list(sim.cg_iterations)))
+        assert sim.steps == 10
+    np.testing.assert_allclose(out[0][0], out[1][0], rtol=0, atol=1e-12)
+    np.testing.assert_allclose(out[0][1], out[1][1], rtol=0, atol=1e-11)
+    if integrator == "implicit":
+        assert len(out[0][2]) == 10 and all(it > 0 for it in out[0][2])
+        assert all(abs(a - b) <= 1 for a, b in zip(out[0][2], out[1][2])), out
+
+
+@pytest.mark.parametrize("path", PATHS)
+@pytest.mark.parametrize("integrator", ["explicit", "symplectic"])
+def test_multi_step_call_equals_single_steps(integrator, path):
+    """step(n) in one call (one launch for the serial driver, ping-ponging buffers)
+    gives exactly the state of n calls of step(1), for odd and even n."""
+    model = random_system(401)
+    a = simulation(model, path, integrator=integrator, dt=DT)
+    b = simulation(model, path, integrator=integrator, dt=DT)
+    for n in (3, 4, 1):
+        a.step(n)
+        for _ in range(n):
+            b.step()
+        np.testing.assert_array_equal(a.positions, b.positions)
+        np.testing.assert_array_equal(a.velocities, b.velocities)
+    assert a.steps == b.steps == 8

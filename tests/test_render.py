@@ -1,0 +1,289 @@
+"""Headless GIF/PNG export: valid files from every scene, pixels where the camera puts
+them, strain colours, frame schedules, and nothing lost when a run stops early."""
+
+import re
+
+import numpy as np
+import pytest
+from PIL import Image
+
+import massspring as ms
+from massspring import cli, generators, render
+from massspring.cli import main
+from massspring.scene import SceneError, builtin_scenes, load_scene
+
+SMALL = {"grid": ["--set", "resolution=6"], "lattice": ["--set", "resolution=3"], "chain": ["--set", "count=5"]}
+BACKGROUND = np.array(render.BACKGROUND)
+
+
+def gif_frames(path):
+    """All frames of a GIF as (H, W, 3) uint8 arrays."""
+    with Image.open(path) as im:
+        assert im.format == "GIF"
+        frames = []
+        for i in range(im.n_frames):
+            im.seek(i)
+            frames.append(np.asarray(im.convert("RGB")))
+        return frames, im.info
+
+
+def plot_region(image):
+    left, top, width, height = render.plot_box((image.shape[1], image.shape[0]))
+    return image[top:top + height, left:left + width]
+
+
+def drawn(image):
+    """Mask of pixels that differ from the background."""
+    return np.any(image != BACKGROUND, axis=-1)
+
+
+@pytest.mark.parametrize("scene", sorted(builtin_scenes()))
+def test_gif_of_every_scene(scene, tmp_path, capsys):
+    gif, png = tmp_path / "run.gif", tmp_path / "last.png"
+    code = main(["run", scene, "--steps", "20", "--every", "10", "--size", "160x120", "--fps", "20",
+                 "--gif", str(gif), "--png", str(png), "--quiet", *SMALL.get(load_scene(scene).generator, [])])
+    assert code == 0
+    assert "wrote" in capsys.readouterr().out
+    frames, info = gif_frames(gif)
+    assert len(frames) == 3  # steps 0, 10, 20
+    assert all(f.shape == (120, 160, 3) for f in frames)
+    assert info["duration"] == 50 and info["loop"] == 0  # 20 fps
+    plots = [plot_region(f).astype(int) for f in frames]
+    for a in range(3):  # the motion is in the picture, not only in the caption's time
+        for b in range(a + 1, 3):
+            assert np.abs(plots[a] - plots[b]).sum() > 0, (a, b)
+    last = plots[-1]
+    assert len(np.unique(last.reshape(-1, 3), axis=0)) >= 4
+    assert drawn(last).mean() > 0.01
+    rows, cols = np.nonzero(np.any([drawn(p) for p in plots], axis=0))
+    span = max((cols.max() - cols.min()) / last.shape[1], (rows.max() - rows.min()) / last.shape[0])
+    assert span > 0.8  # the run's box fills the plot (less the margins) in one direction
+    final = np.asarray(Image.open(png).convert("RGB"))
+    assert final.shape == (120, 160, 3)
+    assert np.abs(final.astype(int) - frames[-1]).mean() < 3  # the PNG is the last frame, unquantised
+
+
+def one_spring(rest_length, end=(1.0, 0.0, 0.0)):
+    return ms.Model([[0.0, 0.0, 0.0], end], [[0, 1]], rest_lengths=rest_length, fixed=[0], gravity=(0, 0, 0))
+
+
+def render_one(model, view, size=(200, 200), frames=None):
+    x = model.positions
+    renderer = render.FrameRenderer(model, x[None] if frames is None else frames, None, view, size)
+    return renderer.render(x, 0.0)
+
+
+def test_spring_along_x_is_a_horizontal_line_across_the_plot():
+    # camera on -y looking at +y (azimuth -90, elevation 0): +x is right, +z is up.
+    image = render_one(one_spring(0.8), render.View(azimuth=-90, elevation=0))
+    left, top, width, height = render.plot_box((200, 200))
+    mask = drawn(image[top:top + height])
+    rows, cols = np.nonzero(mask)
+    # the line is centred vertically in the plot (row boundary at height / 2) ...
+    assert set(rows) <= set(range(height // 2 - 3, height // 2 + 3))
+    # ... and its ends sit MARGIN in from the sides (within the end dots' radius)
+    ends = np.array([width * render.MARGIN, width * (1 - render.MARGIN)])
+    dot = 1.5 * max(2.0, 200 / 120) + 1
+    assert abs(cols.min() - ends[0]) <= dot and abs(cols.max() + 1 - ends[1]) <= dot
+    # stretched by 25 %: the middle of the line is red (extension end of the map)
+    middle = image[top:top + height, 100][mask[:, 100]]
+    assert np.all(middle[:, 0] > 2 * middle[:, 2]) and np.all(middle[:, 0] > 3 * middle[:, 1])
+    # the fixed particle (x = 0) is the amber dot on the left
+    amber = np.all(np.abs(image[top:top + height].astype(int) - render.FIXED) < 30, axis=-1)
+    assert amber.any() and np.nonzero(amber)[1].max() < 0.1 * 200
+
+
+def test_compressed_spring_is_blue():
+    image = render_one(one_spring(1.25), render.View(azimuth=-90, elevation=0))
+    left, top, width, height = render.plot_box((200, 200))
+    column = image[top:top + height, 100]
+    middle = column[drawn(column)]
+    assert len(middle) and np.all(middle[:, 2] > 2 * middle[:, 0])
+
+
+def test_view_direction_and_top_view():
+    # looking along the spring (azimuth 0: from +x) it collapses to a dot at the centre
+    image = plot_region(render_one(one_spring(1.0), render.View(azimuth=0, elevation=0)))
+    rows, cols = np.nonzero(drawn(image))
+    assert cols.max() - cols.min() < 12 and abs(cols.mean() - image.shape[1] / 2) < 3
+    # from above (elevation 90, azimuth -90), +y is up on screen: a spring along y is vertical
+    image = plot_region(render_one(one_spring(1.0, end=(0.0, 1.0, 0.0)), render.View(azimuth=-90, elevation=90)))
+    rows, cols = np.nonzero(drawn(image))
+    assert cols.max() - cols.min() < 12 and rows.max() - rows.min() > 0.8 * image.shape[0]
+    fixed_rows = np.nonzero(np.all(np.abs(image.astype(int) - render.FIXED) < 30, axis=-1))[0]
+    assert fixed_rows.min() > image.shape[0] / 2  # particle 0 (y = 0) is at the bottom
+
+
+def test_perspective_draws_the_nearer_spring_longer():
+    # two unit springs along x at y = -0.5 (nearer the camera on -y) and y = +0.5
+    model = ms.Model([[0, -0.5, 0], [1, -0.5, 0], [0, 0.5, 0.6], [1, 0.5, 0.6]], [[0, 1], [2, 3]],
+                     gravity=(0, 0, 0))
+    view = render.View(azimuth=-90, elevation=0, projection="perspective")
+    image = plot_region(render_one(model, view, size=(300, 300)))
+    mask = drawn(image)
+    rows = np.flatnonzero(mask.any(axis=1))
+    groups = np.split(rows, np.flatnonzero(np.diff(rows) > 1) + 1)
+    assert len(groups) == 2
+    upper, lower = (mask[g].any(axis=0) for g in groups)  # z = 0.6 (far) is drawn above z = 0 (near)
+    far_len, near_len = np.ptp(np.flatnonzero(upper)), np.ptp(np.flatnonzero(lower))
+    # pinhole camera PERSPECTIVE_DISTANCE * radius from the centre: lengths scale as 1 / distance
+    radius = np.linalg.norm([1.0, 1.0, 0.6]) / 2
+    d = render.PERSPECTIVE_DISTANCE * radius
+    assert near_len / far_len == pytest.approx((d + 0.5) / (d - 0.5), rel=0.03)
+
+
+def test_framing_covers_every_frame():
+    model = one_spring(1.0)
+    frames = np.array([model.positions, model.positions + [0.0, 0.0, 3.0]])  # moved up 3 m later
+    renderer = render.FrameRenderer(model, frames, None, render.View(-90, 0), (200, 200))
+    left, top, width, height = render.plot_box((200, 200))
+    for x in frames:
+        px, _ = renderer.framing.pixels(x)
+        assert np.all((px[:, 0] >= left) & (px[:, 0] <= left + width))
+        assert np.all((px[:, 1] >= top) & (px[:, 1] <= top + height))
+    early, _ = renderer.framing.pixels(frames[0])
+    late, _ = renderer.framing.pixels(frames[1])
+    assert late[0, 1] < early[0, 1]  # up in the world is up in the picture
+
+
+def test_surface_triangle_edges_are_springs():
+    for scene in ("cloth", "cube"):
+        sc = load_scene(scene).with_params(resolution=4)
+        model, tris = sc.model(), sc.triangles()
+        expected = {"cloth": 2 * 3 * 3, "cube": 6 * 2 * 3 * 3}[scene]
+        assert tris.shape == (expected, 3)
+        idx = render.edge_springs(model.springs, tris, model.n_particles)
+        assert np.all(idx >= 0)
+        for t, tri in enumerate(tris):
+            for e in range(3):
+                pair = {int(tri[e]), int(tri[(e + 1) % 3])}
+                assert set(model.springs[idx[t, e]].tolist()) == pair
+    model = load_scene("cloth").with_params(resolution=4, shear=0.0).model()
+    idx = render.edge_springs(model.springs, generators.surface("grid", {"resolution": 4}), model.n_particles)
+    assert np.sum(idx < 0) == 2 * 3 * 3  # one diagonal per triangle has no spring without shear
+
+
+def test_strain_and_colour_map():
+    x = np.array([[0.0, 0, 0], [2.0, 0, 0], [0, 3.0, 0]])
+    strain = render.spring_strain(x, np.array([[0, 1], [0, 2], [1, 2]]), np.array([1.0, 4.0, 0.0]))
+    assert strain == pytest.approx([1.0, -0.25, 0.0])
+    colours = render.diverging_colours([-5.0, -1.0, 0.0, 1.0, 5.0])
+    assert np.allclose(colours[0], render.DIVERGING[0]) and np.allclose(colours[1], render.DIVERGING[0])
+    assert np.allclose(colours[2], render.DIVERGING[len(render.DIVERGING) // 2])
+    assert np.allclose(colours[4], render.DIVERGING[-1])
+    assert render.packed((255, 128, 1)) == 0xFF8001
+
+
+def test_frame_steps():
+    assert render.frame_steps(10, every=4).tolist() == [0, 4, 8, 10]
+    assert render.frame_steps(10, every=5).tolist() == [0, 5, 10]
+    assert render.frame_steps(10, frames=3).tolist() == [0, 5, 10]
+    assert render.frame_steps(7, frames=8).tolist() == list(range(8))
+    assert render.frame_steps(7, frames=1).tolist() == [7]
+    assert len(render.frame_steps(120, duration=2.0, fps=30)) == 61  # 2 s at 30 fps, both ends
+    assert len(render.frame_steps(10000, duration=100.0, fps=30)) == render.DEFAULT_MAX_FRAMES
+    assert render.frame_steps(0, duration=1.0).tolist() == [0]
+    with pytest.raises(ValueError, match="frames"):
+        render.frame_steps(5, frames=7)
+
+
+class FakeSim:
+    def __init__(self):
+        self.steps, self.calls, self.integrator, self.dt = 0, [], "fake", 1.0
+
+    def step(self, k):
+        self.calls.append(k)
+        self.steps += k
+
+
+def test_advance_calls_back_at_frame_steps_only():
+    sim, seen = FakeSim(), []
+    cli.advance(sim, 1000, show=False, frames=[0, 7, 500, 1000], on_frame=lambda s: seen.append(s.steps))
+    assert seen == [0, 7, 500, 1000] and sim.steps == 1000
+    plain = FakeSim()
+    cli.advance(plain, 1000, show=False)
+    assert plain.calls == [5] * 200  # without frames: the usual chunks
+
+
+def test_interrupted_run_keeps_the_frames_before(tmp_path, monkeypatch, capsys):
+    gif = tmp_path / "cut.gif"
+    original = ms.Simulation.step
+
+    def step(self, n=1):
+        if self.steps >= 4:
+            raise KeyboardInterrupt
+        return original(self, n)
+
+    monkeypatch.setattr(ms.Simulation, "step", step)
+    code = main(["run", "chain", "--set", "count=5", "--integrator", "symplectic", "--steps", "10",
+                 "--every", "2", "--size", "96x96", "--gif", str(gif), "--quiet"])
+    assert code == cli.EXIT_INTERRUPTED
+    assert "stopped at step 4 of 10" in capsys.readouterr().err
+    frames, _ = gif_frames(gif)
+    assert len(frames) == 3  # steps 0, 2, 4
+    assert not list(tmp_path.glob(".*.tmp"))  # no temporary file left behind
+
+
+def test_diverging_run_keeps_the_frames_before(tmp_path, capsys):
+    # explicit Euler on an undamped spring grows by sqrt(1 + (w dt)^2) = 5.1 per step here
+    gif = tmp_path / "boom.gif"
+    code = main(["run", "spring", "--integrator", "explicit", "--dt", "0.5", "--set", "damping=0",
+                 "--steps", "60", "--every", "1", "--size", "96x96", "--gif", str(gif), "--quiet"])
+    err = capsys.readouterr().err
+    assert code not in (0, 2)
+    stopped = int(re.search(r"stopped at step (\d+) of 60", err).group(1))
+    assert 0 < stopped < 60
+    frames, _ = gif_frames(gif)
+    assert len(frames) == stopped + 1
+
+
+def test_scene_view_table(tmp_path):
+    base = builtin_scenes()["chain"].read_text().split("\n[view]")[0] + "\n[view]\n"
+    path = tmp_path / "ok.toml"
+    path.write_text(base + 'azimuth = 10\nelevation = -30.5\nprojection = "perspective"\n')
+    assert load_scene(path).view == render.View(10.0, -30.5, "perspective")
+    for body, key in (('zoom = 2.0\n', "view.zoom"), ('azimuth = "north"\n', "view.azimuth"),
+                      ('projection = "fisheye"\n', "view.projection"), ("elevation = 120\n", "view.elevation")):
+        path = tmp_path / "bad.toml"
+        path.write_text(base + body)
+        with pytest.raises(SceneError, match=re.escape(key)) as err:
+            load_scene(path)
+        assert str(path) in str(err.value)
+    assert load_scene("cube").view.projection == "perspective"
+
+
+@pytest.mark.parametrize("args, option", [
+    (["--fps", "10"], "--fps"),                            # picture options need --gif or --png
+    (["--gif", "X", "--fps", "0"], "--fps"),
+    (["--gif", "X", "--size", "10x10"], "--size"),
+    (["--gif", "X", "--size", "big"], "--size"),
+    (["--gif", "X", "--view", "10"], "--view"),
+    (["--gif", "X", "--view", "10,east"], "--view"),
+    (["--gif", "X", "--view", "0,95"], "--view"),
+    (["--gif", "X", "--frames", "50"], "--frames"),         # more than steps + 1
+    (["--gif", "X", "--every", "0"], "--every"),
+    (["--gif", "no/such/dir/x.gif"], "--gif"),
+])
+def test_bad_picture_options_exit_2(args, option, tmp_path, capsys):
+    args = [str(tmp_path / a) if a == "X" else a for a in args]
+    assert main(["run", "spring", "--steps", "5", "--quiet", *args]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and option in err
+    assert not list(tmp_path.iterdir())
+
+
+@pytest.mark.parametrize("flip", [False, True])
+def test_painters_order_near_triangle_covers_far_one(flip):
+    # two triangles in x-z planes; the camera on -y sees A (y = -0.5) in front of B (y = +0.5)
+    tri = np.array([[0.0, 0, 0], [1, 0, 0], [0.5, 0, 1]])
+    x = np.concatenate([tri + [0, -0.5, 0], tri + [0, 0.5, 0]])
+    springs = [[0, 1], [1, 2], [2, 0], [3, 4], [4, 5], [5, 3]]
+    lengths = np.linalg.norm(x[[1, 2, 0, 4, 5, 3]] - x[[0, 1, 2, 3, 4, 5]], axis=1)
+    rest = np.concatenate([lengths[:3] / 2, lengths[3:] * 2])  # A stretched (red), B compressed (blue)
+    model = ms.Model(x, springs, rest_lengths=rest, gravity=(0, 0, 0))
+    triangles = np.array([[3, 4, 5], [0, 1, 2]] if flip else [[0, 1, 2], [3, 4, 5]])
+    renderer = render.FrameRenderer(model, x[None], triangles, render.View(-90, 0), (200, 200))
+    image = renderer.render(x, 0.0)
+    centroid, _ = renderer.framing.pixels(x[:3].mean(axis=0))
+    r, g, b = image[int(centroid[1]), int(centroid[0])].astype(int)
+    assert r > 2 * b and r > 2 * g

@@ -1,0 +1,248 @@
+"""Stability: the spectrum estimate against exact and dense references, divergence
+detection in every integrator (last good state kept), the extreme scenes, the CLI."""
+
+import math
+
+import numpy as np
+import pytest
+
+import massspring as ms
+from massspring import stability
+from massspring.cli import main
+from massspring.scene import load_scene
+from test_implicit_dense import PATHS, dense_jacobians, free_dofs, simulation
+
+
+def dense_lambda_max(model, x):
+    """Largest eigenvalue of M^-1 (-K) on the free DOFs, K of Eq. 13 as written (numpy)."""
+    K, _ = dense_jacobians(model, x, definiteness_fix=False)
+    free = free_dofs(model)
+    w = 1.0 / np.sqrt(np.repeat(model.masses, 3))[free]
+    sym = -K[np.ix_(free, free)] * w[:, None] * w[None, :]
+    return float(np.linalg.eigvalsh(sym)[-1])
+
+
+def test_one_spring_omega_and_explicit_growth():
+    scene = load_scene("spring").with_params(damping=0.0)
+    model = scene.model()
+    pred = stability.predict(model)
+    assert pred.omega_max == pytest.approx(math.sqrt(100.0 / 1.0), rel=1e-2)
+    assert pred.symplectic_dt == pytest.approx(2.0 / 10.0, rel=1e-2)
+    # Undamped 1D oscillator: explicit Euler multiplies v^2 + omega^2 u^2 by exactly rho^2 per step.
+    dt = 0.02
+    sim = scene.simulation("explicit", dt=dt)
+    energies = []
+    for _ in range(20):
+        e = sim.energy()
+        energies.append(e["kinetic"] + e["spring"])
+        sim.step(1)
+    measured = np.sqrt(np.array(energies[1:]) / np.array(energies[:-1]))
+    assert measured == pytest.approx(pred.explicit_growth(dt), rel=1e-9)
+    assert pred.explicit_growth(dt) == pytest.approx(math.sqrt(1 + (10 * dt) ** 2), rel=1e-9)
+
+
+def test_one_spring_damped_growth_matches_prediction():
+    scene = load_scene("spring")  # kd = 0.5: c = kd / m = 0.5 1/s
+    pred = stability.predict(scene.model())
+    assert pred.damping_rate == pytest.approx(0.5, rel=1e-6)
+    dt, steps = 0.01, 400
+    sim = scene.simulation("explicit", dt=dt)
+    e0 = sum(sim.energy()[k] for k in ("kinetic", "spring"))
+    sim.step(steps)
+    e1 = sum(sim.energy()[k] for k in ("kinetic", "spring"))
+    # over many steps the amplitude grows as rho^steps (up to a bounded phase factor)
+    assert (e1 / e0) ** (1 / (2 * steps)) == pytest.approx(pred.explicit_growth(dt), rel=2e-3)
+    assert pred.explicit_growth(dt) > 1 > pred.explicit_growth(0.5 * pred.explicit_stable_dt)
+
+
+@pytest.mark.parametrize("settle", [0, 40])
+def test_chain_omega_matches_dense_eigenvalue(settle):
+    scene = load_scene("chain").with_params(count=8)
+    sim = scene.simulation("implicit")
+    sim.step(settle)  # 40 steps: a swinging, stretched state (transverse terms of Eq. 13 matter)
+    x = sim.positions
+    spec = stability.spectrum(sim.model, x)
+    assert spec.lambda_max == pytest.approx(dense_lambda_max(sim.model, x), rel=0.05)
+    assert spec.omega_max == pytest.approx(math.sqrt(dense_lambda_max(sim.model, x)), rel=1e-6)
+
+
+def test_stiff_cloth_omega_matches_dense_eigenvalue():
+    model = load_scene("stiffcloth").with_params(resolution=6).model()
+    assert stability.spectrum(model).lambda_max == pytest.approx(dense_lambda_max(model, model.positions),
+                                                                  rel=0.05)
+
+
+def assert_last_good_state(sim, exc, before_positions, before_velocities, before_steps):
+    assert sim.steps == exc.step - 1 and sim.time == pytest.approx((exc.step - 1) * sim.dt)
+    assert np.all(np.isfinite(sim.positions)) and np.all(np.isfinite(sim.velocities))
+    assert sim.steps >= before_steps
+
+
+@pytest.mark.parametrize("path", PATHS)
+def test_symplectic_above_limit_raises_and_keeps_last_good_state(path):
+    scene = load_scene("stiffchain").with_params(count=10)
+    pred = stability.predict(scene.model())
+    sim = simulation(scene.model(), path, integrator="symplectic", dt=1.5 * pred.symplectic_dt)
+    with pytest.raises(ms.DivergenceError) as info:
+        sim.step(500)
+    exc = info.value
+    assert isinstance(exc, RuntimeError) and exc.cause == "runaway" and exc.step <= 100
+    assert f"step {exc.step}" in str(exc) and "t = " in str(exc)
+    assert_last_good_state(sim, exc, None, None, 0)
+    # below the limit the same scene runs
+    ok = simulation(scene.model(), path, integrator="symplectic", dt=0.9 * pred.symplectic_dt)
+    ok.step(500)
+    assert np.all(np.isfinite(ok.positions))
+
+
+@pytest.mark.parametrize("path", PATHS)
+def test_explicit_far_above_doubling_dt_raises(path):
+    scene = load_scene("stiffchain").with_params(count=10)
+    pred = stability.predict(scene.model())
+    dt = 1e4 * pred.explicit_doubling_dt
+    assert pred.explicit_growth(dt) > 1.0
+    sim = simulation(scene.model(), path, integrator="explicit", dt=dt)
+    with pytest.raises(ms.DivergenceError) as info:
+        sim.step(5000)
+    assert_last_good_state(sim, info.value, None, None, 0)
+
+
+def test_explicit_serial_stops_at_the_failing_step_like_single_steps():
+    scene = load_scene("stiffchain").with_params(count=10)
+    dt = 1.5 * stability.predict(scene.model()).symplectic_dt
+    many = scene.simulation("explicit", dt=dt)
+    with pytest.raises(ms.DivergenceError) as a:
+        many.step(500)
+    one = scene.simulation("explicit", dt=dt)
+    with pytest.raises(ms.DivergenceError) as b:
+        for _ in range(500):
+            one.step(1)
+    assert a.value.step == b.value.step
+    assert np.array_equal(many.positions, one.positions) and np.array_equal(many.velocities, one.velocities)
+
+
+@pytest.mark.parametrize("path", PATHS)
+def test_implicit_far_above_symplectic_limit_stays_finite(path):
+    scene = load_scene("stiffchain").with_params(count=10)
+    pred = stability.predict(scene.model())
+    sim = simulation(scene.model(), path, integrator="implicit", dt=100 * pred.symplectic_dt)
+    sim.step(300)
+    assert np.all(np.isfinite(sim.positions)) and np.all(np.isfinite(sim.velocities)) and sim.cg_failures == 0
+    assert stability.energy_ratio(sim.model, sim.positions, sim.velocities, sim.check) <= 1.0
+
+
+@pytest.mark.parametrize("path", PATHS)
+def test_implicit_rejected_step_restores_previous_state(path):
+    """A check that rejects everything after step 3: the implicit step is undone exactly."""
+    model = load_scene("chain").with_params(count=6).model()
+    sim = simulation(model, path, integrator="implicit", dt=0.01)
+    sim.step(3)
+    x, v = sim.positions, sim.velocities
+    sim.check = (sim.check[0], sim.check[1], 0.0)  # bound 0: any motion is "runaway"
+    with pytest.raises(ms.DivergenceError) as info:
+        sim.step(1)
+    assert info.value.step == 4 and sim.steps == 3
+    assert np.array_equal(sim.positions, x) and np.array_equal(sim.velocities, v)
+
+
+def test_nonfinite_state_is_detected():
+    model = ms.Model([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0]], [[0, 1]], stiffness=1e300, rest_lengths=0.5,
+                     gravity=(0, 0, 0), fixed=[0])
+    sim = ms.Simulation(model, integrator="explicit", dt=1e10)
+    with pytest.raises(ms.DivergenceError) as info:
+        sim.step(10)
+    assert info.value.cause == "non-finite" and info.value.step == 1
+    assert np.array_equal(sim.positions, model.positions)
+
+
+EXTREME = {  # scene -> test-size overrides
+    "stiffcloth": {"resolution": 8},
+    "heavychain": {"count": 10},
+    "zerolength": {"count": 8},
+    "crumpled": {"resolution": 8},
+    "compressed": {"resolution": 8},
+    "bigstep": {"resolution": 8},
+    "stiffchain": {"count": 10},
+}
+
+
+LINEARISATION_GAIN = pytest.mark.xfail(strict=True, reason=(
+    "known limitation: the seed's linearised implicit step (one Newton step of backward Euler) "
+    "stretches the springs of the stiff chain as it swings down, adding up to ~5x (count 10) / "
+    "~40x (count 20) the energy gravity supplied in the first 0.3 s, dissipated later"))
+
+
+@pytest.mark.parametrize("name", [pytest.param(n, marks=LINEARISATION_GAIN) if n == "stiffchain" else n
+                                  for n in sorted(EXTREME)])
+def test_extreme_scene_implicit_bounded(name):
+    scene = load_scene(name).with_params(**EXTREME[name])
+    sim = scene.simulation("implicit")
+    model = sim.model
+    gravity0 = float(np.sum(model.masses * (model.positions @ model.gravity)))
+    e0 = model.energy(model.positions, model.velocities)
+    for _ in range(10):
+        sim.step(20)
+        x, v = sim.positions, sim.velocities
+        assert np.all(np.isfinite(x)) and np.all(np.isfinite(v))
+        work = float(np.sum(model.masses * (x @ model.gravity))) - gravity0
+        e = model.energy(x, v)
+        assert e["kinetic"] + e["spring"] <= (e0["kinetic"] + e0["spring"] + work) * (1 + 1e-9) + 1e-12
+    assert sim.cg_failures == 0
+
+
+@pytest.mark.parametrize("name", sorted(set(EXTREME) - {"zerolength"}))
+def test_extreme_scene_explicit_above_limit_detected(name):
+    scene = load_scene(name).with_params(**EXTREME[name])
+    pred = stability.predict(scene.model())
+    sim = scene.simulation("explicit", dt=3 * pred.symplectic_dt)
+    with pytest.raises(ms.DivergenceError):
+        sim.step(2000)
+    assert np.all(np.isfinite(sim.positions))
+
+
+def test_zerolength_predicted_after_it_unfolds():
+    """All particles coincident: no spring has a direction, so no stiffness at t = 0."""
+    scene = load_scene("zerolength").with_params(count=8)
+    assert stability.predict(scene.model()).omega_max == 0.0
+    settle = scene.simulation("implicit")
+    settle.step(50)
+    pred = stability.predict(settle.model, settle.positions)
+    assert pred.omega_max == pytest.approx(math.sqrt(dense_lambda_max(settle.model, settle.positions)), rel=0.03)
+
+
+def test_compressed_cloth_definiteness_fix_keeps_cg_converging():
+    scene = load_scene("compressed").with_params(resolution=8)
+    on = stability.run_case(scene, "implicit", 1 / 60, definiteness_fix=True, duration=0.5)
+    off = stability.run_case(scene, "implicit", 1 / 60, definiteness_fix=False, duration=0.5)
+    assert on["outcome"] == "stable" and on["cg_failures"] == 0
+    assert off["cg_failures"] > 0
+
+
+def test_cli_run_divergence_exit_3_writes_out(tmp_path, capsys):
+    out = tmp_path / "state.npz"
+    code = main(["run", "stiffchain", "--set", "count=10", "--integrator", "symplectic", "--dt", "1e-4",
+                 "--steps", "500", "--quiet", "--out", str(out)])
+    assert code == 3
+    err = capsys.readouterr().err
+    assert len(err.strip().splitlines()) == 1 and "diverged at step" in err and "Traceback" not in err
+    data = np.load(out)
+    assert 0 < data["steps"] < 500 and np.all(np.isfinite(data["positions"]))
+
+
+def test_cli_stability_writes_table(tmp_path, capsys):
+    prefix = tmp_path / "st"
+    code = main(["stability", "spring", "--out", str(prefix), "--max-steps", "50"])
+    assert code == 0
+    text = capsys.readouterr().out
+    assert "omega_max                10 rad/s" in text and "symplectic stable below" in text
+    import json
+    data = json.loads((tmp_path / "st.json").read_text())
+    outcomes = {(r["integrator"], round(r["dt_ratio"], 6)): r["outcome"] for r in data["runs"]}
+    assert outcomes[("symplectic", 0.9)] == "stable"
+    assert outcomes[("symplectic", 3.0)].startswith("diverged")
+    assert (tmp_path / "st.csv").read_text().startswith("integrator,definiteness_fix,dt")
+
+
+def test_cli_stability_rejects_bad_options(capsys):
+    assert main(["stability", "spring", "--max-steps", "0"]) == 2
+    assert "--max-steps" in capsys.readouterr().err

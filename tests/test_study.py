@@ -1,0 +1,254 @@
+"""The work-precision study: errors against independent exact solutions, the RK4
+reference and its self-check, divergence handling, and the CSV/JSON outputs."""
+
+import csv
+import json
+
+import numpy as np
+import pytest
+
+import massspring as ms
+from massspring import reference, study
+from massspring.cli import main
+
+REQUIRED = ("integrator", "dt", "cg_tol", "error", "error_over_time", "energy_error", "wall_s",
+            "steps", "cg_iterations", "diverged")
+
+# The spring scene: particle 1 (m = 1 kg) on a spring ks = 100 N/m, kd = 0.5 N s/m, l0 = 1 m,
+# pulled to x = 1.1 m, particle 0 fixed at the origin; the scene's size is 1.1 m.
+KS, KD, M, L0, U0, SIZE = 100.0, 0.5, 1.0, 1.0, 0.1, 1.1
+END = 0.8
+SPRING_LADDERS = {"explicit": [1e-3, 5e-4, 2.5e-4], "symplectic": [1e-3, 5e-4, 2.5e-4],
+                  "implicit": [8e-3, 4e-3, 2e-3]}
+
+
+def exact_state(t):
+    """(u, w) of m u'' = -ks u - kd u' by the eigen-decomposition of the 2x2 system."""
+    a = np.array([[0.0, 1.0], [-KS / M, -KD / M]])
+    lam, vec = np.linalg.eig(a)
+    z = vec @ (np.exp(lam * t) * np.linalg.solve(vec, [U0, 0.0]))
+    return z.real
+
+
+def discrete_state(integrator, dt, steps):
+    """(u, w) after ``steps`` steps of each integrator's exact 1D map, as a 2x2 matrix power."""
+    k, c = dt * KS / M, dt * KD / M
+    if integrator == "explicit":      # u' = u + dt w, w' = w + dt (-ks u - kd w) / m
+        step = [[1.0, dt], [-k, 1.0 - c]]
+    elif integrator == "symplectic":  # w' first, then u' = u + dt w'
+        step = [[1.0 - dt * k, dt * (1.0 - c)], [-k, 1.0 - c]]
+    else:                             # (m + dt kd + dt^2 ks) w' = m w - dt ks u, u' = u + dt w'
+        d = 1.0 + c + dt * k
+        step = [[1.0 - dt * k / d, dt / d], [-k / d, 1.0 / d]]
+    return np.linalg.matrix_power(np.array(step), steps) @ [U0, 0.0]
+
+
+@pytest.fixture(scope="module")
+def spring_study():
+    scene = ms.load_scene("spring")
+    return study.run_study(scene, duration=END, ladders=SPRING_LADDERS, cg_tols=[1e-10], repeats=1,
+                           use_cache=False)
+
+
+def test_spring_errors_match_the_exact_solution(spring_study):
+    """Every reported error equals |u_discrete - u_exact| / size, both computed here."""
+    s = spring_study
+    assert s.reference.method == "exact"
+    assert s.size == pytest.approx(SIZE)
+    assert len(s.runs) == 9
+    u_ref, w_ref = exact_state(END)
+    energy_scale = 0.5 * KS * U0 ** 2  # largest kinetic + spring energy: the initial one
+    for run in s.runs:
+        steps = int(round(END / run.dt))
+        assert run.steps == steps and not run.diverged and run.status == "ok"
+        u, w = discrete_state(run.integrator, run.dt, steps)
+        assert run.error == pytest.approx(abs(u - u_ref) / SIZE, rel=1e-6)
+        energy = 0.5 * M * w ** 2 + 0.5 * KS * u ** 2
+        energy_ref = 0.5 * M * w_ref ** 2 + 0.5 * KS * u_ref ** 2
+        assert run.energy_error == pytest.approx(abs(energy - energy_ref) / energy_scale, rel=1e-6)
+        # over time: RMS over the save instants of the same quantity
+        per_instant = []
+        for t in s.times:
+            k = int(round(t / run.dt))
+            per_instant.append(discrete_state(run.integrator, run.dt, k)[0] - exact_state(t)[0])
+        assert run.error_over_time == pytest.approx(np.sqrt(np.mean(np.square(per_instant))) / SIZE, rel=1e-6)
+        assert run.wall_s > 0 and run.timed_runs == 1
+        assert (run.cg_iterations > 0) == (run.integrator == "implicit")
+
+
+def test_spring_orders_are_about_one(spring_study):
+    orders = study.integrator_orders(spring_study.orders)
+    assert set(orders) == {"explicit", "symplectic", "implicit"}
+    for name, order in orders.items():
+        assert 0.8 <= order <= 1.2, (name, order)
+
+
+def test_exact_spring_solution_all_regimes():
+    """The closed form against the eigen-decomposition for under-, over- and (near) critical damping."""
+    t = np.linspace(0, 2, 7)
+    for kd in (0.5, 25.0, 20.0 + 1e-6):
+        lam, vec = np.linalg.eig(np.array([[0.0, 1.0], [-KS / M, -kd / M]]))
+        want = np.array([(vec @ (np.exp(lam * ti) * np.linalg.solve(vec, [U0, 0.3]))).real for ti in t])
+        u, w = reference.damped_oscillator(U0, 0.3, M, KS, kd, 0.0, t)
+        np.testing.assert_allclose(u, want[:, 0], atol=1e-9)
+        np.testing.assert_allclose(w, want[:, 1], atol=1e-8)
+    u, w = reference.damped_oscillator(U0, 0.3, M, KS, 20.0, 0.0, t)  # exactly critical
+    np.testing.assert_allclose(u, (U0 + (0.3 + 10 * U0) * t) * np.exp(-10 * t), atol=1e-15)
+
+
+# ---- RK4 reference on a chain ------------------------------------------------
+
+
+def tiny_chain(count=4, damping=0.5):
+    return ms.load_scene("chain").with_params(count=count, damping=damping)
+
+
+def numpy_rk4(model, dt, steps):
+    """RK4 of Eq. 4 with dense numpy forces: an independent implementation."""
+    ends, ks, kd, l0 = model.springs, model.stiffness, model.damping, model.rest_lengths
+    moving = model.free_mask()[:, None]
+
+    def accel(x, v):
+        d = x[ends[:, 1]] - x[ends[:, 0]]
+        length = np.linalg.norm(d, axis=1)
+        n = d / length[:, None]
+        rel = np.sum((v[ends[:, 1]] - v[ends[:, 0]]) * n, axis=1)
+        f_spring = (ks * (length - l0) + kd * rel)[:, None] * n  # on end 0
+        f = np.zeros_like(x)
+        np.add.at(f, ends[:, 0], f_spring)
+        np.add.at(f, ends[:, 1], -f_spring)
+        return moving * (f / model.masses[:, None] + model.gravity)
+
+    x, v = model.positions.copy(), model.velocities.copy()
+    for _ in range(steps):
+        k1x, k1v = v, accel(x, v)
+        k2x, k2v = v + dt / 2 * k1v, accel(x + dt / 2 * k1x, v + dt / 2 * k1v)
+        k3x, k3v = v + dt / 2 * k2v, accel(x + dt / 2 * k2x, v + dt / 2 * k2v)
+        k4x, k4v = v + dt * k3v, accel(x + dt * k3x, v + dt * k3v)
+        x = x + dt / 6 * (k1x + 2 * k2x + 2 * k3x + k4x)
+        v = v + dt / 6 * (k1v + 2 * k2v + 2 * k3v + k4v)
+    return x, v
+
+
+def test_rk4_kernel_matches_numpy_rk4_and_is_cached(tmp_path):
+    model = tiny_chain().model()
+    dt, times = 1e-4, np.array([0.01, 0.02])
+    traj = reference.rk4(model, times, dt, cache=tmp_path)
+    x, v = numpy_rk4(model, dt, 200)
+    np.testing.assert_allclose(traj.positions[-1], x, atol=1e-12)
+    np.testing.assert_allclose(traj.velocities[-1], v, atol=1e-10)
+    files = list(tmp_path.glob("rk4-*.npz"))
+    assert len(files) == 1
+    again = reference.rk4(model, times, dt, cache=tmp_path)  # read back from the cache
+    np.testing.assert_array_equal(again.positions, traj.positions)
+    other = reference.rk4(model, times, dt / 2, cache=tmp_path)  # another dt is another entry
+    assert len(list(tmp_path.glob("rk4-*.npz"))) == 2
+    assert np.abs(other.positions - traj.positions).max() < 1e-10
+    with pytest.raises(ValueError, match="times"):
+        reference.rk4(model, [0.01, 0.015], 4e-3, use_cache=False)
+
+
+CHAIN_LADDERS = {"explicit": [2e-5, 1e-5], "symplectic": [1e-4, 5e-5], "implicit": [2e-3, 1e-3]}
+
+
+@pytest.fixture(scope="module")
+def chain_study(tmp_path_factory):
+    return study.run_study(tiny_chain(), duration=0.04, ladders=CHAIN_LADDERS, cg_tols=[1e-8], repeats=1,
+                           cache=tmp_path_factory.mktemp("cache"))
+
+
+def test_chain_reference_agrees_with_half_its_dt(chain_study, tmp_path):
+    check = chain_study.reference
+    assert check.method == "rk4" and check.passed
+    assert check.smallest == min(min(r.error, r.error_over_time) for r in chain_study.runs)
+    # the check, redone here: RK4 at the reported dt against RK4 at twice it
+    model = tiny_chain().model()
+    fine = reference.rk4(model, chain_study.times, check.dt, use_cache=False)
+    coarse = reference.rk4(model, chain_study.times, 2 * check.dt, use_cache=False)
+    moving = model.free_mask()
+    diff = (fine.positions - coarse.positions)[:, moving]
+    assert np.sqrt(np.mean(np.sum(diff ** 2, axis=-1))) / chain_study.size < 1e-3 * check.smallest
+    assert "PASS" in study.report(chain_study)
+
+
+def test_reference_check_failure_is_reported(tmp_path):
+    """A ratio no RK4 can meet: the check fails after its halvings, and says so."""
+    s = study.run_study(tiny_chain(), duration=0.01, integrators=["symplectic"],
+                        ladders={"symplectic": [1e-4, 5e-5]}, repeats=1, cache=tmp_path,
+                        reference_ratio=1e-20)
+    check = s.reference
+    assert check.method == "rk4" and not check.passed
+    assert check.change >= 1e-20 * check.smallest
+    assert check.dt == pytest.approx(s.times[0] / round(s.times[0] / 2e-5) / 2 ** (study.REFERENCE_HALVINGS + 1))
+    assert "FAIL" in study.report(s) and json.loads(json.dumps(s.summary()))["reference"]["passed"] is False
+
+
+# ---- divergence -------------------------------------------------------------
+
+
+def test_diverged_runs_are_marked_and_not_fitted(tmp_path):
+    """Explicit Euler far above its stable dt on the chain blows up; it must be marked,
+    carry no error or time, and leave the fitted slope to the good runs."""
+    s = study.run_study(tiny_chain(damping=0.0), duration=0.12,
+                        integrators=["explicit"], ladders={"explicit": [8e-3, 2e-5, 1e-5, 5e-6]},
+                        repeats=1, cache=tmp_path)
+    bad, *good = s.runs
+    assert bad.dt == 8e-3 and bad.diverged and bad.status.startswith("diverged")
+    assert bad.error is None and bad.error_over_time is None and bad.wall_s is None
+    assert not any(r.diverged for r in good)
+    entry = s.orders["explicit"]
+    assert entry["points"] == 3
+    want = np.polyfit(np.log([r.dt for r in good]), np.log([r.error for r in good]), 1)[0]
+    assert entry["order"] == pytest.approx(want)
+    assert 0.8 <= entry["order"] <= 1.2
+
+
+def test_fit_ignores_diverged_runs_even_with_an_error():
+    runs = [study.Run("explicit", dt, None, error=3.0 * dt, wall_s=dt) for dt in (1e-3, 5e-4, 2.5e-4)]
+    runs.append(study.Run("explicit", 2e-3, None, error=1e9, diverged=True))
+    entry = study.fit_orders(runs)["explicit"]
+    assert entry["points"] == 3 and entry["order"] == pytest.approx(1.0)
+    assert entry["order_finest"] == pytest.approx(1.0)
+    assert study.cheapest(runs + [study.Run("explicit", 4e-3, None, error=1e-9, wall_s=1e-9, diverged=True)],
+                          1e-2)["dt"] in (1e-3, 5e-4, 2.5e-4)
+
+
+# ---- outputs ----------------------------------------------------------------
+
+
+def test_csv_and_json_have_one_row_per_run(chain_study, tmp_path):
+    written = study.write_outputs(chain_study, tmp_path / "out")
+    assert {p.name for p in written} == {"runs.csv", "runs.json", "summary.json"}
+    with open(tmp_path / "out" / "runs.csv", newline="") as fh:
+        rows = list(csv.DictReader(fh))
+    records = json.loads((tmp_path / "out" / "runs.json").read_text())
+    assert len(rows) == len(records) == len(chain_study.runs) == 6
+    for row, record, run in zip(rows, records, chain_study.runs):
+        assert set(REQUIRED) <= set(row) and set(REQUIRED) <= set(record)
+        assert record["integrator"] == row["integrator"] == run.integrator
+        assert record["dt"] == float(row["dt"]) == run.dt
+        assert record["error"] == pytest.approx(float(row["error"]), rel=1e-12)
+        assert record["diverged"] is False and row["diverged"] == "False"
+        assert (record["cg_tol"] is None) == (run.integrator != "implicit") == (row["cg_tol"] == "")
+
+
+def test_cli_study(tmp_path, capsys):
+    out = tmp_path / "study"
+    code = main(["study", "spring", "--out", str(out), "--duration", "0.2", "--rungs", "2",
+                 "--cg-tols", "1e-6", "--repeats", "1", "--cache-dir", str(tmp_path / "cache")])
+    text = capsys.readouterr().out
+    assert code == 0
+    assert "measured order" in text and "reference: exact solution" in text
+    assert len(json.loads((out / "runs.json").read_text())) == 6
+    pytest.importorskip("matplotlib")
+    assert (out / "work_precision.png").read_bytes()[:4] == b"\x89PNG"
+
+
+@pytest.mark.parametrize("args, key", [(["--rungs", "0"], "rungs"), (["--cg-tols", "2"], "cg_tols"),
+                                       (["--integrators", "rk4"], "integrators"),
+                                       (["--duration", "-1"], "duration"), (["--cg-tols", "x"], "--cg-tols")])
+def test_cli_study_bad_input(args, key, tmp_path, capsys):
+    assert main(["study", "spring", "--out", str(tmp_path / "o"), *args]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and key in err
+    assert not (tmp_path / "o").exists()
