@@ -39,8 +39,10 @@ def parse_args(argv=None):
     p.add_argument("--tol", type=float, default=1e-6, help="relative CG tolerance (all solvers)")
     p.add_argument("--steps", type=int, default=5, help="timed steps per case (after one warm-up step)")
     p.add_argument("--peer-steps", type=int, default=3, help="steps on which the peers are timed")
-    p.add_argument("--path", choices=["auto", "serial", "parallel"], default="auto",
+    p.add_argument("--loops", choices=["auto", "serial", "parallel"], default="auto",
                    help="massspring CG driver: whole-solve serial kernel, parallel kernels, or by size")
+    p.add_argument("--storage", choices=["auto", "ndarray", "field"], default="auto",
+                   help="massspring arrays: Taichi ndarrays, fields, or by size")
     p.add_argument("--peers", nargs="*", default=["scipy", "taichi-cg", "direct"],
                    choices=["scipy", "taichi-cg", "direct"])
     p.add_argument("--max-scipy", type=int, default=256, help="largest resolution for SciPy CG")
@@ -61,9 +63,8 @@ def relative_residual(matrix, rhs, v):
 def run_case(args, resolution, stiffness, precision):
     scene = cloth(resolution, stiffness)
     dt = 1.0 / 60.0
-    sim = scene.simulation(integrator="implicit", dt=dt, precision=precision, cg_tol=args.tol)
-    if args.path != "auto":
-        sim._integrator.serial = args.path == "serial"
+    sim = scene.simulation(integrator="implicit", dt=dt, precision=precision, cg_tol=args.tol,
+                           loops=args.loops, storage=args.storage)
     model = sim.model
     t0 = time.perf_counter()
     sim.step()
@@ -126,7 +127,7 @@ def run_case(args, resolution, stiffness, precision):
     row = {
         "resolution": resolution, "stiffness": stiffness, "precision": precision,
         "particles": model.n_particles, "springs": model.n_springs, "tol": args.tol,
-        "path": "serial" if sim._integrator.serial else "parallel",
+        "loops": sim.loops, "storage": sim.storage,
         "step_ms": step_ms, "iterations": it, "ms_per_iteration": step_ms / max(it, 1),
         "spring_iterations_per_s": model.n_springs * it / (step_ms / 1e3),
         "compile_s": max(first - statistics.median(times), 0.0),
@@ -168,13 +169,13 @@ def print_row(row):
         f"{name} {p['step_ms']:.1f} ms ({p['speedup']:.1f}x" + (f", {p['iterations']:.0f} it" if p["iterations"] else "") + ")"
         for name, p in row["peers"].items())
     print(f"{row['resolution']:5d} {row['stiffness']:8.0e} {row['precision']:>4s} {row['springs']:8d} "
-          f"{row['path']:>8s} {row['step_ms']:9.2f} {row['iterations']:6.0f} {row['ms_per_iteration']:8.4f} "
+          f"{row['loops']:>8s} {row['storage']:>7s} {row['step_ms']:9.2f} {row['iterations']:6.0f} {row['ms_per_iteration']:8.4f} "
           f"{row['spring_iterations_per_s'] / 1e6:9.1f} {row['compile_s']:7.2f}  {peers_text}", flush=True)
 
 
 def main(argv=None):
     args = parse_args(argv)
-    print(f"{'res':>5s} {'ks':>8s} {'prec':>4s} {'springs':>8s} {'path':>8s} {'ms/step':>9s} {'iters':>6s} "
+    print(f"{'res':>5s} {'ks':>8s} {'prec':>4s} {'springs':>8s} {'loops':>8s} {'storage':>7s} {'ms/step':>9s} {'iters':>6s} "
           f"{'ms/iter':>8s} {'Msi/s':>9s} {'jit s':>7s}  peers (ms/step, massspring speed-up, iterations)")
     rows, failures = [], []
     for precision in args.precision:

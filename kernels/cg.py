@@ -27,6 +27,7 @@ Shapes: ``x, b, r, z, p, q`` (n,) of vec3 (velocities in m/s, b in kg m/s);
 
 import taichi as ti
 
+from .arrays import array_kernel
 from .divergence import OK, check_code, state_sums
 from .forces import particle_force
 from .operator import apply_row, diagonal_block
@@ -106,7 +107,7 @@ def update_row(i, a, x: ti.template(), r: ti.template(), z: ti.template(), p: ti
     return ti.Vector([ri.dot(zi), ri.dot(ri)], real)
 
 
-@ti.kernel
+@array_kernel
 def cg_begin(x: ti.types.ndarray(), b: ti.types.ndarray(),
              r: ti.types.ndarray(), z: ti.types.ndarray(), p: ti.types.ndarray(),
              minv: ti.types.ndarray(), pos: ti.types.ndarray(),
@@ -128,7 +129,7 @@ def cg_begin(x: ti.types.ndarray(), b: ti.types.ndarray(),
     return ti.cast(sums, ti.f64)
 
 
-@ti.kernel
+@array_kernel
 def cg_apply(p: ti.types.ndarray(), q: ti.types.ndarray(), mass: ti.types.ndarray(),
              free: ti.types.ndarray(), offsets: ti.types.ndarray(), other: ti.types.ndarray(),
              spring: ti.types.ndarray(), coef: ti.types.ndarray(),
@@ -140,7 +141,7 @@ def cg_apply(p: ti.types.ndarray(), q: ti.types.ndarray(), mass: ti.types.ndarra
     return pq
 
 
-@ti.kernel
+@array_kernel
 def cg_update(alpha: ti.f64, x: ti.types.ndarray(), r: ti.types.ndarray(), z: ti.types.ndarray(),
               p: ti.types.ndarray(), q: ti.types.ndarray(), minv: ti.types.ndarray(),
               precondition: ti.template(), real: ti.template()) -> ti.types.vector(2, ti.f64):
@@ -152,7 +153,7 @@ def cg_update(alpha: ti.f64, x: ti.types.ndarray(), r: ti.types.ndarray(), z: ti
     return ti.cast(sums, ti.f64)
 
 
-@ti.kernel
+@array_kernel
 def cg_direction(beta: ti.f64, z: ti.types.ndarray(), p: ti.types.ndarray(), real: ti.template()):
     """Parallel ``direction``: p = z + beta p."""
     bt = ti.cast(beta, real)
@@ -192,7 +193,7 @@ def exit_rule(iterations, residual, tol, best, reason, max_iter):
 next_action = ti.func(exit_rule)
 
 
-@ti.kernel
+@array_kernel
 def cg_solve_serial(x: ti.types.ndarray(), b: ti.types.ndarray(),
                     r: ti.types.ndarray(), z: ti.types.ndarray(), p: ti.types.ndarray(),
                     q: ti.types.ndarray(), minv: ti.types.ndarray(), pos: ti.types.ndarray(),
@@ -262,7 +263,7 @@ def cg_solve_serial(x: ti.types.ndarray(), b: ti.types.ndarray(),
     return ti.Vector([iterations, residual, reason], ti.f64)
 
 
-@ti.kernel
+@array_kernel
 def advance_positions(pos: ti.types.ndarray(), v: ti.types.ndarray(), keep: ti.types.ndarray(),
                       mass: ti.types.ndarray(), g: ti.types.vector(3, ti.f64), dt: ti.f64,
                       check: ti.types.vector(3, ti.f64), serial: ti.template(),

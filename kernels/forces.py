@@ -17,6 +17,7 @@ Array shapes (n particles, m springs): ``x, v`` (n,) of vec3 [m, m/s];
 
 import taichi as ti
 
+from .arrays import array_kernel
 from .divergence import OK, check_code, state_sums
 
 
@@ -92,7 +93,7 @@ def euler_row(i, x_in: ti.template(), v_in: ti.template(), x_out: ti.template(),
     return state_sums(x_out[i], v_out[i], mass[i], g, real)
 
 
-@ti.kernel
+@array_kernel
 def euler_step(x_in: ti.types.ndarray(), v_in: ti.types.ndarray(),
                x_out: ti.types.ndarray(), v_out: ti.types.ndarray(),
                mass: ti.types.ndarray(), free: ti.types.ndarray(),
@@ -113,7 +114,7 @@ def euler_step(x_in: ti.types.ndarray(), v_in: ti.types.ndarray(),
     return ti.cast(sums, ti.f64)
 
 
-@ti.kernel
+@array_kernel
 def euler_steps_serial(x_a: ti.types.ndarray(), v_a: ti.types.ndarray(),
                        x_b: ti.types.ndarray(), v_b: ti.types.ndarray(),
                        mass: ti.types.ndarray(), free: ti.types.ndarray(),

@@ -29,10 +29,11 @@ preconditioner); vectors ``p``, ``q`` (n,) of vec3.
 
 import taichi as ti
 
+from .arrays import array_kernel
 from .forces import spring_direction
 
 
-@ti.kernel
+@array_kernel
 def spring_coefficients(x: ti.types.ndarray(), ends: ti.types.ndarray(), ks: ti.types.ndarray(),
                         kd: ti.types.ndarray(), l0: ti.types.ndarray(), coef: ti.types.ndarray(),
                         dt: ti.f64, definiteness_fix: ti.template(), has_damping: ti.template(),

@@ -1,6 +1,6 @@
 """Time integrators: each a few kernel calls over the same device arrays.
 
-``DeviceModel`` is a Model turned into Taichi ndarrays once; ``State`` holds the
+``DeviceModel`` is a Model turned into Taichi arrays once; ``State`` holds the
 particle positions and velocities. Each integrator allocates only the work arrays
 it needs: the explicit ones a second state to step into, the implicit one the CG
 vectors. Arrays a run does not need are passed to kernels as 1-element
@@ -16,36 +16,23 @@ import numpy as np
 import taichi as ti
 
 from massspring.kernels import cg, divergence, forces, operator
+from massspring.storage import ArraySet
 
 REAL = {"f32": ti.f32, "f64": ti.f64}
-NUMPY_REAL = {"f32": np.float32, "f64": np.float64}
-SERIAL_BELOW = 8000  # springs; see ImplicitEuler
-
-
-def _vec3_array(real, values):
-    arr = ti.Vector.ndarray(3, real, shape=values.shape[0])
-    arr.from_numpy(np.ascontiguousarray(values, dtype=np.float32 if real == ti.f32 else np.float64))
-    return arr
-
-
-def _scalar_array(dtype, values):
-    """A Taichi ndarray copy of ``values``; an empty array becomes one unused zero."""
-    values = np.asarray(values)
-    if values.size == 0:
-        values = np.zeros((1,) + values.shape[1:])
-    arr = ti.ndarray(dtype, shape=values.shape)
-    np_type = {ti.f32: np.float32, ti.f64: np.float64, ti.i32: np.int32}[dtype]
-    arr.from_numpy(np.ascontiguousarray(values, dtype=np_type))
-    return arr
-
-
-def _placeholder(dtype):
-    return ti.ndarray(dtype, shape=1)
+# Springs below which serial kernels beat parallel ones on this project's 2-core CPU
+# machine, where a parallel loop's launch costs ~0.1-0.2 ms and two threads give
+# ~1.3x (measured by benchmarks/switch_point.py: serial wins at 97k springs, parallel
+# at 391k). Simulation(loops=...) overrides it.
+SERIAL_BELOW = 200_000
 
 
 @dataclass
 class DeviceModel:
-    """The parts of a Model the kernels read, as Taichi ndarrays (see kernels/forces.py)."""
+    """The parts of a Model the kernels read, as Taichi arrays (see kernels/forces.py).
+
+    Arrays a run does not need (``kd`` without damping, ``free`` without fixed
+    particles) are 1-element placeholders.
+    """
 
     real: object
     mass: object
@@ -62,29 +49,28 @@ class DeviceModel:
     has_gravity: bool
     has_fixed: bool
     n_springs: int
+    arrays: ArraySet
 
     @classmethod
-    def upload(cls, model, precision):
+    def upload(cls, model, precision, storage="ndarray"):
         real = REAL[precision]
         offsets, other, spring = model.adjacency()
         has_damping, has_fixed = model.has_damping, model.has_fixed
-        return cls(
-            real=real,
-            mass=_scalar_array(real, model.masses),
-            free=_scalar_array(ti.i32, model.free_mask().astype(np.int32)) if has_fixed else _placeholder(ti.i32),
-            offsets=_scalar_array(ti.i32, offsets),
-            other=_scalar_array(ti.i32, other),
-            spring=_scalar_array(ti.i32, spring),
-            ends=_scalar_array(ti.i32, model.springs),
-            ks=_scalar_array(real, model.stiffness),
-            kd=_scalar_array(real, model.damping) if has_damping else _placeholder(real),
-            l0=_scalar_array(real, model.rest_lengths),
-            gravity=tuple(float(c) for c in model.gravity),
-            has_damping=has_damping,
-            has_gravity=model.has_gravity,
-            has_fixed=has_fixed,
-            n_springs=model.n_springs,
-        )
+        n, m = model.n_particles, model.n_springs
+        arrays = ArraySet(storage)
+        arrays.add("mass", real, n, values=model.masses)
+        arrays.add("free", ti.i32, n if has_fixed else 1, values=model.free_mask() if has_fixed else None)
+        arrays.add("offsets", ti.i32, n + 1, values=offsets)
+        arrays.add("other", ti.i32, 2 * m, values=other)
+        arrays.add("spring", ti.i32, 2 * m, values=spring)
+        arrays.add("ends", ti.i32, (m, 2), values=model.springs)
+        arrays.add("ks", real, m, values=model.stiffness)
+        arrays.add("kd", real, m if has_damping else 1, values=model.damping if has_damping else None)
+        arrays.add("l0", real, m, values=model.rest_lengths)
+        built = arrays.build()
+        return cls(real=real, **built, gravity=tuple(float(c) for c in model.gravity),
+                   has_damping=has_damping, has_gravity=model.has_gravity, has_fixed=has_fixed,
+                   n_springs=m, arrays=arrays)
 
     def terms(self):
         """Names of the force terms compiled into this run's kernels."""
@@ -94,14 +80,18 @@ class DeviceModel:
 
 @dataclass
 class State:
-    """Particle positions x (m) and velocities v (m/s): (n,) vec3 ndarrays."""
+    """Particle positions x (m) and velocities v (m/s): (n,) vec3 arrays."""
 
     x: object
     v: object
+    arrays: ArraySet
 
     @classmethod
-    def upload(cls, real, positions, velocities):
-        return cls(_vec3_array(real, positions), _vec3_array(real, velocities))
+    def upload(cls, real, positions, velocities, storage="ndarray"):
+        arrays = ArraySet(storage)
+        arrays.vectors("x", real, len(positions), positions)
+        arrays.vectors("v", real, len(positions), velocities)
+        return cls(**arrays.build(), arrays=arrays)
 
 
 @dataclass(frozen=True)
@@ -126,18 +116,21 @@ class SolverStats:
 class _EulerIntegrator:
     """Explicit (Eq. 7-8) or symplectic Euler: one fused kernel per step into a spare state.
 
-    Systems with fewer springs than ``serial_below`` run many steps per launch
-    with serial loops (launch-bound size); larger ones one parallel launch per step.
+    ``serial``: many steps per launch with serial loops (small systems, where a
+    launch costs more than a step), else one parallel launch per step.
     """
 
     symplectic = False
     work_arrays = ("x_next", "v_next")
 
-    def __init__(self, dev: DeviceModel, state: State, serial_below=SERIAL_BELOW):
+    def __init__(self, dev: DeviceModel, state: State, serial=True):
         self.dev = dev
         n = state.x.shape[0]
-        self.spare = State(ti.Vector.ndarray(3, dev.real, shape=n), ti.Vector.ndarray(3, dev.real, shape=n))
-        self.serial = dev.n_springs < serial_below
+        self.arrays = ArraySet(dev.arrays.kind)
+        self.arrays.vectors("x", dev.real, n)
+        self.arrays.vectors("v", dev.real, n)
+        self.spare = State(**self.arrays.build(), arrays=self.arrays)
+        self.serial = serial
 
     def advance(self, state: State, dt: float, steps: int, check):
         """Up to ``steps`` steps from ``state``, each checked with ``check`` (see kernels/divergence.py).
@@ -178,31 +171,33 @@ class SymplecticEuler(_EulerIntegrator):
 class ImplicitEuler:
     """Linearised backward Euler (Eq. 15) solved by matrix-free block-Jacobi PCG.
 
-    ``serial_below``: systems with fewer springs than this run the whole solve in
-    one serial kernel (launch-bound size); larger ones use the parallel kernels.
-    Both run the same algorithm and agree to round-off.
+    ``serial``: run the whole solve in one serial kernel, else the parallel kernels,
+    one launch per phase. Both run the same algorithm and agree to round-off.
     """
 
     def __init__(self, dev: DeviceModel, state: State, *, cg_tol, cg_max_iter,
-                 definiteness_fix=True, preconditioner="block-jacobi", serial_below=SERIAL_BELOW):
+                 definiteness_fix=True, preconditioner="block-jacobi", serial=True):
         self.dev = dev
         # CG overwrites v in place (v_n is its warm start). ``keep`` holds the velocity
         # of the last accepted state: cg.advance_positions writes it in the same loop
         # that commits x_{n+1}, so keeping it costs one store per particle and no
         # launch, and a rejected step is undone by copying it back (x_n was never
         # overwritten). Cheaper than copying v_n before every solve: no extra pass.
-        self.keep = _vec3_array(dev.real, state.v.to_numpy())
         self.tol = cg_tol
         self.max_iter = cg_max_iter
         self.fix = definiteness_fix
         self.precondition = preconditioner == "block-jacobi"
         self.n_springs = n_springs = dev.n_springs
-        self.serial = n_springs < serial_below
+        self.serial = serial
         n = state.x.shape[0]
-        vec = lambda: ti.Vector.ndarray(3, dev.real, shape=n)  # noqa: E731
-        self.b, self.r, self.z, self.p, self.q = vec(), vec(), vec(), vec(), vec()
-        self.minv = ti.Matrix.ndarray(3, 3, dev.real, shape=n if self.precondition else 1)
-        self.coef = ti.Vector.ndarray(5, dev.real, shape=max(n_springs, 1))
+        self.arrays = ArraySet(dev.arrays.kind)
+        for name in ("b", "r", "z", "p", "q"):
+            self.arrays.vectors(name, dev.real, n)
+        self.arrays.vectors("keep", dev.real, n, state.v.to_numpy())
+        self.arrays.add("minv", dev.real, n if self.precondition else 1, (3, 3))
+        self.arrays.vectors("coef", dev.real, n_springs, k=5)
+        for name, array in self.arrays.build().items():
+            setattr(self, name, array)
         self.work_arrays = ("b", "r", "z", "p", "q", "coef", "keep") + (("minv",) if self.precondition else ())
         self.stats = None
 

@@ -5,13 +5,14 @@ from __future__ import annotations
 import contextlib
 import io
 import numbers
+import weakref
 
 import numpy as np
 import taichi as ti
 from taichi.lang import impl
 
 from massspring.errors import DivergenceError
-from massspring.integrators import (NUMPY_REAL, REAL, DeviceModel, ExplicitEuler, ImplicitEuler,
+from massspring.integrators import (REAL, SERIAL_BELOW, DeviceModel, ExplicitEuler, ImplicitEuler,
                                     State, SymplecticEuler)
 from massspring.kernels import divergence
 from massspring.model import Model
@@ -19,6 +20,11 @@ from massspring.model import Model
 INTEGRATORS = {"explicit": ExplicitEuler, "symplectic": SymplecticEuler, "implicit": ImplicitEuler}
 PRECISIONS = tuple(REAL)
 PRECONDITIONERS = ("block-jacobi", "none")
+STORAGES = ("auto", "ndarray", "field")
+LOOPS = ("auto", "serial", "parallel")
+# Springs from which "auto" storage uses fields: about 1-2 s more compilation per
+# simulation, repaid by 1.2-2x faster kernels (benchmarks/switch_point.py).
+FIELDS_FROM = 20_000
 ARCHS = ("cpu", "gpu", "cuda", "vulkan", "metal", "opengl", "x64", "arm64")
 
 
@@ -87,6 +93,15 @@ class Simulation:
         Implicit only: clamp the transverse stiffness of compressed springs so that
         the system stays positive definite (see kernels/operator.py).
     preconditioner : "block-jacobi" (default) | "none"
+    storage : "auto" (default) | "ndarray" | "field"
+        Taichi ndarrays (kernels compiled once for all simulations) or fields (about
+        2x faster CG on mid-size systems, compiled again per simulation);
+        "auto" picks fields from ``FIELDS_FROM`` springs on.
+    loops : "auto" (default) | "serial" | "parallel"
+        Serial kernels (a whole CG solve, or many explicit steps, per launch) or
+        parallel kernels (one launch per phase). Both give the same results to
+        round-off; "auto" picks parallel from ``integrators.SERIAL_BELOW`` springs on
+        the CPU, and always on other archs.
     arch : Taichi arch name, "cpu" by default.
 
     Only what the run needs is allocated and compiled: no CG vectors for the
@@ -95,7 +110,8 @@ class Simulation:
     """
 
     def __init__(self, model, integrator="implicit", dt=1e-2, precision="f64", cg_tol=1e-6,
-                 cg_max_iter=None, definiteness_fix=True, preconditioner="block-jacobi", arch="cpu"):
+                 cg_max_iter=None, definiteness_fix=True, preconditioner="block-jacobi", arch="cpu",
+                 storage="auto", loops="auto"):
         if not isinstance(model, Model):
             raise ValueError(f"model: expected a massspring.Model, got {type(model).__name__}")
         if integrator not in INTEGRATORS:
@@ -114,6 +130,10 @@ class Simulation:
         if preconditioner not in PRECONDITIONERS:
             raise ValueError(f"preconditioner: unknown value {preconditioner!r}, expected one of "
                              f"{', '.join(PRECONDITIONERS)}")
+        if loops not in LOOPS:
+            raise ValueError(f"loops: unknown value {loops!r}, expected one of {', '.join(LOOPS)}")
+        if storage not in STORAGES:
+            raise ValueError(f"storage: unknown value {storage!r}, expected one of {', '.join(STORAGES)}")
         ensure_taichi(arch)
 
         self.model = model
@@ -130,14 +150,23 @@ class Simulation:
         self.cg_failures = 0
         self.check = divergence_check(model)
 
-        self._dev = DeviceModel.upload(model, precision)
-        self._state = State.upload(self._dev.real, model.positions, model.velocities)
+        if storage == "auto":
+            storage = "field" if model.n_springs >= FIELDS_FROM else "ndarray"
+        self.storage = storage
+        self._dev = DeviceModel.upload(model, precision, storage)
+        self._state = State.upload(self._dev.real, model.positions, model.velocities, storage)
+        if loops == "auto":
+            loops = "serial" if model.n_springs < SERIAL_BELOW and arch in ("cpu", "x64", "arm64") else "parallel"
+        self.loops = loops
+        serial = loops == "serial"
         if integrator == "implicit":
-            self._integrator = ImplicitEuler(self._dev, self._state, cg_tol=cg_tol, cg_max_iter=self.cg_max_iter,
+            self._integrator = ImplicitEuler(self._dev, self._state, serial=serial, cg_tol=cg_tol, cg_max_iter=self.cg_max_iter,
                                              definiteness_fix=self.definiteness_fix,
                                              preconditioner=preconditioner)
         else:
-            self._integrator = INTEGRATORS[integrator](self._dev, self._state)
+            self._integrator = INTEGRATORS[integrator](self._dev, self._state, serial=serial)
+        self._release = weakref.finalize(self, _release_all,
+                                         (self._dev.arrays, self._state.arrays, self._integrator.arrays))
 
     @property
     def time(self) -> float:
@@ -200,24 +229,21 @@ class Simulation:
         return self.model.energy(self.positions, self.velocities)
 
     def info(self) -> dict:
-        """What this run compiled and allocated: force terms and work arrays."""
-        fields = ["x", "v"] + list(self._integrator.work_arrays)
+        """What this run compiled and allocated: force terms, arrays and their bytes."""
+        sets = (self._dev.arrays, self._state.arrays, self._integrator.arrays)
         return {"integrator": self.integrator, "precision": self.precision, "dt": self.dt,
                 "particles": self.model.n_particles, "springs": self.model.n_springs,
-                "terms": self._dev.terms(), "arrays": fields,
-                "bytes": _bytes(self)}
+                "terms": self._dev.terms(), "arrays": ["x", "v"] + list(self._integrator.work_arrays),
+                "storage": self.storage, "loops": self.loops, "bytes": sum(a.nbytes() for a in sets)}
+
+    def close(self):
+        """Free the Taichi fields of a ``storage="field"`` run now (else when garbage-collected)."""
+        self._release()
 
 
-def _bytes(sim):
-    """Approximate device bytes of the per-particle and per-spring arrays of a run."""
-    real = np.dtype(NUMPY_REAL[sim.precision]).itemsize
-    n, m = sim.model.n_particles, sim.model.n_springs
-    total = 2 * 3 * n * real + real * n + 4 * (n + 1) + 2 * 4 * 2 * m + 2 * 4 * m + 2 * real * m
-    total += real * m * sim.model.has_damping + 4 * n * sim.model.has_fixed
-    per_array = {"x_next": 3 * n, "v_next": 3 * n, "b": 3 * n, "r": 3 * n, "z": 3 * n, "p": 3 * n,
-                 "q": 3 * n, "minv": 9 * n, "coef": 5 * m, "keep": 3 * n}
-    total += sum(per_array[a] * real for a in sim._integrator.work_arrays)
-    return total
+def _release_all(sets):
+    for arrays in sets:
+        arrays.release()
 
 
 def _positive_float(name, value):

@@ -33,7 +33,8 @@ import numpy as np
 import taichi as ti
 
 from massspring.errors import DivergenceError
-from massspring.integrators import DeviceModel, _scalar_array, _vec3_array
+from massspring.integrators import DeviceModel
+from massspring.storage import ArraySet
 from massspring.kernels import cg, operator
 from massspring.model import Model
 from massspring.simulation import divergence_check, ensure_taichi
@@ -65,18 +66,23 @@ def spectrum(model: Model, positions=None, iterations=40, seed=0) -> Spectrum:
     if model.n_springs == 0 or not free.any():
         return Spectrum(0.0, 0.0, 0.0, 0, 0.0)
     dev = DeviceModel.upload(model, "f64")
-    pos = _vec3_array(ti.f64, x)
-    zeros = _scalar_array(ti.f64, np.zeros(model.n_particles))
-    p, q = _vec3_array(ti.f64, np.zeros_like(x)), _vec3_array(ti.f64, np.zeros_like(x))
+    n, m = model.n_particles, model.n_springs
+    arrays = ArraySet()
+    arrays.vectors("pos", ti.f64, n, x)
+    arrays.vectors("p", ti.f64, n)
+    arrays.vectors("q", ti.f64, n)
+    arrays.add("zeros", ti.f64, max(n, m), values=np.zeros(max(n, m)))
+    arrays.vectors("stiffness", ti.f64, m, k=5)
+    arrays.vectors("damping", ti.f64, m, k=5)
+    a = arrays.build()
+    pos, p, q, zeros = a["pos"], a["p"], a["q"], a["zeros"]
 
-    def coefficients(ks, kd, has_damping):
-        coef = ti.Vector.ndarray(5, ti.f64, shape=model.n_springs)
+    def coefficients(coef, ks, kd, has_damping):
         operator.spring_coefficients(pos, dev.ends, ks, kd, dev.l0, coef, 1.0, False, has_damping, ti.f64)
         return coef
 
-    stiffness = coefficients(dev.ks, dev.kd, False)
-    damping = coefficients(_scalar_array(ti.f64, np.zeros(model.n_springs)), dev.kd, True) \
-        if model.has_damping else None
+    stiffness = coefficients(a["stiffness"], dev.ks, dev.kd, False)
+    damping = coefficients(a["damping"], zeros, dev.kd, True) if model.has_damping else None
     scale = np.where(free, 1.0 / np.sqrt(model.masses), 0.0)[:, None]
 
     def apply(coef, u):

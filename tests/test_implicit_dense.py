@@ -23,16 +23,14 @@ ZERO_LENGTH = 1e-12  # f64 zero-length rule: such a spring has no direction, for
 # launch for a whole step or solve; chosen for systems below
 # ``massspring.integrators.SERIAL_BELOW`` springs, i.e. every system here) and
 # parallel kernels (one launch per phase; large systems). Tests run both on small
-# systems by overriding the integrator's choice.
+# systems through Simulation's ``loops`` option.
 PATHS = ("serial", "parallel")
 
 
 def simulation(model, path, **kw):
     """A Simulation whose integrator uses the ``path`` driver."""
-    sim = ms.Simulation(model, **kw)
-    integ = sim._integrator
-    assert isinstance(integ.serial, bool), "the integrator no longer has a serial/parallel switch"
-    integ.serial = path == "serial"
+    sim = ms.Simulation(model, loops=path, **kw)
+    assert sim._integrator.serial == (path == "serial")
     return sim
 
 

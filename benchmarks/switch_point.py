@@ -1,0 +1,87 @@
+"""Where serial and parallel kernels, and ndarray and field storage, pay off.
+
+For cloths of increasing resolution, times the implicit step (ms per CG
+iteration) and the symplectic step (ms per step) with every combination of
+``loops`` (serial whole-solve kernels / parallel per-phase kernels) and
+``storage`` (Taichi ndarrays / fields), all in one run. The defaults
+``integrators.SERIAL_BELOW`` and ``simulation.FIELDS_FROM`` come from this table.
+
+    python benchmarks/switch_point.py --help
+    python benchmarks/switch_point.py --resolutions 16 32 64 128 256
+"""
+
+import argparse
+import json
+import statistics
+import sys
+import time
+from pathlib import Path
+
+import massspring as ms
+
+COMBOS = [("serial", "ndarray"), ("serial", "field"), ("parallel", "ndarray"), ("parallel", "field")]
+
+
+def parse_args(argv=None):
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--resolutions", type=int, nargs="+", default=[16, 32, 64, 128, 256])
+    p.add_argument("--steps", type=int, default=3, help="timed implicit steps (after one warm-up step)")
+    p.add_argument("--explicit-steps", type=int, default=200, help="timed symplectic steps per run")
+    p.add_argument("--json", default="benchmarks/results/switch_point.json")
+    return p.parse_args(argv)
+
+
+def implicit_ms_per_iteration(scene, loops, storage, steps):
+    sim = scene.simulation(integrator="implicit", dt=1 / 60, loops=loops, storage=storage)
+    t0 = time.perf_counter()
+    sim.step(1)
+    first = time.perf_counter() - t0
+    per_iter = []
+    for _ in range(steps):
+        t0 = time.perf_counter()
+        sim.step(1)
+        per_iter.append((time.perf_counter() - t0) / max(sim.solver_stats.iterations, 1))
+    sim.close()
+    return 1e3 * statistics.median(per_iter), first
+
+
+def symplectic_ms_per_step(scene, loops, storage, steps, dt):
+    sim = scene.simulation(integrator="symplectic", dt=dt, loops=loops, storage=storage)
+    sim.step(1)
+    times = []
+    for _ in range(3):
+        t0 = time.perf_counter()
+        sim.step(steps)
+        times.append((time.perf_counter() - t0) / steps)
+    sim.close()
+    return 1e3 * statistics.median(times)
+
+
+def main(argv=None):
+    args = parse_args(argv)
+    header = "  ".join(f"{loops[:3]}/{storage[:5]:5s}" for loops, storage in COMBOS)
+    print(f"{'res':>4s} {'springs':>8s}  implicit ms/iteration: {header}   symplectic ms/step: {header}")
+    rows = []
+    for resolution in args.resolutions:
+        scene = ms.load_scene("cloth").with_params(resolution=resolution)
+        dt = 4e-4 / resolution  # a quarter of the scene default at 32; the limit scales as 1/resolution
+        row = {"resolution": resolution, "springs": scene.model().n_springs, "implicit": {}, "symplectic": {},
+               "compile_s": {}}
+        for loops, storage in COMBOS:
+            key = f"{loops}/{storage}"
+            row["implicit"][key], row["compile_s"][key] = implicit_ms_per_iteration(scene, loops, storage, args.steps)
+            row["symplectic"][key] = symplectic_ms_per_step(scene, loops, storage, args.explicit_steps, dt)
+        rows.append(row)
+        imp = "  ".join(f"{row['implicit'][f'{a}/{b}']:11.4f}" for a, b in COMBOS)
+        sym = "  ".join(f"{row['symplectic'][f'{a}/{b}']:11.4f}" for a, b in COMBOS)
+        print(f"{resolution:4d} {row['springs']:8d}  {'':22s}{imp}   {'':19s}{sym}", flush=True)
+    out = Path(args.json)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = out.with_suffix(".tmp")
+    tmp.write_text(json.dumps(rows, indent=1))
+    tmp.replace(out)
+    print(f"wrote {out}")
+
+
+if __name__ == "__main__":
+    sys.exit(main())
