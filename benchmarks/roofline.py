@@ -1,0 +1,140 @@
+"""How close the CG iteration comes to this machine's memory-bandwidth bound.
+
+1. Sustained bandwidth: a Taichi triad a = b + s c over arrays far larger than the
+   caches (STREAM's count: 3 x 8 bytes per element in f64), with serial and with
+   parallel loops.
+2. Minimum bytes one CG iteration must move (kernels/cg.py), counting every array
+   once per iteration and neighbour reads of p as cache hits:
+   per spring:   adjacency indices 2 x (4 + 4) B, coefficients (n, a, b) 5 reals;
+   per particle: apply  p, mass, offsets, q (3 + 1 reals + 4 B + 3 reals),
+                 update x, p, r, q, minv read and x, r, z written (12 + 9 + 9 reals),
+                 direction z, p read and p written (9 reals).
+   For the cloth (m/n springs per particle) this gives bytes per spring-iteration,
+   and with the bandwidth a bound in spring-iterations per second.
+3. Measured spring-iterations per second of each variant (loops x storage) on the
+   cloth, from the time of CG iterations alone: (t(2k) - t(k)) / k with the
+   iteration limit set to k and 2k, so the per-step set-up cancels.
+
+    python benchmarks/roofline.py --help
+    python benchmarks/roofline.py --resolution 512
+"""
+
+import argparse
+import json
+import statistics
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import taichi as ti
+
+import massspring as ms
+from massspring.simulation import ensure_taichi
+
+VARIANTS = [("serial", "ndarray"), ("serial", "field"), ("parallel", "ndarray"), ("parallel", "field")]
+
+
+def parse_args(argv=None):
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--resolution", type=int, default=512, help="cloth resolution for the CG measurement")
+    p.add_argument("--triad-mib", type=int, default=256, help="size of each triad array in MiB")
+    p.add_argument("--iterations", type=int, default=40, help="k: CG iterations per timed step")
+    p.add_argument("--repeats", type=int, default=3)
+    p.add_argument("--precision", default="f64", choices=["f64", "f32"])
+    p.add_argument("--json", default="benchmarks/results/roofline.json")
+    return p.parse_args(argv)
+
+
+def triad_bandwidth(mib, repeats, real):
+    """Sustained bytes/s of a = b + s c (serial, parallel) over Taichi fields."""
+    itemsize = 8 if real == ti.f64 else 4
+    n = mib * 2 ** 20 // itemsize
+    a, b, c = (ti.field(real, shape=n) for _ in range(3))
+    b.fill(1.0)
+    c.fill(2.0)
+
+    def make(serial):
+        @ti.kernel
+        def triad(s: ti.f64):
+            ti.loop_config(serialize=serial)
+            for i in a:
+                a[i] = b[i] + ti.cast(s, real) * c[i]
+        return triad
+
+    out = {}
+    for name, serial in (("serial", True), ("parallel", False)):
+        kernel = make(serial)
+        kernel(3.0)
+        times = []
+        for _ in range(repeats):
+            t0 = time.perf_counter()
+            kernel(3.0)
+            ti.sync()
+            times.append(time.perf_counter() - t0)
+        out[name] = 3 * itemsize * n / min(times)
+    return out
+
+
+def bytes_per_iteration(n, m, real_bytes, fixed):
+    per_spring = 2 * (4 + 4) + 5 * real_bytes
+    per_particle = (3 + 1) * real_bytes + 4 + 3 * real_bytes + (12 + 9 + 9) * real_bytes + 9 * real_bytes
+    per_particle += 4 * bool(fixed)
+    return per_spring * m + per_particle * n
+
+
+def cg_seconds_per_iteration(scene, loops, storage, k, repeats, precision):
+    def timed_step(limit):
+        sim = scene.simulation(integrator="implicit", dt=1 / 60, cg_max_iter=limit, loops=loops,
+                               storage=storage, precision=precision)
+        sim.step(1)  # compile, and leave the flat start behind
+        times = []
+        for _ in range(repeats):
+            t0 = time.perf_counter()
+            sim.step(1)
+            times.append(time.perf_counter() - t0)
+            assert sim.solver_stats.iterations == limit, sim.solver_stats
+        sim.close()
+        return statistics.median(times)
+
+    return (timed_step(2 * k) - timed_step(k)) / k
+
+
+def main(argv=None):
+    args = parse_args(argv)
+    ensure_taichi()
+    real = ti.f64 if args.precision == "f64" else ti.f32
+    bandwidth = triad_bandwidth(args.triad_mib, args.repeats, real)
+    scene = ms.load_scene("cloth").with_params(resolution=args.resolution, stiffness=1e6)
+    model = scene.model()
+    n, m = model.n_particles, model.n_springs
+    moved = bytes_per_iteration(n, m, 8 if args.precision == "f64" else 4, model.has_fixed)
+    print(f"triad bandwidth: serial {bandwidth['serial'] / 1e9:.1f} GB/s, parallel {bandwidth['parallel'] / 1e9:.1f} GB/s")
+    print(f"cloth {args.resolution}: {n} particles, {m} springs; CG iteration moves >= {moved / 1e6:.1f} MB "
+          f"({moved / m:.0f} bytes per spring-iteration, {args.precision})")
+    best = max(bandwidth.values())
+    bound = best / (moved / m)
+    print(f"bound: {bound / 1e6:.1f} M spring-iterations/s at {best / 1e9:.1f} GB/s")
+    print(f"{'loops':>8s} {'storage':>8s} {'ms/iter':>8s} {'Msi/s':>8s} {'GB/s':>6s} {'share':>6s}")
+    rows = []
+    for loops, storage in VARIANTS:
+        seconds = cg_seconds_per_iteration(scene, loops, storage, args.iterations, args.repeats, args.precision)
+        rate = m / seconds
+        row = {"loops": loops, "storage": storage, "ms_per_iteration": 1e3 * seconds,
+               "spring_iterations_per_s": rate, "gb_per_s": moved / seconds / 1e9, "share_of_bound": rate / bound}
+        rows.append(row)
+        print(f"{loops:>8s} {storage:>8s} {row['ms_per_iteration']:8.3f} {rate / 1e6:8.1f} "
+              f"{row['gb_per_s']:6.1f} {row['share_of_bound']:6.0%}", flush=True)
+    out = Path(args.json)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = out.with_suffix(".tmp")
+    tmp.write_text(json.dumps({"triad_bytes_per_s": bandwidth, "resolution": args.resolution, "particles": n,
+                               "springs": m, "bytes_per_iteration": moved, "bound_spring_iterations_per_s": bound,
+                               "precision": args.precision, "variants": rows}, indent=1))
+    tmp.replace(out)
+    print(f"wrote {out}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
