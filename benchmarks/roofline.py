@@ -40,7 +40,7 @@ def parse_args(argv=None):
     p.add_argument("--resolution", type=int, default=512, help="cloth resolution for the CG measurement")
     p.add_argument("--triad-mib", type=int, default=256, help="size of each triad array in MiB")
     p.add_argument("--iterations", type=int, default=40, help="k: CG iterations per timed step")
-    p.add_argument("--repeats", type=int, default=3)
+    p.add_argument("--repeats", type=int, default=5, help="timed runs of each measurement (best/median kept)")
     p.add_argument("--precision", default="f64", choices=["f64", "f32"])
     p.add_argument("--json", default="benchmarks/results/roofline.json")
     return p.parse_args(argv)
@@ -58,7 +58,7 @@ def triad_bandwidth(mib, repeats, real):
         @ti.kernel
         def triad(s: ti.f64):
             ti.loop_config(serialize=serial)
-            for i in a:
+            for i in range(n):
                 a[i] = b[i] + ti.cast(s, real) * c[i]
         return triad
 

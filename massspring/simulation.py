@@ -22,9 +22,10 @@ PRECISIONS = tuple(REAL)
 PRECONDITIONERS = ("block-jacobi", "none")
 STORAGES = ("auto", "ndarray", "field")
 LOOPS = ("auto", "serial", "parallel")
-# Springs from which "auto" storage uses fields: about 1-2 s more compilation per
-# simulation, repaid by 1.2-2x faster kernels (benchmarks/switch_point.py).
-FIELDS_FROM = 20_000
+# Springs from which "auto" storage uses fields: 1.3-2x faster kernels from a
+# 32 x 32 cloth (5.8k springs) on (benchmarks/switch_point.py), for about 1 s of
+# compilation per new size of simulation (storage.FieldPool reuses fields).
+FIELDS_FROM = 4_000
 ARCHS = ("cpu", "gpu", "cuda", "vulkan", "metal", "opengl", "x64", "arm64")
 
 
@@ -237,7 +238,7 @@ class Simulation:
                 "storage": self.storage, "loops": self.loops, "bytes": sum(a.nbytes() for a in sets)}
 
     def close(self):
-        """Free the Taichi fields of a ``storage="field"`` run now (else when garbage-collected)."""
+        """Release the Taichi fields of a ``storage="field"`` run now (else when garbage-collected)."""
         self._release()
 
 

@@ -47,3 +47,37 @@ def test_bad_storage_and_loops_named():
         ms.Simulation(model, storage="disk")
     with pytest.raises(ValueError, match="loops"):
         ms.Simulation(model, loops="threads")
+
+
+def test_released_fields_are_reused_by_the_next_simulation_of_that_size(cloth):
+    from massspring.storage import POOL
+
+    first = ms.Simulation(cloth, integrator="implicit", dt=1 / 60, storage="field")
+    first.step(2)
+    first.close()
+    idle = len(POOL._idle)
+    second = ms.Simulation(cloth, integrator="implicit", dt=1 / 60, storage="field")
+    # model, state and CG arrays all came from the pool: no new fields, no new compilation
+    assert len(POOL._idle) == idle - 3
+    assert np.array_equal(second.positions, cloth.positions)  # refilled from the model
+    assert not np.any(second._integrator.r.to_numpy())  # work arrays start at zero
+    second.step(2)
+    fresh = ms.Simulation(cloth, integrator="implicit", dt=1 / 60, storage="ndarray")
+    fresh.step(2)
+    assert np.allclose(second.positions, fresh.positions, rtol=0, atol=1e-12)
+    second.close()
+
+
+def test_simulations_are_garbage_collected():
+    import gc
+    import weakref
+
+    model = ms.Model([[0, 0, 0], [1, 0, 0]], [[0, 1]], gravity=(0, 0, -1.0))
+    refs = []
+    for integrator in ("explicit", "implicit"):
+        sim = ms.Simulation(model, integrator=integrator)
+        sim.step(1)
+        refs.append(weakref.ref(sim))
+        del sim
+    gc.collect()
+    assert all(ref() is None for ref in refs)
