@@ -243,6 +243,7 @@ def _warm_up(model, integrator, dt):
     except DivergenceError:
         pass
     sim.positions  # noqa: B018 - compiles the readback too
+    sim.close()  # its fields (if any) go to the pool: the runs below reuse them, compiled
 
 
 def _measure(model, integrator, dt, cg_tol, times, size, repeats, time_budget) -> Run:
@@ -267,9 +268,11 @@ def _measure(model, integrator, dt, cg_tol, times, size, repeats, time_budget) -
         positions.append(x)
     run.steps = sim.steps
     run.cg_iterations = int(sum(sim.cg_iterations))
+    velocities = sim.velocities
+    sim.close()
     if run.diverged:
         return run
-    run.positions, run.velocities = np.array(positions), sim.velocities
+    run.positions, run.velocities = np.array(positions), velocities
     if not np.all(np.isfinite(run.velocities)):
         run.diverged, run.status = True, "diverged (non-finite)"
         return run
@@ -280,6 +283,7 @@ def _measure(model, integrator, dt, cg_tol, times, size, repeats, time_budget) -
         start = time.perf_counter()
         timed.step(int(counts[-1]))
         walls.append(time.perf_counter() - start)
+        timed.close()
     run.wall_s, run.timed_runs = min(walls), len(walls)
     return run
 
