@@ -12,7 +12,6 @@ largest displacement (f64).
 """
 
 import argparse
-import json
 import statistics
 import sys
 import time
@@ -24,6 +23,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import peers  # noqa: E402
 
 import massspring as ms  # noqa: E402
+from massspring.files import write_json  # noqa: E402
 
 def time_step(resolution):
     """dt (s) well inside the explicit limit, which shrinks as 1 / resolution."""
@@ -193,12 +193,8 @@ def main(argv=None):
             for name, p in row["peers"].items():
                 if not p["max_rel_diff"] <= 1e-9:
                     failures.append(f"res {resolution} {integrator}: {name} differs by {p['max_rel_diff']:.2e}")
-    out = Path(args.json)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = out.with_suffix(".tmp")
-    tmp.write_text(json.dumps({"rows": rows}, indent=1))
-    tmp.replace(out)
-    print(f"wrote {out}")
+    write_json(args.json, {"rows": rows})
+    print(f"wrote {args.json}")
     for f in failures:
         print("CHECK FAILED:", f)
     return 1 if failures else 0

@@ -17,7 +17,6 @@ and its difference from the direct solve is reported.
 from __future__ import annotations
 
 import argparse
-import json
 import statistics
 import sys
 import time
@@ -29,6 +28,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import peers  # noqa: E402
 
 import massspring as ms  # noqa: E402
+from massspring.files import write_json  # noqa: E402
 
 
 def parse_args(argv=None):
@@ -195,12 +195,8 @@ def main(argv=None):
                 print_row(row)
                 failures += [f"res {resolution} ks {stiffness:g} {precision}: {p}" for p in check(row, args.tol)]
                 rows.append(row)
-    out = Path(args.json)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = out.with_suffix(".tmp")
-    tmp.write_text(json.dumps({"tol": args.tol, "rows": rows}, indent=1))
-    tmp.replace(out)
-    print(f"wrote {out}")
+    write_json(args.json, {"tol": args.tol, "rows": rows})
+    print(f"wrote {args.json}")
     for f in failures:
         print("CHECK FAILED:", f)
     return 1 if failures else 0

@@ -20,17 +20,15 @@
 """
 
 import argparse
-import json
 import statistics
 import sys
 import time
-from pathlib import Path
 
-import numpy as np
 import taichi as ti
 
 import massspring as ms
 from massspring.simulation import ensure_taichi
+from massspring.files import write_json
 
 VARIANTS = [("serial", "ndarray"), ("serial", "field"), ("parallel", "ndarray"), ("parallel", "field")]
 
@@ -125,14 +123,10 @@ def main(argv=None):
         rows.append(row)
         print(f"{loops:>8s} {storage:>8s} {row['ms_per_iteration']:8.3f} {rate / 1e6:8.1f} "
               f"{row['gb_per_s']:6.1f} {row['share_of_bound']:6.0%}", flush=True)
-    out = Path(args.json)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = out.with_suffix(".tmp")
-    tmp.write_text(json.dumps({"triad_bytes_per_s": bandwidth, "resolution": args.resolution, "particles": n,
-                               "springs": m, "bytes_per_iteration": moved, "bound_spring_iterations_per_s": bound,
-                               "precision": args.precision, "variants": rows}, indent=1))
-    tmp.replace(out)
-    print(f"wrote {out}")
+    write_json(args.json, {"triad_bytes_per_s": bandwidth, "resolution": args.resolution, "particles": n,
+                           "springs": m, "bytes_per_iteration": moved, "bound_spring_iterations_per_s": bound,
+                           "precision": args.precision, "variants": rows})
+    print(f"wrote {args.json}")
     return 0
 
 

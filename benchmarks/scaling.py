@@ -18,7 +18,8 @@ import resource
 import subprocess
 import sys
 import time
-from pathlib import Path
+
+from massspring.files import write_json
 
 
 def parse_args(argv=None):
@@ -87,12 +88,8 @@ def main(argv=None):
             print(f"{resolution:4d} {row['springs']:8d} {integrator:>10s} {row['ms_per_step']:9.2f} "
                   f"{row['iterations']:6.0f} {spr_it} {row['ns_per_spring_step']:11.2f} "
                   f"{row['array_bytes_per_spring']:12.0f} {row['rss_bytes_per_spring']:9.0f}", flush=True)
-    out_path = Path(args.json)
-    out_path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = out_path.with_suffix(".tmp")
-    tmp.write_text(json.dumps({"max_iter": args.max_iter, "rows": rows}, indent=1))
-    tmp.replace(out_path)
-    print(f"wrote {out_path}")
+    write_json(args.json, {"max_iter": args.max_iter, "rows": rows})
+    print(f"wrote {args.json}")
     return 0
 
 

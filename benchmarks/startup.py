@@ -11,14 +11,14 @@ kernels' compilation or loading).
 """
 
 import argparse
-import json
 import os
 import re
 import subprocess
 import sys
 import tempfile
 import time
-from pathlib import Path
+
+from massspring.files import write_json
 
 
 def parse_args(argv=None):
@@ -55,12 +55,8 @@ def main(argv=None):
                "warm_total_s": warm[0], "warm_step_s": warm[1]}
         rows.append(row)
         print(f"{integrator:>10s} {cold[0]:12.2f} {cold[1]:11.2f} {warm[0]:12.2f} {warm[1]:11.2f}", flush=True)
-    out = Path(args.json)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = out.with_suffix(".tmp")
-    tmp.write_text(json.dumps(rows, indent=1))
-    tmp.replace(out)
-    print(f"wrote {out}")
+    write_json(args.json, rows)
+    print(f"wrote {args.json}")
     return 0
 
 

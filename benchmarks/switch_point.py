@@ -11,13 +11,12 @@ iteration) and the symplectic step (ms per step) with every combination of
 """
 
 import argparse
-import json
 import statistics
 import sys
 import time
-from pathlib import Path
 
 import massspring as ms
+from massspring.files import write_json
 
 COMBOS = [("serial", "ndarray"), ("serial", "field"), ("parallel", "ndarray"), ("parallel", "field")]
 
@@ -75,12 +74,8 @@ def main(argv=None):
         imp = "  ".join(f"{row['implicit'][f'{a}/{b}']:11.4f}" for a, b in COMBOS)
         sym = "  ".join(f"{row['symplectic'][f'{a}/{b}']:11.4f}" for a, b in COMBOS)
         print(f"{resolution:4d} {row['springs']:8d}  {'':22s}{imp}   {'':19s}{sym}", flush=True)
-    out = Path(args.json)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = out.with_suffix(".tmp")
-    tmp.write_text(json.dumps(rows, indent=1))
-    tmp.replace(out)
-    print(f"wrote {out}")
+    write_json(args.json, rows)
+    print(f"wrote {args.json}")
 
 
 if __name__ == "__main__":

@@ -92,7 +92,7 @@ def cmd_info(args):
           f"{sim.model.fixed.size} fixed")
     print(f"integrator  {sim.integrator}, dt = {sim.dt:g} s, precision {sim.precision}; "
           f"default duration {scene.duration:g} s")
-    print(f"dt defaults " + ", ".join(f"{k} {v:g}" for k, v in scene.dt.items()))
+    print("dt defaults " + ", ".join(f"{k} {v:g}" for k, v in scene.dt.items()))
     print(f"terms       {', '.join(info['terms'])}")
     print(f"arrays      {', '.join(info['arrays'])} ({info['bytes'] / 1e6:.2f} MB)")
     return EXIT_OK

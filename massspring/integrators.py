@@ -12,7 +12,6 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-import numpy as np
 import taichi as ti
 
 from massspring.kernels import cg, divergence, forces, operator

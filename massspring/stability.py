@@ -37,7 +37,7 @@ from massspring.integrators import DeviceModel
 from massspring.storage import ArraySet
 from massspring.kernels import cg, operator
 from massspring.model import Model
-from massspring.simulation import divergence_check, ensure_taichi
+from massspring.simulation import ensure_taichi
 
 
 @dataclass(frozen=True)
