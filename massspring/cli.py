@@ -150,12 +150,14 @@ def advance(sim, steps, show=True, frames=None, on_frame=None):
     an entry of ``frames`` (sorted ints in 0..steps; 0 is before the first step), and
     chunks end there. Without it the run steps exactly as it would otherwise.
     """
+    from rich.console import Console
     from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
     chunk = max(1, steps // 200)
     with Progress(TextColumn("[progress.description]{task.description}"), BarColumn(),
                   TextColumn("{task.completed}/{task.total} steps"), TimeElapsedColumn(),
-                  TimeRemainingColumn(), transient=True, disable=not show) as bar:
+                  TimeRemainingColumn(), transient=True, disable=not show,
+                  console=Console(stderr=True)) as bar:
         task = bar.add_task(f"{sim.integrator} dt={sim.dt:g}", total=steps)
         pending = list(frames) if on_frame is not None else []
         done = next_frame = 0
@@ -317,7 +319,8 @@ def print_summary(scene, sim, wall, energy0, out):
               f"{sim.cg_failures} step(s) not converged (tol {sim.cg_tol:g})")
     print(f"energy      start {energy0['total']:.6g} J, end {energy1['total']:.6g} J "
           f"(kinetic {energy1['kinetic']:.4g}, spring {energy1['spring']:.4g}, gravity {energy1['gravity']:.4g})")
-    print(f"compiled    terms: {', '.join(info['terms'])}; arrays: {', '.join(info['arrays'])}")
+    print(f"compiled    terms: {', '.join(info['terms'])}; arrays: {', '.join(info['arrays'])} "
+          f"({info['storage']}s, {info['loops']} loops)")
     if out:
         print(f"wrote       {out}")
 
