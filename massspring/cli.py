@@ -95,6 +95,7 @@ def cmd_info(args):
     print("dt defaults " + ", ".join(f"{k} {v:g}" for k, v in scene.dt.items()))
     print(f"terms       {', '.join(info['terms'])}")
     print(f"arrays      {', '.join(info['arrays'])} ({info['bytes'] / 1e6:.2f} MB)")
+    print(f"kernels     {info['storage']}s, {info['loops']} loops")
     return EXIT_OK
 
 
@@ -317,6 +318,9 @@ def print_summary(scene, sim, wall, energy0, out):
         its = np.array(sim.cg_iterations)
         print(f"CG          {its.mean():.1f} iterations/step mean, {its.max()} max, "
               f"{sim.cg_failures} step(s) not converged (tol {sim.cg_tol:g})")
+        if sim.cg_failures and sim.precision == "f32":
+            print("note        f32 CG stalls near a relative residual of 1e-5 (round-off): "
+                  "use --cg-tol 1e-4 or --precision f64")
     print(f"energy      start {energy0['total']:.6g} J, end {energy1['total']:.6g} J "
           f"(kinetic {energy1['kinetic']:.4g}, spring {energy1['spring']:.4g}, gravity {energy1['gravity']:.4g})")
     print(f"compiled    terms: {', '.join(info['terms'])}; arrays: {', '.join(info['arrays'])} "
