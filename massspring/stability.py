@@ -273,13 +273,15 @@ def run_case(scene, integrator, dt, definiteness_fix=True, duration=1.0, max_ste
         finally:
             strain = max(strain, max_strain(model, sim.positions))
     its = np.array(sim.cg_iterations) if sim.cg_iterations else None
-    return {"integrator": integrator, "definiteness_fix": bool(definiteness_fix), "dt": dt,
-            "outcome": outcome, "steps": sim.steps, "simulated_time": sim.time,
-            "energy_ratio": energy_ratio(model, sim.positions, sim.velocities, sim.check),
-            "max_strain": strain,
-            "cg_iterations_mean": float(its.mean()) if its is not None else None,
-            "cg_iterations_max": int(its.max()) if its is not None else None,
-            "cg_failures": sim.cg_failures if integrator == "implicit" else None}
+    row = {"integrator": integrator, "definiteness_fix": bool(definiteness_fix), "dt": dt,
+           "outcome": outcome, "steps": sim.steps, "simulated_time": sim.time,
+           "energy_ratio": energy_ratio(model, sim.positions, sim.velocities, sim.check),
+           "max_strain": strain,
+           "cg_iterations_mean": float(its.mean()) if its is not None else None,
+           "cg_iterations_max": int(its.max()) if its is not None else None,
+           "cg_failures": sim.cg_failures if integrator == "implicit" else None}
+    sim.close()  # the next run of the ladder reuses its fields, already compiled
+    return row
 
 
 def ladder(scene, prediction: Prediction, duration=1.0, max_steps=1000, cases=LADDER, progress=None,
