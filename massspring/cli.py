@@ -55,6 +55,7 @@ def add_scene_arguments(p):
                    help="time integrator (default: the scene's)")
     p.add_argument("--dt", type=float, help="time step in s (default: the scene's for the integrator)")
     p.add_argument("--precision", choices=("f64", "f32"), default="f64")
+    p.add_argument("--arch", default="cpu", help="Taichi arch: cpu (default), cuda, vulkan, metal, gpu ...")
     p.add_argument("--cg-tol", type=float, default=1e-6, help="implicit: relative CG tolerance (default 1e-6)")
     p.add_argument("--cg-max-iter", type=int, help="implicit: CG iteration limit per step "
                    "(default 3 x free particles, at least 100)")
@@ -71,7 +72,7 @@ def make_simulation(args):
     scene = load_scene(args.scene).with_settings(args.set)
     sim = scene.simulation(integrator=args.integrator, dt=args.dt, precision=args.precision,
                            cg_tol=args.cg_tol, cg_max_iter=args.cg_max_iter,
-                           definiteness_fix=not args.no_definiteness_fix)
+                           definiteness_fix=not args.no_definiteness_fix, arch=args.arch)
     return scene, sim
 
 

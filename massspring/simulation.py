@@ -30,19 +30,23 @@ ARCHS = ("cpu", "gpu", "cuda", "vulkan", "metal", "opengl", "x64", "arm64")
 
 
 def ensure_taichi(arch="cpu"):
-    """Initialise Taichi once per process on ``arch``; later calls must agree with it."""
+    """Initialise Taichi once per process on ``arch``; later calls must agree with it.
+
+    If Taichi cannot start on ``arch`` (no such device: it falls back to the CPU),
+    this raises ValueError rather than silently running elsewhere.
+    """
     if arch not in ARCHS:
         raise ValueError(f"arch: unknown value {arch!r}, expected one of {', '.join(ARCHS)}")
-    if impl.get_runtime().prog is None:
-        with contextlib.redirect_stdout(io.StringIO()):  # "[Taichi] Starting on arch=..."
-            ti.init(arch=getattr(ti, arch), default_fp=ti.f64, log_level=ti.WARN)
-        return
-    current = impl.current_cfg().arch
     wanted = getattr(ti, arch)
-    accepted = wanted if isinstance(wanted, list) else [wanted]
-    if arch == "cpu":
-        accepted = [ti.x64, ti.arm64]
+    accepted = [ti.x64, ti.arm64] if arch == "cpu" else wanted if isinstance(wanted, list) else [wanted]
+    started = impl.get_runtime().prog is None
+    if started:
+        with contextlib.redirect_stdout(io.StringIO()):  # "[Taichi] Starting on arch=..."
+            ti.init(arch=wanted, default_fp=ti.f64, log_level=ti.ERROR if arch != "cpu" else ti.WARN)
+    current = impl.current_cfg().arch
     if current not in accepted:
+        if started:
+            raise ValueError(f"arch: {arch!r} is not available here; Taichi started on {current.name} instead")
         raise ValueError(f"arch: Taichi already runs on {current.name} in this process; "
                          f"cannot switch to {arch!r}")
 

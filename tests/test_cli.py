@@ -1,5 +1,6 @@
 """The command line: every built-in scene runs, bad input exits 2 with a one-line message."""
 
+import os
 import subprocess
 import sys
 
@@ -91,3 +92,14 @@ def test_missing_key_in_scene(tmp_path, capsys):
                     '[model]\ngenerator = "spring"\n')
     assert main(["run", str(path)]) == 2
     assert "dt.symplectic" in capsys.readouterr().err
+
+
+def test_unavailable_arch_is_a_usage_error():
+    code, out, err = run_cli("run", "spring", "--steps", "1", "--arch", "tpu")
+    assert code == 2 and "arch" in err
+    if os.path.exists("/dev/nvidiactl"):
+        return  # a CUDA machine: nothing to refuse
+    # A fresh process: Taichi starts here, finds no CUDA device, and must not fall back silently.
+    code, out, err = run_cli("run", "spring", "--steps", "1", "--arch", "cuda")
+    assert code == 2
+    assert "arch" in err and "cuda" in err and len(err.strip().splitlines()) == 1
