@@ -59,8 +59,8 @@ def begin_row(i, x: ti.template(), b: ti.template(), r: ti.template(), z: ti.tem
                                False, has_gravity, real)
             b[i] = mass[i] * x[i] + h * f
             if ti.static(precondition):
-                minv[i] = ti.cast(diagonal_block(i, mass, offsets, spring, coef, real).inverse(), real)
-        ri = b[i] - apply_row(i, x, mass, offsets, other, spring, coef, real)
+                minv[i] = ti.cast(diagonal_block(i, mass, offsets, coef, real).inverse(), real)
+        ri = b[i] - apply_row(i, x, mass, offsets, other, coef, real)
         zi = ri
         if ti.static(precondition):
             zi = minv[i] @ ri
@@ -81,10 +81,10 @@ def begin_row(i, x: ti.template(), b: ti.template(), r: ti.template(), z: ti.tem
 
 @ti.func
 def apply_q_row(i, p: ti.template(), q: ti.template(), mass: ti.template(), free: ti.template(),
-                offsets: ti.template(), other: ti.template(), spring: ti.template(),
-                coef: ti.template(), has_fixed: ti.template(), real: ti.template()):
+                offsets: ti.template(), other: ti.template(), coef: ti.template(),
+                has_fixed: ti.template(), real: ti.template()):
     """Row i of q = A p (0 at fixed particles); returns p_i.q_i."""
-    qi = apply_row(i, p, mass, offsets, other, spring, coef, real)
+    qi = apply_row(i, p, mass, offsets, other, coef, real)
     if ti.static(has_fixed):
         if free[i] == 0:
             qi = ti.Vector.zero(real, 3)
@@ -132,12 +132,11 @@ def cg_begin(x: ti.types.ndarray(), b: ti.types.ndarray(),
 @array_kernel
 def cg_apply(p: ti.types.ndarray(), q: ti.types.ndarray(), mass: ti.types.ndarray(),
              free: ti.types.ndarray(), offsets: ti.types.ndarray(), other: ti.types.ndarray(),
-             spring: ti.types.ndarray(), coef: ti.types.ndarray(),
-             has_fixed: ti.template(), real: ti.template()) -> ti.f64:
+             coef: ti.types.ndarray(), has_fixed: ti.template(), real: ti.template()) -> ti.f64:
     """Parallel ``apply``: q = A p on the free particles (0 on fixed ones); returns p.q."""
     pq = ti.cast(0, real)
     for i in range(p.shape[0]):
-        pq += apply_q_row(i, p, q, mass, free, offsets, other, spring, coef, has_fixed, real)
+        pq += apply_q_row(i, p, q, mass, free, offsets, other, coef, has_fixed, real)
     return pq
 
 
@@ -233,8 +232,7 @@ def cg_solve_serial(x: ti.types.ndarray(), b: ti.types.ndarray(),
                 while rr > target and iterations < max_iter:
                     pq = ti.cast(0, real)
                     for i in range(n):
-                        pq += apply_q_row(i, p, q, mass, free, offsets, other, spring, coef,
-                                          has_fixed, real)
+                        pq += apply_q_row(i, p, q, mass, free, offsets, other, coef, has_fixed, real)
                     if not (pq > 0) or rz == 0.0:
                         reason = INDEFINITE
                         break

@@ -39,7 +39,6 @@ class DeviceModel:
     offsets: object
     other: object
     spring: object
-    ends: object
     ks: object
     kd: object
     l0: object
@@ -62,7 +61,6 @@ class DeviceModel:
         arrays.add("offsets", ti.i32, n + 1, values=offsets)
         arrays.add("other", ti.i32, 2 * m, values=other)
         arrays.add("spring", ti.i32, 2 * m, values=spring)
-        arrays.add("ends", ti.i32, (m, 2), values=model.springs)
         arrays.add("ks", real, m, values=model.stiffness)
         arrays.add("kd", real, m if has_damping else 1, values=model.damping if has_damping else None)
         arrays.add("l0", real, m, values=model.rest_lengths)
@@ -194,7 +192,7 @@ class ImplicitEuler:
             self.arrays.vectors(name, dev.real, n)
         self.arrays.vectors("keep", dev.real, n, state.v.to_numpy())
         self.arrays.add("minv", dev.real, n if self.precondition else 1, (3, 3))
-        self.arrays.vectors("coef", dev.real, n_springs, k=5)
+        self.arrays.vectors("coef", dev.real, 2 * n_springs, k=5)
         for name, array in self.arrays.build().items():
             setattr(self, name, array)
         self.work_arrays = ("b", "r", "z", "p", "q", "coef", "keep") + (("minv",) if self.precondition else ())
@@ -209,8 +207,8 @@ class ImplicitEuler:
         assert steps == 1
         d = self.dev
         if self.n_springs:
-            operator.spring_coefficients(state.x, d.ends, d.ks, d.kd, d.l0, self.coef, dt, self.fix,
-                                         d.has_damping, d.real)
+            operator.entry_coefficients(state.x, d.offsets, d.other, d.spring, d.ks, d.kd, d.l0, self.coef,
+                                        dt, self.fix, d.has_damping, self.serial, d.real)
         if self.serial:
             iterations, residual, reason = cg.cg_solve_serial(
                 state.v, self.b, self.r, self.z, self.p, self.q, self.minv, state.x, d.mass, d.free,
@@ -246,8 +244,8 @@ class ImplicitEuler:
         while not done:
             cycle = 0
             while rr > target and iterations < self.max_iter:
-                pq = cg.cg_apply(self.p, self.q, d.mass, d.free, d.offsets, d.other, d.spring,
-                                 self.coef, d.has_fixed, d.real)
+                pq = cg.cg_apply(self.p, self.q, d.mass, d.free, d.offsets, d.other, self.coef,
+                                 d.has_fixed, d.real)
                 if not pq > 0.0 or rz == 0.0:
                     reason = cg.INDEFINITE
                     break

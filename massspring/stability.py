@@ -4,7 +4,7 @@
 (K the stiffness of seed Eq. 13 as written, no definiteness fix: that is the
 Jacobian the explicit integrators see) at a state, by Lanczos on the symmetric
 M^-1/2 (-K) M^-1/2 over the free degrees of freedom. K is applied matrix-free by
-the implicit solver's own kernels: ``operator.spring_coefficients`` with dt = 1
+the implicit solver's own kernels: ``operator.entry_coefficients`` with dt = 1
 and no damping gives per-spring blocks S = -K_ii, and ``cg.cg_apply`` with zero
 masses applies sum_s S_s (p_i - p_j) = -K p. The same with ks = 0 and the
 damping gives -D p, for the stiffest mode's damping rate c = u^T M^-1/2 (-D) M^-1/2 u.
@@ -72,13 +72,14 @@ def spectrum(model: Model, positions=None, iterations=40, seed=0) -> Spectrum:
     arrays.vectors("p", ti.f64, n)
     arrays.vectors("q", ti.f64, n)
     arrays.add("zeros", ti.f64, max(n, m), values=np.zeros(max(n, m)))
-    arrays.vectors("stiffness", ti.f64, m, k=5)
-    arrays.vectors("damping", ti.f64, m, k=5)
+    arrays.vectors("stiffness", ti.f64, 2 * m, k=5)
+    arrays.vectors("damping", ti.f64, 2 * m, k=5)
     a = arrays.build()
     pos, p, q, zeros = a["pos"], a["p"], a["q"], a["zeros"]
 
     def coefficients(coef, ks, kd, has_damping):
-        operator.spring_coefficients(pos, dev.ends, ks, kd, dev.l0, coef, 1.0, False, has_damping, ti.f64)
+        operator.entry_coefficients(pos, dev.offsets, dev.other, dev.spring, ks, kd, dev.l0, coef, 1.0, False,
+                                    has_damping, True, ti.f64)
         return coef
 
     stiffness = coefficients(a["stiffness"], dev.ks, dev.kd, False)
@@ -88,7 +89,7 @@ def spectrum(model: Model, positions=None, iterations=40, seed=0) -> Spectrum:
     def apply(coef, u):
         """M^-1/2 (-K or -D) M^-1/2 u on the free DOFs, u of shape (n, 3)."""
         p.from_numpy(scale * u)
-        cg.cg_apply(p, q, zeros, dev.free, dev.offsets, dev.other, dev.spring, coef, dev.has_fixed, ti.f64)
+        cg.cg_apply(p, q, zeros, dev.free, dev.offsets, dev.other, coef, dev.has_fixed, ti.f64)
         return scale * q.to_numpy()
 
     u = np.random.default_rng(seed).standard_normal(x.shape) * free[:, None]

@@ -1,6 +1,6 @@
 """The matrix-free operator of Eq. 15 and the CG solver around it.
 
-The kernels ``operator.spring_coefficients`` and ``cg.cg_apply`` (q = A p via
+The kernels ``operator.entry_coefficients`` and ``cg.cg_apply`` (q = A p via
 ``operator.apply_row``) are driven directly on the Taichi ndarrays of a
 ``DeviceModel`` and an ``ImplicitEuler``'s work arrays; the dense matrix they
 represent is reconstructed column by column (A e_k) and compared with the
@@ -27,8 +27,8 @@ class Operator:
         self.model, self.dt, self.fix = model, dt, definiteness_fix
         self.dev, self.state, self.imp = sim._dev, sim._state, sim._integrator
         d = self.dev
-        operator.spring_coefficients(self.state.x, d.ends, d.ks, d.kd, d.l0, self.imp.coef, dt,
-                                     definiteness_fix, d.has_damping, d.real)
+        operator.entry_coefficients(self.state.x, d.offsets, d.other, d.spring, d.ks, d.kd, d.l0,
+                                    self.imp.coef, dt, definiteness_fix, d.has_damping, True, d.real)
         self.n = model.n_particles
         self.keep = free_dofs(model)
 
@@ -36,7 +36,7 @@ class Operator:
         """(A p, p.Ap as returned by the kernel) for p (3n,), zero on fixed particles."""
         d, imp = self.dev, self.imp
         imp.p.from_numpy(np.ascontiguousarray(p.reshape(self.n, 3)))
-        pq = cg.cg_apply(imp.p, imp.q, d.mass, d.free, d.offsets, d.other, d.spring, imp.coef,
+        pq = cg.cg_apply(imp.p, imp.q, d.mass, d.free, d.offsets, d.other, imp.coef,
                          d.has_fixed, d.real)
         return imp.q.to_numpy().reshape(-1), pq
 
