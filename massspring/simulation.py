@@ -99,9 +99,10 @@ class Simulation:
         the system stays positive definite (see kernels/operator.py).
     preconditioner : "block-jacobi" (default) | "none"
     storage : "auto" (default) | "ndarray" | "field"
-        Taichi ndarrays (kernels compiled once for all simulations) or fields (about
-        2x faster CG on mid-size systems, compiled again per simulation);
-        "auto" picks fields from ``FIELDS_FROM`` springs on.
+        Taichi ndarrays (kernels compiled once for all simulations) or fields (1.3-2x
+        faster kernels, compiled again for each new size; released fields are pooled
+        and reused, see ``storage.FieldPool``); "auto" picks fields from
+        ``FIELDS_FROM`` springs on.
     loops : "auto" (default) | "serial" | "parallel"
         Serial kernels (a whole CG solve, or many explicit steps, per launch) or
         parallel kernels (one launch per phase). Both give the same results to
@@ -165,7 +166,8 @@ class Simulation:
         self.loops = loops
         serial = loops == "serial"
         if integrator == "implicit":
-            self._integrator = ImplicitEuler(self._dev, self._state, serial=serial, cg_tol=cg_tol, cg_max_iter=self.cg_max_iter,
+            self._integrator = ImplicitEuler(self._dev, self._state, serial=serial, cg_tol=cg_tol,
+                                             cg_max_iter=self.cg_max_iter,
                                              definiteness_fix=self.definiteness_fix,
                                              preconditioner=preconditioner)
         else:
