@@ -28,12 +28,12 @@ Shapes: ``x, b, r, z, p, q`` (n,) of vec3 (velocities in m/s, b in kg m/s);
 import taichi as ti
 
 from .arrays import array_kernel
-from .divergence import OK, check_code, state_sums
+from .divergence import OK, check_code, is_finite, state_sums
 from .forces import particle_force
 from .operator import apply_row, diagonal_block
 
-CONVERGED, MAX_ITER, INDEFINITE, STALLED = 0, 1, 2, 3
-REASONS = ("converged", "max_iter", "indefinite", "stalled")
+CONVERGED, MAX_ITER, INDEFINITE, STALLED, NONFINITE = 0, 1, 2, 3, 4
+REASONS = ("converged", "max_iter", "indefinite", "stalled", "non-finite")
 
 
 @ti.func
@@ -160,28 +160,31 @@ def cg_direction(beta: ti.f64, z: ti.types.ndarray(), p: ti.types.ndarray(), rea
         p[i] = z[i] + bt * p[i]
 
 
-def exit_rule(iterations, residual, tol, best, reason, max_iter):
+def exit_rule(finite, iterations, cycle, residual, tol, best, reason, max_iter):
     """The exit rule after each CG cycle, shared by both drivers: returns (done, reason, best).
 
     Plain Python that is also valid Taichi code: ``next_action`` is its ``ti.func``.
 
-    ``residual`` is the true relative residual. Converged if <= tol; else stop on a
-    breakdown (p.Ap <= 0), on the iteration limit, or when a restart from the true
-    residual no longer halves it (stalled); else restart.
+    ``residual`` is the true relative residual, ``finite`` whether it is finite
+    (tested by the caller: ``is_finite`` in kernels), ``cycle`` the iterations of the
+    cycle just ended. Stop on a non-finite residual (reason "non-finite"); converged if
+    <= tol; else stop on a breakdown (p.Ap <= 0), on the iteration limit, after a
+    cycle that could not iterate, or when a restart from the true residual no
+    longer halves it (stalled); else restart. Every restart follows a cycle of at
+    least one iteration, so the iterations bound the loop.
     """
     done = True
     new_reason = reason
     new_best = best
-    if not (residual == residual) or residual > 1e300:  # NaN or Inf
-        if reason == CONVERGED:
-            new_reason = INDEFINITE
+    if not finite:
+        new_reason = NONFINITE
     elif residual <= tol:
         new_reason = CONVERGED
     elif reason != CONVERGED:
         pass
     elif iterations >= max_iter:
         new_reason = MAX_ITER
-    elif residual > 0.5 * best:
+    elif cycle == 0 or residual > 0.5 * best:
         new_reason = STALLED
     else:
         done = False
@@ -220,7 +223,10 @@ def cg_solve_serial(x: ti.types.ndarray(), b: ti.types.ndarray(),
         rz = ti.cast(sums[0], ti.f64)
         rr = ti.cast(sums[1], ti.f64)
         bb = ti.cast(sums[2], ti.f64)
-        if bb == 0.0:
+        if not is_finite(bb):
+            reason = NONFINITE
+            residual = bb
+        elif bb == 0.0:
             for i in range(n):
                 x[i] = ti.Vector.zero(real, 3)
         else:
@@ -233,7 +239,7 @@ def cg_solve_serial(x: ti.types.ndarray(), b: ti.types.ndarray(),
                     pq = ti.cast(0, real)
                     for i in range(n):
                         pq += apply_q_row(i, p, q, mass, free, offsets, other, coef, has_fixed, real)
-                    if not (pq > 0) or rz == 0.0:
+                    if not is_finite(pq) or pq <= 0 or rz == 0.0:
                         reason = INDEFINITE
                         break
                     a = ti.cast(rz / ti.cast(pq, ti.f64), real)
@@ -257,7 +263,8 @@ def cg_solve_serial(x: ti.types.ndarray(), b: ti.types.ndarray(),
                     rz = ti.cast(sums[0], ti.f64)
                     rr = ti.cast(sums[1], ti.f64)
                 residual = ti.sqrt(ti.max(rr, 0.0) / bb)
-                done, reason, best = next_action(iterations, residual, tol, best, reason, max_iter)
+                done, reason, best = next_action(is_finite(residual), iterations, cycle, residual, tol, best,
+                                                 reason, max_iter)
     return ti.Vector([iterations, residual, reason], ti.f64)
 
 

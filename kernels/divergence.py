@@ -14,10 +14,24 @@ sum(m g . x)). For the physical, damped system kinetic <= base - floor + work of
 gravity, so a state above ``factor`` times that bound is numerical runaway.
 """
 
+import math
+
 import taichi as ti
 
 OK, NONFINITE, RUNAWAY = 0, 1, 2
 CAUSES = ("ok", "non-finite", "runaway")
+_EXPONENT = 0x7FF0000000000000  # float64 exponent bits: all ones for NaN and +-Inf
+
+
+@ti.func
+def is_finite(x):
+    """True unless ``x`` (a float scalar) is NaN or +-Inf, tested on its float64 bits.
+
+    Comparisons cannot do this in kernels: Taichi compiles with fast math, under
+    which ``x == x`` and ``x < inf`` are folded to True before they run.
+    """
+    bits = ti.bit_cast(ti.cast(x, ti.f64), ti.u64)
+    return (bits & ti.u64(_EXPONENT)) != ti.u64(_EXPONENT)
 
 
 @ti.func
@@ -26,14 +40,14 @@ def state_sums(x, v, m, g, real: ti.template()):
     return ti.Vector([0.5 * m * v.dot(v), m * ti.cast(g, real).dot(x), x.dot(x) + v.dot(v)], real)
 
 
-def divergence_code(kinetic, gravity_sum, norm_sum, base, gx0, factor):
-    """OK, NONFINITE or RUNAWAY for a state's sums (see the module docstring).
-
-    Plain Python that is also valid Taichi code: ``check_code`` is its ``ti.func``,
-    so the kernels and the Python drivers apply the same rule.
+def classify(finite, kinetic, gravity_sum, base, gx0, factor):
+    """OK, NONFINITE or RUNAWAY for a state's sums (see the module docstring);
+    ``finite``: whether the sums are finite (``is_finite`` in kernels, ``math.isfinite``
+    in Python). Plain Python that is also valid Taichi code: ``classify_func`` is
+    its ``ti.func``, so the kernels and the Python drivers apply the same rule.
     """
     code = OK
-    if not (norm_sum == norm_sum) or norm_sum > 1e308 or not (kinetic == kinetic) or kinetic > 1e308:
+    if not finite:
         code = NONFINITE
     else:
         work = gravity_sum - gx0
@@ -44,4 +58,16 @@ def divergence_code(kinetic, gravity_sum, norm_sum, base, gx0, factor):
     return code
 
 
-check_code = ti.func(divergence_code)
+classify_func = ti.func(classify)
+
+
+def divergence_code(kinetic, gravity_sum, norm_sum, base, gx0, factor):
+    """``classify`` of sums returned to Python by a kernel."""
+    finite = math.isfinite(kinetic) and math.isfinite(norm_sum)
+    return classify(finite, kinetic, gravity_sum, base, gx0, factor)
+
+
+@ti.func
+def check_code(kinetic, gravity_sum, norm_sum, base, gx0, factor):
+    """``divergence_code`` inside a kernel."""
+    return classify_func(is_finite(kinetic) and is_finite(norm_sum), kinetic, gravity_sum, base, gx0, factor)

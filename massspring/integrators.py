@@ -98,7 +98,8 @@ class SolverStats:
     iterations: CG iterations; residual: true relative residual ||b - A v|| / ||b||
     recomputed at exit; converged: residual <= tolerance; reason: why CG stopped
     ("converged", "max_iter", "indefinite" when p.Ap <= 0, "stalled" when a restart
-    from the true residual no longer reduces it, as f32 round-off can cause).
+    from the true residual no longer reduces it, as f32 round-off can cause,
+    "non-finite" when the right-hand side or the residual overflowed).
     """
 
     iterations: int
@@ -219,6 +220,9 @@ class ImplicitEuler:
             iterations, residual, reason = self._solve_parallel(state, dt)
         self.stats = SolverStats(int(iterations), float(residual), reason == cg.CONVERGED,
                                  cg.REASONS[reason])
+        if reason == cg.NONFINITE:  # Eq. 15 overflowed: no velocity to step with
+            state.v.copy_from(self.keep)
+            return state, 0, divergence.NONFINITE, math.inf
         code, kinetic = cg.advance_positions(state.x, state.v, self.keep, d.mass, d.gravity, dt, check,
                                              self.serial, d.real)
         code = int(code)
@@ -236,6 +240,8 @@ class ImplicitEuler:
         """PCG on A v = b from the warm start v = v_n; the loop of ``cg.cg_solve_serial``."""
         d = self.dev
         rz, rr, bb = self._begin(state, dt, True)
+        if not math.isfinite(bb):
+            return 0, math.inf, cg.NONFINITE
         if bb == 0.0:
             cg.cg_direction(0.0, self.b, state.v, d.real)  # b = 0, so v = b + 0 v = 0
             return 0, 0.0, cg.CONVERGED
@@ -246,7 +252,7 @@ class ImplicitEuler:
             while rr > target and iterations < self.max_iter:
                 pq = cg.cg_apply(self.p, self.q, d.mass, d.free, d.offsets, d.other, self.coef,
                                  d.has_fixed, d.real)
-                if not pq > 0.0 or rz == 0.0:
+                if not (math.isfinite(pq) and pq > 0.0) or rz == 0.0:
                     reason = cg.INDEFINITE
                     break
                 rz_new, rr = cg.cg_update(rz / pq, state.v, self.r, self.z, self.p, self.q, self.minv,
@@ -258,5 +264,6 @@ class ImplicitEuler:
             if cycle:
                 rz, rr, _ = self._begin(state, dt, False)
             residual = math.sqrt(max(rr, 0.0) / bb) if math.isfinite(rr) else math.inf
-            done, reason, best = cg.exit_rule(iterations, residual, self.tol, best, reason, self.max_iter)
+            done, reason, best = cg.exit_rule(math.isfinite(residual), iterations, cycle, residual, self.tol, best,
+                                              reason, self.max_iter)
         return iterations, residual, reason

@@ -16,25 +16,55 @@ from dataclasses import dataclass
 import numpy as np
 
 
-def _finite_array(name, value, dtype=np.float64):
+# Largest magnitude accepted for any input number (and 1 / smallest mass): squares
+# and products of a few inputs, which the kernels form (energies, momenta, b.b in
+# the implicit solve), then stay within the float64 range (1.8e308).
+MAX_MAGNITUDE = 1e100
+
+
+def _describe(value):
+    text = repr(value)
+    return text if len(text) <= 40 else text[:37] + "..."
+
+
+def _real_array(name, value):
+    """``value`` as a float64 array of finite real numbers of magnitude <= MAX_MAGNITUDE.
+
+    Refuses what numpy would silently convert: bools, complex numbers (the imaginary
+    part would be dropped), strings of digits, None and other objects.
+    """
     try:
-        arr = np.array(value, dtype=dtype)
+        arr = np.asarray(value)
     except (TypeError, ValueError) as exc:
         raise ValueError(f"{name}: cannot be read as an array of numbers ({exc})") from None
-    if arr.dtype.kind == "f" and not np.all(np.isfinite(arr)):
+    if arr.dtype.kind not in "iuf":
+        what = {"b": "bools", "c": "complex numbers", "U": "strings", "S": "strings"}.get(arr.dtype.kind)
+        raise ValueError(f"{name}: expected real numbers, got " + (what or f"{_describe(value)}"))
+    arr = arr.astype(np.float64)
+    if not np.all(np.isfinite(arr)):
         bad = np.argwhere(~np.isfinite(arr))[0]
         raise ValueError(f"{name}: contains a non-finite value (NaN or Inf) at index {tuple(int(b) for b in bad)}")
+    if arr.size and np.abs(arr).max() > MAX_MAGNITUDE:
+        bad = np.unravel_index(int(np.argmax(np.abs(arr))), arr.shape)
+        raise ValueError(f"{name}: {arr[bad]:g} at index {tuple(int(b) for b in bad)} is beyond the accepted "
+                         f"magnitude {MAX_MAGNITUDE:g} (products of such values overflow float64)")
     return arr
 
 
-def _per_item(name, value, count, what):
-    """A scalar broadcast to ``count`` items, or an array of shape (count,)."""
-    arr = _finite_array(name, value)
-    if arr.ndim == 0:
-        arr = np.full(count, float(arr))
-    elif arr.shape != (count,):
+def _per_item(name, value, count, what, low=None, low_text=""):
+    """A scalar broadcast to ``count`` items, or an array of shape (count,); every
+    value (the scalar too, even with no items) must be ``> low`` or ``>= low``."""
+    arr = _real_array(name, value)
+    if arr.ndim != 0 and arr.shape != (count,):
         raise ValueError(f"{name}: expected a scalar or shape ({count},) (one per {what}), got shape {arr.shape}")
-    return arr
+    if low is not None:
+        bad = arr < low if low_text == ">=" else arr <= low
+        if np.any(bad):
+            if arr.ndim == 0:
+                raise ValueError(f"{name}: must be {low_text} {low:g}, got {float(arr):g}")
+            k = int(np.argmax(bad))
+            raise ValueError(f"{name}: must be {low_text} {low:g}, {what} {k} has {arr[k]:g}")
+    return np.full(count, float(arr)) if arr.ndim == 0 else arr
 
 
 def _readonly(arr):
@@ -53,7 +83,7 @@ class Model:
     springs : (m, 2) int
         Particle indices of each spring's two ends.
     masses : float or (n,) float, kg
-        Particle masses, all > 0 (fixed particles too: the value is unused for them).
+        Particle masses, all >= 1e-100 (fixed particles too: the value is unused for them).
     stiffness : float or (m,) float, N/m
         Spring constants ``ks`` (>= 0).
     damping : float or (m,) float, N s/m
@@ -68,7 +98,9 @@ class Model:
         Pinned particles: their velocity is exactly 0 at all times.
 
     All arrays are stored as read-only float64/int64 copies under the constructor's
-    argument names; ``fixed`` is stored as sorted unique indices.
+    argument names; ``fixed`` is stored as sorted unique indices. Numbers must be
+    real (not bools, strings or complex), finite, and of magnitude at most
+    ``MAX_MAGNITUDE`` (1e100), so that the products the kernels form stay finite.
     """
 
     positions: np.ndarray
@@ -83,13 +115,16 @@ class Model:
 
     def __init__(self, positions, springs, masses=1.0, stiffness=1e3, damping=0.0,
                  rest_lengths=None, velocities=None, gravity=(0.0, 0.0, -9.81), fixed=None):
-        x = _finite_array("positions", positions)
+        x = _real_array("positions", positions)
         if x.ndim != 2 or x.shape[1] != 3 or x.shape[0] < 1:
             raise ValueError(f"positions: expected shape (n, 3) with n >= 1, got shape {x.shape}")
         n = x.shape[0]
 
-        s = np.array(springs)
-        if s.size == 0:
+        try:
+            s = np.array(springs)
+        except (TypeError, ValueError) as exc:
+            raise ValueError(f"springs: cannot be read as an array of indices ({exc})") from None
+        if s.size == 0 and s.dtype.kind in "iufb":
             s = s.reshape(0, 2)
         if s.ndim != 2 or s.shape[1] != 2:
             raise ValueError(f"springs: expected shape (m, 2), got shape {s.shape}")
@@ -108,33 +143,23 @@ class Model:
             k = int(self_loops[0])
             raise ValueError(f"springs: spring {k} joins particle {s[k, 0]} to itself")
 
-        mass = _per_item("masses", masses, n, "particle")
-        if np.any(mass <= 0):
-            k = int(np.argmax(mass <= 0))
-            raise ValueError(f"masses: must be > 0, particle {k} has mass {mass[k]}")
-        ks = _per_item("stiffness", stiffness, m, "spring")
-        kd = _per_item("damping", damping, m, "spring")
-        for name, arr in (("stiffness", ks), ("damping", kd)):
-            if np.any(arr < 0):
-                k = int(np.argmax(arr < 0))
-                raise ValueError(f"{name}: must be >= 0, spring {k} has {arr[k]}")
+        mass = _per_item("masses", masses, n, "particle", 1.0 / MAX_MAGNITUDE, ">=")
+        ks = _per_item("stiffness", stiffness, m, "spring", 0.0, ">=")
+        kd = _per_item("damping", damping, m, "spring", 0.0, ">=")
         if rest_lengths is None:
             l0 = np.linalg.norm(x[s[:, 1]] - x[s[:, 0]], axis=1) if m else np.zeros(0)
         else:
-            l0 = _per_item("rest_lengths", rest_lengths, m, "spring")
-            if np.any(l0 < 0):
-                k = int(np.argmax(l0 < 0))
-                raise ValueError(f"rest_lengths: must be >= 0, spring {k} has {l0[k]}")
+            l0 = _per_item("rest_lengths", rest_lengths, m, "spring", 0.0, ">=")
 
         if velocities is None:
             v = np.zeros((n, 3))
         else:
-            v = _finite_array("velocities", velocities)
+            v = _real_array("velocities", velocities)
             if v.shape != (n, 3):
                 raise ValueError(f"velocities: expected shape ({n}, 3), got shape {v.shape}")
             v = v.copy()
 
-        g = _finite_array("gravity", gravity)
+        g = _real_array("gravity", gravity)
         if g.shape != (3,):
             raise ValueError(f"gravity: expected 3 components, got shape {g.shape}")
 
@@ -212,7 +237,10 @@ class Model:
 def _fixed_indices(fixed, n):
     if fixed is None:
         return np.zeros(0, dtype=np.int64)
-    arr = np.asarray(fixed)
+    try:
+        arr = np.asarray(fixed)
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"fixed: cannot be read as indices or a mask ({exc})") from None
     if arr.dtype == bool:
         if arr.shape != (n,):
             raise ValueError(f"fixed: a bool mask must have shape ({n},), got shape {arr.shape}")

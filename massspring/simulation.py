@@ -26,6 +26,8 @@ LOOPS = ("auto", "serial", "parallel")
 # 32 x 32 cloth (5.8k springs) on (benchmarks/switch_point.py), for about 1 s of
 # compilation per new size of simulation (storage.FieldPool reuses fields).
 FIELDS_FROM = 4_000
+MAX_INT32 = 2**31 - 1  # kernels count in int32
+STEPS_PER_LAUNCH = 2**30  # explicit steps per kernel call at most (the count is an int32 there)
 ARCHS = ("cpu", "gpu", "cuda", "vulkan", "metal", "opengl", "x64", "arm64")
 
 
@@ -131,8 +133,9 @@ class Simulation:
             raise ValueError(f"cg_tol: must be < 1, got {cg_tol}")
         if cg_max_iter is None:
             cg_max_iter = default_cg_max_iter(model)
-        elif isinstance(cg_max_iter, bool) or not isinstance(cg_max_iter, numbers.Integral) or cg_max_iter < 1:
-            raise ValueError(f"cg_max_iter: expected a positive integer or None, got {cg_max_iter!r}")
+        elif isinstance(cg_max_iter, bool) or not isinstance(cg_max_iter, numbers.Integral) or \
+                not 1 <= cg_max_iter <= MAX_INT32:
+            raise ValueError(f"cg_max_iter: expected an integer within 1..{MAX_INT32} or None, got {cg_max_iter!r}")
         if preconditioner not in PRECONDITIONERS:
             raise ValueError(f"preconditioner: unknown value {preconditioner!r}, expected one of "
                              f"{', '.join(PRECONDITIONERS)}")
@@ -206,10 +209,12 @@ class Simulation:
         if isinstance(n, bool) or not isinstance(n, numbers.Integral) or n < 0:
             raise ValueError(f"n: expected a non-negative integer, got {n!r}")
         if self.integrator != "implicit":
-            if n:
-                self._state, done, code, kinetic = self._integrator.advance(self._state, self.dt, n, self.check)
+            while n:
+                chunk = min(n, STEPS_PER_LAUNCH)
+                self._state, done, code, kinetic = self._integrator.advance(self._state, self.dt, chunk, self.check)
                 self.steps += done
                 self._raise_if_diverged(code, kinetic)
+                n -= chunk
             return self
         for _ in range(n):
             self._state, done, code, kinetic = self._integrator.advance(self._state, self.dt, 1, self.check)
