@@ -23,7 +23,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import peers  # noqa: E402
 
 import massspring as ms  # noqa: E402
-from massspring.files import write_json  # noqa: E402
+from massspring.io.files import write_json  # noqa: E402
 
 def time_step(resolution):
     """dt (s) well inside the explicit limit, which shrinks as 1 / resolution."""
@@ -144,7 +144,7 @@ def run_case(args, resolution, integrator, have_warp):
     ours = timed(lambda: sim.step(steps), args.repeats)
     total_steps = 1 + steps * args.repeats
     row = {"resolution": resolution, "integrator": integrator, "springs": model.n_springs,
-           "steps": steps, "dt": dt, "storage": sim.storage, "loops": sim.loops, "steps_per_s": steps / ours, "compile_s": first, "peers": {}}
+           "steps": steps, "dt": dt, "loops": sim.loops, "steps_per_s": steps / ours, "compile_s": first, "peers": {}}
 
     x, v = model.positions.copy(), model.velocities.copy()
 

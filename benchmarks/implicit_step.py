@@ -28,7 +28,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import peers  # noqa: E402
 
 import massspring as ms  # noqa: E402
-from massspring.files import write_json  # noqa: E402
+from massspring.io.files import write_json  # noqa: E402
 
 
 def parse_args(argv=None):
@@ -41,8 +41,6 @@ def parse_args(argv=None):
     p.add_argument("--peer-steps", type=int, default=3, help="steps on which the peers are timed")
     p.add_argument("--loops", choices=["auto", "serial", "parallel"], default="auto",
                    help="massspring CG driver: whole-solve serial kernel, parallel kernels, or by size")
-    p.add_argument("--storage", choices=["auto", "ndarray", "field"], default="auto",
-                   help="massspring arrays: Taichi ndarrays, fields, or by size")
     p.add_argument("--peers", nargs="*", default=["scipy", "taichi-cg", "direct"],
                    choices=["scipy", "taichi-cg", "direct"])
     p.add_argument("--max-scipy", type=int, default=256, help="largest resolution for SciPy CG")
@@ -64,7 +62,7 @@ def run_case(args, resolution, stiffness, precision):
     scene = cloth(resolution, stiffness)
     dt = 1.0 / 60.0
     sim = scene.simulation(integrator="implicit", dt=dt, precision=precision, cg_tol=args.tol,
-                           loops=args.loops, storage=args.storage)
+                           loops=args.loops)
     model = sim.model
     t0 = time.perf_counter()
     sim.step()
@@ -131,7 +129,7 @@ def run_case(args, resolution, stiffness, precision):
     row = {
         "resolution": resolution, "stiffness": stiffness, "precision": precision,
         "particles": model.n_particles, "springs": model.n_springs, "tol": args.tol,
-        "loops": sim.loops, "storage": sim.storage,
+        "loops": sim.loops,
         "step_ms": step_ms, "iterations": it, "ms_per_iteration": step_ms / max(it, 1),
         "spring_iterations_per_s": model.n_springs * it / (step_ms / 1e3),
         "compile_s": max(first - statistics.median(times), 0.0),
@@ -176,7 +174,7 @@ def print_row(row):
         f"{name} {p['step_ms']:.1f} ms ({p['speedup']:.1f}x" + (f", {p['iterations']:.0f} vs {p['massspring_iterations']:.0f} it" if p["iterations"] else "") + ")"
         for name, p in row["peers"].items())
     print(f"{row['resolution']:5d} {row['stiffness']:8.0e} {row['precision']:>4s} {row['springs']:8d} "
-          f"{row['loops']:>8s} {row['storage']:>7s} {row['step_ms']:9.2f} {row['iterations']:6.0f} {row['ms_per_iteration']:8.4f} "
+          f"{row['loops']:>8s} {row['step_ms']:9.2f} {row['iterations']:6.0f} {row['ms_per_iteration']:8.4f} "
           f"{row['spring_iterations_per_s'] / 1e6:9.1f} {row['compile_s']:7.2f}  {peers_text}"
           + ("" if row["converged_all"] else
              f"  [{'/'.join(row['reasons'])}, residual {row['solver_residual_max']:.1e}]"), flush=True)
@@ -184,7 +182,7 @@ def print_row(row):
 
 def main(argv=None):
     args = parse_args(argv)
-    print(f"{'res':>5s} {'ks':>8s} {'prec':>4s} {'springs':>8s} {'loops':>8s} {'storage':>7s} {'ms/step':>9s} {'iters':>6s} "
+    print(f"{'res':>5s} {'ks':>8s} {'prec':>4s} {'springs':>8s} {'loops':>8s} {'ms/step':>9s} {'iters':>6s} "
           f"{'ms/iter':>8s} {'Msi/s':>9s} {'jit s':>7s}  peers on the first --peer-steps states "
           f"(ms/step, massspring speed-up on the same states, iterations: peer vs massspring)")
     rows, failures = [], []

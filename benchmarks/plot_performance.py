@@ -121,7 +121,7 @@ def main(argv=None):
     if roofline:
         print(f"roofline: cloth {roofline['resolution']}, triad {max(roofline['triad_bytes_per_s'].values()) / 1e9:.1f} GB/s, "
               f"{roofline['bytes_per_iteration'] / roofline['springs']:.0f} B per spring-iteration; "
-              + ", ".join(f"{v['loops']}/{v['storage']} {v['share_of_bound']:.0%}" for v in roofline["variants"]))
+              + ", ".join(f"{v['loops']} {v['share_of_bound']:.0%}" for v in roofline["variants"]))
     plot(implicit, explicit, scaling, args.png)
     return 0
 

@@ -15,7 +15,7 @@
    per adjacency entry (each spring twice, read in order, no spring index: 2 x (4 +
    5 reals) per spring), which moves more bytes but runs faster. The share is taken
    against the stricter minimum; "GB/s" counts the bytes of the layout actually used.
-3. Measured spring-iterations per second of each variant (loops x storage) on the
+3. Measured spring-iterations per second of each loop kind (serial / parallel) on the
    cloth, from the time of CG iterations alone: (t(2k) - t(k)) / k with the
    iteration limit set to k and 2k, so the per-step set-up cancels.
 
@@ -31,10 +31,10 @@ import time
 import taichi as ti
 
 import massspring as ms
-from massspring.simulation import ensure_taichi
-from massspring.files import write_json
+from massspring.device import ensure_taichi
+from massspring.io.files import write_json
 
-VARIANTS = [("serial", "ndarray"), ("serial", "field"), ("parallel", "ndarray"), ("parallel", "field")]
+VARIANTS = ["serial", "parallel"]
 
 
 def parse_args(argv=None):
@@ -85,10 +85,10 @@ def bytes_per_iteration(n, m, real_bytes, fixed, per_entry=False):
     return per_spring * m + per_particle * n
 
 
-def cg_seconds_per_iteration(scene, loops, storage, k, repeats, precision):
+def cg_seconds_per_iteration(scene, loops, k, repeats, precision):
     def timed_step(limit):
         sim = scene.simulation(integrator="implicit", dt=1 / 60, cg_max_iter=limit, loops=loops,
-                               storage=storage, precision=precision)
+                               precision=precision)
         sim.step(1)  # compile, and leave the flat start behind
         times = []
         for _ in range(repeats):
@@ -120,15 +120,15 @@ def main(argv=None):
     best = max(bandwidth.values())
     bound = best / (moved / m)
     print(f"bound: {bound / 1e6:.1f} M spring-iterations/s at {best / 1e9:.1f} GB/s")
-    print(f"{'loops':>8s} {'storage':>8s} {'ms/iter':>8s} {'Msi/s':>8s} {'GB/s':>6s} {'share':>6s}")
+    print(f"{'loops':>8s} {'ms/iter':>8s} {'Msi/s':>8s} {'GB/s':>6s} {'share':>6s}")
     rows = []
-    for loops, storage in VARIANTS:
-        seconds = cg_seconds_per_iteration(scene, loops, storage, args.iterations, args.repeats, args.precision)
+    for loops in VARIANTS:
+        seconds = cg_seconds_per_iteration(scene, loops, args.iterations, args.repeats, args.precision)
         rate = m / seconds
-        row = {"loops": loops, "storage": storage, "ms_per_iteration": 1e3 * seconds,
+        row = {"loops": loops, "ms_per_iteration": 1e3 * seconds,
                "spring_iterations_per_s": rate, "gb_per_s": layout / seconds / 1e9, "share_of_bound": rate / bound}
         rows.append(row)
-        print(f"{loops:>8s} {storage:>8s} {row['ms_per_iteration']:8.3f} {rate / 1e6:8.1f} "
+        print(f"{loops:>8s} {row['ms_per_iteration']:8.3f} {rate / 1e6:8.1f} "
               f"{row['gb_per_s']:6.1f} {row['share_of_bound']:6.0%}", flush=True)
     write_json(args.json, {"triad_bytes_per_s": bandwidth, "resolution": args.resolution, "particles": n,
                            "springs": m, "bytes_per_iteration": moved, "layout_bytes_per_iteration": layout, "bound_spring_iterations_per_s": bound,

@@ -19,7 +19,7 @@ import subprocess
 import sys
 import time
 
-from massspring.files import write_json
+from massspring.io.files import write_json
 
 
 def parse_args(argv=None):
@@ -40,7 +40,7 @@ def peak_rss_bytes():
 
 def child(integrator, resolution, max_iter):
     import massspring as ms
-    from massspring.simulation import ensure_taichi
+    from massspring.device import ensure_taichi
 
     ensure_taichi()
     scene = ms.load_scene("cloth").with_params(resolution=resolution)
@@ -64,7 +64,7 @@ def child(integrator, resolution, max_iter):
             "ns_per_spring_step": 1e9 * seconds / model.n_springs,
             "array_bytes_per_spring": info["bytes"] / model.n_springs, "arrays": info["arrays"],
             "rss_bytes_per_spring": (peak_rss_bytes() - baseline) / model.n_springs,
-            "storage": sim.storage, "loops": sim.loops}
+            "loops": sim.loops}
 
 
 def main(argv=None):

@@ -18,7 +18,7 @@ import sys
 import tempfile
 import time
 
-from massspring.files import write_json
+from massspring.io.files import write_json
 
 
 def parse_args(argv=None):

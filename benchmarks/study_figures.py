@@ -15,7 +15,7 @@ import argparse
 from pathlib import Path
 
 import massspring as ms
-from massspring import study
+from massspring.analysis import fits, report, study
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -30,13 +30,13 @@ def parse_args(argv=None):
 
 def markdown(results) -> str:
     lines = ["| scene | order explicit | order symplectic | order implicit | "
-             + " | ".join(f"cheapest for error <= {t:g}" for t in study.TARGETS) + " |",
-             "|---" * (4 + len(study.TARGETS)) + "|"]
+             + " | ".join(f"cheapest for error <= {t:g}" for t in fits.TARGETS) + " |",
+             "|---" * (4 + len(fits.TARGETS)) + "|"]
     for result in results:
-        orders = study.integrator_orders(result.orders)
+        orders = fits.integrator_orders(result.orders)
         cells = [result.scene] + [_order(orders.get(name)) for name in ("explicit", "symplectic", "implicit")]
-        for target in study.TARGETS:
-            best = study.cheapest(result.runs, target)
+        for target in fits.TARGETS:
+            best = fits.cheapest(result.runs, target)
             if best is None:
                 cells.append("none reached it")
             else:
@@ -58,10 +58,10 @@ def main(argv=None):
     results = []
     for name in args.scenes:
         scene = ms.load_scene(name)
-        result = study.run_study(scene, progress=study.print_progress)
-        print(study.report(result), "\n")
-        study.write_outputs(result, Path(args.out) / name)
-        study.plot(result, docs / f"study_{name}.png")
+        result = study.run_study(scene, progress=report.print_progress)
+        print(report.report(result), "\n")
+        report.write_outputs(result, Path(args.out) / name)
+        report.plot(result, docs / f"study_{name}.png")
         results.append(result)
     print(markdown(results))
 

@@ -1,10 +1,9 @@
-"""Where serial and parallel kernels, and ndarray and field storage, pay off.
+"""Where serial and parallel kernels pay off.
 
 For cloths of increasing resolution, times the implicit step (ms per CG
-iteration) and the symplectic step (ms per step) with every combination of
-``loops`` (serial whole-solve kernels / parallel per-phase kernels) and
-``storage`` (Taichi ndarrays / fields), all in one run. The defaults
-``integrators.SERIAL_BELOW`` and ``simulation.FIELDS_FROM`` come from this table.
+iteration) and the symplectic step (ms per step) with serial kernels (a whole
+solve, or many explicit steps, per launch) and parallel kernels (one launch per
+phase), all in one run. The default ``simulation.SERIAL_BELOW`` comes from this table.
 
     python benchmarks/switch_point.py --help
     python benchmarks/switch_point.py --resolutions 16 32 64 128 256
@@ -16,9 +15,9 @@ import sys
 import time
 
 import massspring as ms
-from massspring.files import write_json
+from massspring.io.files import write_json
 
-COMBOS = [("serial", "ndarray"), ("serial", "field"), ("parallel", "ndarray"), ("parallel", "field")]
+COMBOS = ["serial", "parallel"]
 
 
 def parse_args(argv=None):
@@ -30,8 +29,8 @@ def parse_args(argv=None):
     return p.parse_args(argv)
 
 
-def implicit_ms_per_iteration(scene, loops, storage, steps):
-    sim = scene.simulation(integrator="implicit", dt=1 / 60, loops=loops, storage=storage)
+def implicit_ms_per_iteration(scene, loops, steps):
+    sim = scene.simulation(integrator="implicit", dt=1 / 60, loops=loops)
     t0 = time.perf_counter()
     sim.step(1)
     first = time.perf_counter() - t0
@@ -44,8 +43,8 @@ def implicit_ms_per_iteration(scene, loops, storage, steps):
     return 1e3 * statistics.median(per_iter), first
 
 
-def symplectic_ms_per_step(scene, loops, storage, steps, dt):
-    sim = scene.simulation(integrator="symplectic", dt=dt, loops=loops, storage=storage)
+def symplectic_ms_per_step(scene, loops, steps, dt):
+    sim = scene.simulation(integrator="symplectic", dt=dt, loops=loops)
     sim.step(1)
     times = []
     for _ in range(3):
@@ -58,7 +57,7 @@ def symplectic_ms_per_step(scene, loops, storage, steps, dt):
 
 def main(argv=None):
     args = parse_args(argv)
-    header = "  ".join(f"{loops[:3]}/{storage[:5]:5s}" for loops, storage in COMBOS)
+    header = "  ".join(f"{loops:>10s}" for loops in COMBOS)
     print(f"{'res':>4s} {'springs':>8s}  implicit ms/iteration: {header}   symplectic ms/step: {header}")
     rows = []
     for resolution in args.resolutions:
@@ -66,13 +65,12 @@ def main(argv=None):
         dt = 4e-4 / resolution  # a quarter of the scene default at 32; the limit scales as 1/resolution
         row = {"resolution": resolution, "springs": scene.model().n_springs, "implicit": {}, "symplectic": {},
                "compile_s": {}}
-        for loops, storage in COMBOS:
-            key = f"{loops}/{storage}"
-            row["implicit"][key], row["compile_s"][key] = implicit_ms_per_iteration(scene, loops, storage, args.steps)
-            row["symplectic"][key] = symplectic_ms_per_step(scene, loops, storage, args.explicit_steps, dt)
+        for loops in COMBOS:
+            row["implicit"][loops], row["compile_s"][loops] = implicit_ms_per_iteration(scene, loops, args.steps)
+            row["symplectic"][loops] = symplectic_ms_per_step(scene, loops, args.explicit_steps, dt)
         rows.append(row)
-        imp = "  ".join(f"{row['implicit'][f'{a}/{b}']:11.4f}" for a, b in COMBOS)
-        sym = "  ".join(f"{row['symplectic'][f'{a}/{b}']:11.4f}" for a, b in COMBOS)
+        imp = "  ".join(f"{row['implicit'][loops]:10.4f}" for loops in COMBOS)
+        sym = "  ".join(f"{row['symplectic'][loops]:10.4f}" for loops in COMBOS)
         print(f"{resolution:4d} {row['springs']:8d}  {'':22s}{imp}   {'':19s}{sym}", flush=True)
     write_json(args.json, rows)
     print(f"wrote {args.json}")

@@ -1,24 +1,20 @@
-"""Spring, damping and gravity forces (seed Eq. 1-3) and the explicit steps (Eq. 7-8).
+"""Total forces (seed Eq. 1-3 and any other registered term), each spring evaluated once.
 
-All kernels take their data as ``ti.types.ndarray()`` arguments, so one compiled
-kernel serves every simulation of the same precision and feature set; the
-feature switches (``has_damping``, ``has_gravity``, ``has_fixed``) and the float
-type ``real`` are ``ti.template()`` arguments, compiled away with ``ti.static``.
+``spring_forces`` computes every spring's force on its first end into ``dev.fs``
+(a parallel loop over springs, streaming ``dev.ends`` and the terms' per-spring
+arrays in order); ``particle_force`` then gathers particle i's share from its
+adjacency entries (``dev.offsets``, ``dev.entry``: spring index s where i is the
+spring's first end, -1 - s where it is the second) and adds the particle terms.
+Gather, not scatter: no atomics, and the same sum order on every run.
 
-Forces are gathered per particle over its CSR spring list (``offsets``, ``other``,
-``spring``; see ``Model.adjacency``): each spring is visited once from each end,
-with no atomics, so results are deterministic.
-
-Array shapes (n particles, m springs): ``x, v`` (n,) of vec3 [m, m/s];
-``mass`` (n,) [kg]; ``free`` (n,) int32, 1 for moving particles; ``offsets``
-(n+1,) int32; ``other, spring`` (2m,) int32; ``ks`` (m,) [N/m], ``kd`` (m,)
-[N s/m], ``l0`` (m,) [m].
+Device arrays read (n particles, m springs): ``x, v`` (n,) vec3 (m, m/s);
+``mass`` (n,) kg; ``ends`` (m,) int32 pairs; ``offsets`` (n+1,), ``entry`` (2m,)
+int32; ``fs`` (m,) vec3 N; ``size = (n, m)``; plus each term's own arrays.
+``cfg`` (``massspring.device.Config``) carries the compile-time switches:
+``real`` (ti.f32 or ti.f64), ``spring_terms``, ``particle_terms``, ``fixed``.
 """
 
 import taichi as ti
-
-from .arrays import array_kernel
-from .divergence import OK, check_code, state_sums
 
 
 @ti.func
@@ -42,115 +38,48 @@ def spring_direction(d, real: ti.template()):
 
 
 @ti.func
-def particle_force(i, x: ti.template(), v: ti.template(), mass: ti.template(),
-                   offsets: ti.template(), other: ti.template(), spring: ti.template(),
-                   ks: ti.template(), kd: ti.template(), l0: ti.template(), g,
-                   has_damping: ti.template(), has_gravity: ti.template(), real: ti.template()):
-    """Total force on particle ``i`` (N): Eq. 1 + Eq. 2 (if damping) + Eq. 3 (if gravity)."""
-    f = ti.Vector.zero(real, 3)
-    xi = x[i]
-    for e in range(offsets[i], offsets[i + 1]):
-        j = other[e]
-        s = spring[e]
-        n, length = spring_direction(x[j] - xi, real)
-        f += ks[s] * (length - l0[s]) * n
-        if ti.static(has_damping):
-            f += kd[s] * (v[j] - v[i]).dot(n) * n
-    if ti.static(has_gravity):
-        f += mass[i] * ti.cast(g, real)
-    return f
+def moving(i, dev, cfg: ti.template()):
+    """Whether particle i is free (not pinned)."""
+    out = True
+    if ti.static(cfg.fixed):
+        out = dev.free[i] != 0
+    return out
 
 
 @ti.func
-def euler_row(i, x_in: ti.template(), v_in: ti.template(), x_out: ti.template(), v_out: ti.template(),
-              mass: ti.template(), free: ti.template(), offsets: ti.template(), other: ti.template(),
-              spring: ti.template(), ks: ti.template(), kd: ti.template(), l0: ti.template(), g, h,
-              symplectic: ti.template(), has_damping: ti.template(), has_gravity: ti.template(),
-              has_fixed: ti.template(), real: ti.template()):
-    """Particle i of one explicit or symplectic Euler step from (x_in, v_in) to (x_out, v_out).
-
-    ``symplectic=False``: explicit Euler, Eq. 7-8 with the dt the seed's Eq. 8 drops:
-    x' = x + dt v, v' = v + dt f(x, v) / m.
-    ``symplectic=True``: semi-implicit Euler: v' = v + dt f(x, v) / m, x' = x + dt v'.
-    Fixed particles keep their position and zero velocity.
-    Returns particle i's ``divergence.state_sums`` of the new state (the step's check).
-    """
-    moving = True
-    if ti.static(has_fixed):
-        moving = free[i] != 0
-    if moving:
-        f = particle_force(i, x_in, v_in, mass, offsets, other, spring, ks, kd, l0, g,
-                           has_damping, has_gravity, real)
-        v_new = v_in[i] + h / mass[i] * f
-        if ti.static(symplectic):
-            x_out[i] = x_in[i] + h * v_new
-        else:
-            x_out[i] = x_in[i] + h * v_in[i]
-        v_out[i] = v_new
-    else:
-        x_out[i] = x_in[i]
-        v_out[i] = ti.Vector.zero(real, 3)
-    return state_sums(x_out[i], v_out[i], mass[i], g, real)
+def spring_forces(dev, cfg: ti.template(), x, v, rhs: ti.template()):
+    """``dev.fs[s]``: spring s's force on its first end (N), the sum of the spring
+    terms' ``tension`` (``rhs_tension`` with ``rhs``: Eq. 15's f - D v) times n."""
+    if ti.static(cfg.has_springs):
+        for s in range(dev.size[1]):
+            i = dev.ends[s][0]
+            j = dev.ends[s][1]
+            n, length = spring_direction(x[j] - x[i], cfg.real)
+            t = ti.cast(0, cfg.real)
+            if length > tiny_length(cfg.real):
+                for term in ti.static(cfg.spring_terms):
+                    if ti.static(rhs):
+                        t += term.rhs_tension(s, dev, i, j, x, v, n, length)
+                    else:
+                        t += term.tension(s, dev, i, j, x, v, n, length)
+            dev.fs[s] = t * n
 
 
-@array_kernel
-def euler_step(x_in: ti.types.ndarray(), v_in: ti.types.ndarray(),
-               x_out: ti.types.ndarray(), v_out: ti.types.ndarray(),
-               mass: ti.types.ndarray(), free: ti.types.ndarray(),
-               offsets: ti.types.ndarray(), other: ti.types.ndarray(), spring: ti.types.ndarray(),
-               ks: ti.types.ndarray(), kd: ti.types.ndarray(), l0: ti.types.ndarray(),
-               g: ti.types.vector(3, ti.f64), dt: ti.f64,
-               symplectic: ti.template(), has_damping: ti.template(), has_gravity: ti.template(),
-               has_fixed: ti.template(), real: ti.template()) -> ti.types.vector(3, ti.f64):
-    """One step from (x_in, v_in) to (x_out, v_out), a parallel loop; buffers must not alias.
-
-    Returns the new state's ``divergence.state_sums`` summed over particles.
-    """
-    h = ti.cast(dt, real)
-    sums = ti.Vector.zero(real, 3)
-    for i in range(x_in.shape[0]):
-        sums += euler_row(i, x_in, v_in, x_out, v_out, mass, free, offsets, other, spring, ks, kd, l0,
-                          g, h, symplectic, has_damping, has_gravity, has_fixed, real)
-    return ti.cast(sums, ti.f64)
-
-
-@array_kernel
-def euler_steps_serial(x_a: ti.types.ndarray(), v_a: ti.types.ndarray(),
-                       x_b: ti.types.ndarray(), v_b: ti.types.ndarray(),
-                       mass: ti.types.ndarray(), free: ti.types.ndarray(),
-                       offsets: ti.types.ndarray(), other: ti.types.ndarray(), spring: ti.types.ndarray(),
-                       ks: ti.types.ndarray(), kd: ti.types.ndarray(), l0: ti.types.ndarray(),
-                       g: ti.types.vector(3, ti.f64), dt: ti.f64, steps: ti.i32,
-                       check: ti.types.vector(3, ti.f64),
-                       symplectic: ti.template(), has_damping: ti.template(), has_gravity: ti.template(),
-                       has_fixed: ti.template(), real: ti.template()) -> ti.types.vector(3, ti.f64):
-    """Up to ``steps`` steps in one launch with serial loops, alternating a -> b and b -> a.
-
-    Each step's new state is checked (``divergence.check_code`` with ``check``); the
-    loop stops at the first state that fails. Returns (good steps done k, check code,
-    kinetic energy of the last state computed). The last good state is in (x_a, v_a)
-    if k is even, else in (x_b, v_b); a failed state is in the other pair.
-    """
-    h = ti.cast(dt, real)
-    n = x_a.shape[0]
-    done = 0
-    code = OK
-    kinetic = 0.0
-    ti.loop_config(serialize=True)
-    for _ in range(1):
-        while done < steps and code == OK:
-            sums = ti.Vector.zero(real, 3)
-            if done % 2 == 0:
-                for i in range(n):
-                    sums += euler_row(i, x_a, v_a, x_b, v_b, mass, free, offsets, other, spring, ks, kd,
-                                      l0, g, h, symplectic, has_damping, has_gravity, has_fixed, real)
+@ti.func
+def particle_force(i, dev, cfg: ti.template(), x, v, rhs: ti.template()):
+    """Total force on particle i (N): its springs' (from ``dev.fs``, computed by
+    ``spring_forces`` with the same ``rhs``) plus the particle terms'."""
+    f = ti.Vector.zero(cfg.real, 3)
+    if ti.static(cfg.has_springs):
+        for e in range(dev.offsets[i], dev.offsets[i + 1]):
+            s = dev.entry[e]
+            if s >= 0:
+                f += dev.fs[s]
             else:
-                for i in range(n):
-                    sums += euler_row(i, x_b, v_b, x_a, v_a, mass, free, offsets, other, spring, ks, kd,
-                                      l0, g, h, symplectic, has_damping, has_gravity, has_fixed, real)
-            s = ti.cast(sums, ti.f64)
-            kinetic = s[0]
-            code = check_code(s[0], s[1], s[2], check[0], check[1], check[2])
-            if code == OK:
-                done += 1
-    return ti.Vector([done, code, kinetic], ti.f64)
+                f -= dev.fs[-1 - s]
+    for term in ti.static(cfg.particle_terms):
+        if ti.static(rhs):
+            f += term.rhs(i, dev, x, v)
+        else:
+            f += term.force(i, dev, x, v)
+    return f

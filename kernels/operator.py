@@ -1,94 +1,139 @@
-"""The matrix-free system operator of the linearised implicit step (seed Eq. 13-15).
+"""The matrix-free operator of the linearised implicit step (seed Eq. 13-15).
 
-Eq. 15's matrix is A = M - dt D - dt^2 K. For one spring with unit direction n,
-length l and rest length l0, Eq. 13-14 give the blocks (typos fixed)
+Eq. 15's matrix is A = M - dt D - dt^2 K. Every spring term adds to a spring's
+block S = a I + b n n^T (``terms.base.SpringTerm.coefficients``): S goes to the
+(i,i) and (j,j) blocks of A, -S to (i,j) and (j,i). Particle terms add multiples
+of I to the diagonal (``ParticleTerm.diagonal``), so A_ii = d_i I + sum_s S_s with
+d_i = m_i + those multiples.
 
-    K_ii = K_jj = -K_ij = -K_ji = ks (c I - (1 + c) n n^T),   c = l0/l - 1
-    D_ii = D_jj = -D_ij = -D_ji = -kd n n^T
+The global matrix is never formed. Once per step ``refresh`` computes each
+spring's (n, a, b) once into ``dev.spring_coef`` together with the right-hand
+side forces of Eq. 15 into ``dev.fs``, then copies them into adjacency order
+(``dev.coef``: the operator then streams its coefficients in the order it reads
+them instead of looking them up by spring, which measured 1.1-1.7x faster here)
+and forms ``dev.diag`` (d_i) and the right-hand side ``dev.b``. ``apply_row``
+gathers (A p)_i over particle i's entries:
 
-so the spring adds S = a I + b n n^T to the (i,i) and (j,j) blocks of A and -S to
-(i,j) and (j,i), with
+    (A p)_i = d_i p_i + sum_e [a_e (p_i - p_j) + b_e n_e (n_e . (p_i - p_j))].
 
-    a = -dt^2 ks c,    b = dt kd + dt^2 ks (1 + c).
-
-Definiteness fix (Choi & Ko 2002): K_ii = ks(-n n^T + c (I - n n^T)); the
-transverse part is positive for a compressed spring (c > 0), which can make A
-indefinite. With the fix, c is replaced by min(c, 0) (the along-spring term
--ks n n^T is kept), and A is symmetric positive definite. Without it, Eq. 13 is
-used as written.
-
-The global matrix is never formed: ``entry_coefficients`` stores (n, a, b) once per
-step for every entry of the per-particle spring lists (each spring twice, once at
-each end: the operator then streams its coefficients in order instead of looking
-them up through the spring index, which measured 1.1-1.7x faster on this machine,
-benchmarks/switch_point.py), and ``apply_row`` gathers (A p)_i over particle i's
-springs:
-
-    (A p)_i = m_i p_i + sum_s [a_s (p_i - p_j) + b_s n_s (n_s . (p_i - p_j))].
-
-Shapes (n particles, m springs): ``offsets`` (n+1,), ``other``, ``spring`` (2m,)
-int32 (see ``Model.adjacency``); ``coef`` (2m,) of 5-vectors (n_x, n_y, n_z, a, b)
-in adjacency order; ``minv`` (n,) of 3x3 matrices (inverse diagonal blocks, the
-block-Jacobi preconditioner); vectors ``p``, ``q`` (n,) of vec3.
+Shapes (n particles, m springs): ``spring_coef`` (m,), ``coef`` (2m,) of
+5-vectors (n_x, n_y, n_z, a, b) in the run's precision; ``diag`` (n,); ``b`` (n,)
+vec3 in kg m/s.
 """
 
 import taichi as ti
 
-from .arrays import array_kernel
-from .forces import spring_direction
-
-
-@array_kernel
-def entry_coefficients(x: ti.types.ndarray(), offsets: ti.types.ndarray(), other: ti.types.ndarray(),
-                       spring: ti.types.ndarray(), ks: ti.types.ndarray(), kd: ti.types.ndarray(),
-                       l0: ti.types.ndarray(), coef: ti.types.ndarray(), dt: ti.f64,
-                       definiteness_fix: ti.template(), has_damping: ti.template(), serial: ti.template(),
-                       real: ti.template()):
-    """Per adjacency entry: direction n and the coefficients a, b of S = a I + b n n^T (Eq. 13-15).
-
-    The two entries of a spring get n and -n (exactly: x_j - x_i negates exactly), so
-    the same n n^T, a and b. A spring of zero length (see ``spring_direction``) gets
-    n = 0 and a = 0. ``serial`` serialises the loop (small systems).
-    """
-    h = ti.cast(dt, real)
-    ti.loop_config(serialize=serial)
-    for i in range(offsets.shape[0] - 1):
-        for e in range(offsets[i], offsets[i + 1]):
-            s = spring[e]
-            n, length = spring_direction(x[other[e]] - x[i], real)
-            c = ti.cast(0, real)
-            if n.norm_sqr() > 0:
-                c = l0[s] / length - 1
-                if ti.static(definiteness_fix):
-                    c = ti.min(c, 0)
-            a = -h * h * ks[s] * c
-            b = h * h * ks[s] * (1 + c)
-            if ti.static(has_damping):
-                b += h * kd[s]
-            coef[e] = ti.Vector([n[0], n[1], n[2], a, b], real)
+from .forces import moving, particle_force, spring_direction, tiny_length
 
 
 @ti.func
-def apply_row(i, p: ti.template(), mass: ti.template(), offsets: ti.template(), other: ti.template(),
-              coef: ti.template(), real: ti.template()):
-    """(A p)_i for the matrix-free A of Eq. 15; p must be zero at fixed particles."""
+def spring_coefficients(dev, cfg: ti.template(), x, v, h):
+    """Per spring: ``dev.spring_coef[s] = (n, a, b)`` and ``dev.fs[s]`` = its f - D v
+    on the first end. A spring of zero length gets n = 0, a = b = 0 and no force."""
+    if ti.static(cfg.has_springs):
+        for s in range(dev.size[1]):
+            i = dev.ends[s][0]
+            j = dev.ends[s][1]
+            n, length = spring_direction(x[j] - x[i], cfg.real)
+            a = ti.cast(0, cfg.real)
+            b = ti.cast(0, cfg.real)
+            t = ti.cast(0, cfg.real)
+            if length > tiny_length(cfg.real):
+                for term in ti.static(cfg.spring_terms):
+                    da, db = term.coefficients(s, dev, n, length, h, cfg.fix)
+                    a += da
+                    b += db
+                    t += term.rhs_tension(s, dev, i, j, x, v, n, length)
+            dev.spring_coef[s] = ti.Vector([n[0], n[1], n[2], a, b], cfg.real)
+            dev.fs[s] = t * n
+
+
+@ti.func
+def gather_coefficients(i, dev, cfg: ti.template()):
+    """Copy particle i's springs' (n, a, b) into adjacency order ``dev.coef``."""
+    for e in range(dev.offsets[i], dev.offsets[i + 1]):
+        s = dev.entry[e]
+        if s < 0:
+            s = -1 - s
+        dev.coef[e] = dev.spring_coef[s]
+
+
+@ti.func
+def diagonal_scalar(i, dev, cfg: ti.template(), h):
+    """d_i = m_i + the particle terms' diagonal multiples of I (kg)."""
+    d = dev.mass[i]
+    for term in ti.static(cfg.particle_terms):
+        d += term.diagonal(i, dev, h)
+    return d
+
+
+@ti.func
+def diagonal_block(i, dev, cfg: ti.template()):
+    """The 3x3 block A_ii = d_i I + sum_s (a_s I + b_s n_s n_s^T)."""
+    block = dev.diag[i] * ti.Matrix.identity(cfg.real, 3)
+    if ti.static(cfg.has_springs):
+        for e in range(dev.offsets[i], dev.offsets[i + 1]):
+            c = dev.coef[e]
+            n = ti.Vector([c[0], c[1], c[2]], cfg.real)
+            block += c[3] * ti.Matrix.identity(cfg.real, 3) + c[4] * n.outer_product(n)
+    return block
+
+
+@ti.func
+def refresh_row(i, dev, cfg: ti.template(), x, v, h):
+    """Particle i's part of ``refresh`` (after ``spring_coefficients``): its entries of
+    ``coef``, ``diag``, the right-hand side b_i = m_i v_i + dt (f - D v)_i of Eq. 15
+    (0 at pinned particles) and, for a preconditioner that needs it, its setup from A_ii."""
+    if ti.static(cfg.has_springs):
+        gather_coefficients(i, dev, cfg)
+    dev.diag[i] = diagonal_scalar(i, dev, cfg, h)
+    if moving(i, dev, cfg):
+        f = particle_force(i, dev, cfg, x, v, True)
+        dev.b[i] = dev.mass[i] * v[i] + h * f
+        if ti.static(cfg.needs_diagonal):
+            block = diagonal_block(i, dev, cfg)
+            cfg.precond.setup_row(i, dev, cfg, block)
+    else:
+        dev.b[i] = ti.Vector.zero(cfg.real, 3)
+
+
+@ti.func
+def refresh(dev, cfg: ti.template(), x, v, h):
+    """Operator coefficients, diagonal, right-hand side and pointwise preconditioner
+    for the state (x, v): two loops, over springs then particles."""
+    spring_coefficients(dev, cfg, x, v, h)
+    for i in range(dev.size[0]):
+        refresh_row(i, dev, cfg, x, v, h)
+
+
+@ti.func
+def apply_row(i, dev, cfg: ti.template(), p):
+    """(A p)_i for the matrix-free A of Eq. 15 (p must be zero at pinned particles)."""
     pi = p[i]
-    out = mass[i] * pi
-    for e in range(offsets[i], offsets[i + 1]):
-        c = coef[e]
-        n = ti.Vector([c[0], c[1], c[2]], real)
-        dp = pi - p[other[e]]
-        out += c[3] * dp + c[4] * n.dot(dp) * n
+    out = dev.diag[i] * pi
+    if ti.static(cfg.has_springs):
+        for e in range(dev.offsets[i], dev.offsets[i + 1]):
+            c = dev.coef[e]
+            n = ti.Vector([c[0], c[1], c[2]], cfg.real)
+            dp = pi - p[dev.other[e]]
+            out += c[3] * dp + c[4] * n.dot(dp) * n
     return out
 
 
-@ti.func
-def diagonal_block(i, mass: ti.template(), offsets: ti.template(), coef: ti.template(),
-                   real: ti.template()):
-    """The 3x3 block A_ii = m_i I + sum_s (a_s I + b_s n_s n_s^T)."""
-    block = mass[i] * ti.Matrix.identity(real, 3)
-    for e in range(offsets[i], offsets[i + 1]):
-        c = coef[e]
-        n = ti.Vector([c[0], c[1], c[2]], real)
-        block += c[3] * ti.Matrix.identity(real, 3) + c[4] * n.outer_product(n)
-    return block
+@ti.kernel
+def jacobian_refresh(dev: ti.template(), cfg: ti.template()):
+    """Coefficients of one Jacobian alone at the state (dev.x, dev.v): with dt = 1 and a
+    single spring term in ``cfg`` (springs or damping), each spring's S is -K_ii (Eq. 13)
+    or -D_ii (Eq. 14); the diagonal d is set to 0 (no mass)."""
+    spring_coefficients(dev, cfg, dev.x, dev.v, ti.cast(1.0, cfg.real))
+    for i in range(dev.size[0]):
+        if ti.static(cfg.has_springs):
+            gather_coefficients(i, dev, cfg)
+        dev.diag[i] = 0.0
+
+
+@ti.kernel
+def jacobian_apply(dev: ti.template(), cfg: ti.template()):
+    """dev.q = sum_s S_s (p_i - p_j) at every particle: -K p or -D p after ``jacobian_refresh``."""
+    for i in range(dev.size[0]):
+        dev.q[i] = apply_row(i, dev, cfg, dev.p)

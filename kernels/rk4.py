@@ -1,63 +1,91 @@
-"""Classical fourth-order Runge-Kutta steps of Eq. 4, for reference solutions.
+"""Classical fourth-order Runge-Kutta steps of seed Eq. 4.
 
 Eq. 4 is the first-order system y' = F(y) with y = (x, v) and F(x, v) = (v, M^-1 f(x, v)),
-f the total force of Eq. 1-3 (``forces.particle_force``); fixed particles have
-F = 0. One RK4 step of size h:
+f the total force (``forces``); pinned particles have F = 0. One step of size h
+from ``src`` to ``dst``:
 
     k1 = F(y), k2 = F(y + h/2 k1), k3 = F(y + h/2 k2), k4 = F(y + h k3),
-    y <- y + h/6 (k1 + 2 k2 + 2 k3 + k4).
+    y' = y + h/6 (k1 + 2 k2 + 2 k3 + k4),
 
-``rk4_steps`` runs many steps in one launch with serial loops (a launch with a
-dozen ndarray arguments costs about 0.2 ms here, more than a chain's whole step).
-Only float64 is meant: the reference must be far more accurate than the runs it
-judges.
-
-Shapes: ``x, v, xt, vt, kv, sx, sv`` (n,) of vec3; the rest as in ``forces``.
+with the stage state in ``stage`` (x, v) and the weighted sums of the stages in
+``dev.sx``, ``dev.sv``; the new state's ``divergence.state_sums`` are reduced in
+the last loop. ``rk4_step`` runs one step with parallel loops, ``rk4_steps`` up
+to ``steps`` in one launch with serial loops (as ``euler``).
 """
 
 import taichi as ti
 
-from .forces import particle_force
+from .blocks import BLOCK, block_count, block_end, ordered_sum
+from .divergence import OK, check_code, state_sums
+from .forces import moving, particle_force, spring_forces
+
+
+@ti.func
+def one_step(dev, cfg: ti.template(), src, dst, stage, h):
+    """One RK4 step src -> dst; returns the new state's summed ``state_sums``."""
+    n = dev.size[0]
+    for i in range(n):
+        stage.x[i] = src.x[i]
+        stage.v[i] = src.v[i]
+        dev.sx[i] = ti.Vector.zero(cfg.real, 3)
+        dev.sv[i] = ti.Vector.zero(cfg.real, 3)
+    for k in ti.static(range(4)):
+        weight = ti.static(1.0 if k in (0, 3) else 2.0)
+        offset = ti.static(1.0 if k == 2 else 0.5)  # where the next stage is evaluated, in units of h
+        spring_forces(dev, cfg, stage.x, stage.v, False)
+        for i in range(n):
+            f = particle_force(i, dev, cfg, stage.x, stage.v, False)
+            a = ti.Vector.zero(cfg.real, 3)
+            if moving(i, dev, cfg):
+                a = f / dev.mass[i]
+            vt = stage.v[i]
+            dev.sx[i] += weight * vt
+            dev.sv[i] += weight * a
+            if ti.static(k < 3):
+                stage.x[i] = src.x[i] + offset * h * vt
+                stage.v[i] = src.v[i] + offset * h * a
+    g = ti.Vector.zero(ti.f64, 3)
+    if ti.static(cfg.has_gravity):
+        g = ti.cast(dev.gravity[None], ti.f64)
+    for b in range(block_count(n)):
+        acc = ti.Vector.zero(ti.f64, 3)
+        for i in range(b * BLOCK, block_end(b, n)):
+            x = src.x[i] + h / 6 * dev.sx[i]
+            v = src.v[i] + h / 6 * dev.sv[i]
+            dst.x[i] = x
+            dst.v[i] = v
+            acc += state_sums(x, v, dev.mass[i], g, cfg.has_gravity)
+        dev.partial[b] = acc
+    return ordered_sum(dev.partial, block_count(n))
 
 
 @ti.kernel
-def rk4_steps(x: ti.types.ndarray(), v: ti.types.ndarray(), xt: ti.types.ndarray(), vt: ti.types.ndarray(),
-              kv: ti.types.ndarray(), sx: ti.types.ndarray(), sv: ti.types.ndarray(),
-              mass: ti.types.ndarray(), free: ti.types.ndarray(), offsets: ti.types.ndarray(),
-              other: ti.types.ndarray(), spring: ti.types.ndarray(), ks: ti.types.ndarray(),
-              kd: ti.types.ndarray(), l0: ti.types.ndarray(), g: ti.types.vector(3, ti.f64),
-              dt: ti.f64, steps: ti.i32, has_damping: ti.template(), has_gravity: ti.template(),
-              has_fixed: ti.template()):
-    """Advance (x, v) by ``steps`` RK4 steps of ``dt`` (s) in place.
+def rk4_step(dev: ti.template(), cfg: ti.template(), src: ti.template(), dst: ti.template(),
+             stage: ti.template(), dt: ti.f64) -> ti.types.vector(2, ti.f64):
+    """One step src -> dst with parallel loops; returns (check code, kinetic energy J)."""
+    sums = one_step(dev, cfg, src, dst, stage, ti.cast(dt, cfg.real))
+    return ti.Vector([check_code(sums, dev.check[None]), sums[0]], ti.f64)
 
-    Work arrays: (xt, vt) the stage state, kv the stage acceleration (m/s^2), (sx, sv)
-    the weighted sums of the stages; their contents on entry are ignored.
-    """
-    n = x.shape[0]
+
+@ti.kernel
+def rk4_steps(dev: ti.template(), cfg: ti.template(), a: ti.template(), b: ti.template(), stage: ti.template(),
+              dt: ti.f64, steps: ti.i32) -> ti.types.vector(3, ti.f64):
+    """Up to ``steps`` steps in one launch with serial loops, as ``euler.euler_steps``."""
+    h = ti.cast(dt, cfg.real)
+    done = 0
+    code = OK
+    kinetic = 0.0
     ti.loop_config(serialize=True)
-    for _ in range(steps):
-        for i in range(n):
-            xt[i] = x[i]
-            vt[i] = v[i]
-            sx[i] = ti.Vector.zero(ti.f64, 3)
-            sv[i] = ti.Vector.zero(ti.f64, 3)
-        for stage in range(4):
-            weight = 1.0 if stage == 0 or stage == 3 else 2.0
-            offset = dt if stage == 2 else 0.5 * dt  # where the next stage is evaluated
-            for i in range(n):
-                moving = True
-                if ti.static(has_fixed):
-                    moving = free[i] != 0
-                a = ti.Vector.zero(ti.f64, 3)
-                if moving:
-                    a = particle_force(i, xt, vt, mass, offsets, other, spring, ks, kd, l0, g,
-                                       has_damping, has_gravity, ti.f64) / mass[i]
-                kv[i] = a
-            for i in range(n):
-                sx[i] += weight * vt[i]
-                sv[i] += weight * kv[i]
-                xt[i] = x[i] + offset * vt[i]
-                vt[i] = v[i] + offset * kv[i]
-        for i in range(n):
-            x[i] += dt / 6.0 * sx[i]
-            v[i] += dt / 6.0 * sv[i]
+    for _ in range(1):
+        while done < steps and code == OK:
+            if done % 2 == 0:
+                even = one_step(dev, cfg, a, b, stage, h)
+                kinetic = even[0]
+                code = check_code(even, dev.check[None])
+            else:
+                odd = one_step(dev, cfg, b, a, stage, h)
+                kinetic = odd[0]
+                code = check_code(odd, dev.check[None])
+            if code == OK:
+                done += 1
+    return ti.Vector([done, code, kinetic], ti.f64)

@@ -1,14 +1,19 @@
 """massspring: mass-spring systems with explicit, symplectic and implicit Euler on Taichi kernels."""
 
 import os
+import sys
+
+if sys.version_info < (3, 11):  # tomllib, and the syntax used throughout
+    raise ImportError(f"massspring needs Python 3.11 or later; this is {sys.version.split()[0]}")
 
 # Taichi prints a banner on import; keep the CLI's stdout clean (set it to 1 to see it).
 os.environ.setdefault("ENABLE_TAICHI_HEADER_PRINT", "0")
 
-from massspring.errors import DivergenceError  # noqa: E402
+from massspring.errors import DivergenceError, SimulationClosedError  # noqa: E402
 from massspring.model import Model  # noqa: E402
 from massspring.scene import Scene, SceneError, load_scene  # noqa: E402
-from massspring.simulation import Simulation  # noqa: E402
+from massspring.simulation import Simulation, run  # noqa: E402
 
-__all__ = ["Model", "Simulation", "Scene", "SceneError", "load_scene", "DivergenceError"]
-__version__ = "0.1.0"
+__all__ = ["Model", "Simulation", "run", "Scene", "SceneError", "load_scene", "DivergenceError",
+           "SimulationClosedError"]
+__version__ = "0.2.0"

@@ -1,33 +1,51 @@
 """The ``massspring`` command line: run built-in or user scenes, list them, describe them.
 
-Exit codes: 0 success; 2 bad usage or bad scene/input (one line on stderr, no
-traceback); 3 the simulation diverged (one line on stderr; the last good state is
-still summarised and written); 130 interrupted (the state reached so far is still written).
+It parses, calls and prints: the physics is in ``Simulation`` and the run loop in
+``simulation.run``. Exit codes: 0 success; 2 bad usage or bad input (one line on
+stderr, no traceback), decided before the first step; 3 the simulation diverged
+(the last good state is still summarised and written); 1 an output could not be
+written after the run; 130 interrupted by Ctrl-C, 143 by SIGTERM (the state reached
+so far is still summarised and written).
 """
 
 from __future__ import annotations
 
 import argparse
+import math
+import signal
 import sys
 import time
 from dataclasses import dataclass, replace
-from pathlib import Path
 
 import numpy as np
 
-EXIT_OK, EXIT_USAGE, EXIT_DIVERGED, EXIT_INTERRUPTED = 0, 2, 3, 130
+EXIT_OK, EXIT_OUTPUT, EXIT_USAGE, EXIT_DIVERGED, EXIT_INTERRUPTED = 0, 1, 2, 3, 130
+MAX_STEPS = 2**62
 
 
 class UsageError(ValueError):
     """Bad command-line input; reported in one line with exit code 2."""
 
 
-def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="massspring", description=__doc__.splitlines()[0])
-    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+class Terminated(KeyboardInterrupt):
+    """SIGTERM (timeout, container stop, batch scheduler): handled like Ctrl-C."""
 
-    run = sub.add_parser("run", help="run a scene and print a summary")
-    add_scene_arguments(run)
+    def __init__(self, signum):
+        super().__init__(signum)
+        self.signum = signum
+
+
+def build_parser():
+    from massspring import __version__
+    from massspring.integrators import INTEGRATORS
+
+    parser = argparse.ArgumentParser(prog="massspring", description=__doc__.splitlines()[0])
+    parser.add_argument("--version", action="version", version=f"massspring {__version__}")
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    verbs = {}
+
+    run = verbs["run"] = sub.add_parser("run", help="run a scene and print a summary")
+    add_scene_arguments(run, INTEGRATORS)
     length = run.add_mutually_exclusive_group()
     length.add_argument("--steps", type=int, help="number of steps (default: the scene's duration / dt)")
     length.add_argument("--duration", type=float, help="simulated seconds (default: the scene's)")
@@ -35,34 +53,37 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--quiet", action="store_true", help="no progress bar")
     add_export_arguments(run)
 
-    sub.add_parser("scenes", help="list the built-in scenes")
+    verbs["scenes"] = sub.add_parser("scenes", help="list the built-in scenes")
 
-    info = sub.add_parser("info", help="show a scene's size, defaults, and what a run compiles")
-    add_scene_arguments(info)
+    info = verbs["info"] = sub.add_parser("info", help="show a scene's size, defaults, and what a run compiles")
+    add_scene_arguments(info, INTEGRATORS)
 
-    stab = sub.add_parser("stability", help="predict each integrator's dt limit from the spectrum, "
-                          "then run a ladder of dt around it")
-    add_stability_arguments(stab)
+    stab = verbs["stability"] = sub.add_parser(
+        "stability", help="predict each integrator's dt limit from the spectrum, then run a ladder of dt around it")
+    add_stability_arguments(stab, INTEGRATORS)
 
-    study = sub.add_parser("study", help="work-precision study: error against run time per integrator and dt")
+    study = verbs["study"] = sub.add_parser(
+        "study", help="work-precision study: error against run time per integrator and dt")
     add_study_arguments(study)
-    return parser
+    return parser, verbs
 
 
-def add_scene_arguments(p):
+def add_scene_arguments(p, integrators):
     p.add_argument("scene", help="a built-in scene name (see `massspring scenes`) or a TOML file")
-    p.add_argument("--integrator", choices=("explicit", "symplectic", "implicit"),
-                   help="time integrator (default: the scene's)")
+    p.add_argument("--integrator", choices=tuple(integrators), help="time integrator (default: the scene's)")
     p.add_argument("--dt", type=float, help="time step in s (default: the scene's for the integrator)")
     p.add_argument("--precision", choices=("f64", "f32"), default="f64")
     p.add_argument("--arch", default="cpu", help="Taichi arch: cpu (default), cuda, vulkan, metal, gpu ...")
     p.add_argument("--cg-tol", type=float, default=1e-6, help="implicit: relative CG tolerance (default 1e-6)")
     p.add_argument("--cg-max-iter", type=int, help="implicit: CG iteration limit per step "
                    "(default 3 x free particles, at least 100)")
+    p.add_argument("--preconditioner", default="block-jacobi",
+                   help="implicit: block-jacobi (default) or none")
     p.add_argument("--no-definiteness-fix", action="store_true",
-                   help="implicit: use the seed's Eq. 13 as written (may be indefinite when compressed)")
+                   help="implicit: use the stiffness of Eq. 13 as written (indefinite when springs are compressed)")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
-                   help="override a scene model parameter, e.g. --set resolution=64 (repeatable)")
+                   help="override a scene model parameter, e.g. --set resolution=64 or "
+                   "--set gravity=[0,0,-1.62] (TOML values; repeatable)")
 
 
 def make_simulation(args):
@@ -70,8 +91,10 @@ def make_simulation(args):
     from massspring.scene import load_scene
 
     scene = load_scene(args.scene).with_settings(args.set)
+    if args.dt is not None and not (math.isfinite(args.dt) and args.dt > 0):
+        raise UsageError(f"--dt: must be a finite number > 0, got {args.dt:g}")
     sim = scene.simulation(integrator=args.integrator, dt=args.dt, precision=args.precision,
-                           cg_tol=args.cg_tol, cg_max_iter=args.cg_max_iter,
+                           cg_tol=args.cg_tol, cg_max_iter=args.cg_max_iter, preconditioner=args.preconditioner,
                            definiteness_fix=not args.no_definiteness_fix, arch=args.arch)
     return scene, sim
 
@@ -80,7 +103,7 @@ def cmd_scenes(args):
     from massspring.scene import builtin_scenes, load_scene
 
     for name in sorted(builtin_scenes()):
-        print(f"{name:10s} {load_scene(name).description}")
+        print(f"{name:12s} {load_scene(name).description}")
     return EXIT_OK
 
 
@@ -91,108 +114,144 @@ def cmd_info(args):
     print(f"generator   {scene.generator}: " + ", ".join(f"{k}={v}" for k, v in scene.params.items()))
     print(f"size        {info['particles']} particles, {info['springs']} springs, "
           f"{sim.model.fixed.size} fixed")
-    print(f"integrator  {sim.integrator}, dt = {sim.dt:g} s, precision {sim.precision}; "
+    print(f"integrator  {sim.integrator}, dt = {format_seconds(sim.dt)}, precision {sim.precision}; "
           f"default duration {scene.duration:g} s")
-    print("dt defaults " + ", ".join(f"{k} {v:g}" for k, v in scene.dt.items()))
+    print("dt defaults " + ", ".join(f"{k} {format_seconds(scene.default_dt(k))}"
+                                     + ("" if k in scene.dt else " (from the stability estimate)")
+                                     for k in _integrator_names()))
     print(f"terms       {', '.join(info['terms'])}")
     print(f"arrays      {', '.join(info['arrays'])} ({info['bytes'] / 1e6:.2f} MB)")
-    print(f"kernels     {info['storage']}s, {info['loops']} loops")
+    print(f"kernels     {info['loops']} loops")
     return EXIT_OK
+
+
+def _integrator_names():
+    from massspring.integrators import INTEGRATORS
+
+    return tuple(INTEGRATORS)
+
+
+def run_steps(args, scene, sim):
+    """The number of steps of ``run``, checked."""
+    if args.steps is not None:
+        if not 0 <= args.steps <= MAX_STEPS:
+            raise UsageError(f"--steps: must be within 0..{MAX_STEPS}, got {args.steps}")
+        return args.steps
+    duration = scene.duration if args.duration is None else args.duration
+    if not (math.isfinite(duration) and duration > 0):
+        raise UsageError(f"--duration: must be a finite number > 0, got {duration:g}")
+    steps = round(duration / sim.dt)
+    if steps > MAX_STEPS:
+        raise UsageError(f"--duration: {duration:g} s at dt = {sim.dt:g} s is {steps:.3g} steps, "
+                         f"more than {MAX_STEPS:.3g}")
+    return max(1, int(steps))
 
 
 def cmd_run(args):
-    scene, sim = make_simulation(args)
-    if args.steps is not None:
-        if args.steps < 0:
-            raise UsageError(f"--steps: must be >= 0, got {args.steps}")
-        steps = args.steps
-    else:
-        duration = scene.duration if args.duration is None else args.duration
-        if not duration > 0:
-            raise UsageError(f"--duration: must be > 0, got {duration}")
-        steps = max(1, int(round(duration / sim.dt)))
-    if args.out and not Path(args.out).parent.is_dir():
-        raise UsageError(f"--out: directory {str(Path(args.out).parent)!r} does not exist")
-
-    export = plan_export(args, scene, sim, steps)
-
     from massspring.errors import DivergenceError
+    from massspring.io.files import check_writable
+    from massspring.simulation import run
+
+    scene, sim = make_simulation(args)
+    steps = run_steps(args, scene, sim)
+    if args.out is not None:
+        check_writable(args.out, "--out", (".npz",))
+    pictures = plan_pictures(args, scene, sim, steps)
 
     energy0 = sim.energy()
     start = time.perf_counter()
-    interrupted, diverged = False, None
+    stopped, diverged = None, None
     try:
-        advance(sim, steps, show=not args.quiet and steps > 1, frames=export and export.recording.steps,
-                on_frame=export and export.recording.record)
-    except KeyboardInterrupt:
-        interrupted = True
+        with progress_bar(sim, steps, show=not args.quiet and steps > 1) as progress:
+            run(sim, steps, frames=pictures.recording.steps if pictures else (),
+                on_frame=pictures.recording.record if pictures else None, progress=progress)
+    except KeyboardInterrupt as exc:  # Ctrl-C or SIGTERM: the simulation holds the state reached
+        stopped = exc
     except DivergenceError as exc:  # the simulation holds the last good state
         diverged = exc
-    finally:  # however the run ends (Ctrl-C, divergence, any error), write what was recorded
-        wall = time.perf_counter() - start
-        if export is not None:
-            interrupted = finish_export(export, scene, sim, steps) or interrupted
-    if args.out:
-        write_state(sim, args.out)
-    print_summary(scene, sim, wall, energy0, args.out)
+    wall = time.perf_counter() - start
+    failed = write_outputs(args, scene, sim, steps, pictures)
+    print_summary(scene, sim, wall, energy0, args.out if args.out and "--out" not in failed else None)
     if diverged is not None:
-        print(f"massspring: {diverged}", file=sys.stderr)
+        print(f"massspring: {diverged}; {divergence_hint(sim, diverged)}", file=sys.stderr)
         return EXIT_DIVERGED
-    if interrupted:
-        print(f"massspring: interrupted after {sim.steps} of {steps} steps; "
-              f"the state reached so far{' was written' if args.out else ' is above'}", file=sys.stderr)
-        return EXIT_INTERRUPTED
-    return EXIT_OK
+    if stopped is not None:
+        what = "terminated" if isinstance(stopped, Terminated) else "interrupted"
+        print(f"massspring: {what} after {sim.steps} of {steps} steps; the state reached so far "
+              f"{'was written' if args.out and '--out' not in failed else 'is above'}", file=sys.stderr)
+        return 128 + stopped.signum if isinstance(stopped, Terminated) else EXIT_INTERRUPTED
+    return EXIT_OUTPUT if failed else EXIT_OK
 
 
-def advance(sim, steps, show=True, frames=None, on_frame=None):
-    """Step ``sim`` by ``steps`` in chunks, with a progress bar on stderr when ``show``.
+class progress_bar:
+    """A rich progress bar on stderr (transient) as ``run``'s progress callback."""
 
-    With ``on_frame``, ``on_frame(sim)`` is called each time the steps taken here reach
-    an entry of ``frames`` (sorted ints in 0..steps; 0 is before the first step), and
-    chunks end there. Without it the run steps exactly as it would otherwise.
-    """
-    from rich.console import Console
-    from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
+    def __init__(self, sim, steps, show):
+        self.sim, self.steps, self.show = sim, steps, show
 
-    chunk = max(1, steps // 200)
-    with Progress(TextColumn("[progress.description]{task.description}"), BarColumn(),
-                  TextColumn("{task.completed}/{task.total} steps"), TimeElapsedColumn(),
-                  TimeRemainingColumn(), transient=True, disable=not show,
-                  console=Console(stderr=True)) as bar:
-        task = bar.add_task(f"{sim.integrator} dt={sim.dt:g}", total=steps)
-        pending = list(frames) if on_frame is not None else []
-        done = next_frame = 0
-        while True:
-            while next_frame < len(pending) and pending[next_frame] <= done:
-                if pending[next_frame] == done:
-                    on_frame(sim)
-                next_frame += 1
-            if done >= steps:
-                break
-            k = min(chunk, steps - done)
-            if next_frame < len(pending):
-                k = min(k, pending[next_frame] - done)
-            sim.step(k)
-            done += k
-            bar.update(task, completed=done)
+    def __enter__(self):
+        if not self.show:
+            return None
+        from rich.console import Console
+        from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
+
+        self.bar = Progress(TextColumn("[progress.description]{task.description}"), BarColumn(),
+                            TextColumn("{task.completed}/{task.total} steps"), TimeElapsedColumn(),
+                            TimeRemainingColumn(), transient=True, console=Console(stderr=True))
+        self.bar.__enter__()
+        task = self.bar.add_task(f"{self.sim.integrator} dt={format_seconds(self.sim.dt)}", total=self.steps)
+        return lambda done, total: self.bar.update(task, completed=done)
+
+    def __exit__(self, *exc):
+        if self.show:
+            self.bar.__exit__(*exc)
+        return False
 
 
-def write_state(sim, path):
-    """Write positions, velocities, springs and time to ``path`` (.npz) atomically."""
-    from massspring.files import atomic_output
+def write_outputs(args, scene, sim, steps, pictures):
+    """Write --out, then the pictures, each on its own: one failing does not stop the
+    others. Returns the options whose output failed (each reported on stderr)."""
+    from massspring.io.state import write_state
 
-    with atomic_output(path) as fh:
-        np.savez(fh, positions=sim.positions, velocities=sim.velocities,
-                 springs=sim.model.springs, time=sim.time, steps=sim.steps, dt=sim.dt)
+    failed = []
+    if args.out:
+        try:
+            write_state(sim, args.out)
+        except OSError as exc:
+            print(f"massspring: --out: could not write {args.out!r}: {exc.strerror or exc}", file=sys.stderr)
+            failed.append("--out")
+    if pictures is not None:
+        failed += finish_pictures(pictures, scene, sim, steps)
+    return failed
+
+
+def divergence_hint(sim, exc):
+    """What to try after a divergence, from the integrator and the stability estimate."""
+    from massspring.analysis.stability import predict
+
+    if sim.integrator == "implicit":
+        tips = ["a smaller --dt"]
+        if not sim.definiteness_fix:
+            tips.insert(0, "drop --no-definiteness-fix")
+        return "try " + " or ".join(tips)
+    try:
+        prediction = predict(sim.model, sim.positions)
+    except (ValueError, ArithmeticError):
+        return "try a smaller --dt or --integrator implicit"
+    from massspring.integrators import INTEGRATORS
+
+    suggested = INTEGRATORS[sim.integrator].suggest_dt(prediction)
+    return (f"the stability estimate suggests --dt {suggested:.3g} for {sim.integrator} at this state; "
+            "or --integrator implicit (no stability limit)")
 
 
 def add_export_arguments(p):
-    from massspring.render import DEFAULT_MAX_FRAMES, MAX_FPS, PROJECTIONS
+    from massspring.io.camera import PROJECTIONS
+    from massspring.io.render import DEFAULT_MAX_FRAMES, MAX_FPS
 
     g = p.add_argument_group("pictures (headless: no display, GPU or ffmpeg needed)")
-    g.add_argument("--gif", metavar="PATH", help="write an animated GIF of the run")
-    g.add_argument("--png", metavar="PATH", help="write the final frame as a PNG")
+    g.add_argument("--gif", metavar="PATH", help="write an animated GIF of the run (.gif)")
+    g.add_argument("--png", metavar="PATH", help="write the final frame as a PNG (.png)")
     g.add_argument("--fps", type=float, help=f"GIF frames per second (default 30, at most {MAX_FPS})")
     count = g.add_mutually_exclusive_group()
     count.add_argument("--frames", type=int, metavar="N", help="frames from start to end (default: enough to "
@@ -205,40 +264,49 @@ def add_export_arguments(p):
 
 
 @dataclass
-class ExportPlan:
+class PicturePlan:
     """What ``run --gif/--png`` records during the run and writes after it."""
 
     recording: object  # render.Recording
-    view: object       # render.View
+    view: object       # camera.View
     size: tuple
     fps: float
     gif: str | None
     png: str | None
 
 
-def plan_export(args, scene, sim, steps):
+def plan_pictures(args, scene, sim, steps):
     """Check the picture options before the run: None without --gif/--png."""
-    from massspring import render
+    from massspring.io import render
+    from massspring.io.camera import View
+    from massspring.io.files import check_writable
 
     if not (args.gif or args.png):
+        for name in ("gif", "png"):
+            if getattr(args, name) == "":
+                raise UsageError(f"--{name}: empty path")
         for name in ("fps", "frames", "every", "size", "view", "projection"):
             if getattr(args, name) is not None:
                 raise UsageError(f"--{name}: only with --gif or --png")
         return None
-    for option, path in (("--gif", args.gif), ("--png", args.png)):
-        if path and not Path(path).parent.is_dir():
-            raise UsageError(f"{option}: directory {str(Path(path).parent)!r} does not exist")
+    for option, path, suffix in (("--gif", args.gif, ".gif"), ("--png", args.png, ".png")):
+        if path is not None:
+            check_writable(path, option, (suffix,))
     fps = 30.0 if args.fps is None else args.fps
     if not 0 < fps <= render.MAX_FPS:
         raise UsageError(f"--fps: must be > 0 and <= {render.MAX_FPS}, got {fps:g}")
     size = parse_size(args.size or "480x480")
-    view = scene.view
+    try:
+        view = View(**scene.view)
+    except ValueError as exc:
+        raise UsageError(f"{scene.source}: {exc}") from None
     try:
         if args.view is not None:
             parts = args.view.split(",")
             if len(parts) != 2:
                 raise ValueError(f"expected AZ,EL in degrees, got {args.view!r}")
             view = replace(view, azimuth=_number(parts[0]), elevation=_number(parts[1]))
+            view.__post_init__()
         if args.projection is not None:
             view = replace(view, projection=args.projection)
     except ValueError as exc:
@@ -251,7 +319,7 @@ def plan_export(args, scene, sim, steps):
     if need > 2e9:
         raise UsageError(f"--frames: {len(steps_at)} frames of {sim.model.n_particles} particles would keep "
                          f"{need / 1e9:.1f} GB of positions; ask for fewer with --frames or --every")
-    return ExportPlan(render.Recording(steps_at), view, size, fps, args.gif, args.png)
+    return PicturePlan(render.Recording(steps_at), view, size, fps, args.gif, args.png)
 
 
 def parse_size(text):
@@ -273,39 +341,51 @@ def _number(text):
         raise ValueError(f"expected a number, got {text.strip()!r}") from None
 
 
-def finish_export(plan, scene, sim, steps):
+def format_seconds(dt):
+    """A time step for people: '1/60 s' when 1/dt is a whole number (to 1e-6), else '2e-05 s'."""
+    inverse = 1.0 / dt
+    if inverse >= 2 and abs(inverse - round(inverse)) <= 1e-6 * inverse:
+        return f"1/{round(inverse)} s"
+    return f"{dt:.4g} s"
+
+
+def finish_pictures(plan, scene, sim, steps):
     """Render what was recorded, write the GIF/PNG and say what was written (on stderr
-    if the run or the rendering stopped early). Returns True if Ctrl-C stopped the rendering."""
-    from massspring import render
+    if the run or the rendering stopped early). Returns the options whose file failed."""
+    from massspring.io import render
 
     rec = plan.recording
     early = sim.steps < steps
     if not len(rec):
         print("massspring: no frame was recorded: nothing written to " +
               " or ".join(p for p in (plan.gif, plan.png) if p), file=sys.stderr)
-        return False
+        return []
     start = time.perf_counter()
-    renderer = render.FrameRenderer(sim.model, np.stack(rec.positions), scene.triangles(), plan.view, plan.size,
-                                    label=f"{scene.name}  {sim.integrator}  dt = {sim.dt:g} s")
-    count, interrupted = render.export(renderer, rec, gif=plan.gif, png=plan.png, fps=plan.fps)
+    renderer = render.FrameRenderer(sim.model, np.stack(rec.positions), plan.view, plan.size,
+                                    label=f"{scene.name}  {sim.integrator}  dt = {format_seconds(sim.dt)}")
+    result = render.export(renderer, rec, gif=plan.gif, png=plan.png, fps=plan.fps)
     wall = time.perf_counter() - start
-    if count == 0:
-        print("massspring: rendering interrupted before the first frame: nothing written", file=sys.stderr)
-        return interrupted
-    written = " and ".join(p for p in (plan.gif, plan.png) if p)
-    last = rec.times[count - 1] if plan.gif else rec.times[-1]
-    note = (f"{written}: {count} frame(s) of {plan.size[0]}x{plan.size[1]}, t = {rec.times[0]:g} to {last:g} s, "
-            f"rendered in {wall:.2f} s ({1e3 * wall / count:.1f} ms/frame)")
+    for option, error in result.errors.items():
+        print(f"massspring: {option}: could not write: {error}", file=sys.stderr)
+    written = " and ".join(p for option, p in (("--gif", plan.gif), ("--png", plan.png))
+                           if p and option not in result.errors)
+    if not result.count or not written:
+        if result.interrupted:
+            print("massspring: rendering interrupted before the first frame: nothing written", file=sys.stderr)
+        return list(result.errors)
+    last = rec.times[result.count - 1] if plan.gif else rec.times[-1]
+    note = (f"{written}: {result.count} frame(s) of {plan.size[0]}x{plan.size[1]}, t = {rec.times[0]:g} to "
+            f"{last:g} s, rendered in {wall:.2f} s ({1e3 * wall / result.count:.1f} ms/frame)")
     if rec.skipped:
         note += f"; {rec.skipped} frame(s) with non-finite positions left out"
-    if interrupted:
+    if result.interrupted:
         print(f"massspring: rendering interrupted; wrote the frames rendered so far: {note}", file=sys.stderr)
     elif early:
         print(f"massspring: the run stopped at step {sim.steps} of {steps}; wrote the frames recorded up to "
               f"then: {note}", file=sys.stderr)
     else:
         print(f"pictures    wrote {note}")
-    return interrupted
+    return list(result.errors)
 
 
 def print_summary(scene, sim, wall, energy0, out):
@@ -313,21 +393,32 @@ def print_summary(scene, sim, wall, energy0, out):
     energy1 = sim.energy()
     rate = sim.steps / wall if wall > 0 else float("inf")
     print(f"scene       {scene.name} ({info['particles']} particles, {info['springs']} springs)")
-    print(f"integrator  {sim.integrator}, dt = {sim.dt:g} s, {sim.precision}")
+    print(f"integrator  {sim.integrator}, dt = {format_seconds(sim.dt)}, {sim.precision}")
     print(f"steps       {sim.steps} ({sim.time:g} s simulated) in {wall:.2f} s wall, {rate:.1f} steps/s")
     if sim.integrator == "implicit" and sim.cg_iterations:
         its = np.array(sim.cg_iterations)
         print(f"CG          {its.mean():.1f} iterations/step mean, {its.max()} max, "
-              f"{sim.cg_failures} step(s) not converged (tol {sim.cg_tol:g})")
+              f"{sim.cg_failures} step(s) not converged (tol {sim.cg_tol:g}, {sim.preconditioner})")
         if sim.cg_failures and sim.precision == "f32":
             print("note        f32 CG stalls near a relative residual of 1e-5 (round-off): "
                   "use --cg-tol 1e-4 or --precision f64")
-    print(f"energy      start {energy0['total']:.6g} J, end {energy1['total']:.6g} J "
-          f"(kinetic {energy1['kinetic']:.4g}, spring {energy1['spring']:.4g}, gravity {energy1['gravity']:.4g})")
+    print("energy      " + format_energy(energy0, energy1))
     print(f"compiled    terms: {', '.join(info['terms'])}; arrays: {', '.join(info['arrays'])} "
-          f"({info['storage']}s, {info['loops']} loops)")
+          f"({info['loops']} loops)")
     if out:
         print(f"wrote       {out}")
+
+
+def format_energy(start, end):
+    """Energies (J) at a precision that matches what they mean: each to 4 significant
+    digits, and 0 where it is round-off (below 1e-12 of the largest energy involved)."""
+    scale = max(abs(v) for e in (start, end) for v in e.values()) or 1.0
+
+    def fmt(value):
+        return "0" if abs(value) <= 1e-12 * scale else f"{value:.4g}"
+
+    return (f"start {fmt(start['total'])} J, end {fmt(end['total'])} J (kinetic {fmt(end['kinetic'])}, "
+            f"spring {fmt(end['spring'])}, gravity {fmt(end['gravity'])})")
 
 
 def add_study_arguments(p):
@@ -345,11 +436,13 @@ def add_study_arguments(p):
 
 
 def cmd_study(args):
-    from massspring import study
+    from pathlib import Path
+
+    from massspring.analysis import report, study
     from massspring.scene import load_scene
 
     scene = load_scene(args.scene).with_settings(args.set)
-    out = Path(args.out) if args.out else study.new_out_dir(scene.name)
+    out = Path(args.out) if args.out else report.new_out_dir(scene.name)
     if out.exists() and not out.is_dir():
         raise UsageError(f"--out: {str(out)!r} exists and is not a directory")
     try:
@@ -358,19 +451,19 @@ def cmd_study(args):
         raise UsageError(f"--cg-tols: expected comma-separated numbers, got {args.cg_tols!r}") from None
     result = study.run_study(scene, integrators=[s.strip() for s in args.integrators.split(",") if s.strip()],
                              duration=args.duration, rungs=args.rungs, cg_tols=tols, repeats=args.repeats,
-                             cache=args.cache_dir, progress=study.print_progress)
-    print(study.report(result))
-    written = study.write_outputs(result, out)
+                             cache=args.cache_dir, progress=report.print_progress)
+    print(report.report(result))
+    written = report.write_outputs(result, out)
     try:
-        written.append(study.plot(result, out / "work_precision.png"))
+        written.append(report.plot(result, out / "work_precision.png"))
     except ImportError:
         print("plot skipped: matplotlib is not installed (pip install 'massspring[plot]')")
     print("wrote " + ", ".join(str(p) for p in written))
     return EXIT_OK
 
 
-def add_stability_arguments(p):
-    add_scene_arguments(p)
+def add_stability_arguments(p, integrators):
+    add_scene_arguments(p, integrators)
     p.add_argument("--out", help="write PREFIX.csv, PREFIX.json and PREFIX.png (default: ./stability-SCENE)")
     p.add_argument("--run-duration", type=float, default=1.0,
                    help="simulated seconds per ladder run, capped by --max-steps (default 1)")
@@ -382,15 +475,19 @@ def add_stability_arguments(p):
 
 
 def cmd_stability(args):
-    from massspring import stability
+    from pathlib import Path
+
+    from massspring.analysis import stability
     from massspring.scene import load_scene
 
     for name in ("run_duration", "at"):
         value = getattr(args, name)
-        if not (value >= 0 if name == "at" else value > 0):
-            raise UsageError(f"--{name.replace('_', '-')}: must be {'>= 0' if name == 'at' else '> 0'}, got {value}")
-    if args.max_steps < 1:
-        raise UsageError(f"--max-steps: must be >= 1, got {args.max_steps}")
+        ok = math.isfinite(value) and (value >= 0 if name == "at" else value > 0)
+        if not ok:
+            raise UsageError(f"--{name.replace('_', '-')}: must be a finite number "
+                             f"{'>= 0' if name == 'at' else '> 0'}, got {value}")
+    if not 1 <= args.max_steps <= MAX_STEPS:
+        raise UsageError(f"--max-steps: must be within 1..{MAX_STEPS}, got {args.max_steps}")
     if args.integrator or args.dt is not None or args.no_definiteness_fix:
         raise UsageError("--integrator/--dt/--no-definiteness-fix: the ladder runs every integrator "
                          "at its own dts, implicit with the fix on and off")
@@ -398,12 +495,14 @@ def cmd_stability(args):
     prefix = Path(args.out) if args.out else Path(f"stability-{scene.name}")
     if not prefix.parent.is_dir():
         raise UsageError(f"--out: directory {str(prefix.parent)!r} does not exist")
-    options = dict(precision=args.precision, cg_tol=args.cg_tol, cg_max_iter=args.cg_max_iter)
+    options = dict(precision=args.precision, cg_tol=args.cg_tol, cg_max_iter=args.cg_max_iter,
+                   preconditioner=args.preconditioner)
     model, positions = scene.model(), None
     if args.at > 0:
         settle = scene.simulation("implicit", **options)
         settle.step(max(1, int(round(args.at / settle.dt))))
         positions = settle.positions
+        settle.close()
     prediction = stability.predict(model, positions)
     print("\n".join(stability.prediction_lines(prediction, scene.name)))
     if args.predict_only:
@@ -427,16 +526,35 @@ COMMANDS = {"run": cmd_run, "scenes": cmd_scenes, "info": cmd_info, "study": cmd
             "stability": cmd_stability}
 
 
+def _terminate(signum, frame):
+    raise Terminated(signum)
+
+
 def main(argv=None):
-    args = build_parser().parse_args(argv)
+    parser, verbs = build_parser()
+    args, unknown = parser.parse_known_args(argv)
+    if unknown:  # a misspelt option after a verb: that verb's usage, not the top-level one
+        verbs[args.command].error(f"unrecognized arguments: {' '.join(unknown)}")
+    previous = signal.signal(signal.SIGTERM, _terminate) if _main_thread() else None
     try:
         return COMMANDS[args.command](args)
     except ValueError as exc:  # SceneError, UsageError and Model/Simulation validation
         print(f"massspring: error: {exc}", file=sys.stderr)
         return EXIT_USAGE
+    except Terminated as exc:  # SIGTERM outside a run (e.g. while loading)
+        return 128 + exc.signum
     except BrokenPipeError:  # output piped into e.g. `head`
         sys.stderr.close()
         return EXIT_OK
+    finally:
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)
+
+
+def _main_thread():
+    import threading
+
+    return threading.current_thread() is threading.main_thread()
 
 
 if __name__ == "__main__":

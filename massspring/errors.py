@@ -24,3 +24,7 @@ class DivergenceError(RuntimeError):
             what = f"runaway growth: kinetic energy {self.kinetic:.3g} J above the bound {self.bound:.3g} J"
         super().__init__(f"{integrator} diverged at step {self.step} (t = {self.time:.6g} s, dt = {self.dt:g} s): "
                          f"{what}; the state of step {self.step - 1} is kept")
+
+
+class SimulationClosedError(RuntimeError):
+    """A Simulation was used after ``close()``: its fields may belong to another run now."""

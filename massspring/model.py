@@ -96,6 +96,9 @@ class Model:
         Uniform gravitational acceleration ``g`` (Eq. 3).
     fixed : None, indices (k,) int, or a bool mask (n,)
         Pinned particles: their velocity is exactly 0 at all times.
+    triangles : None or (t, 3) int
+        Surface triangles (particle indices) for drawing; the physics never reads
+        them. Empty when None.
 
     All arrays are stored as read-only float64/int64 copies under the constructor's
     argument names; ``fixed`` is stored as sorted unique indices. Numbers must be
@@ -112,9 +115,10 @@ class Model:
     velocities: np.ndarray
     gravity: np.ndarray
     fixed: np.ndarray
+    triangles: np.ndarray
 
     def __init__(self, positions, springs, masses=1.0, stiffness=1e3, damping=0.0,
-                 rest_lengths=None, velocities=None, gravity=(0.0, 0.0, -9.81), fixed=None):
+                 rest_lengths=None, velocities=None, gravity=(0.0, 0.0, -9.81), fixed=None, triangles=None):
         x = _real_array("positions", positions)
         if x.ndim != 2 or x.shape[1] != 3 or x.shape[0] < 1:
             raise ValueError(f"positions: expected shape (n, 3) with n >= 1, got shape {x.shape}")
@@ -165,10 +169,11 @@ class Model:
 
         fixed_idx = _fixed_indices(fixed, n)
         v[fixed_idx] = 0.0
+        tris = _triangles(triangles, n)
 
         for name, value in (("positions", x), ("springs", s), ("masses", mass), ("stiffness", ks),
                             ("damping", kd), ("rest_lengths", l0), ("velocities", v),
-                            ("gravity", g), ("fixed", fixed_idx)):
+                            ("gravity", g), ("fixed", fixed_idx), ("triangles", tris)):
             object.__setattr__(self, name, _readonly(np.ascontiguousarray(value)))
 
     @property
@@ -197,23 +202,6 @@ class Model:
         mask = np.ones(self.n_particles, dtype=bool)
         mask[self.fixed] = False
         return mask
-
-    def adjacency(self):
-        """Per-particle spring lists in CSR form, for gather kernels.
-
-        Returns ``(offsets, other, spring)``: for particle ``i`` the entries
-        ``offsets[i]:offsets[i+1]`` list each spring ``spring[e]`` touching ``i``
-        and the particle ``other[e]`` at its other end. Shapes (n+1,), (2m,), (2m,).
-        """
-        n, m = self.n_particles, self.n_springs
-        ends = self.springs
-        owner = np.concatenate([ends[:, 0], ends[:, 1]])
-        other = np.concatenate([ends[:, 1], ends[:, 0]])
-        spring = np.concatenate([np.arange(m), np.arange(m)])
-        order = np.argsort(owner, kind="stable")
-        offsets = np.zeros(n + 1, dtype=np.int64)
-        np.cumsum(np.bincount(owner, minlength=n), out=offsets[1:])
-        return offsets, other[order], spring[order]
 
     def energy(self, positions, velocities) -> dict:
         """Kinetic, spring and gravitational potential energy (J) of a state.
@@ -254,3 +242,27 @@ def _fixed_indices(fixed, n):
         bad = int(arr[(arr < 0) | (arr >= n)][0])
         raise ValueError(f"fixed: index {bad} is outside 0..{n - 1}")
     return np.unique(arr.astype(np.int64))
+
+
+def _triangles(triangles, n):
+    if triangles is None:
+        return np.zeros((0, 3), dtype=np.int64)
+    try:
+        arr = np.asarray(triangles)
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"triangles: cannot be read as an array of indices ({exc})") from None
+    if arr.size == 0:
+        return np.zeros((0, 3), dtype=np.int64)
+    if arr.ndim != 2 or arr.shape[1] != 3:
+        raise ValueError(f"triangles: expected shape (t, 3), got shape {arr.shape}")
+    if arr.dtype.kind not in "iu":
+        raise ValueError(f"triangles: expected particle indices (int), got dtype {arr.dtype}")
+    arr = arr.astype(np.int64)
+    if arr.min() < 0 or arr.max() >= n:
+        k = int(np.argwhere((arr < 0) | (arr >= n))[0][0])
+        raise ValueError(f"triangles: triangle {k} = {arr[k].tolist()} has an index outside 0..{n - 1}")
+    repeated = np.flatnonzero((arr[:, 0] == arr[:, 1]) | (arr[:, 1] == arr[:, 2]) | (arr[:, 0] == arr[:, 2]))
+    if repeated.size:
+        k = int(repeated[0])
+        raise ValueError(f"triangles: triangle {k} = {arr[k].tolist()} repeats a particle")
+    return arr

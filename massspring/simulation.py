@@ -1,59 +1,45 @@
-"""``Simulation``: a Model turned into Taichi arrays, stepped by one integrator."""
+"""``Simulation``: a Model on Taichi fields, stepped by one integrator; ``run`` drives it."""
 
 from __future__ import annotations
 
-import contextlib
-import io
-import numbers
 import weakref
+from dataclasses import dataclass
 
 import numpy as np
-import taichi as ti
-from taichi.lang import impl
 
-from massspring.errors import DivergenceError
-from massspring.integrators import (REAL, SERIAL_BELOW, DeviceModel, ExplicitEuler, ImplicitEuler,
-                                    State, SymplecticEuler)
+from massspring import validate
+from massspring.device import ARCHS, CPU_ARCHS, POOL, ensure_taichi, model_layout
+from massspring.errors import DivergenceError, SimulationClosedError
+from massspring.integrators import INTEGRATORS
 from massspring.kernels import divergence
+from massspring.kernels.terms import active_terms
 from massspring.model import Model
+from massspring.solvers import PRECONDITIONERS
 
-INTEGRATORS = {"explicit": ExplicitEuler, "symplectic": SymplecticEuler, "implicit": ImplicitEuler}
-PRECISIONS = tuple(REAL)
-PRECONDITIONERS = ("block-jacobi", "none")
-STORAGES = ("auto", "ndarray", "field")
+PRECISIONS = ("f64", "f32")
 LOOPS = ("auto", "serial", "parallel")
-# Springs from which "auto" storage uses fields: 1.3-2x faster kernels from a
-# 32 x 32 cloth (5.8k springs) on (benchmarks/switch_point.py), for about 1 s of
-# compilation per new size of simulation (storage.FieldPool reuses fields).
-FIELDS_FROM = 4_000
-MAX_INT32 = 2**31 - 1  # kernels count in int32
+# Springs below which serial kernels beat parallel ones on this project's 2-core CPU
+# machine, where a parallel loop's launch costs ~0.05-0.2 ms and two threads give
+# ~1.3x (benchmarks/switch_point.py). Simulation(loops=...) overrides it.
+SERIAL_BELOW = 200_000
 STEPS_PER_LAUNCH = 2**30  # explicit steps per kernel call at most (the count is an int32 there)
-ARCHS = ("cpu", "gpu", "cuda", "vulkan", "metal", "opengl", "x64", "arm64")
-
-
-def ensure_taichi(arch="cpu"):
-    """Initialise Taichi once per process on ``arch``; later calls must agree with it.
-
-    If Taichi cannot start on ``arch`` (no such device: it falls back to the CPU),
-    this raises ValueError rather than silently running elsewhere.
-    """
-    if arch not in ARCHS:
-        raise ValueError(f"arch: unknown value {arch!r}, expected one of {', '.join(ARCHS)}")
-    wanted = getattr(ti, arch)
-    accepted = [ti.x64, ti.arm64] if arch == "cpu" else wanted if isinstance(wanted, list) else [wanted]
-    started = impl.get_runtime().prog is None
-    if started:
-        with contextlib.redirect_stdout(io.StringIO()):  # "[Taichi] Starting on arch=..."
-            ti.init(arch=wanted, default_fp=ti.f64, log_level=ti.ERROR if arch != "cpu" else ti.WARN)
-    current = impl.current_cfg().arch
-    if current not in accepted:
-        if started:
-            raise ValueError(f"arch: {arch!r} is not available here; Taichi started on {current.name} instead")
-        raise ValueError(f"arch: Taichi already runs on {current.name} in this process; "
-                         f"cannot switch to {arch!r}")
-
-
 DIVERGENCE_FACTOR = 100.0  # see divergence_check
+F32_MAX_MAGNITUDE = 1e18  # model values an f32 run accepts: their squares stay within f32's 3.4e38
+
+
+@dataclass(frozen=True)
+class Settings:
+    """A simulation's settings (see ``Simulation``), fixed at construction."""
+
+    integrator: str
+    dt: float
+    precision: str
+    cg_tol: float
+    cg_max_iter: int
+    definiteness_fix: bool
+    preconditioner: str
+    arch: str
+    loops: str
 
 
 def divergence_check(model: Model, factor=DIVERGENCE_FACTOR):
@@ -80,7 +66,7 @@ def divergence_check(model: Model, factor=DIVERGENCE_FACTOR):
 def default_cg_max_iter(model: Model) -> int:
     """3 x (free particles): the exact-arithmetic bound of CG on the free DOFs, at least 100."""
     free = model.n_particles - model.fixed.size
-    return max(100, 3 * free)
+    return min(max(100, 3 * free), validate.MAX_INT32)
 
 
 class Simulation:
@@ -89,7 +75,7 @@ class Simulation:
     Parameters
     ----------
     model : Model
-    integrator : "explicit" | "symplectic" | "implicit"
+    integrator : "explicit" | "symplectic" | "implicit" | "rk4" (``integrators.INTEGRATORS``)
     dt : float, s, > 0
     precision : "f64" (default) | "f32"
     cg_tol : float in (0, 1)
@@ -98,105 +84,132 @@ class Simulation:
         Implicit only: iteration limit per step; None means ``default_cg_max_iter``.
     definiteness_fix : bool
         Implicit only: clamp the transverse stiffness of compressed springs so that
-        the system stays positive definite (see kernels/operator.py).
-    preconditioner : "block-jacobi" (default) | "none"
-    storage : "auto" (default) | "ndarray" | "field"
-        Taichi ndarrays (kernels compiled once for all simulations) or fields (1.3-2x
-        faster kernels, compiled again for each new size; released fields are pooled
-        and reused, see ``storage.FieldPool``); "auto" picks fields from
-        ``FIELDS_FROM`` springs on.
+        the system stays positive definite (see kernels/terms/springs.py).
+    preconditioner : "block-jacobi" (default) | "none" (``solvers.PRECONDITIONERS``)
+    arch : Taichi arch name, "cpu" by default; one that cannot start is a ValueError.
     loops : "auto" (default) | "serial" | "parallel"
         Serial kernels (a whole CG solve, or many explicit steps, per launch) or
-        parallel kernels (one launch per phase). Both give the same results to
-        round-off; "auto" picks parallel from ``integrators.SERIAL_BELOW`` springs on
-        the CPU, and always on other archs.
-    arch : Taichi arch name, "cpu" by default.
+        parallel kernels (one launch per phase). Both give the same results to the
+        bit (fixed-block reductions); "auto" picks parallel from ``SERIAL_BELOW``
+        springs on the CPU, and always on other archs.
 
     Only what the run needs is allocated and compiled: no CG vectors for the
     explicit integrators, no damping term with kd = 0, no gravity term with g = 0,
-    no fixed-particle filter without fixed particles (see ``info()``).
+    no pin filter without pinned particles (see ``info()``). Settings are read-only.
+    ``close()`` hands the fields back for reuse; any later call raises
+    ``SimulationClosedError``.
     """
 
     def __init__(self, model, integrator="implicit", dt=1e-2, precision="f64", cg_tol=1e-6,
                  cg_max_iter=None, definiteness_fix=True, preconditioner="block-jacobi", arch="cpu",
-                 storage="auto", loops="auto"):
+                 loops="auto"):
         if not isinstance(model, Model):
             raise ValueError(f"model: expected a massspring.Model, got {type(model).__name__}")
-        if integrator not in INTEGRATORS:
-            raise ValueError(f"integrator: unknown value {integrator!r}, expected one of "
-                             f"{', '.join(INTEGRATORS)}")
-        if precision not in PRECISIONS:
-            raise ValueError(f"precision: unknown value {precision!r}, expected one of {', '.join(PRECISIONS)}")
-        dt = _positive_float("dt", dt)
-        cg_tol = _positive_float("cg_tol", cg_tol)
-        if cg_tol >= 1:
-            raise ValueError(f"cg_tol: must be < 1, got {cg_tol}")
-        if cg_max_iter is None:
-            cg_max_iter = default_cg_max_iter(model)
-        elif isinstance(cg_max_iter, bool) or not isinstance(cg_max_iter, numbers.Integral) or \
-                not 1 <= cg_max_iter <= MAX_INT32:
-            raise ValueError(f"cg_max_iter: expected an integer within 1..{MAX_INT32} or None, got {cg_max_iter!r}")
-        if preconditioner not in PRECONDITIONERS:
-            raise ValueError(f"preconditioner: unknown value {preconditioner!r}, expected one of "
-                             f"{', '.join(PRECONDITIONERS)}")
-        if loops not in LOOPS:
-            raise ValueError(f"loops: unknown value {loops!r}, expected one of {', '.join(LOOPS)}")
-        if storage not in STORAGES:
-            raise ValueError(f"storage: unknown value {storage!r}, expected one of {', '.join(STORAGES)}")
+        validate.choice("integrator", integrator, tuple(INTEGRATORS))
+        validate.choice("precision", precision, PRECISIONS)
+        dt = validate.positive_float("dt", dt)
+        cg_tol = validate.fraction("cg_tol", cg_tol)
+        cg_max_iter = default_cg_max_iter(model) if cg_max_iter is None else validate.count("cg_max_iter", cg_max_iter)
+        validate.choice("preconditioner", preconditioner, tuple(PRECONDITIONERS))
+        validate.choice("loops", loops, LOOPS)
+        validate.choice("arch", arch, ARCHS)
+        if precision == "f32":
+            _check_f32_range(model)
         ensure_taichi(arch)
-
-        self.model = model
-        self.integrator = integrator
-        self.dt = dt
-        self.precision = precision
-        self.cg_tol = cg_tol
-        self.cg_max_iter = int(cg_max_iter)
-        self.definiteness_fix = bool(definiteness_fix)
-        self.preconditioner = preconditioner
-        self.arch = arch
-        self.steps = 0
-        self.cg_iterations = []
-        self.cg_failures = 0
-        self.check = divergence_check(model)
-
-        if storage == "auto":
-            storage = "field" if model.n_springs >= FIELDS_FROM else "ndarray"
-        self.storage = storage
-        self._dev = DeviceModel.upload(model, precision, storage)
-        self._state = State.upload(self._dev.real, model.positions, model.velocities, storage)
         if loops == "auto":
-            loops = "serial" if model.n_springs < SERIAL_BELOW and arch in ("cpu", "x64", "arm64") else "parallel"
-        self.loops = loops
-        serial = loops == "serial"
-        if integrator == "implicit":
-            self._integrator = ImplicitEuler(self._dev, self._state, serial=serial, cg_tol=cg_tol,
-                                             cg_max_iter=self.cg_max_iter,
-                                             definiteness_fix=self.definiteness_fix,
-                                             preconditioner=preconditioner)
-        else:
-            self._integrator = INTEGRATORS[integrator](self._dev, self._state, serial=serial)
-        self._release = weakref.finalize(self, _release_all,
-                                         (self._dev.arrays, self._state.arrays, self._integrator.arrays))
+            loops = "serial" if model.n_springs < SERIAL_BELOW and arch in CPU_ARCHS else "parallel"
+        self._model = model
+        self._settings = Settings(integrator, dt, precision, cg_tol, cg_max_iter, bool(definiteness_fix),
+                                  preconditioner, arch, loops)
+        self._check = divergence_check(model)
+        self._steps = 0
+        self._cg_iterations = []
+        self._cg_failures = 0
+
+        cls = INTEGRATORS[integrator]
+        layout = model_layout(model, precision)
+        cls.declare(layout, model, self._settings)
+        self._layout_names = [name for name in layout.decls if name not in ("size", "check", "partial")]
+        self._bytes = layout.nbytes()
+        dev = layout.allocate()
+        dev.check[None] = self._check
+        self._integrator = cls(dev, model, self._settings)
+        self._release = weakref.finalize(self, _release, dev, self._integrator)
+
+    # ------------------------------------------------------------------ settings
+
+    @property
+    def model(self) -> Model:
+        return self._model
+
+    @property
+    def settings(self) -> Settings:
+        return self._settings
+
+    integrator = property(lambda self: self._settings.integrator, doc="Integrator name.")
+    dt = property(lambda self: self._settings.dt, doc="Time step (s).")
+    precision = property(lambda self: self._settings.precision, doc='"f64" or "f32".')
+    cg_tol = property(lambda self: self._settings.cg_tol, doc="Implicit: relative CG tolerance.")
+    cg_max_iter = property(lambda self: self._settings.cg_max_iter, doc="Implicit: CG iteration limit per step.")
+    definiteness_fix = property(lambda self: self._settings.definiteness_fix, doc="Implicit: definiteness fix.")
+    preconditioner = property(lambda self: self._settings.preconditioner, doc="Implicit: preconditioner name.")
+    arch = property(lambda self: self._settings.arch, doc="Taichi arch.")
+    loops = property(lambda self: self._settings.loops, doc='"serial" or "parallel" (resolved from "auto").')
+
+    @property
+    def check(self) -> tuple:
+        """(base, gx0, factor) of the divergence check (``divergence_check``)."""
+        return self._check
+
+    # ------------------------------------------------------------------ state
+
+    @property
+    def closed(self) -> bool:
+        return not self._release.alive
+
+    def _open(self):
+        if not self._release.alive:
+            raise SimulationClosedError("Simulation: closed (close() was called); create a new Simulation")
+        return self._integrator
+
+    @property
+    def steps(self) -> int:
+        """Steps taken."""
+        return self._steps
 
     @property
     def time(self) -> float:
         """Simulated time (s): steps x dt."""
-        return self.steps * self.dt
+        return self._steps * self._settings.dt
 
     @property
     def positions(self) -> np.ndarray:
         """(n, 3) float64 copy of the current positions (m)."""
-        return self._state.x.to_numpy().astype(np.float64)
+        integrator = self._open()
+        return integrator.state.x.to_numpy()[: self._model.n_particles].astype(np.float64)
 
     @property
     def velocities(self) -> np.ndarray:
         """(n, 3) float64 copy of the current velocities (m/s)."""
-        return self._state.v.to_numpy().astype(np.float64)
+        integrator = self._open()
+        return integrator.state.v.to_numpy()[: self._model.n_particles].astype(np.float64)
 
     @property
     def solver_stats(self):
-        """The last implicit step's ``SolverStats`` (None before the first step or if explicit)."""
-        return getattr(self._integrator, "stats", None)
+        """The last implicit step's ``solvers.SolverStats`` (None before the first step or if explicit)."""
+        return self._open().stats
+
+    @property
+    def cg_iterations(self) -> list:
+        """CG iterations of every implicit step so far (a copy)."""
+        return list(self._cg_iterations)
+
+    @property
+    def cg_failures(self) -> int:
+        """Implicit steps whose CG solve did not converge."""
+        return self._cg_failures
+
+    # ------------------------------------------------------------------ stepping
 
     def step(self, n=1):
         """Advance ``n`` steps of size ``dt``.
@@ -206,23 +219,23 @@ class Simulation:
         naming it; the simulation then holds the last good state (``steps``,
         ``time``, ``positions`` and ``velocities`` are those of the step before).
         """
-        if isinstance(n, bool) or not isinstance(n, numbers.Integral) or n < 0:
-            raise ValueError(f"n: expected a non-negative integer, got {n!r}")
-        if self.integrator != "implicit":
+        integrator = self._open()
+        n = validate.count("n", n, low=0, high=2**62)
+        if not integrator.has_stats:
             while n:
                 chunk = min(n, STEPS_PER_LAUNCH)
-                self._state, done, code, kinetic = self._integrator.advance(self._state, self.dt, chunk, self.check)
-                self.steps += done
+                done, code, kinetic = integrator.advance(chunk)
+                self._steps += done
                 self._raise_if_diverged(code, kinetic)
                 n -= chunk
             return self
         for _ in range(n):
-            self._state, done, code, kinetic = self._integrator.advance(self._state, self.dt, 1, self.check)
+            done, code, kinetic = integrator.advance(1)
+            stats = integrator.stats
             if done:
-                self.steps += 1
-                stats = self._integrator.stats
-                self.cg_iterations.append(stats.iterations)
-                self.cg_failures += not stats.converged
+                self._steps += 1
+                self._cg_iterations.append(stats.iterations)
+                self._cg_failures += not stats.converged
             self._raise_if_diverged(code, kinetic)
         return self
 
@@ -230,39 +243,75 @@ class Simulation:
         if code == divergence.OK:
             return
         positions = self.positions
-        work = max(0.0, float(np.sum(self.model.masses * (positions @ self.model.gravity))) - self.check[1])
-        bound = self.check[2] * (self.check[0] + work)
-        failed = self.steps + 1
+        work = max(0.0, float(np.sum(self._model.masses * (positions @ self._model.gravity))) - self._check[1])
+        bound = self._check[2] * (self._check[0] + work)
+        failed = self._steps + 1
         raise DivergenceError(failed, failed * self.dt, divergence.CAUSES[code], kinetic, bound,
                               self.integrator, self.dt)
 
     def energy(self) -> dict:
         """Kinetic, spring, gravity and total energy (J) of the current state."""
-        return self.model.energy(self.positions, self.velocities)
+        return self._model.energy(self.positions, self.velocities)
 
     def info(self) -> dict:
         """What this run compiled and allocated: force terms, arrays and their bytes."""
-        sets = (self._dev.arrays, self._state.arrays, self._integrator.arrays)
+        self._open()
+        terms = [term.name for term in active_terms(self._model)]
+        if self._model.has_fixed:
+            terms.append("fixed-filter")
         return {"integrator": self.integrator, "precision": self.precision, "dt": self.dt,
-                "particles": self.model.n_particles, "springs": self.model.n_springs,
-                "terms": self._dev.terms(), "arrays": ["x", "v"] + list(self._integrator.work_arrays),
-                "storage": self.storage, "loops": self.loops, "bytes": sum(a.nbytes() for a in sets)}
+                "particles": self._model.n_particles, "springs": self._model.n_springs,
+                "terms": terms, "arrays": list(self._layout_names), "loops": self.loops,
+                "preconditioner": self.preconditioner if self.integrator == "implicit" else None,
+                "bytes": self._bytes}
 
     def close(self):
-        """Release the Taichi fields of a ``storage="field"`` run now (else when garbage-collected)."""
+        """Hand the run's fields back for reuse by the next Simulation (else done at garbage
+        collection). Idempotent; any other call afterwards raises ``SimulationClosedError``."""
         self._release()
+        self._integrator = None
 
 
-def _release_all(sets):
-    for arrays in sets:
-        arrays.release()
+def _release(dev, integrator):
+    integrator.release()
+    POOL.give(dev)
 
 
-def _positive_float(name, value):
-    try:
-        out = float(value)
-    except (TypeError, ValueError):
-        raise ValueError(f"{name}: expected a number, got {value!r}") from None
-    if not np.isfinite(out) or out <= 0:
-        raise ValueError(f"{name}: must be a finite number > 0, got {value!r}")
-    return out
+def _check_f32_range(model):
+    for name in ("positions", "masses", "stiffness", "damping", "rest_lengths", "velocities", "gravity"):
+        values = np.abs(getattr(model, name))
+        if values.size and values.max() > F32_MAX_MAGNITUDE:
+            raise ValueError(f"{name}: {values.max():g} is beyond what an f32 run holds "
+                             f"(|value| <= {F32_MAX_MAGNITUDE:g}); use precision='f64'")
+    if model.masses.min() < 1.0 / F32_MAX_MAGNITUDE:
+        raise ValueError(f"masses: {model.masses.min():g} is below what an f32 run holds "
+                         f"(>= {1.0 / F32_MAX_MAGNITUDE:g}); use precision='f64'")
+
+
+def run(sim, steps, *, frames=(), on_frame=None, progress=None):
+    """Advance ``sim`` by ``steps`` steps, in chunks of at most 1/200 of the run.
+
+    ``on_frame(sim)`` is called each time the steps taken here reach an entry of
+    ``frames`` (sorted ints within 0..steps; 0 is before the first step), and
+    chunks end there; ``progress(done, steps)`` after each chunk. A
+    ``DivergenceError`` or ``KeyboardInterrupt`` propagates with ``sim`` at its last
+    good state and every frame up to it delivered. Returns ``steps``.
+    """
+    steps = validate.count("steps", steps, low=0, high=2**62)
+    chunk = max(1, steps // 200)
+    pending = [int(f) for f in frames] if on_frame is not None else []
+    done = next_frame = 0
+    while True:
+        while next_frame < len(pending) and pending[next_frame] <= done:
+            if pending[next_frame] == done:
+                on_frame(sim)
+            next_frame += 1
+        if done >= steps:
+            return steps
+        k = min(chunk, steps - done)
+        if next_frame < len(pending):
+            k = min(k, pending[next_frame] - done)
+        sim.step(k)
+        done += k
+        if progress is not None:
+            progress(done, steps)

@@ -88,18 +88,33 @@ def test_wrong_type_in_scene(tmp_path, capsys):
 
 def test_missing_key_in_scene(tmp_path, capsys):
     path = tmp_path / "missing.toml"
-    path.write_text('integrator = "implicit"\nduration = 1.0\n[dt]\nexplicit = 1e-3\nimplicit = 1e-2\n'
-                    '[model]\ngenerator = "spring"\n')
+    path.write_text('integrator = "implicit"\n[dt]\nexplicit = 1e-3\n[model]\ngenerator = "spring"\n')
     assert main(["run", str(path)]) == 2
-    assert "dt.symplectic" in capsys.readouterr().err
+    assert "'duration'" in capsys.readouterr().err
 
 
-def test_unavailable_arch_is_a_usage_error():
+def test_scene_dt_table_names_only_some_integrators(tmp_path, capsys):
+    # integrators the [dt] table leaves out get a dt from the stability estimate
+    path = tmp_path / "partial.toml"
+    path.write_text('integrator = "implicit"\nduration = 0.1\n[dt]\nimplicit = 1e-2\n'
+                    '[model]\ngenerator = "spring"\n')
+    for integrator in ("symplectic", "rk4"):
+        assert main(["run", str(path), "--integrator", integrator, "--quiet"]) == 0
+        assert f"integrator  {integrator}, dt = " in capsys.readouterr().out
+    assert main(["info", str(path)]) == 0
+    assert "explicit" in capsys.readouterr().out
+
+
+def test_unknown_arch_is_a_usage_error():
     code, out, err = run_cli("run", "spring", "--steps", "1", "--arch", "tpu")
-    assert code == 2 and "arch" in err
-    if os.path.exists("/dev/nvidiactl"):
-        return  # a CUDA machine: nothing to refuse
-    # A fresh process: Taichi starts here, finds no CUDA device, and must not fall back silently.
-    code, out, err = run_cli("run", "spring", "--steps", "1", "--arch", "cuda")
-    assert code == 2
-    assert "arch" in err and "cuda" in err and len(err.strip().splitlines()) == 1
+    assert code == 2 and "arch" in err and len(err.strip().splitlines()) == 1
+
+
+@pytest.mark.parametrize("arch", ["cuda", "opengl", "gpu"])
+def test_arch_that_cannot_start_is_a_usage_error_not_a_crash(arch):
+    if os.path.exists("/dev/nvidiactl") or os.environ.get("DISPLAY"):
+        pytest.skip("a GPU or a display is present: the arch may start here")
+    # A fresh process: Taichi must neither fall back silently (cuda) nor crash (opengl, gpu: exit 139)
+    code, out, err = run_cli("run", "spring", "--steps", "1", "--arch", arch)
+    assert code == 2, (code, err)
+    assert "arch" in err and arch in err and len(err.strip().splitlines()) == 1

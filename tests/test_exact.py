@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 
 import massspring as ms
-from test_implicit_dense import PATHS, simulation
+from conftest import PATHS, simulation
 
 KS, KD, M, L0, U0, DT, STEPS = 100.0, 2.0, 1.0, 1.0, 0.1, 1e-2, 200
 INTEGRATORS = ("explicit", "symplectic", "implicit")

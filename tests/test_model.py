@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 import massspring as ms
+from massspring.device import adjacency
 
 POS = [[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]]
 SPRINGS = [[0, 1], [1, 2]]
@@ -173,8 +174,14 @@ def test_adjacency_csr(seed):
     if n > 2:  # leave the last particle without springs
         springs = [s for s in springs if n - 1 not in s]
     m = ms.Model(rng.normal(size=(n, 3)), np.array(springs, dtype=np.int64).reshape(-1, 2))
-    offsets, other, spring = m.adjacency()
-    assert offsets.shape == (n + 1,) and other.shape == (2 * m.n_springs,) and spring.shape == other.shape
+    offsets, other, entry = adjacency(m)
+    assert offsets.shape == (n + 1,) and other.shape == (2 * m.n_springs,) and entry.shape == other.shape
+    # entry: s where the particle is the spring's first end, -1 - s where it is the second
+    spring = np.where(entry >= 0, entry, -1 - entry)
+    owner = np.repeat(np.arange(n), np.diff(offsets))
+    first = entry >= 0
+    np.testing.assert_array_equal(m.springs[spring[first], 0], owner[first])
+    np.testing.assert_array_equal(m.springs[spring[~first], 1], owner[~first])
     assert offsets[0] == 0 and offsets[-1] == 2 * m.n_springs
     assert np.all(np.diff(offsets) >= 0)
     expected = brute_force_adjacency(n, m.springs.tolist())
@@ -190,7 +197,7 @@ def test_model_arrays_read_only_copies():
     vel = np.ones((3, 3))
     m = model(positions=pos, velocities=vel, masses=[1.0, 2.0, 3.0])
     for name in ("positions", "springs", "masses", "stiffness", "damping", "rest_lengths",
-                 "velocities", "gravity", "fixed"):
+                 "velocities", "gravity", "fixed", "triangles"):
         arr = getattr(m, name)
         assert not arr.flags.writeable, name
         with pytest.raises(ValueError):
@@ -214,7 +221,7 @@ def test_simulation_bad_dt(dt):
     raises_naming("dt", ms.Simulation, model(), dt=dt)
 
 
-@pytest.mark.parametrize("integrator", ["rk4", "Implicit", "", None])
+@pytest.mark.parametrize("integrator", ["rk2", "Implicit", "", None])
 def test_simulation_bad_integrator(integrator):
     raises_naming("integrator", ms.Simulation, model(), integrator=integrator)
 
@@ -271,11 +278,23 @@ def test_info_lists_only_what_the_run_needs():
     plain = model(damping=0.0, gravity=(0.0, 0.0, 0.0))
     info = ms.Simulation(plain, integrator="explicit").info()
     assert info["terms"] == ["spring"]
-    assert info["arrays"] == ["x", "v", "x_next", "v_next"]
+    spring_arrays = {"x", "v", "mass", "ends", "offsets", "other", "entry", "fs", "ks", "l0"}
+    assert set(info["arrays"]) == spring_arrays | {"x_spare", "v_spare"}
     assert info["particles"] == 3 and info["springs"] == 2 and info["bytes"] > 0
     full = model(damping=0.5, fixed=[0])
     info = ms.Simulation(full, integrator="implicit").info()
     assert info["terms"] == ["spring", "damping", "gravity", "fixed-filter"]
-    assert set(info["arrays"]) == {"x", "v", "b", "r", "z", "p", "q", "coef", "minv", "keep"}
+    cg = {"b", "r", "z", "p", "q", "keep", "diag", "coef", "spring_coef"}
+    assert set(info["arrays"]) == spring_arrays | {"free", "kd", "gravity", "minv"} | cg
     info = ms.Simulation(full, integrator="implicit", preconditioner="none").info()
     assert "minv" not in info["arrays"]
+    bare = ms.Model([[0.0, 0.0, 0.0]], [], gravity=(0.0, 0.0, 0.0))
+    assert set(ms.Simulation(bare, integrator="symplectic").info()["arrays"]) == {
+        "x", "v", "mass", "x_spare", "v_spare"}
+
+
+def test_triangles_validated():
+    assert model().triangles.shape == (0, 3)
+    assert model(triangles=[[0, 1, 2]]).triangles.tolist() == [[0, 1, 2]]
+    for bad in ([[0, 1]], [[0, 1, 3]], [[0, 1, 1]], [[0.0, 1.0, 2.0]], [[-1, 0, 1]]):
+        raises_naming("triangles", model, triangles=bad)

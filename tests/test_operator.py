@@ -1,18 +1,16 @@
 """The matrix-free operator of Eq. 15 and the CG solver around it.
 
-The kernels ``operator.entry_coefficients`` and ``cg.cg_apply`` (q = A p via
-``operator.apply_row``) are driven directly on the Taichi ndarrays of a
-``DeviceModel`` and an ``ImplicitEuler``'s work arrays; the dense matrix they
-represent is reconstructed column by column (A e_k) and compared with the
-independent numpy assembly of test_implicit_dense.py.
+The operator A (``massspring.operators.SystemOperator``: the implicit step's own
+kernels) is reconstructed column by column (A e_k) and compared with the
+independent numpy assembly of conftest.py.
 """
 
 import numpy as np
 import pytest
 
 import massspring as ms
-from massspring.kernels import cg, operator
-from test_implicit_dense import PATHS, dense_system, free_dofs, random_system, simulation
+from conftest import PATHS, dense_system, free_dofs, random_system, simulation
+from massspring.operators import SystemOperator
 
 EPS = np.finfo(np.float64).eps
 
@@ -21,24 +19,15 @@ class Operator:
     """A v -> A v for one model, state and dt, on the package's kernels (f64)."""
 
     def __init__(self, model, dt, definiteness_fix):
-        # the device arrays (DeviceModel, State) and the implicit integrator's work
-        # arrays (p, q, coef, minv, b) of a fresh implicit Simulation
-        sim = ms.Simulation(model, integrator="implicit", dt=dt, definiteness_fix=definiteness_fix)
         self.model, self.dt, self.fix = model, dt, definiteness_fix
-        self.dev, self.state, self.imp = sim._dev, sim._state, sim._integrator
-        d = self.dev
-        operator.entry_coefficients(self.state.x, d.offsets, d.other, d.spring, d.ks, d.kd, d.l0,
-                                    self.imp.coef, dt, definiteness_fix, d.has_damping, True, d.real)
+        self.system = SystemOperator(model, dt, definiteness_fix)
         self.n = model.n_particles
         self.keep = free_dofs(model)
 
     def apply(self, p):
         """(A p, p.Ap as returned by the kernel) for p (3n,), zero on fixed particles."""
-        d, imp = self.dev, self.imp
-        imp.p.from_numpy(np.ascontiguousarray(p.reshape(self.n, 3)))
-        pq = cg.cg_apply(imp.p, imp.q, d.mass, d.free, d.offsets, d.other, imp.coef,
-                         d.has_fixed, d.real)
-        return imp.q.to_numpy().reshape(-1), pq
+        q, pq = self.system.apply(p.reshape(self.n, 3))
+        return q.reshape(-1), pq
 
     def dense(self):
         """The free-DOF block of A, reconstructed from A e_k; also checks that A e_k
@@ -159,21 +148,19 @@ def test_zero_length_springs_add_nothing_to_operator():
 
 
 def test_block_jacobi_blocks_and_right_hand_side():
-    """cg_begin's block-Jacobi inverse is the inverse of A's 3x3 diagonal blocks and
+    """The refresh's block-Jacobi inverse is the inverse of A's 3x3 diagonal blocks and
     its right-hand side is Eq. 15's M v + dt f - dt D v (zero on fixed particles)."""
     model = random_system(21, rest=(0.5, 2.0))
     op = Operator(model, DT, True)
-    imp, st = op.imp, op.state
-    imp._begin(st, DT, True)
     A, b = dense_system(model, DT, True)
     free = model.free_mask()
-    minv = imp.minv.to_numpy()
+    minv = op.system.inverse_diagonal_blocks()
     A_full = np.zeros((3 * op.n, 3 * op.n))
     A_full[np.ix_(op.keep, op.keep)] = A
     for i in np.flatnonzero(free):
         block = A_full[3 * i:3 * i + 3, 3 * i:3 * i + 3]
         np.testing.assert_allclose(minv[i] @ block, np.eye(3), rtol=0, atol=1e-13)
-    b_kernel = imp.b.to_numpy().reshape(-1)
+    b_kernel = op.system.rhs().reshape(-1)
     np.testing.assert_allclose(b_kernel[op.keep], b, rtol=0, atol=64 * EPS * np.abs(b).max())
     assert np.all(b_kernel[~op.keep] == 0)
 

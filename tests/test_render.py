@@ -8,9 +8,11 @@ import pytest
 from PIL import Image
 
 import massspring as ms
-from massspring import cli, generators, render
+from massspring import cli
 from massspring.cli import main
+from massspring.io import camera, render
 from massspring.scene import SceneError, builtin_scenes, load_scene
+from massspring.simulation import run
 
 SMALL = {"grid": ["--set", "resolution=6"], "lattice": ["--set", "resolution=3"], "chain": ["--set", "count=5"]}
 BACKGROUND = np.array(render.BACKGROUND)
@@ -69,45 +71,56 @@ def one_spring(rest_length, end=(1.0, 0.0, 0.0)):
 
 def render_one(model, view, size=(200, 200), frames=None):
     x = model.positions
-    renderer = render.FrameRenderer(model, x[None] if frames is None else frames, None, view, size)
+    renderer = render.FrameRenderer(model, x[None] if frames is None else frames, view, size)
     return renderer.render(x, 0.0)
 
 
 def test_spring_along_x_is_a_horizontal_line_across_the_plot():
     # camera on -y looking at +y (azimuth -90, elevation 0): +x is right, +z is up.
-    image = render_one(one_spring(0.8), render.View(azimuth=-90, elevation=0))
+    image = render_one(one_spring(0.8), camera.View(azimuth=-90, elevation=0))
     left, top, width, height = render.plot_box((200, 200))
     mask = drawn(image[top:top + height])
     rows, cols = np.nonzero(mask)
     # the line is centred vertically in the plot (row boundary at height / 2) ...
     assert set(rows) <= set(range(height // 2 - 3, height // 2 + 3))
     # ... and its ends sit MARGIN in from the sides (within the end dots' radius)
-    ends = np.array([width * render.MARGIN, width * (1 - render.MARGIN)])
+    ends = np.array([width * camera.MARGIN, width * (1 - camera.MARGIN)])
     dot = 1.5 * max(2.0, 200 / 120) + 1
     assert abs(cols.min() - ends[0]) <= dot and abs(cols.max() + 1 - ends[1]) <= dot
-    # stretched by 25 %: the middle of the line is red (extension end of the map)
-    middle = image[top:top + height, 100][mask[:, 100]]
-    assert np.all(middle[:, 0] > 2 * middle[:, 2]) and np.all(middle[:, 0] > 3 * middle[:, 1])
+    # stretched by 25 % with the scale's limit at 25 %: the line has the map's extension end
+    assert np.array_equal(line_colour(model=one_spring(0.8)), render.DIVERGING[-1])
     # the fixed particle (x = 0) is the amber dot on the left
     amber = np.all(np.abs(image[top:top + height].astype(int) - render.FIXED) < 30, axis=-1)
     assert amber.any() and np.nonzero(amber)[1].max() < 0.1 * 200
 
 
-def test_compressed_spring_is_blue():
-    image = render_one(one_spring(1.25), render.View(azimuth=-90, elevation=0))
-    left, top, width, height = render.plot_box((200, 200))
-    column = image[top:top + height, 100]
-    middle = column[drawn(column)]
-    assert len(middle) and np.all(middle[:, 2] > 2 * middle[:, 0])
+def line_colour(model, frames=None, size=400):
+    """The colour at the centre of the (horizontal) line drawn across the picture's middle
+    column: 400 px wide lines are 2.5 px thick, so their centre pixel is not blended."""
+    image = render_one(model, camera.View(azimuth=-90, elevation=0), size=(size, size), frames=frames)
+    left, top, width, height = render.plot_box((size, size))
+    column = image[top:top + height, size // 2]
+    rows = np.flatnonzero(drawn(column))
+    return column[rows[len(rows) // 2]].astype(int)
+
+
+def test_spring_colour_follows_its_strain_on_the_map():
+    # one spring at strain -20 % (the scale's limit, from the only frame): the compression
+    # end of the map; with a scale of -40..40 % (set by 50 later frames twice as
+    # compressed) it is halfway to neutral grey, the map's second colour
+    model = one_spring(1.25)
+    assert np.array_equal(line_colour(model), render.DIVERGING[0])
+    frames = np.stack([model.positions] + [model.positions * [0.75, 1, 1]] * 50)
+    assert np.array_equal(line_colour(model, frames), render.DIVERGING[1])
 
 
 def test_view_direction_and_top_view():
     # looking along the spring (azimuth 0: from +x) it collapses to a dot at the centre
-    image = plot_region(render_one(one_spring(1.0), render.View(azimuth=0, elevation=0)))
+    image = plot_region(render_one(one_spring(1.0), camera.View(azimuth=0, elevation=0)))
     rows, cols = np.nonzero(drawn(image))
     assert cols.max() - cols.min() < 12 and abs(cols.mean() - image.shape[1] / 2) < 3
     # from above (elevation 90, azimuth -90), +y is up on screen: a spring along y is vertical
-    image = plot_region(render_one(one_spring(1.0, end=(0.0, 1.0, 0.0)), render.View(azimuth=-90, elevation=90)))
+    image = plot_region(render_one(one_spring(1.0, end=(0.0, 1.0, 0.0)), camera.View(azimuth=-90, elevation=90)))
     rows, cols = np.nonzero(drawn(image))
     assert cols.max() - cols.min() < 12 and rows.max() - rows.min() > 0.8 * image.shape[0]
     fixed_rows = np.nonzero(np.all(np.abs(image.astype(int) - render.FIXED) < 30, axis=-1))[0]
@@ -118,7 +131,7 @@ def test_perspective_draws_the_nearer_spring_longer():
     # two unit springs along x at y = -0.5 (nearer the camera on -y) and y = +0.5
     model = ms.Model([[0, -0.5, 0], [1, -0.5, 0], [0, 0.5, 0.6], [1, 0.5, 0.6]], [[0, 1], [2, 3]],
                      gravity=(0, 0, 0))
-    view = render.View(azimuth=-90, elevation=0, projection="perspective")
+    view = camera.View(azimuth=-90, elevation=0, projection="perspective")
     image = plot_region(render_one(model, view, size=(300, 300)))
     mask = drawn(image)
     rows = np.flatnonzero(mask.any(axis=1))
@@ -128,14 +141,14 @@ def test_perspective_draws_the_nearer_spring_longer():
     far_len, near_len = np.ptp(np.flatnonzero(upper)), np.ptp(np.flatnonzero(lower))
     # pinhole camera PERSPECTIVE_DISTANCE * radius from the centre: lengths scale as 1 / distance
     radius = np.linalg.norm([1.0, 1.0, 0.6]) / 2
-    d = render.PERSPECTIVE_DISTANCE * radius
+    d = camera.PERSPECTIVE_DISTANCE * radius
     assert near_len / far_len == pytest.approx((d + 0.5) / (d - 0.5), rel=0.03)
 
 
 def test_framing_covers_every_frame():
     model = one_spring(1.0)
     frames = np.array([model.positions, model.positions + [0.0, 0.0, 3.0]])  # moved up 3 m later
-    renderer = render.FrameRenderer(model, frames, None, render.View(-90, 0), (200, 200))
+    renderer = render.FrameRenderer(model, frames, camera.View(-90, 0), (200, 200))
     left, top, width, height = render.plot_box((200, 200))
     for x in frames:
         px, _ = renderer.framing.pixels(x)
@@ -149,7 +162,8 @@ def test_framing_covers_every_frame():
 def test_surface_triangle_edges_are_springs():
     for scene in ("cloth", "cube"):
         sc = load_scene(scene).with_params(resolution=4)
-        model, tris = sc.model(), sc.triangles()
+        model = sc.model()
+        tris = model.triangles
         expected = {"cloth": 2 * 3 * 3, "cube": 6 * 2 * 3 * 3}[scene]
         assert tris.shape == (expected, 3)
         idx = render.edge_springs(model.springs, tris, model.n_particles)
@@ -159,7 +173,7 @@ def test_surface_triangle_edges_are_springs():
                 pair = {int(tri[e]), int(tri[(e + 1) % 3])}
                 assert set(model.springs[idx[t, e]].tolist()) == pair
     model = load_scene("cloth").with_params(resolution=4, shear=0.0).model()
-    idx = render.edge_springs(model.springs, generators.surface("grid", {"resolution": 4}), model.n_particles)
+    idx = render.edge_springs(model.springs, model.triangles, model.n_particles)
     assert np.sum(idx < 0) == 2 * 3 * 3  # one diagonal per triangle has no spring without shear
 
 
@@ -196,13 +210,14 @@ class FakeSim:
         self.steps += k
 
 
-def test_advance_calls_back_at_frame_steps_only():
+def test_run_calls_back_at_frame_steps_only():
     sim, seen = FakeSim(), []
-    cli.advance(sim, 1000, show=False, frames=[0, 7, 500, 1000], on_frame=lambda s: seen.append(s.steps))
+    run(sim, 1000, frames=[0, 7, 500, 1000], on_frame=lambda s: seen.append(s.steps))
     assert seen == [0, 7, 500, 1000] and sim.steps == 1000
-    plain = FakeSim()
-    cli.advance(plain, 1000, show=False)
+    plain, progress = FakeSim(), []
+    run(plain, 1000, progress=lambda done, total: progress.append((done, total)))
     assert plain.calls == [5] * 200  # without frames: the usual chunks
+    assert progress[0] == (5, 1000) and progress[-1] == (1000, 1000) and len(progress) == 200
 
 
 def test_interrupted_run_keeps_the_frames_before(tmp_path, monkeypatch, capsys):
@@ -241,15 +256,28 @@ def test_scene_view_table(tmp_path):
     base = builtin_scenes()["chain"].read_text().split("\n[view]")[0] + "\n[view]\n"
     path = tmp_path / "ok.toml"
     path.write_text(base + 'azimuth = 10\nelevation = -30.5\nprojection = "perspective"\n')
-    assert load_scene(path).view == render.View(10.0, -30.5, "perspective")
-    for body, key in (('zoom = 2.0\n', "view.zoom"), ('azimuth = "north"\n', "view.azimuth"),
-                      ('projection = "fisheye"\n', "view.projection"), ("elevation = 120\n", "view.elevation")):
+    assert camera.View(**load_scene(path).view) == camera.View(10.0, -30.5, "perspective")
+    for body, key in (('zoom = 2.0\n', "view.zoom"), ('azimuth = "north"\n', "view.azimuth")):
         path = tmp_path / "bad.toml"
         path.write_text(base + body)
         with pytest.raises(SceneError, match=re.escape(key)) as err:
             load_scene(path)
         assert str(path) in str(err.value)
-    assert load_scene("cube").view.projection == "perspective"
+    assert load_scene("cube").view["projection"] == "perspective"
+
+
+@pytest.mark.parametrize("body, key", [('projection = "fisheye"\n', "view.projection"),
+                                       ("elevation = 120\n", "view.elevation")])
+def test_scene_view_out_of_range_refused_before_a_pictured_run(body, key, tmp_path, capsys):
+    # the [view] table's values are checked by the camera, when a picture is asked for
+    base = builtin_scenes()["chain"].read_text().split("\n[view]")[0] + "\n[view]\n"
+    path = tmp_path / "bad.toml"
+    path.write_text(base + body)
+    gif = tmp_path / "x.gif"
+    assert main(["run", str(path), "--steps", "3", "--quiet", "--gif", str(gif)]) == 2
+    err = capsys.readouterr().err
+    assert key in err and str(path) in err and err.count("\n") == 1
+    assert not gif.exists()
 
 
 @pytest.mark.parametrize("args, option", [
@@ -265,7 +293,7 @@ def test_scene_view_table(tmp_path):
     (["--gif", "no/such/dir/x.gif"], "--gif"),
 ])
 def test_bad_picture_options_exit_2(args, option, tmp_path, capsys):
-    args = [str(tmp_path / a) if a == "X" else a for a in args]
+    args = [str(tmp_path / "x.gif") if a == "X" else a for a in args]
     assert main(["run", "spring", "--steps", "5", "--quiet", *args]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and option in err
@@ -280,10 +308,11 @@ def test_painters_order_near_triangle_covers_far_one(flip):
     springs = [[0, 1], [1, 2], [2, 0], [3, 4], [4, 5], [5, 3]]
     lengths = np.linalg.norm(x[[1, 2, 0, 4, 5, 3]] - x[[0, 1, 2, 3, 4, 5]], axis=1)
     rest = np.concatenate([lengths[:3] / 2, lengths[3:] * 2])  # A stretched (red), B compressed (blue)
-    model = ms.Model(x, springs, rest_lengths=rest, gravity=(0, 0, 0))
     triangles = np.array([[3, 4, 5], [0, 1, 2]] if flip else [[0, 1, 2], [3, 4, 5]])
-    renderer = render.FrameRenderer(model, x[None], triangles, render.View(-90, 0), (200, 200))
+    model = ms.Model(x, springs, rest_lengths=rest, gravity=(0, 0, 0), triangles=triangles)
+    renderer = render.FrameRenderer(model, x[None], camera.View(-90, 0), (200, 200))
     image = renderer.render(x, 0.0)
     centroid, _ = renderer.framing.pixels(x[:3].mean(axis=0))
-    r, g, b = image[int(centroid[1]), int(centroid[0])].astype(int)
-    assert r > 2 * b and r > 2 * g
+    # A faces the camera (shade 1) at strain +100 %, the scale's limit: the extension end of the map
+    pixel = image[int(centroid[1]), int(centroid[0])].astype(int)
+    assert np.all(np.abs(pixel - render.DIVERGING[-1]) <= 2), pixel

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 import massspring as ms
-from massspring import generators
+from massspring.scene import generators
 
 
 def test_load_builtin_and_path(tmp_path):
@@ -65,7 +65,60 @@ def test_simulation_uses_scene_dt():
     assert scene.simulation().dt == scene.dt["implicit"]
     assert scene.simulation(dt=0.5).dt == 0.5
     with pytest.raises(ValueError, match="integrator"):
-        scene.simulation(integrator="rk4")
+        scene.simulation(integrator="leapfrog")
+
+
+def test_integrators_without_a_scene_dt_get_one_from_the_stability_estimate(tmp_path):
+    """A [dt] table names some integrators; the others get Integrator.suggest_dt of the
+    stability prediction: half the symplectic limit 2/omega for one undamped spring
+    (omega = sqrt(ks/m) = 10 rad/s), half RK4's imaginary-axis limit 2.83/omega."""
+    from massspring.analysis.stability import predict
+
+    text = ms.load_scene("spring").source
+    body = open(text).read().split("[dt]")[0] + "[model]" + open(text).read().split("[model]")[1]
+    path = tmp_path / "nodt.toml"
+    path.write_text(body)
+    scene = ms.load_scene(path).with_params(damping=0.0)
+    assert scene.dt == {}
+    omega = predict(scene.model()).omega_max
+    assert omega == pytest.approx(10.0, rel=1e-6)
+    assert scene.default_dt("symplectic") == pytest.approx(0.5 * 2 / omega, rel=1e-9)
+    assert scene.default_dt("rk4") == pytest.approx(0.5 * 2 * np.sqrt(2) / omega, rel=1e-9)
+    assert scene.default_dt("implicit") == pytest.approx(1 / 60)
+    sim = scene.simulation(integrator="symplectic")
+    sim.step(100)  # stable at its suggested dt
+    assert np.all(np.isfinite(sim.positions)) and sim.energy()["total"] <= 1.01 * scene.model().energy(
+        scene.model().positions, scene.model().velocities)["total"]
+
+
+@pytest.mark.parametrize("settings, key", [(["seed=-5"], "seed"), (["count=2", "count=3"], "count"),
+                                           (["resolution=[3]"], "resolution")])
+def test_bad_settings_name_the_key(settings, key):
+    scene = ms.load_scene("chain" if "count" in key else "cloth")
+    with pytest.raises(ValueError) as info:
+        scene.with_settings(settings).model()
+    assert key in str(info.value)
+
+
+@pytest.mark.parametrize("body, key", [
+    ('generator = ["grid"]', "model.generator"), ("generator = { a = 1 }", "model.generator"),
+    ('generator = "grid"\nresolution = 2.5', "model.resolution"),
+    ('generator = "grid"\nsize = inf', "model.size"),
+])
+def test_bad_model_table_names_the_key(body, key, tmp_path):
+    path = tmp_path / "bad.toml"
+    path.write_text(f'integrator = "implicit"\nduration = 1.0\n[model]\n{body}\n')
+    with pytest.raises(ms.SceneError) as info:
+        ms.load_scene(path).model()
+    assert key in str(info.value) and str(path) in str(info.value)
+
+
+@pytest.mark.parametrize("duration", ["inf", "-1.0", "nan", "0.0"])
+def test_duration_must_be_finite_and_positive(duration, tmp_path):
+    path = tmp_path / "d.toml"
+    path.write_text(f'integrator = "implicit"\nduration = {duration}\n[model]\ngenerator = "spring"\n')
+    with pytest.raises(ms.SceneError, match="duration"):
+        ms.load_scene(path)
 
 
 def test_generators_parameters_match_signatures():

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 import massspring as ms
-from massspring import reference, study
+from massspring.analysis import fits, reference, report, study
 from massspring.cli import main
 
 REQUIRED = ("integrator", "dt", "cg_tol", "error", "error_over_time", "energy_error", "wall_s",
@@ -77,7 +77,7 @@ def test_spring_errors_match_the_exact_solution(spring_study):
 
 
 def test_spring_orders_are_about_one(spring_study):
-    orders = study.integrator_orders(spring_study.orders)
+    orders = fits.integrator_orders(spring_study.orders)
     assert set(orders) == {"explicit", "symplectic", "implicit"}
     for name, order in orders.items():
         assert 0.8 <= order <= 1.2, (name, order)
@@ -168,7 +168,7 @@ def test_chain_reference_agrees_with_half_its_dt(chain_study, tmp_path):
     moving = model.free_mask()
     diff = (fine.positions - coarse.positions)[:, moving]
     assert np.sqrt(np.mean(np.sum(diff ** 2, axis=-1))) / chain_study.size < 1e-3 * check.smallest
-    assert "PASS" in study.report(chain_study)
+    assert "PASS" in report.report(chain_study)
 
 
 def test_reference_check_failure_is_reported(tmp_path):
@@ -180,7 +180,7 @@ def test_reference_check_failure_is_reported(tmp_path):
     assert check.method == "rk4" and not check.passed
     assert check.change >= 1e-20 * check.smallest
     assert check.dt == pytest.approx(s.times[0] / round(s.times[0] / 2e-5) / 2 ** (study.REFERENCE_HALVINGS + 1))
-    assert "FAIL" in study.report(s) and json.loads(json.dumps(s.summary()))["reference"]["passed"] is False
+    assert "FAIL" in report.report(s) and json.loads(json.dumps(s.summary()))["reference"]["passed"] is False
 
 
 # ---- divergence -------------------------------------------------------------
@@ -206,10 +206,10 @@ def test_diverged_runs_are_marked_and_not_fitted(tmp_path):
 def test_fit_ignores_diverged_runs_even_with_an_error():
     runs = [study.Run("explicit", dt, None, error=3.0 * dt, wall_s=dt) for dt in (1e-3, 5e-4, 2.5e-4)]
     runs.append(study.Run("explicit", 2e-3, None, error=1e9, diverged=True))
-    entry = study.fit_orders(runs)["explicit"]
+    entry = fits.fit_orders(runs)["explicit"]
     assert entry["points"] == 3 and entry["order"] == pytest.approx(1.0)
     assert entry["order_finest"] == pytest.approx(1.0)
-    assert study.cheapest(runs + [study.Run("explicit", 4e-3, None, error=1e-9, wall_s=1e-9, diverged=True)],
+    assert fits.cheapest(runs + [study.Run("explicit", 4e-3, None, error=1e-9, wall_s=1e-9, diverged=True)],
                           1e-2)["dt"] in (1e-3, 5e-4, 2.5e-4)
 
 
@@ -217,7 +217,7 @@ def test_fit_ignores_diverged_runs_even_with_an_error():
 
 
 def test_csv_and_json_have_one_row_per_run(chain_study, tmp_path):
-    written = study.write_outputs(chain_study, tmp_path / "out")
+    written = report.write_outputs(chain_study, tmp_path / "out")
     assert {p.name for p in written} == {"runs.csv", "runs.json", "summary.json"}
     with open(tmp_path / "out" / "runs.csv", newline="") as fh:
         rows = list(csv.DictReader(fh))
@@ -245,7 +245,7 @@ def test_cli_study(tmp_path, capsys):
 
 
 @pytest.mark.parametrize("args, key", [(["--rungs", "0"], "rungs"), (["--cg-tols", "2"], "cg_tols"),
-                                       (["--integrators", "rk4"], "integrators"),
+                                       (["--integrators", "rk2"], "integrators"),
                                        (["--duration", "-1"], "duration"), (["--cg-tols", "x"], "--cg-tols")])
 def test_cli_study_bad_input(args, key, tmp_path, capsys):
     assert main(["study", "spring", "--out", str(tmp_path / "o"), *args]) == 2

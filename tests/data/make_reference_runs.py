@@ -1,9 +1,14 @@
-"""Make ``reference_runs.npz``: every built-in scene x integrator, f64, 100 steps.
+"""Make ``reference_runs.npz``: every built-in scene x integrator, f64, 100 steps
+at the scene's default dt, the implicit one with CG to a relative residual of 1e-12
+(so that a change in summation order shows as round-off, not as CG tolerance).
 
 Uses only the public API (``load_scene``, ``Scene.simulation``, ``step``,
 ``positions``, ``velocities``), so it runs unchanged on any revision. The stored
-file was made at commit 1ab4f8d (before the device-layer refactor); the test
-``tests/test_regression.py`` compares the current code against it.
+file was made at commit f17ee13 (before the device-layer refactor, with the
+pre-refactor kernels installed beside the current ones: ``pip install --no-deps
+--target OLD_SITE <worktree>``, then ``PYTHONPATH=OLD_SITE:SITE_PACKAGES python -S``
+so that the editable install does not shadow it); ``tests/test_regression.py``
+compares the current code against it.
 
     python tests/data/make_reference_runs.py [OUT.npz]
 """
@@ -19,6 +24,7 @@ SCENES = ("bigstep", "chain", "cloth", "compressed", "crumpled", "cube", "heavyc
           "stiffchain", "stiffcloth", "zerolength")
 INTEGRATORS = ("explicit", "symplectic", "implicit")
 STEPS = 100
+IMPLICIT_CG_TOL = 1e-12
 
 
 def main(out):
@@ -26,7 +32,8 @@ def main(out):
     for scene_name in SCENES:
         scene = ms.load_scene(scene_name)
         for integrator in INTEGRATORS:
-            sim = scene.simulation(integrator=integrator)
+            options = {"cg_tol": IMPLICIT_CG_TOL} if integrator == "implicit" else {}
+            sim = scene.simulation(integrator=integrator, **options)
             key = f"{scene_name}/{integrator}"
             try:
                 sim.step(STEPS)

@@ -4,9 +4,9 @@
   is the continuous damped oscillator m u'' = -ks u - kd u' + m g_e of the
   displacement u = |x1 - x0| - l0 (seed Eq. 1-4 restricted to the axis e): solved in
   closed form.
-* ``rk4``: any model, integrated by classical RK4 in float64 (kernels/rk4.py) and
-  cached on disk (``cache_dir``), keyed by a hash of the model's arrays, the save
-  instants and the RK4 dt.
+* ``rk4``: any model, integrated by classical RK4 in float64 (the ``rk4``
+  integrator) and cached on disk (``cache_dir``), keyed by a hash of the model's
+  arrays, the save instants and the RK4 dt.
 
 A reference is a :class:`Trajectory`: positions and velocities at the save instants.
 """
@@ -21,12 +21,12 @@ from pathlib import Path
 
 import numpy as np
 
-from massspring.files import atomic_output
+from massspring import validate
+from massspring.io.files import atomic_output
 from massspring.model import Model
-from massspring.simulation import _positive_float
 
 CACHE_ENV = "MASSSPRING_CACHE"
-CACHE_FORMAT = b"massspring-rk4-v1"
+CACHE_FORMAT = b"massspring-rk4-v2"
 
 
 @dataclass(frozen=True)
@@ -151,7 +151,7 @@ def rk4(model: Model, times, dt, cache=None, use_cache=True) -> Trajectory:
 
     Cached under ``cache_dir(cache)`` (written atomically) unless ``use_cache`` is False.
     """
-    dt = _positive_float("dt", dt)
+    dt = validate.positive_float("dt", dt)
     counts = steps_between(times, dt)
     times = np.asarray(times, dtype=np.float64)
     path = cache_dir(cache) / f"rk4-{_cache_key(model, times, dt)}.npz"
@@ -172,27 +172,15 @@ def rk4(model: Model, times, dt, cache=None, use_cache=True) -> Trajectory:
 
 
 def _integrate(model, counts, dt):
-    import taichi as ti
+    from massspring.simulation import Simulation
 
-    from massspring.integrators import DeviceModel, State
-    from massspring.kernels import rk4 as rk4_kernels
-    from massspring.simulation import ensure_taichi
-
-    ensure_taichi()
-    dev = DeviceModel.upload(model, "f64")
-    state = State.upload(ti.f64, model.positions, model.velocities)
-    n = model.n_particles
-    work = [ti.Vector.ndarray(3, ti.f64, shape=n) for _ in range(5)]
+    sim = Simulation(model, integrator="rk4", dt=dt, precision="f64")
     positions, velocities = [], []
-    done = 0
     for count in counts:
-        if count > done:
-            rk4_kernels.rk4_steps(state.x, state.v, *work, dev.mass, dev.free, dev.offsets, dev.other,
-                                  dev.spring, dev.ks, dev.kd, dev.l0, dev.gravity, dt, int(count - done),
-                                  dev.has_damping, dev.has_gravity, dev.has_fixed)
-            done = count
-        positions.append(state.x.to_numpy())
-        velocities.append(state.v.to_numpy())
+        sim.step(int(count - sim.steps))
+        positions.append(sim.positions)
+        velocities.append(sim.velocities)
+    sim.close()
     return np.array(positions), np.array(velocities)
 
 

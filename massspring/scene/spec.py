@@ -1,4 +1,4 @@
-"""Scenes: TOML files naming a generator, its parameters, and run defaults.
+"""Scene files: TOML naming a generator, its parameters, and run defaults.
 
 A scene file looks like::
 
@@ -6,16 +6,15 @@ A scene file looks like::
     integrator = "implicit"          # default integrator
     duration = 2.0                   # simulated seconds of a default run
 
-    [dt]                             # default dt (s) per integrator
-    explicit = 2e-5
-    symplectic = 5e-5
-    implicit = 0.0166667
+    [dt]                             # optional: default dt (s) per integrator
+    explicit = 2e-5                  # integrators not named here get one from the
+    implicit = 0.0166667             # stability estimate (Integrator.suggest_dt)
 
     [model]
-    generator = "grid"               # one of massspring.generators.GENERATORS
+    generator = "grid"               # one of generators.GENERATORS
     resolution = 32                  # generator parameters; see generators.PARAMETERS
 
-    [view]                           # optional: camera of GIF/PNG export (see render.View)
+    [view]                           # optional: camera of GIF/PNG pictures (io.camera.View)
     azimuth = -60.0                  # degrees about +z, 0 = looking from +x
     elevation = 20.0                 # degrees above the xy plane
     projection = "orthographic"      # or "perspective"
@@ -27,15 +26,15 @@ Unknown keys, wrong types and missing values raise ``SceneError`` (a
 from __future__ import annotations
 
 import dataclasses
+import math
 import tomllib
 from dataclasses import dataclass, field
 from importlib import resources
 from pathlib import Path
 
-from massspring import generators
+from massspring.integrators import INTEGRATORS
 from massspring.model import Model
-from massspring.render import View
-from massspring.simulation import INTEGRATORS, Simulation
+from massspring.scene import generators
 
 
 class SceneError(ValueError):
@@ -44,7 +43,7 @@ class SceneError(ValueError):
 
 TOP_KEYS = {"description": str, "integrator": str, "duration": float, "dt": dict, "model": dict,
             "view": dict}
-VIEW_KEYS = {"azimuth": float, "elevation": float, "projection": str}  # optional [view]: see render.View
+VIEW_KEYS = {"azimuth": float, "elevation": float, "projection": str}
 
 
 def builtin_scenes() -> dict:
@@ -55,7 +54,9 @@ def builtin_scenes() -> dict:
 
 @dataclass(frozen=True)
 class Scene:
-    """A parsed scene: ``params`` are the generator's full parameter set (defaults filled in)."""
+    """A parsed scene: ``params`` are the generator's full parameter set (defaults
+    filled in); ``dt`` the default time steps the file names; ``view`` its [view]
+    table (checked when a picture is made: see ``io.camera.View``)."""
 
     name: str
     source: str
@@ -65,51 +66,62 @@ class Scene:
     dt: dict
     generator: str
     params: dict = field(default_factory=dict)
-    view: View = field(default_factory=View)
-
-    def triangles(self):
-        """(t, 3) int surface triangles of the scene's model, for drawing (see generators.surface)."""
-        return generators.surface(self.generator, self.params)
+    view: dict = field(default_factory=dict)
+    _suggested: dict = field(default_factory=dict, repr=False, compare=False)
 
     def with_params(self, **overrides) -> "Scene":
         """A copy with some generator parameters replaced (checked like the file's)."""
         params = dict(self.params)
         for key, value in overrides.items():
             params[key] = _check_param(self.generator, key, value, self.source)
-        return dataclasses.replace(self, params=params)
+        return dataclasses.replace(self, params=params, _suggested={})
 
     def with_settings(self, settings) -> "Scene":
-        """Apply ``key=value`` strings (values parsed as TOML, else taken as strings)."""
+        """Apply ``key=value`` strings (values parsed as TOML, else taken as strings);
+        a key given twice is an error."""
         overrides = {}
         for item in settings:
             key, sep, text = item.partition("=")
             key = key.strip()
             if not sep or not key:
                 raise SceneError(f"--set: expected key=value, got {item!r}")
+            if key in overrides:
+                raise SceneError(f"--set {key}: given twice")
             try:
                 value = tomllib.loads(f"v = {text.strip()}")["v"]
             except tomllib.TOMLDecodeError:
                 value = text.strip()
-            overrides[key] = _check_param(self.generator, key, value, "--set")
+            overrides[key] = _check_param(self.generator, key, value, f"--set {key}")
         return self.with_params(**overrides)
 
     def model(self) -> Model:
-        """Build the Model (raises ValueError naming the parameter if a value is out of range)."""
+        """Build the Model (raises SceneError naming the parameter if a value is out of range)."""
         try:
             return Model(**generators.GENERATORS[self.generator](**self.params))
         except ValueError as exc:
-            raise SceneError(f"{self.source}: model: {exc}") from None
+            raise SceneError(f"{self.source}: model.{exc}") from None
 
     def default_dt(self, integrator=None) -> float:
-        return self.dt[integrator or self.integrator]
+        """The scene's dt (s) for ``integrator`` (default: the scene's): the [dt] entry, else
+        ``Integrator.suggest_dt`` of the stability prediction at the initial state."""
+        name = integrator or self.integrator
+        if name not in INTEGRATORS:
+            raise ValueError(f"integrator: unknown value {name!r}, expected one of {', '.join(INTEGRATORS)}")
+        if name in self.dt:
+            return self.dt[name]
+        if name not in self._suggested:
+            from massspring.analysis.stability import predict
 
-    def simulation(self, integrator=None, dt=None, **kwargs) -> Simulation:
+            self._suggested[name] = INTEGRATORS[name].suggest_dt(predict(self.model()))
+        return self._suggested[name]
+
+    def simulation(self, integrator=None, dt=None, **kwargs):
         """A Simulation with the scene's defaults; any Simulation argument may be overridden."""
+        from massspring.simulation import Simulation
+
         integrator = integrator or self.integrator
-        if integrator not in INTEGRATORS:
-            raise ValueError(f"integrator: unknown value {integrator!r}, expected one of {', '.join(INTEGRATORS)}")
-        return Simulation(self.model(), integrator=integrator,
-                          dt=self.default_dt(integrator) if dt is None else dt, **kwargs)
+        dt = self.default_dt(integrator) if dt is None else dt
+        return Simulation(self.model(), integrator=integrator, dt=dt, **kwargs)
 
 
 def load_scene(name_or_path) -> Scene:
@@ -119,13 +131,15 @@ def load_scene(name_or_path) -> Scene:
     if path is None:
         path = Path(name_or_path)
         if not path.is_file():
-            raise SceneError(f"scene: {name_or_path!r} is neither a built-in scene "
+            raise SceneError(f"scene: {str(name_or_path)!r} is neither a built-in scene "
                              f"({', '.join(sorted(scenes))}) nor a file")
     source = str(path)
     try:
         data = tomllib.loads(path.read_text(encoding="utf-8"))
     except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
         raise SceneError(f"{source}: not valid TOML: {exc}") from None
+    except OSError as exc:
+        raise SceneError(f"{source}: cannot be read: {exc.strerror}") from None
     return parse_scene(data, name=path.stem, source=source)
 
 
@@ -135,75 +149,77 @@ def parse_scene(data: dict, name: str, source: str) -> Scene:
         if key not in TOP_KEYS:
             raise SceneError(f"{source}: unknown key {key!r} (expected {', '.join(TOP_KEYS)})")
         _check_type(key, value, TOP_KEYS[key], source)
-    for key in ("integrator", "duration", "dt", "model"):
+    for key in ("integrator", "duration", "model"):
         if key not in data:
             raise SceneError(f"{source}: missing key {key!r}")
     integrator = data["integrator"]
     if integrator not in INTEGRATORS:
         raise SceneError(f"{source}: integrator: unknown value {integrator!r} (expected {', '.join(INTEGRATORS)})")
-    if not data["duration"] > 0:
-        raise SceneError(f"{source}: duration: must be > 0, got {data['duration']}")
+    duration = float(data["duration"])
+    if not (math.isfinite(duration) and duration > 0):
+        raise SceneError(f"{source}: duration: must be a finite number > 0, got {data['duration']}")
     dt = {}
-    for key, value in data["dt"].items():
+    for key, value in data.get("dt", {}).items():
         if key not in INTEGRATORS:
             raise SceneError(f"{source}: dt.{key}: unknown integrator (expected {', '.join(INTEGRATORS)})")
         _check_type(f"dt.{key}", value, float, source)
-        if not value > 0:
-            raise SceneError(f"{source}: dt.{key}: must be > 0, got {value}")
+        if not (math.isfinite(value) and value > 0):
+            raise SceneError(f"{source}: dt.{key}: must be a finite number > 0, got {value}")
         dt[key] = float(value)
-    for key in INTEGRATORS:
-        if key not in dt:
-            raise SceneError(f"{source}: missing key 'dt.{key}'")
     model = dict(data["model"])
     generator = model.pop("generator", None)
     if generator is None:
         raise SceneError(f"{source}: missing key 'model.generator'")
+    _check_type("model.generator", generator, str, source)
     if generator not in generators.GENERATORS:
         raise SceneError(f"{source}: model.generator: unknown value {generator!r} "
                          f"(expected {', '.join(generators.GENERATORS)})")
     params = dict(generators.PARAMETERS[generator])
     for key, value in model.items():
         params[key] = _check_param(generator, key, value, source)
-    return Scene(name=name, source=source, description=data.get("description", ""),
-                 integrator=integrator, duration=float(data["duration"]), dt=dt,
-                 generator=generator, params=params, view=_parse_view(data.get("view", {}), source))
-
-
-def _parse_view(table, source):
-    for key, value in table.items():
+    view = dict(data.get("view", {}))
+    for key, value in view.items():
         if key not in VIEW_KEYS:
             raise SceneError(f"{source}: view.{key}: unknown key (expected {', '.join(VIEW_KEYS)})")
         _check_type(f"view.{key}", value, VIEW_KEYS[key], source)
-    try:
-        return View(**table)
-    except ValueError as exc:
-        raise SceneError(f"{source}: {exc}") from None
+    return Scene(name=name, source=source, description=data.get("description", ""),
+                 integrator=integrator, duration=duration, dt=dt,
+                 generator=generator, params=params, view=view)
 
 
 def _check_param(generator, key, value, source):
     defaults = generators.PARAMETERS[generator]
+    prefix = source if source.startswith("--set") else f"{source}: model.{key}"
     if key not in defaults:
-        raise SceneError(f"{source}: model.{key}: unknown parameter of generator {generator!r} "
+        raise SceneError(f"{prefix}: unknown parameter of generator {generator!r} "
                          f"(expected {', '.join(defaults)})")
     default = defaults[key]
     if isinstance(default, list):
-        _check_type(f"model.{key}", value, list, source)
+        _check_type(prefix, value, list, None)
         if len(value) != len(default):
-            raise SceneError(f"{source}: model.{key}: expected {len(default)} numbers, got {value!r}")
+            raise SceneError(f"{prefix}: expected {len(default)} numbers, got {value!r}")
         for item in value:
-            _check_type(f"model.{key}", item, float, source)
+            _check_type(prefix, item, float, None)
         return [float(item) for item in value]
-    _check_type(f"model.{key}", value, type(default), source)
+    _check_type(prefix, value, type(default), None)
+    if isinstance(default, float) and not math.isfinite(value):
+        raise SceneError(f"{prefix}: must be finite, got {value!r}")
     return float(value) if isinstance(default, float) else value
 
 
 def _check_type(key, value, expected, source):
     if expected is float:
         ok = isinstance(value, (int, float)) and not isinstance(value, bool)
+        what = "a number"
     elif expected is int:
         ok = isinstance(value, int) and not isinstance(value, bool)
+        what = "an integer"
+    elif expected is dict:
+        ok, what = isinstance(value, dict), "a table"
+    elif expected is list:
+        ok, what = isinstance(value, list), "a list"
     else:
-        ok = isinstance(value, expected)
+        ok, what = isinstance(value, expected), "a string"
     if not ok:
-        raise SceneError(f"{source}: {key}: expected {expected.__name__ if expected is not dict else 'a table'}, "
-                         f"got {type(value).__name__} {value!r}")
+        where = f"{source}: {key}" if source else key
+        raise SceneError(f"{where}: expected {what}, got {type(value).__name__} {value!r}")

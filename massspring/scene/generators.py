@@ -1,7 +1,8 @@
 """Scene generators: particles and springs of a spring, a chain, a cloth and a cube lattice.
 
-Each generator takes keyword parameters (checked by ``scene.py`` against
-``PARAMETERS``) and returns the keyword arguments of :class:`massspring.Model`.
+Each generator takes keyword parameters (checked by ``scene.spec`` against
+``PARAMETERS``) and returns the keyword arguments of :class:`massspring.Model`,
+including the surface ``triangles`` a picture draws (none for a spring or chain).
 
 Resolution scaling: a generator's ``mass`` is the total mass, shared equally by
 its particles, and its ``stiffness`` and ``damping`` are moduli of the continuum
@@ -89,6 +90,7 @@ def grid(resolution, size, mass, stiffness, damping, shear, bend, pin, gravity,
     _positive("size", size)
     _positive("mass", mass)
     _positive("compress", compress)
+    _at_least("seed", seed, 0)
     if not 0.0 <= crumple <= 1.0:
         raise ValueError(f"crumple: must be in [0, 1], got {crumple!r}")
     if pin not in PIN_CHOICES:
@@ -118,7 +120,7 @@ def grid(resolution, size, mass, stiffness, damping, shear, bend, pin, gravity,
     rest_lengths = np.linalg.norm(rest[springs[:, 1]] - rest[springs[:, 0]], axis=1)
     return dict(positions=x, springs=springs, masses=mass / (r * r), stiffness=stiffness * factor,
                 damping=damping * factor, rest_lengths=rest_lengths, gravity=gravity,
-                fixed=np.array(fixed, dtype=np.int64))
+                fixed=np.array(fixed, dtype=np.int64), triangles=_cell_triangles(idx))
 
 
 def lattice(resolution, size, mass, stiffness, damping, squash, spin, gravity):
@@ -144,8 +146,10 @@ def lattice(resolution, size, mass, stiffness, damping, squash, spin, gravity):
     rest_lengths = np.linalg.norm(rest[springs[:, 1]] - rest[springs[:, 0]], axis=1)
     x = rest * np.array([1.0, 1.0, squash])
     v = spin * np.stack([-x[:, 1], x[:, 0], np.zeros(len(x))], axis=1)
+    faces = (idx[0], idx[-1], idx[:, 0], idx[:, -1], idx[:, :, 0], idx[:, :, -1])
     return dict(positions=x, springs=springs, masses=mass / r ** 3, stiffness=stiffness * h,
-                damping=damping * h, rest_lengths=rest_lengths, velocities=v, gravity=gravity)
+                damping=damping * h, rest_lengths=rest_lengths, velocities=v, gravity=gravity,
+                triangles=np.concatenate([_cell_triangles(face) for face in faces]))
 
 
 def _neighbour_offsets():
@@ -176,24 +180,9 @@ def _slices(offset, start):
 GENERATORS = {"spring": spring, "chain": chain, "grid": grid, "lattice": lattice}
 
 
-def surface(generator, params) -> np.ndarray:
-    """(t, 3) int particle indices of the surface triangles of a generator's model,
-    for drawing only (the physics never reads them): two per grid cell of a cloth,
-    two per boundary cell of a lattice's six faces, none for a spring or chain.
-    Triangle edges are structural or diagonal springs (diagonals only with shear > 0)."""
-    if generator == "grid":
-        r = params["resolution"]
-        return _cell_triangles(np.arange(r * r).reshape(r, r))
-    if generator == "lattice":
-        r = params["resolution"]
-        idx = np.arange(r ** 3).reshape(r, r, r)
-        faces = (idx[0], idx[-1], idx[:, 0], idx[:, -1], idx[:, :, 0], idx[:, :, -1])
-        return np.concatenate([_cell_triangles(face) for face in faces])
-    return np.zeros((0, 3), dtype=np.int64)
-
-
 def _cell_triangles(idx):
-    """Two triangles per cell of a 2D index grid, split along the (0, 0)-(1, 1) diagonal."""
+    """Two triangles per cell of a 2D index grid, split along the (0, 0)-(1, 1) diagonal
+    (its edges are structural or shear springs)."""
     a, b, c, d = idx[:-1, :-1].ravel(), idx[:-1, 1:].ravel(), idx[1:, 1:].ravel(), idx[1:, :-1].ravel()
     return np.concatenate([np.stack([a, b, c], axis=1), np.stack([a, c, d], axis=1)]).astype(np.int64)
 
@@ -204,5 +193,5 @@ def _positive(name, value):
 
 
 def _at_least(name, value, low):
-    if value < low:
+    if not value >= low:
         raise ValueError(f"{name}: must be >= {low}, got {value!r}")

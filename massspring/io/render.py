@@ -16,16 +16,13 @@ cloth: 1.8 MB); rendered frames are kept as 8-bit palette images (W x H bytes ea
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import numpy as np
 
-from massspring.files import atomic_output
+from massspring.io.camera import Framing, View
+from massspring.io.files import atomic_output
 
-PROJECTIONS = ("orthographic", "perspective")
-PERSPECTIVE_DISTANCE = 3.0  # perspective camera distance from the run's centre, in bounding radii
-MARGIN = 0.05               # fraction of the plot area's width and height kept free on each side
 MAX_DOTS = 200              # free particles are dots when a model without a surface has at most this many
 MAX_FPS = 50                # GIF delays are in 1/100 s; viewers slow down delays below 2/100 s
 DEFAULT_MAX_FRAMES = 150    # cap of the default frame count
@@ -39,53 +36,6 @@ FREE = (250, 250, 250)
 # Diverging map from compression (blue, -1) through neutral grey (0) to extension (red, +1).
 DIVERGING = np.array([(59, 76, 192), (141, 176, 254), (221, 221, 221), (244, 154, 123), (180, 4, 38)],
                      dtype=np.float64)
-
-
-@dataclass(frozen=True)
-class View:
-    """A camera looking at the centre of the run from ``azimuth`` degrees about +z
-    (0 = from +x, 90 = from +y) and ``elevation`` degrees above the xy plane (90 =
-    from above), with an orthographic or perspective projection. +z is up on screen
-    (for elevation 90, the screen's up is the horizontal direction away from the camera's azimuth)."""
-
-    azimuth: float = -60.0
-    elevation: float = 20.0
-    projection: str = "orthographic"
-
-    def __post_init__(self):
-        for key in ("azimuth", "elevation"):
-            value = getattr(self, key)
-            if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
-                raise ValueError(f"view.{key}: expected a finite number of degrees, got {value!r}")
-            object.__setattr__(self, key, float(value))
-        if not -90.0 <= self.elevation <= 90.0:
-            raise ValueError(f"view.elevation: must be within [-90, 90] degrees, got {self.elevation:g}")
-        if self.projection not in PROJECTIONS:
-            raise ValueError(f"view.projection: unknown value {self.projection!r}, expected one of "
-                             f"{', '.join(PROJECTIONS)}")
-
-    def basis(self):
-        """Unit vectors (right, up, toward) in world coordinates; ``toward`` points from
-        the scene to the camera, so a larger ``p . toward`` is nearer."""
-        az, el = math.radians(self.azimuth), math.radians(self.elevation)
-        toward = np.array([math.cos(el) * math.cos(az), math.cos(el) * math.sin(az), math.sin(el)])
-        right = np.array([-math.sin(az), math.cos(az), 0.0])
-        up = np.cross(toward, right)
-        return right, up, toward
-
-    def project(self, points, centre, radius):
-        """Camera coordinates of ``points`` (..., 3) around ``centre`` (3,): returns
-        ``xy`` (..., 2) on the screen plane (m, +y up) and ``depth`` (...,) (m, larger
-        is nearer). Perspective divides by the distance to a camera placed
-        ``PERSPECTIVE_DISTANCE * radius`` from the centre, scaled to be exact at the centre."""
-        right, up, toward = self.basis()
-        p = np.asarray(points, dtype=np.float64) - centre
-        xy = np.stack([p @ right, p @ up], axis=-1)
-        depth = p @ toward
-        if self.projection == "perspective":
-            distance = PERSPECTIVE_DISTANCE * radius
-            xy *= (distance / (distance - depth))[..., None]
-        return xy, depth
 
 
 def diverging_colours(values):
@@ -176,45 +126,6 @@ class Recording:
         return len(self.positions)
 
 
-@dataclass(frozen=True)
-class Framing:
-    """World -> pixel mapping of a run: ``view``'s projection around the run's bounding
-    box, scaled uniformly to fit ``plot`` (left, top, width, height in pixels) with
-    ``MARGIN`` kept free, and centred there."""
-
-    view: View
-    centre: np.ndarray
-    radius: float
-    middle: np.ndarray
-    scale: float
-    plot: tuple
-
-    @classmethod
-    def fit(cls, view, frames, plot):
-        """The framing of ``frames`` (k, n, 3): their 3D box gives the centre and radius,
-        their projections' 2D box the scale."""
-        frames = np.asarray(frames, dtype=np.float64)
-        lo, hi = frames.reshape(-1, 3).min(axis=0), frames.reshape(-1, 3).max(axis=0)
-        centre = (lo + hi) / 2
-        radius = float(np.linalg.norm(hi - lo)) / 2 or 1.0
-        xy, _ = view.project(frames, centre, radius)
-        lo2, hi2 = xy.reshape(-1, 2).min(axis=0), xy.reshape(-1, 2).max(axis=0)
-        extent = hi2 - lo2
-        room = np.array(plot[2:], dtype=np.float64) * (1 - 2 * MARGIN)
-        fits = [room[i] / extent[i] for i in range(2) if extent[i] > 1e-9 * radius]
-        scale = min(fits) if fits else float(min(room)) / (2 * radius)
-        return cls(view, centre, radius, (lo2 + hi2) / 2, scale, tuple(plot))
-
-    def pixels(self, points):
-        """Pixel coordinates (..., 2) (x right, y down; pixel (i, j) covers [i, i+1) x
-        [j, j+1)) and depth (...,) (m, larger is nearer) of ``points`` (..., 3)."""
-        xy, depth = self.view.project(points, self.centre, self.radius)
-        left, top, width, height = self.plot
-        px = left + width / 2 + (xy[..., 0] - self.middle[0]) * self.scale
-        py = top + height / 2 - (xy[..., 1] - self.middle[1]) * self.scale
-        return np.stack([px, py], axis=-1), depth
-
-
 def layout(size):
     """(font size, caption band height, legend band height) in pixels of a (W, H) picture."""
     font = max(9, round(min(size) / 34))
@@ -232,7 +143,7 @@ class FrameRenderer:
     """Draws frames of one run of ``model`` on an offscreen Taichi canvas.
 
     ``frames`` (k, n, 3): every position the picture must hold (framing and the strain
-    colour scale come from all of them). ``triangles`` (t, 3) int: surface triangles,
+    colour scale come from all of them). The model's ``triangles`` (its surface) are
     drawn in painter's order (far to near) shaded and coloured by the mean strain of
     their edge springs, with those springs as thin lines; without a surface every
     spring is a line coloured by its strain. Fixed particles are amber dots; free
@@ -240,7 +151,7 @@ class FrameRenderer:
     each frame's caption (followed by the simulated time).
     """
 
-    def __init__(self, model, frames, triangles=None, view=View(), size=(480, 480), label=""):
+    def __init__(self, model, frames, view=View(), size=(480, 480), label=""):
         import taichi as ti  # the canvas; no ti.init needed, nothing is compiled
 
         self.model = model
@@ -248,7 +159,7 @@ class FrameRenderer:
         self.label = label
         self.font, _, self.legend_h = layout(size)
         self.framing = Framing.fit(view, frames, plot_box(size))
-        tris = np.zeros((0, 3), dtype=np.int64) if triangles is None else np.asarray(triangles, dtype=np.int64)
+        tris = model.triangles
         self.triangles = tris
         self.tri_springs = edge_springs(model.springs, tris, model.n_particles)
         if len(tris):
@@ -382,10 +293,21 @@ def write_png(path, image):
         Image.fromarray(image, "RGB").save(fh, format="PNG")
 
 
-def export(renderer, recording, gif=None, png=None, fps=30.0):
+@dataclass
+class ExportResult:
+    """What ``export`` did: frames written (GIF frames, or 1 for a PNG alone), whether
+    Ctrl-C stopped the rendering, and the error of each output that failed
+    ({"--gif": message, ...})."""
+
+    count: int
+    interrupted: bool
+    errors: dict
+
+
+def export(renderer, recording, gif=None, png=None, fps=30.0) -> ExportResult:
     """Render ``recording`` with ``renderer`` and write the GIF (every frame) and/or the
-    PNG (the last frame). A Ctrl-C while rendering stops it, and what was rendered is
-    still written. Returns ``(frames written, interrupted)``."""
+    PNG (the last frame rendered), each on its own: one failing does not stop the
+    other. A Ctrl-C while rendering stops it, and what was rendered is still written."""
     frames, last, interrupted = [], None, False
     todo = range(len(recording)) if gif else range(len(recording) - 1, len(recording))
     try:
@@ -395,9 +317,12 @@ def export(renderer, recording, gif=None, png=None, fps=30.0):
                 frames.append(to_palette(last))
     except KeyboardInterrupt:
         interrupted = True
-    if gif and frames:
-        write_gif(gif, frames, fps)
-    if png and last is not None:
-        write_png(png, last)
-    return (len(frames) if gif else int(last is not None)), interrupted
-
+    errors = {}
+    for option, path, ready, write in (("--gif", gif, bool(frames), lambda p: write_gif(p, frames, fps)),
+                                       ("--png", png, last is not None, lambda p: write_png(p, last))):
+        if path and ready:
+            try:
+                write(path)
+            except OSError as exc:
+                errors[option] = f"{path!r}: {exc.strerror or exc}"
+    return ExportResult(len(frames) if gif else int(last is not None), interrupted, errors)

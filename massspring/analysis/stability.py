@@ -3,11 +3,9 @@
 ``spectrum`` estimates the largest eigenvalue lambda_max = omega_max^2 of M^-1 K
 (K the stiffness of seed Eq. 13 as written, no definiteness fix: that is the
 Jacobian the explicit integrators see) at a state, by Lanczos on the symmetric
-M^-1/2 (-K) M^-1/2 over the free degrees of freedom. K is applied matrix-free by
-the implicit solver's own kernels: ``operator.entry_coefficients`` with dt = 1
-and no damping gives per-spring blocks S = -K_ii, and ``cg.cg_apply`` with zero
-masses applies sum_s S_s (p_i - p_j) = -K p. The same with ks = 0 and the
-damping gives -D p, for the stiffest mode's damping rate c = u^T M^-1/2 (-D) M^-1/2 u.
+M^-1/2 (-K) M^-1/2 over the free degrees of freedom. K and D are applied
+matrix-free by the implicit solver's own kernels (``massspring.operators``); the
+stiffest mode's damping rate is c = u^T M^-1/2 (-D) M^-1/2 u.
 
 ``predict`` turns (omega, c) into limits for the stiffest mode, x'' + c x' + omega^2 x = 0:
 
@@ -30,14 +28,10 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
-import taichi as ti
 
 from massspring.errors import DivergenceError
-from massspring.integrators import DeviceModel
-from massspring.storage import ArraySet
-from massspring.kernels import cg, operator
+from massspring.operators import Jacobians
 from massspring.model import Model
-from massspring.simulation import ensure_taichi
 
 
 @dataclass(frozen=True)
@@ -58,45 +52,22 @@ def spectrum(model: Model, positions=None, iterations=40, seed=0) -> Spectrum:
     model's) with ``iterations`` Lanczos steps (full reorthogonalisation, seeded)."""
     if isinstance(iterations, bool) or not isinstance(iterations, int) or iterations < 1:
         raise ValueError(f"iterations: expected a positive integer, got {iterations!r}")
-    ensure_taichi()
     x = model.positions if positions is None else np.asarray(positions, dtype=np.float64)
-    if x.shape != model.positions.shape or not np.all(np.isfinite(x)):
-        raise ValueError(f"positions: expected finite values of shape {model.positions.shape}")
     free = model.free_mask()
     if model.n_springs == 0 or not free.any():
         return Spectrum(0.0, 0.0, 0.0, 0, 0.0)
-    dev = DeviceModel.upload(model, "f64")
-    n, m = model.n_particles, model.n_springs
-    arrays = ArraySet()
-    arrays.vectors("pos", ti.f64, n, x)
-    arrays.vectors("p", ti.f64, n)
-    arrays.vectors("q", ti.f64, n)
-    arrays.add("zeros", ti.f64, max(n, m), values=np.zeros(max(n, m)))
-    arrays.vectors("stiffness", ti.f64, 2 * m, k=5)
-    arrays.vectors("damping", ti.f64, 2 * m, k=5)
-    a = arrays.build()
-    pos, p, q, zeros = a["pos"], a["p"], a["q"], a["zeros"]
-
-    def coefficients(coef, ks, kd, has_damping):
-        operator.entry_coefficients(pos, dev.offsets, dev.other, dev.spring, ks, kd, dev.l0, coef, 1.0, False,
-                                    has_damping, True, ti.f64)
-        return coef
-
-    stiffness = coefficients(a["stiffness"], dev.ks, dev.kd, False)
-    damping = coefficients(a["damping"], zeros, dev.kd, True) if model.has_damping else None
+    jacobians = Jacobians(model, x)
     scale = np.where(free, 1.0 / np.sqrt(model.masses), 0.0)[:, None]
 
-    def apply(coef, u):
+    def apply(product, u):
         """M^-1/2 (-K or -D) M^-1/2 u on the free DOFs, u of shape (n, 3)."""
-        p.from_numpy(scale * u)
-        cg.cg_apply(p, q, zeros, dev.free, dev.offsets, dev.other, coef, dev.has_fixed, ti.f64)
-        return scale * q.to_numpy()
+        return -scale * product(scale * u)
 
     u = np.random.default_rng(seed).standard_normal(x.shape) * free[:, None]
     basis = [u / np.linalg.norm(u)]
     alphas, betas = [], []
     for _ in range(min(iterations, 3 * int(free.sum()))):
-        w = apply(stiffness, basis[-1])
+        w = apply(jacobians.stiffness, basis[-1])
         alphas.append(float(np.vdot(basis[-1], w)))
         for _pass in range(2):  # full reorthogonalisation, twice is enough
             for b in basis:
@@ -111,7 +82,8 @@ def spectrum(model: Model, positions=None, iterations=40, seed=0) -> Spectrum:
     values, vectors = np.linalg.eigh(tri)
     lam, y = float(values[-1]), vectors[:, -1]
     mode = sum(c * b for c, b in zip(y, basis[:k]))
-    rate = float(np.vdot(mode, apply(damping, mode))) if damping is not None else 0.0
+    rate = float(np.vdot(mode, apply(jacobians.damping, mode))) if model.has_damping else 0.0
+    jacobians.close()
     return Spectrum(lam, math.sqrt(max(lam, 0.0)), rate, k, abs(betas[k - 1] * y[-1]))
 
 
@@ -351,7 +323,7 @@ def write_outputs(rows, prediction: Prediction, scene_name, prefix) -> list:
     import io
     import json
 
-    from massspring.files import atomic_output
+    from massspring.io.files import atomic_output
 
     text = io.StringIO()
     writer = csv.DictWriter(text, fieldnames=COLUMNS, lineterminator="\n")
@@ -380,7 +352,7 @@ def plot(rows, path, title):
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from massspring.files import atomic_output
+    from massspring.io.files import atomic_output
 
     fig, ax = plt.subplots(figsize=(6.4, 4.4), dpi=90)
     lines = {}

@@ -3,7 +3,7 @@
 ``run_study`` runs a scene with each integrator over a ladder of dt values (a
 factor of 2 apart), the implicit one also at several CG tolerances, all to the
 same end time, and measures each run against a reference solution
-(``massspring.reference``: exact for one spring, else RK4 checked by halving its dt).
+(``analysis.reference``: exact for one spring, else RK4 checked by halving its dt).
 
 Measures of a run (all dimensionless unless stated):
 
@@ -30,27 +30,18 @@ non-diverged runs (about 1 for all three Euler variants on smooth problems).
 
 from __future__ import annotations
 
-import csv
-import io
-import json
 import math
-import sys
 import time
 from dataclasses import asdict, dataclass, field
-from pathlib import Path
 
 import numpy as np
 
-from massspring import reference
-from massspring.files import atomic_output
-from massspring.simulation import INTEGRATORS, Simulation
-from massspring.simulation import _positive_float as _positive
-
-try:
-    from massspring.errors import DivergenceError
-except ImportError:  # pragma: no cover - the divergence check is a separate feature
-    class DivergenceError(Exception):
-        pass
+from massspring import validate
+from massspring.analysis import reference
+from massspring.analysis.fits import TARGETS, cheapest, fit_orders
+from massspring.errors import DivergenceError
+from massspring.integrators import INTEGRATORS
+from massspring.simulation import Simulation
 
 DEFAULT_CG_TOLS = (1e-2, 1e-4, 1e-6)
 DEFAULT_RUNGS = 7            # dt values per line: 2^6 = 64, about 2 decades
@@ -60,7 +51,6 @@ DEFAULT_REPEATS = 3
 DEFAULT_TIME_BUDGET = 2.0    # s of timed runs per configuration before repeats stop
 REFERENCE_RATIO = 1e-3       # RK4 halving change / smallest reported error must be below this
 REFERENCE_HALVINGS = 4       # extra RK4 refinements tried before the check is reported failed
-TARGETS = (1e-2, 1e-4)
 COLUMNS = ("integrator", "dt", "cg_tol", "error", "error_over_time", "energy_error", "wall_s",
            "steps", "cg_iterations", "diverged", "timed_runs", "status")
 
@@ -168,9 +158,9 @@ def ladder_tops(scene, model, integrators, duration) -> dict:
 
     and at most ``duration`` / 10 (s), so that every run has at least 10 steps.
     """
-    from massspring import stability
+    from massspring.analysis import stability
 
-    tops = {name: scene.dt[name] for name in integrators}
+    tops = {name: scene.default_dt(name) for name in integrators}
     if "explicit" in tops or "symplectic" in tops:
         pred = stability.predict(model)
         limits = {"explicit": max(pred.explicit_stable_dt, pred.explicit_doubling_dt),
@@ -187,7 +177,10 @@ def scene_size(model) -> float:
     return extent if extent > 0 else 1.0
 
 
-def run_study(scene, *, integrators=tuple(INTEGRATORS), duration=None, rungs=DEFAULT_RUNGS,
+DEFAULT_INTEGRATORS = ("explicit", "symplectic", "implicit")
+
+
+def run_study(scene, *, integrators=DEFAULT_INTEGRATORS, duration=None, rungs=DEFAULT_RUNGS,
               ladders=None, cg_tols=DEFAULT_CG_TOLS, repeats=DEFAULT_REPEATS,
               time_budget=DEFAULT_TIME_BUDGET, cache=None, use_cache=True,
               reference_ratio=REFERENCE_RATIO, reference_dt=None, progress=None) -> Study:
@@ -199,10 +192,10 @@ def run_study(scene, *, integrators=tuple(INTEGRATORS), duration=None, rungs=DEF
     (default: the scene's explicit dt). ``progress``: a callable given each finished Run.
     """
     integrators = _check_integrators(integrators)
-    duration = default_duration(scene) if duration is None else _positive("duration", duration)
-    rungs = _positive_int("rungs", rungs)
-    repeats = _positive_int("repeats", repeats)
-    cg_tols = [_fraction("cg_tols", t) for t in cg_tols] or list(DEFAULT_CG_TOLS)
+    duration = default_duration(scene) if duration is None else validate.positive_float("duration", duration)
+    rungs = validate.count("rungs", rungs)
+    repeats = validate.count("repeats", repeats)
+    cg_tols = [validate.fraction("cg_tols", t) for t in cg_tols] or list(DEFAULT_CG_TOLS)
     model = scene.model()
     if ladders is None:
         tops = ladder_tops(scene, model, integrators, duration)
@@ -212,7 +205,7 @@ def run_study(scene, *, integrators=tuple(INTEGRATORS), duration=None, rungs=DEF
         missing = [name for name in integrators if not ladders.get(name)]
         if missing:
             raise ValueError(f"ladders: no dt values for {', '.join(missing)}")
-        ladders = {name: [_positive(f"ladders[{name!r}]", dt) for dt in ladders[name]] for name in integrators}
+        ladders = {name: [validate.positive_float(f"ladders[{name!r}]", dt) for dt in ladders[name]] for name in integrators}
         times = save_instants(duration, [dt for name in integrators for dt in ladders[name]])
         for name in integrators:
             for dt in ladders[name]:
@@ -228,7 +221,7 @@ def run_study(scene, *, integrators=tuple(INTEGRATORS), duration=None, rungs=DEF
                 runs.append(run)
                 if progress:
                     progress(run)
-    ref, check = _reference(model, times, scene.dt["explicit"] if reference_dt is None else reference_dt,
+    ref, check = _reference(model, times, scene.default_dt("explicit") if reference_dt is None else reference_dt,
                             runs, size, cache, use_cache, reference_ratio)
     for run in runs:
         _score(run, ref, model, size)
@@ -357,176 +350,6 @@ def _reference(model, times, dt0, runs, size, cache, use_cache, ratio):
                                 passed=change < ratio * smallest)
 
 
-def fit_orders(runs, finest=3) -> dict:
-    """{line: {"integrator", "cg_tol", "order", "order_finest", "points"}}.
-
-    ``order``: least-squares slope of log(error) against log(dt) over the line's
-    non-diverged runs with a positive error (None with fewer than 2 dt values);
-    ``order_finest``: the same over its ``finest`` smallest dts only (the asymptotic
-    order, free of runs near the stability limit).
-    """
-    lines = {}
-    for run in runs:
-        lines.setdefault(run.line, []).append(run)
-    out = {}
-    for line, members in lines.items():
-        good = sorted((r for r in members if not r.diverged and r.error is not None and r.error > 0),
-                      key=lambda r: r.dt)
-        out[line] = {"integrator": members[0].integrator, "cg_tol": members[0].cg_tol,
-                     "order": _slope(good), "order_finest": _slope(good[:finest]), "points": len(good)}
-    return out
-
-
-def _slope(runs):
-    if len({r.dt for r in runs}) < 2:
-        return None
-    return float(np.polyfit(np.log([r.dt for r in runs]), np.log([r.error for r in runs]), 1)[0])
-
-
-def integrator_orders(orders) -> dict:
-    """One order per integrator: for the implicit one, the line with the tightest CG tolerance."""
-    out = {}
-    for entry in orders.values():
-        name = entry["integrator"]
-        best = out.get(name)
-        if best is None or (entry["cg_tol"] is not None and entry["cg_tol"] < best["cg_tol"]):
-            out[name] = entry
-    return {name: entry["order"] for name, entry in out.items()}
-
-
-def cheapest(runs, target) -> dict | None:
-    """The non-diverged run with the least wall time whose end-time error is <= target."""
-    good = [r for r in runs if not r.diverged and r.error is not None and r.error <= target
-            and r.wall_s is not None]
-    if not good:
-        return None
-    best = min(good, key=lambda r: r.wall_s)
-    return {"integrator": best.integrator, "dt": best.dt, "cg_tol": best.cg_tol,
-            "error": best.error, "wall_s": best.wall_s}
-
-
-# ---------------------------------------------------------------- output
-
-
-def _fmt(value, spec=".3g"):
-    if value is None:
-        return "-"
-    if isinstance(value, bool):
-        return "yes" if value else "no"
-    if isinstance(value, float):
-        return format(value, spec)
-    return str(value)
-
-
-def table(study) -> str:
-    """The runs as a fixed-width text table."""
-    head = ("integrator", "cg_tol", "dt", "steps", "error", "err(t)", "energy", "wall_s", "CG its", "status")
-    rows = [(r.integrator, _fmt(r.cg_tol, ".0e"), _fmt(r.dt, ".4g"), str(r.steps), _fmt(r.error),
-             _fmt(r.error_over_time), _fmt(r.energy_error), _fmt(r.wall_s, ".4g"),
-             str(r.cg_iterations), r.status) for r in study.runs]
-    widths = [max(len(h), *(len(row[i]) for row in rows)) if rows else len(h) for i, h in enumerate(head)]
-    lines = ["  ".join(h.ljust(w) for h, w in zip(head, widths))]
-    lines += ["  ".join(c.ljust(w) for c, w in zip(row, widths)) for row in rows]
-    return "\n".join(line.rstrip() for line in lines)
-
-
-def report(study) -> str:
-    """Table, reference check, orders and cheapest choices, as printed by the CLI."""
-    out = [f"study of {study.scene}: end time {study.duration:g} s, {len(study.times)} save instants, "
-           f"size {study.size:g} m", "", table(study), "", study.reference.describe(), "",
-           "measured order (slope of log error vs log dt):"]
-    for line, entry in study.orders.items():
-        order, finest = (_fmt(entry[key], ".2f") for key in ("order", "order_finest"))
-        out.append(f"  {line:28s} {order}  ({entry['points']} runs; over the 3 smallest dt: {finest})")
-    out.append("")
-    for target in TARGETS:
-        best = cheapest(study.runs, target)
-        if best is None:
-            out.append(f"error <= {target:g}: no run reached it")
-        else:
-            tol = "" if best["cg_tol"] is None else f", cg_tol {best['cg_tol']:g}"
-            out.append(f"error <= {target:g}: cheapest {best['integrator']} dt {best['dt']:.4g} s{tol} "
-                       f"(error {best['error']:.3g}, {best['wall_s']:.3g} s)")
-    return "\n".join(out)
-
-
-def write_outputs(study, out_dir) -> list:
-    """runs.csv, runs.json, summary.json and (with matplotlib) work_precision.png in ``out_dir``.
-
-    Returns the paths written; a missing matplotlib is reported by ``plot`` raising ImportError.
-    """
-    out_dir = Path(out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
-    rows = [run.row() for run in study.runs]
-    text = io.StringIO()
-    writer = csv.DictWriter(text, fieldnames=COLUMNS, lineterminator="\n")
-    writer.writeheader()
-    for row in rows:
-        writer.writerow({k: "" if v is None else v for k, v in row.items()})
-    written = []
-    for name, data in (("runs.csv", text.getvalue()), ("runs.json", json.dumps(rows, indent=1)),
-                       ("summary.json", json.dumps(study.summary(), indent=1))):
-        with atomic_output(out_dir / name) as fh:
-            fh.write(data.encode())
-        written.append(out_dir / name)
-    return written
-
-
-def plot(study, path, title=None):
-    """Work-precision PNG: end-time error against wall time, log-log, one line per
-    integrator and CG tolerance, each point labelled with its dt. Needs matplotlib."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, ax = plt.subplots(figsize=(6.4, 4.4), dpi=90)
-    lines = {}
-    for run in study.runs:
-        if not run.diverged and run.error and run.wall_s:
-            lines.setdefault(run.line, []).append(run)
-    markers = {"explicit": "o", "symplectic": "s", "implicit": "^"}
-    for line, members in lines.items():
-        members.sort(key=lambda r: r.dt)
-        ax.plot([r.wall_s for r in members], [r.error for r in members], marker=markers[members[0].integrator],
-                markersize=4, linewidth=1.2, label=line)
-        for r in members:
-            ax.annotate(f"{r.dt:.2g}", (r.wall_s, r.error), textcoords="offset points", xytext=(3, 3),
-                        fontsize=5.5, color=ax.lines[-1].get_color())
-    ax.set_xscale("log")
-    ax.set_yscale("log")
-    ax.set_xlabel("wall time of stepping (s)")
-    ax.set_ylabel("RMS position error at end / scene size")
-    ax.set_title(title or f"{study.scene}: work-precision, end time {study.duration:g} s (labels: dt in s)",
-                 fontsize=9)
-    ax.grid(True, which="both", linewidth=0.3, alpha=0.5)
-    ax.legend(fontsize=7)
-    fig.tight_layout()
-    buffer = io.BytesIO()
-    fig.savefig(buffer, format="png")
-    plt.close(fig)
-    with atomic_output(path) as fh:
-        fh.write(buffer.getvalue())
-    return Path(path)
-
-
-def new_out_dir(scene_name, base=".") -> Path:
-    """A directory that does not exist yet: ``study-<scene>``, else ``study-<scene>-2``, ..."""
-    base = Path(base)
-    candidate = base / f"study-{scene_name}"
-    k = 2
-    while candidate.exists():
-        candidate = base / f"study-{scene_name}-{k}"
-        k += 1
-    return candidate
-
-
-def progress_line(run) -> str:
-    what = f"{run.integrator:10s} dt {run.dt:<10.4g}" + ("" if run.cg_tol is None else f" cg_tol {run.cg_tol:g}")
-    done = run.status if run.diverged else f"{run.steps} steps in {run.wall_s:.3g} s"
-    return f"  {what}: {done}"
-
-
 def _check_integrators(integrators):
     names = list(integrators)
     if not names:
@@ -535,20 +358,3 @@ def _check_integrators(integrators):
         if name not in INTEGRATORS:
             raise ValueError(f"integrators: unknown value {name!r}, expected some of {', '.join(INTEGRATORS)}")
     return names
-
-
-def _positive_int(name, value):
-    if isinstance(value, bool) or not isinstance(value, int) or value < 1:
-        raise ValueError(f"{name}: expected a positive integer, got {value!r}")
-    return value
-
-
-def _fraction(name, value):
-    out = _positive(name, value)
-    if out >= 1:
-        raise ValueError(f"{name}: must be < 1, got {value!r}")
-    return out
-
-
-def print_progress(run):
-    print(progress_line(run), file=sys.stderr, flush=True)

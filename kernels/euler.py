@@ -1,0 +1,93 @@
+"""Explicit Euler (seed Eq. 7-8, with the dt Eq. 8 drops) and symplectic Euler steps.
+
+One step from state ``src`` to state ``dst`` (``x``, ``v`` fields; they must differ):
+``forces.spring_forces`` on ``src``, then per particle
+
+    explicit:    x' = x + dt v,   v' = v + dt f(x, v) / m
+    symplectic:  v' = v + dt f(x, v) / m,   x' = x + dt v'
+
+with pinned particles kept in place at zero velocity, fused with the reduction of
+the new state's ``divergence.state_sums`` (fixed blocks, see ``blocks``).
+
+``euler_step`` runs one step as parallel loops and returns (check code, kinetic
+energy); ``euler_steps`` runs up to ``steps`` steps in one launch with serial
+loops (small systems, where a launch costs more than a step), alternating
+a -> b and b -> a, stopping at the first step whose state fails the check.
+"""
+
+import taichi as ti
+
+from .blocks import block_count, block_end, ordered_sum, BLOCK
+from .divergence import OK, check_code, state_sums
+from .forces import moving, particle_force, spring_forces
+
+
+@ti.func
+def update_particles(dev, cfg: ti.template(), src, dst, h, symplectic: ti.template()):
+    """The per-particle half of a step (after ``spring_forces`` on ``src``); returns
+    the new state's summed ``state_sums``."""
+    n = dev.size[0]
+    g = ti.Vector.zero(ti.f64, 3)
+    if ti.static(cfg.has_gravity):
+        g = ti.cast(dev.gravity[None], ti.f64)
+    for b in range(block_count(n)):
+        acc = ti.Vector.zero(ti.f64, 3)
+        for i in range(b * BLOCK, block_end(b, n)):
+            x = src.x[i]
+            v = src.v[i]
+            if moving(i, dev, cfg):
+                f = particle_force(i, dev, cfg, src.x, src.v, False)
+                v_new = v + h / dev.mass[i] * f
+                if ti.static(symplectic):
+                    x = x + h * v_new
+                else:
+                    x = x + h * v
+                v = v_new
+            else:
+                v = ti.Vector.zero(cfg.real, 3)
+            dst.x[i] = x
+            dst.v[i] = v
+            acc += state_sums(x, v, dev.mass[i], g, cfg.has_gravity)
+        dev.partial[b] = acc
+    return ordered_sum(dev.partial, block_count(n))
+
+
+@ti.kernel
+def euler_step(dev: ti.template(), cfg: ti.template(), src: ti.template(), dst: ti.template(), dt: ti.f64,
+               symplectic: ti.template()) -> ti.types.vector(2, ti.f64):
+    """One step src -> dst with parallel loops; returns (check code, kinetic energy J)."""
+    h = ti.cast(dt, cfg.real)
+    spring_forces(dev, cfg, src.x, src.v, False)
+    sums = update_particles(dev, cfg, src, dst, h, symplectic)
+    return ti.Vector([check_code(sums, dev.check[None]), sums[0]], ti.f64)
+
+
+@ti.kernel
+def euler_steps(dev: ti.template(), cfg: ti.template(), a: ti.template(), b: ti.template(), dt: ti.f64,
+                steps: ti.i32, symplectic: ti.template()) -> ti.types.vector(3, ti.f64):
+    """Up to ``steps`` steps in one launch with serial loops, a -> b, b -> a, ...
+
+    Returns (good steps done k, check code, kinetic energy of the last state
+    computed). The last good state is in ``a`` if k is even, else in ``b``; a
+    failed state is in the other one.
+    """
+    h = ti.cast(dt, cfg.real)
+    done = 0
+    code = OK
+    kinetic = 0.0
+    ti.loop_config(serialize=True)
+    for _ in range(1):
+        while done < steps and code == OK:
+            if done % 2 == 0:
+                spring_forces(dev, cfg, a.x, a.v, False)
+                even = update_particles(dev, cfg, a, b, h, symplectic)
+                kinetic = even[0]
+                code = check_code(even, dev.check[None])
+            else:
+                spring_forces(dev, cfg, b.x, b.v, False)
+                odd = update_particles(dev, cfg, b, a, h, symplectic)
+                kinetic = odd[0]
+                code = check_code(odd, dev.check[None])
+            if code == OK:
+                done += 1
+    return ti.Vector([done, code, kinetic], ti.f64)

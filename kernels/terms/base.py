@@ -1,0 +1,28 @@
+"""Defaults of the two kinds of force term (see ``kernels.terms``)."""
+
+import taichi as ti
+
+
+class SpringTerm:
+    kind = "spring"
+    name = ""
+
+    @staticmethod
+    @ti.func
+    def rhs_tension(s, dev, i, j, x, v, n, length):
+        return 0.0
+
+    @staticmethod
+    @ti.func
+    def coefficients(s, dev, n, length, h, fix: ti.template()):
+        return 0.0, 0.0
+
+
+class ParticleTerm:
+    kind = "particle"
+    name = ""
+
+    @staticmethod
+    @ti.func
+    def diagonal(i, dev, h):
+        return 0.0

@@ -1,0 +1,29 @@
+"""Gravity (seed Eq. 3): a uniform acceleration, constant force, no Jacobian."""
+
+import taichi as ti
+
+from .base import ParticleTerm
+
+
+class Gravity(ParticleTerm):
+    """f_i = m_i g: ``dev.gravity`` (m/s^2, one vector). Active when g != 0."""
+
+    name = "gravity"
+
+    @staticmethod
+    def active(model):
+        return model.has_gravity
+
+    @staticmethod
+    def arrays(model):
+        return {"gravity": ("vector", model.gravity)}
+
+    @staticmethod
+    @ti.func
+    def force(i, dev, x, v):
+        return dev.mass[i] * dev.gravity[None]
+
+    @staticmethod
+    @ti.func
+    def rhs(i, dev, x, v):
+        return dev.mass[i] * dev.gravity[None]

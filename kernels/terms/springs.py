@@ -1,0 +1,44 @@
+"""Elastic spring force (seed Eq. 1) and its stiffness K (Eq. 13)."""
+
+import taichi as ti
+
+from .base import SpringTerm
+
+
+class Springs(SpringTerm):
+    """f_i = ks (l - l0) n: ``dev.ks`` (N/m) and ``dev.l0`` (m) per spring.
+
+    Stiffness block (Eq. 13, typo |x_i - x_i| read as |x_j - x_i|), with c = l0/l - 1:
+    K_ii = ks (c I - (1 + c) n n^T), so A gets a = -dt^2 ks c, b = dt^2 ks (1 + c).
+    Definiteness fix (Choi & Ko 2002): c -> min(c, 0) in the transverse part
+    (a compressed spring's c > 0 makes A indefinite); the along-spring -ks n n^T stays.
+    """
+
+    name = "spring"
+
+    @staticmethod
+    def active(model):
+        return model.n_springs > 0
+
+    @staticmethod
+    def arrays(model):
+        return {"ks": ("spring", model.stiffness), "l0": ("spring", model.rest_lengths)}
+
+    @staticmethod
+    @ti.func
+    def tension(s, dev, i, j, x, v, n, length):
+        return dev.ks[s] * (length - dev.l0[s])
+
+    @staticmethod
+    @ti.func
+    def rhs_tension(s, dev, i, j, x, v, n, length):
+        return dev.ks[s] * (length - dev.l0[s])
+
+    @staticmethod
+    @ti.func
+    def coefficients(s, dev, n, length, h, fix: ti.template()):
+        c = dev.l0[s] / length - 1
+        if ti.static(fix):
+            c = ti.min(c, 0)
+        k = h * h * dev.ks[s]
+        return -k * c, k * (1 + c)

@@ -1,0 +1,55 @@
+"""Fits of a work-precision study: measured orders and the cheapest run per target error."""
+
+from __future__ import annotations
+
+import numpy as np
+
+TARGETS = (1e-2, 1e-4)
+
+
+def fit_orders(runs, finest=3) -> dict:
+    """{line: {"integrator", "cg_tol", "order", "order_finest", "points"}}.
+
+    ``order``: least-squares slope of log(error) against log(dt) over the line's
+    non-diverged runs with a positive error (None with fewer than 2 dt values);
+    ``order_finest``: the same over its ``finest`` smallest dts only (the asymptotic
+    order, free of runs near the stability limit).
+    """
+    lines = {}
+    for run in runs:
+        lines.setdefault(run.line, []).append(run)
+    out = {}
+    for line, members in lines.items():
+        good = sorted((r for r in members if not r.diverged and r.error is not None and r.error > 0),
+                      key=lambda r: r.dt)
+        out[line] = {"integrator": members[0].integrator, "cg_tol": members[0].cg_tol,
+                     "order": slope(good), "order_finest": slope(good[:finest]), "points": len(good)}
+    return out
+
+
+def slope(runs):
+    if len({r.dt for r in runs}) < 2:
+        return None
+    return float(np.polyfit(np.log([r.dt for r in runs]), np.log([r.error for r in runs]), 1)[0])
+
+
+def integrator_orders(orders) -> dict:
+    """One order per integrator: for the implicit one, the line with the tightest CG tolerance."""
+    out = {}
+    for entry in orders.values():
+        name = entry["integrator"]
+        best = out.get(name)
+        if best is None or (entry["cg_tol"] is not None and entry["cg_tol"] < best["cg_tol"]):
+            out[name] = entry
+    return {name: entry["order"] for name, entry in out.items()}
+
+
+def cheapest(runs, target) -> dict | None:
+    """The non-diverged run with the least wall time whose end-time error is <= target."""
+    good = [r for r in runs if not r.diverged and r.error is not None and r.error <= target
+            and r.wall_s is not None]
+    if not good:
+        return None
+    best = min(good, key=lambda r: r.wall_s)
+    return {"integrator": best.integrator, "dt": best.dt, "cg_tol": best.cg_tol,
+            "error": best.error, "wall_s": best.wall_s}

@@ -1,0 +1,333 @@
+"""The Taichi side of a simulation: one bundle of fields, its compile-time switches, the arch.
+
+A :class:`Bundle` holds every field one simulation needs as attributes
+(``dev.mass``, ``dev.x``, ``dev.coef``, ...) and is passed whole to the kernels as
+a ``ti.template()``, with a :class:`Config` of compile-time switches (precision,
+force terms, pins, preconditioner). A kernel is compiled once per (bundle, config).
+
+Fields, not ndarrays: on this project's 2-core CPU the CG operator ran 1.2-1.5x
+faster on fields (Taichi indexes ndarrays with 32-bit arithmetic and a sign
+extension per element, fields with 64-bit addresses and vector loads), measured
+in one run by ``benchmarks/storage.py``. What fields cost is compilation: a kernel
+compiles again for every new field tree. Two things keep that rare:
+
+* capacity classes: fields are allocated for ``capacity(count)`` items, the next
+  of 2^k or 3 * 2^(k-1) above a floor, and kernels loop to the real counts kept in
+  ``dev.size``; every small model (up to 4096 particles and 16384 springs) shares
+  one class;
+* a pool: a closed simulation's bundle goes back to the pool and the next one
+  with the same declarations takes it, with the kernels already compiled for it.
+  A sweep of same-size runs (a study, a test suite) compiles once.
+
+Declarations (:class:`Layout`) name each field, its dtype, element shape and
+which count it follows ("particle", "spring", "entry" (2 per spring), "block" or
+a fixed number); values (numpy) fill it at allocation, padded with zeros.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import re
+import subprocess
+import sys
+from collections import OrderedDict
+from dataclasses import dataclass
+
+import numpy as np
+import taichi as ti
+from taichi.lang import impl
+
+from massspring.kernels.blocks import blocks_for
+from massspring.kernels.terms import active_terms
+
+REAL = {"f32": ti.f32, "f64": ti.f64}
+_NUMPY = {ti.f32: np.float32, ti.f64: np.float64, ti.i32: np.int32}
+ARCHS = ("cpu", "gpu", "cuda", "vulkan", "metal", "opengl", "x64", "arm64")
+CPU_ARCHS = ("cpu", "x64", "arm64")
+PARTICLE_FLOOR = 4096   # smallest particle capacity
+SPRING_FLOOR = 16384    # smallest spring capacity
+POOL_BUDGET = 1 << 30   # bytes of idle bundles kept for reuse
+
+
+def ensure_taichi(arch="cpu"):
+    """Start Taichi once per process on ``arch``; later calls must name the same arch.
+
+    An arch other than the CPU is first tried in a child process: Taichi falls back
+    to the CPU when a device is missing, and crashes outright for some (OpenGL
+    without a display). Either way this raises ValueError naming what is missing.
+    """
+    if arch not in ARCHS:
+        raise ValueError(f"arch: unknown value {arch!r}, expected one of {', '.join(ARCHS)}")
+    if impl.get_runtime().prog is None:
+        if arch not in CPU_ARCHS:
+            _probe(arch)
+        with contextlib.redirect_stdout(io.StringIO()):  # "[Taichi] Starting on arch=..."
+            ti.init(arch=getattr(ti, "cpu" if arch == "cpu" else arch), default_fp=ti.f64,
+                    log_level=ti.ERROR if arch not in CPU_ARCHS else ti.WARN)
+    current = impl.current_cfg().arch
+    if arch in CPU_ARCHS:
+        accepted = (ti.x64, ti.arm64) if arch == "cpu" else (getattr(ti, arch),)
+    else:
+        accepted = tuple(ti.gpu) if arch == "gpu" else (getattr(ti, arch),)
+    if current not in accepted:
+        raise ValueError(f"arch: Taichi already runs on {current.name} in this process; cannot switch to {arch!r}")
+
+
+def _probe(arch):
+    script = ("import taichi as ti\nfrom taichi.lang import impl\n"
+              f"ti.init(arch=ti.{arch})\nprint('STARTED', impl.current_cfg().arch.name)\n")
+    try:
+        proc = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=120)
+    except subprocess.TimeoutExpired:
+        raise ValueError(f"arch: {arch!r} did not start within 120 s") from None
+    started = re.search(r"STARTED (\w+)", proc.stdout)
+    warnings = [line.split("] ", 2)[-1].strip() for line in proc.stderr.splitlines() if line.startswith("[W")]
+    if proc.returncode < 0 or not started:
+        reason = f"Taichi crashed while starting it (exit {proc.returncode})"
+        raise ValueError(f"arch: {arch!r} is not available here: {reason}; "
+                         f"{'; '.join(warnings) or 'no usable driver or display'}")
+    if started.group(1) in ("x64", "arm64"):
+        raise ValueError(f"arch: {arch!r} is not available here (Taichi would fall back to the CPU): "
+                         f"{'; '.join(warnings) or 'no such device'}")
+
+
+def capacity(count, floor):
+    """The capacity class of ``count`` items: the smallest 2^k or 3 * 2^(k-1) >= max(count, floor)."""
+    need = max(int(count), int(floor), 1)
+    k = max(need - 1, 1).bit_length()  # 2^k >= need
+    return 3 << (k - 2) if k >= 2 and 3 << (k - 2) >= need else 1 << k
+
+
+@dataclass(frozen=True)
+class Config:
+    """Compile-time switches of a simulation's kernels (hashed by value: equal
+    configs share compiled kernels).
+
+    real: ti.f32 or ti.f64; spring_terms, particle_terms: the active force terms
+    (``kernels.terms``); fixed: whether any particle is pinned; fix: the
+    definiteness fix (implicit); precond: a pointwise preconditioner class of
+    ``kernels.preconditioners`` or None.
+    """
+
+    real: object
+    spring_terms: tuple
+    particle_terms: tuple
+    fixed: bool
+    fix: bool = True
+    precond: object = None
+
+    @property
+    def has_springs(self):
+        """Whether the model has springs (and so the adjacency fields)."""
+        return len(self.spring_terms) > 0
+
+    @property
+    def pointwise(self):
+        """Whether the CG kernels apply a pointwise preconditioner themselves."""
+        return self.precond is not None
+
+    @property
+    def needs_diagonal(self):
+        """Whether the operator's refresh must form the diagonal blocks for the preconditioner."""
+        return self.precond is not None and self.precond.needs_diagonal
+
+    @property
+    def has_gravity(self):
+        return any(term.name == "gravity" for term in self.particle_terms)
+
+    @classmethod
+    def of(cls, model, precision, **switches):
+        terms = active_terms(model)
+        return cls(REAL[precision], tuple(t for t in terms if t.kind == "spring"),
+                   tuple(t for t in terms if t.kind == "particle"), model.has_fixed, **switches)
+
+
+@ti.data_oriented
+class State:
+    """Positions ``x`` (m) and velocities ``v`` (m/s): (capacity,) vec3 fields."""
+
+    def __init__(self, x, v):
+        self.x = x
+        self.v = v
+
+
+@ti.data_oriented
+class Bundle:
+    """The fields of one simulation, as attributes named by their declarations.
+
+    ``state`` is the (x, v) pair; ``states`` maps each declared pair's name to its
+    :class:`State`. ``n``, ``m``: particle and spring counts (the fields hold
+    ``capacity`` items; ``dev.size`` = (n, m) tells the kernels).
+    """
+
+    def __init__(self, fields, pairs):
+        for name, field in fields.items():
+            setattr(self, name, field)
+        self.states = {name: State(fields[x], fields[v]) for name, (x, v) in pairs.items()}
+        self.state = self.states["state"]
+        self.n = self.m = 0
+
+    def read(self, name, count=None):
+        """A numpy copy of field ``name`` cut to its real length (particles by default)."""
+        return getattr(self, name).to_numpy()[: self.n if count is None else count]
+
+
+class Layout:
+    """Declarations of a bundle's fields; ``allocate`` makes (or reuses) and fills them."""
+
+    def __init__(self, n, m, real):
+        self.n, self.m, self.real = int(n), int(m), real
+        self.counts = {"particle": capacity(n, PARTICLE_FLOOR), "spring": capacity(m, SPRING_FLOOR)}
+        self.counts["entry"] = 2 * self.counts["spring"]
+        self.counts["block"] = blocks_for(self.counts["particle"])
+        self.decls = OrderedDict()
+        self.pairs = {}
+
+    def add(self, name, dtype, per, element=(), values=None):
+        """Declare field ``name``: ``per`` items ("particle", "spring", "entry", "block",
+        or an int; () for one item) of ``element``-shaped ``dtype`` values."""
+        if name in self.decls:
+            raise ValueError(f"field {name!r} declared twice")
+        shape = () if per == () else (self.counts[per] if isinstance(per, str) else int(per),)
+        self.decls[name] = (dtype, shape, tuple(element), values)
+
+    def vectors(self, name, dtype, per="particle", values=None, k=3):
+        self.add(name, dtype, per, (k,), values)
+
+    def state(self, name, dtype, positions=None, velocities=None):
+        """Declare a state pair: fields ``x``/``v`` for "state", else ``x_<name>``/``v_<name>``."""
+        x, v = ("x", "v") if name == "state" else (f"x_{name}", f"v_{name}")
+        self.vectors(x, dtype, values=positions)
+        self.vectors(v, dtype, values=velocities)
+        self.pairs[name] = (x, v)
+
+    def signature(self):
+        return tuple((name, dtype, shape, element) for name, (dtype, shape, element, _) in self.decls.items()) + \
+            tuple(sorted(self.pairs.items()))
+
+    def nbytes(self):
+        return sum(int(np.prod(shape + element)) * np.dtype(_NUMPY[dtype]).itemsize
+                   for dtype, shape, element, _ in self.decls.values())
+
+    def allocate(self) -> Bundle:
+        """The bundle: taken from the pool if one has these declarations, else new; filled."""
+        signature = self.signature()
+        bundle = POOL.take(signature)
+        reused = bundle is not None
+        if not reused:
+            builder = ti.FieldsBuilder()
+            fields = {name: _place(builder, dtype, shape, element)
+                      for name, (dtype, shape, element, _) in self.decls.items()}
+            tree = builder.finalize()
+            bundle = Bundle(fields, self.pairs)
+            bundle._tree, bundle._signature, bundle._nbytes = tree, signature, self.nbytes()
+        for name, (dtype, shape, element, values) in self.decls.items():
+            field = getattr(bundle, name)
+            if values is not None:
+                data = np.zeros(shape + element, dtype=_NUMPY[dtype])
+                values = np.asarray(values)
+                if values.size:
+                    data[tuple(slice(0, s) for s in values.shape)] = values
+                field.from_numpy(data)
+            elif reused:
+                field.fill(0)
+        bundle.n, bundle.m = self.n, self.m
+        return bundle
+
+
+def _place(builder, dtype, shape, element):
+    if not element:
+        field = ti.field(dtype)
+    elif len(element) == 1:
+        field = ti.Vector.field(element[0], dtype)
+    else:
+        field = ti.Matrix.field(element[0], element[1], dtype)
+    if shape:
+        builder.dense(ti.i, shape).place(field)
+    else:
+        builder.place(field)
+    return field
+
+
+class Pool:
+    """Idle bundles by declaration signature, at most ``budget`` bytes in all.
+
+    It holds fields of the process's one Taichi runtime, so there is one pool per
+    process (``POOL``). Destroying a field tree makes Taichi recompile the kernels in
+    use, so idle bundles are kept until the budget is exceeded, oldest out first.
+    """
+
+    def __init__(self, budget=POOL_BUDGET):
+        self.budget = budget
+        self._idle = OrderedDict()  # id -> bundle
+        self.created = 0
+
+    def take(self, signature):
+        for key, bundle in self._idle.items():
+            if bundle._signature == signature:
+                del self._idle[key]
+                return bundle
+        self.created += 1
+        return None
+
+    def give(self, bundle):
+        self._idle[id(bundle)] = bundle
+        while sum(b._nbytes for b in self._idle.values()) > self.budget:
+            _, old = self._idle.popitem(last=False)
+            old._tree.destroy()
+
+    def idle(self):
+        return len(self._idle)
+
+
+POOL = Pool()
+
+
+def model_layout(model, precision) -> Layout:
+    """Declarations of a Model's fields: the state, masses, pins, adjacency, the
+    force terms' arrays, the divergence check and block partial sums."""
+    real = REAL[precision]
+    n, m = model.n_particles, model.n_springs
+    layout = Layout(n, m, real)
+    layout.add("size", ti.i32, 2, values=np.array([n, m]))
+    layout.state("state", real, model.positions, model.velocities)
+    layout.add("mass", real, "particle", values=model.masses)
+    if model.has_fixed:
+        layout.add("free", ti.i32, "particle", values=model.free_mask())
+    if m:
+        offsets, other, entry = adjacency(model)
+        layout.vectors("ends", ti.i32, "spring", values=model.springs, k=2)
+        layout.add("offsets", ti.i32, layout.counts["particle"] + 1, values=offsets)
+        layout.add("other", ti.i32, "entry", values=other)
+        layout.add("entry", ti.i32, "entry", values=entry)
+        layout.vectors("fs", real, "spring")
+    for term in active_terms(model):
+        for name, (per, values) in term.arrays(model).items():
+            if per == "vector":
+                layout.vectors(name, real, (), values)
+            else:
+                layout.add(name, real, () if per == "scalar" else per, values=values)
+    layout.vectors("check", ti.f64, ())
+    layout.vectors("partial", ti.f64, "block")
+    return layout
+
+
+def adjacency(model):
+    """Per-particle spring lists in CSR form, for gather kernels.
+
+    Returns ``(offsets, other, entry)``: for particle ``i`` the entries
+    ``offsets[i]:offsets[i+1]`` name the particle ``other[e]`` at the other end of
+    each spring touching ``i``, and the spring as ``entry[e]`` = s if ``i`` is its
+    first end, -1 - s if its second. Entries of a particle are in spring order.
+    Shapes (n+1,), (2m,), (2m,), int32.
+    """
+    n, m = model.n_particles, model.n_springs
+    ends = model.springs
+    owner = np.concatenate([ends[:, 0], ends[:, 1]])
+    other = np.concatenate([ends[:, 1], ends[:, 0]])
+    entry = np.concatenate([np.arange(m), -1 - np.arange(m)])
+    order = np.argsort(owner, kind="stable")
+    offsets = np.zeros(n + 1, dtype=np.int64)
+    np.cumsum(np.bincount(owner, minlength=n), out=offsets[1:])
+    return offsets.astype(np.int32), other[order].astype(np.int32), entry[order].astype(np.int32)

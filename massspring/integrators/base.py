@@ -1,0 +1,58 @@
+"""The integrator protocol."""
+
+from __future__ import annotations
+
+from massspring.device import Config
+
+
+class Integrator:
+    """Advances a simulation's bundle ``dev`` by steps of ``settings.dt``.
+
+    Class attributes: ``name`` (the registry key), ``order`` (of accuracy),
+    ``description`` (one line for the CLI), ``has_stats`` (steps one at a time,
+    each with solver statistics). ``serial`` (from ``settings.loops``):
+    run whole steps or solves in one launch with serial loops (small systems), else
+    one parallel launch per phase.
+    """
+
+    name = ""
+    order = 1
+    description = ""
+    has_stats = False
+
+    def __init__(self, dev, model, settings):
+        self.dev = dev
+        self.settings = settings
+        self.serial = settings.loops == "serial"
+        self.cfg = self.config(model, settings)
+        self.state = dev.state
+
+    @classmethod
+    def config(cls, model, settings) -> Config:
+        """The compile-time switches of this integrator's kernels for ``model``."""
+        return Config.of(model, settings.precision)
+
+    @classmethod
+    def declare(cls, layout, model, settings):
+        """Add the work fields this integrator needs to ``layout`` (a ``device.Layout``)."""
+
+    def advance(self, steps):
+        """Up to ``steps`` steps, each checked (``kernels/divergence.py``).
+
+        Returns (good steps done, check code of the first failed step or OK, its
+        kinetic energy in J). A failed step's state is never the current one.
+        """
+        raise NotImplementedError
+
+    @property
+    def stats(self):
+        """The last step's solver outcome (implicit integrators), else None."""
+        return None
+
+    @staticmethod
+    def suggest_dt(prediction) -> float:
+        """A default dt (s) for a scene without one, from ``analysis.stability.Prediction``."""
+        raise NotImplementedError
+
+    def release(self):
+        """Hand back resources other than the simulation's bundle (none by default)."""

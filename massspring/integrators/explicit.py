@@ -1,0 +1,55 @@
+"""Explicit Euler (seed Eq. 7-8, with the dt that Eq. 8 drops)."""
+
+from __future__ import annotations
+
+import math
+
+from massspring.kernels import divergence, euler
+
+from .base import Integrator
+
+
+class ExplicitEuler(Integrator):
+    """x' = x + dt v, v' = v + dt f(x, v) / m: one fused kernel per step into a spare state.
+
+    Serial: many steps per launch (``euler.euler_steps``); parallel: one
+    ``euler.euler_step`` launch per step. First order; unstable for undamped
+    oscillation at any dt (see ``analysis.stability``).
+    """
+
+    name = "explicit"
+    order = 1
+    description = "explicit Euler: x' = x + dt v, v' = v + dt f(x, v)/m"
+    symplectic = False
+
+    def __init__(self, dev, model, settings):
+        super().__init__(dev, model, settings)
+        self.spare = dev.states["spare"]
+
+    @classmethod
+    def declare(cls, layout, model, settings):
+        layout.state("spare", layout.real)
+
+    def advance(self, steps):
+        dev, cfg, dt = self.dev, self.cfg, self.settings.dt
+        if self.serial:
+            result = euler.euler_steps(dev, cfg, self.state, self.spare, dt, steps, self.symplectic)
+            done, code, kinetic = int(result[0]), int(result[1]), float(result[2])
+            if done % 2:
+                self.state, self.spare = self.spare, self.state
+            return done, code, kinetic
+        done, code, kinetic = 0, divergence.OK, 0.0
+        while done < steps and code == divergence.OK:
+            result = euler.euler_step(dev, cfg, self.state, self.spare, dt, self.symplectic)
+            code, kinetic = int(result[0]), float(result[1])
+            if code == divergence.OK:
+                self.state, self.spare = self.spare, self.state
+                done += 1
+        return done, code, kinetic
+
+    @staticmethod
+    def suggest_dt(prediction):
+        """Half the largest dt at which the stiffest mode does not grow (or, if larger,
+        at which its energy doubles within a second)."""
+        limit = max(prediction.explicit_stable_dt, prediction.explicit_doubling_dt)
+        return 0.5 * limit if math.isfinite(limit) else 1e-2

@@ -1,0 +1,77 @@
+"""Linearised backward Euler (seed Eq. 15), solved by matrix-free preconditioned CG."""
+
+from __future__ import annotations
+
+import math
+
+from massspring.device import Config
+from massspring.kernels import cg, divergence
+from massspring.solvers import PRECONDITIONERS, solve
+
+from .base import Integrator
+
+
+class ImplicitEuler(Integrator):
+    """(M - dt D - dt^2 K) v' = M v + dt (f - D v), x' = x + dt v' (seed Eq. 9, 12-15).
+
+    Each step refreshes the operator at (x_n, v_n) and solves for v' in place in
+    ``dev.v`` (v_n is CG's warm start, as the seed says), then commits
+    x' = x + dt v' only if the new state passes the divergence check.
+    ``dev.keep`` holds the velocity of the last accepted state: the commit writes it
+    in the loop that stores x', so keeping it costs one store per particle and no
+    launch, and a rejected step is undone by copying it back into ``dev.v`` (x_n was
+    never overwritten).
+    """
+
+    name = "implicit"
+    order = 1
+    description = "linearised implicit Euler (Eq. 15), matrix-free preconditioned CG"
+    has_stats = True
+
+    def __init__(self, dev, model, settings):
+        super().__init__(dev, model, settings)
+        self.preconditioner = PRECONDITIONERS[settings.preconditioner](dev, model, settings)
+        self._stats = None
+
+    @classmethod
+    def config(cls, model, settings):
+        return Config.of(model, settings.precision, fix=settings.definiteness_fix,
+                         precond=PRECONDITIONERS[settings.preconditioner].kernel)
+
+    @classmethod
+    def declare(cls, layout, model, settings):
+        real = layout.real
+        for name in ("b", "r", "z", "p", "q"):
+            layout.vectors(name, real)
+        layout.vectors("keep", real, values=model.velocities)
+        layout.add("diag", real, "particle")
+        if model.n_springs:
+            layout.vectors("coef", real, "entry", k=5)
+            layout.vectors("spring_coef", real, "spring", k=5)
+        PRECONDITIONERS[settings.preconditioner].declare(layout, model, settings)
+
+    @property
+    def stats(self):
+        return self._stats
+
+    def advance(self, steps):
+        """One implicit step (``steps`` must be 1: each step has its own solver stats)."""
+        assert steps == 1
+        s = self.settings
+        self._stats = solve(self.dev, self.cfg, self.preconditioner, s.dt, s.cg_tol, s.cg_max_iter, self.serial)
+        if self._stats.reason == "non-finite":  # Eq. 15 overflowed: no velocity to step with
+            self.dev.v.copy_from(self.dev.keep)
+            return 0, divergence.NONFINITE, math.inf
+        code, kinetic = cg.advance_positions(self.dev, self.cfg, s.dt, self.serial)
+        code = int(code)
+        if code != divergence.OK:
+            self.dev.v.copy_from(self.dev.keep)
+        return int(code == divergence.OK), code, float(kinetic)
+
+    @staticmethod
+    def suggest_dt(prediction):
+        """1/60 s, a frame: the linearised implicit step has no stability limit."""
+        return 1.0 / 60.0
+
+    def release(self):
+        self.preconditioner.release()

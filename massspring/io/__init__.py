@@ -1,0 +1,2 @@
+"""Output (and input) files: atomic writes (``files``), states (``state``), pictures
+(``camera``, ``render``)."""

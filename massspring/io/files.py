@@ -1,0 +1,103 @@
+"""Output files written atomically: a reader never sees a half-written file.
+
+A file is written under a temporary name ``.NAME.PID.XXXX.tmp`` in the same
+directory and renamed when complete. A process killed mid-write (SIGKILL) leaves
+its temporary file behind; the next write to that directory removes temporary
+files of ours whose process is gone.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import re
+import tempfile
+from pathlib import Path
+
+_TEMP = re.compile(r"^\..+\.(\d+)\.[^.]+\.tmp$")
+
+
+def _temp_name(path):
+    return dict(prefix=f".{path.name}.{os.getpid()}.", suffix=".tmp", dir=path.parent)
+
+
+def remove_stale_temporaries(directory):
+    """Delete our temporary files in ``directory`` whose writing process has ended."""
+    try:
+        entries = list(Path(directory).iterdir())
+    except OSError:
+        return
+    for entry in entries:
+        match = _TEMP.match(entry.name)
+        if match and not _alive(int(match.group(1))):
+            with contextlib.suppress(OSError):
+                entry.unlink()
+
+
+def _alive(pid):
+    if pid == os.getpid():
+        return True
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+@contextlib.contextmanager
+def atomic_output(path):
+    """Open ``path`` for binary writing under a temporary name in the same directory.
+
+    The temporary file is renamed to ``path`` when the block completes, and removed
+    if the block raises (the exception propagates; an existing ``path`` is untouched).
+    """
+    path = Path(path)
+    remove_stale_temporaries(path.parent)
+    fd, tmp = tempfile.mkstemp(**_temp_name(path))
+    try:
+        with os.fdopen(fd, "wb") as fh:
+            yield fh
+        umask = os.umask(0)
+        os.umask(umask)
+        os.chmod(tmp, 0o666 & ~umask)  # mkstemp makes it private; give it a normal file's mode
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def check_writable(path, name, suffixes=None) -> Path:
+    """Refuse, before any long work, an output path that ``atomic_output`` could not write:
+    raises ValueError starting with ``name`` (the option or argument) and saying why.
+
+    ``suffixes``: the accepted file name endings (e.g. (".gif",)). The check creates and
+    removes the temporary file a write would use, which catches missing or read-only
+    directories, directories in place of files, names too long and special file systems.
+    """
+    if path is None or str(path) == "":
+        raise ValueError(f"{name}: empty path")
+    path = Path(path)
+    if suffixes and path.suffix.lower() not in suffixes:
+        raise ValueError(f"{name}: {str(path)!r} must end in {' or '.join(suffixes)}")
+    if path.is_dir():
+        raise ValueError(f"{name}: {str(path)!r} is a directory")
+    if not path.parent.is_dir():
+        raise ValueError(f"{name}: directory {str(path.parent)!r} does not exist")
+    try:
+        fd, tmp = tempfile.mkstemp(**_temp_name(path))
+        os.close(fd)
+        os.unlink(tmp)
+    except OSError as exc:
+        raise ValueError(f"{name}: cannot write {str(path)!r}: {exc.strerror or exc}") from None
+    return path
+
+
+def write_json(path, data):
+    """Write ``data`` to ``path`` as indented JSON, atomically, creating its folder."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with atomic_output(path) as fh:
+        fh.write(json.dumps(data, indent=1).encode())

@@ -1,0 +1,127 @@
+"""The linear operators of the implicit step at a state, applied matrix-free by the
+solver's own kernels: the small public device API for analysis and tests.
+
+* ``Jacobians(model, positions)``: ``stiffness(u)`` = K u (seed Eq. 13) and
+  ``damping(u)`` = D u (Eq. 14) for (n, 3) arrays u, float64. Pinned particles are
+  not filtered: callers restrict u and the result as they need.
+* ``SystemOperator(model, dt, ...)``: A = M - dt D - dt^2 K of Eq. 15 at the model's
+  state, on the free particles: ``apply(p)`` (A p, zero at pinned particles),
+  ``rhs()`` (b), ``inverse_diagonal_blocks()`` (A_ii^-1).
+"""
+
+from __future__ import annotations
+
+from types import SimpleNamespace
+
+import numpy as np
+
+from massspring.device import POOL, Config, ensure_taichi, model_layout
+from massspring.kernels import cg, operator
+from massspring.kernels.terms import SpringDamping, Springs
+from massspring.model import Model
+
+
+class Jacobians:
+    """K and D of ``model`` at ``positions`` (n, 3) m (default: the model's), K of
+    Eq. 13 as written unless ``definiteness_fix``. ``close()`` hands the fields back."""
+
+    def __init__(self, model: Model, positions=None, definiteness_fix=False):
+        ensure_taichi()
+        x = model.positions if positions is None else np.asarray(positions, dtype=np.float64)
+        if x.shape != model.positions.shape or not np.all(np.isfinite(x)):
+            raise ValueError(f"positions: expected finite values of shape {model.positions.shape}")
+        self.model = model
+        layout = model_layout(model, "f64")
+        layout.vectors("p", layout.real)
+        layout.vectors("q", layout.real)
+        layout.add("diag", layout.real, "particle")
+        if model.n_springs:
+            layout.vectors("coef", layout.real, "entry", k=5)
+            layout.vectors("spring_coef", layout.real, "spring", k=5)
+        self._dev = layout.allocate()
+        self._dev.x.from_numpy(_padded(x, self._dev.x.shape[0]))
+        base = Config.of(model, "f64")
+        self._configs = {
+            "stiffness": Config(base.real, (Springs,), (), base.fixed, bool(definiteness_fix)),
+            "damping": Config(base.real, (SpringDamping,) if model.has_damping else (), (), base.fixed),
+        }
+        self._current = None
+
+    def _apply(self, which, u):
+        u = np.asarray(u, dtype=np.float64)
+        if u.shape != self.model.positions.shape:
+            raise ValueError(f"u: expected shape {self.model.positions.shape}, got {u.shape}")
+        if not self.model.n_springs or not self._configs[which].spring_terms:
+            return np.zeros_like(u)
+        cfg = self._configs[which]
+        if self._current != which:
+            operator.jacobian_refresh(self._dev, cfg)
+            self._current = which
+        self._dev.p.from_numpy(_padded(u, self._dev.p.shape[0]))
+        operator.jacobian_apply(self._dev, cfg)
+        return -self._dev.read("q")
+
+    def stiffness(self, u) -> np.ndarray:
+        """K u (N) for displacements u (n, 3) m."""
+        return self._apply("stiffness", u)
+
+    def damping(self, u) -> np.ndarray:
+        """D u (N) for velocities u (n, 3) m/s."""
+        return self._apply("damping", u)
+
+    def close(self):
+        if self._dev is not None:
+            POOL.give(self._dev)
+            self._dev = None
+
+
+def _padded(values, capacity):
+    values = np.asarray(values, dtype=np.float64)
+    out = np.zeros((capacity, 3))
+    out[: len(values)] = values
+    return out
+
+
+class SystemOperator:
+    """A = M - dt D - dt^2 K of Eq. 15 (with the definiteness fix unless told not to) at
+    ``positions``/``velocities`` (default: the model's), in ``precision``, as the
+    implicit integrator assembles it each step. ``close()`` hands the fields back."""
+
+    def __init__(self, model: Model, dt, definiteness_fix=True, positions=None, velocities=None,
+                 precision="f64"):
+        from massspring.integrators.implicit import ImplicitEuler
+
+        ensure_taichi()
+        self.model, self.dt = model, float(dt)
+        settings = SimpleNamespace(precision=precision, definiteness_fix=bool(definiteness_fix),
+                                   preconditioner="block-jacobi")
+        layout = model_layout(model, precision)
+        ImplicitEuler.declare(layout, model, settings)
+        self._dev = layout.allocate()
+        self._cfg = ImplicitEuler.config(model, settings)
+        self._dtype = np.float32 if precision == "f32" else np.float64
+        for field, values in ((self._dev.x, positions), (self._dev.v, velocities)):
+            if values is not None:
+                field.from_numpy(_padded(values, field.shape[0]).astype(self._dtype))
+        cg.cg_refresh(self._dev, self._cfg, self.dt)
+
+    def apply(self, p):
+        """(A p, p . A p) for p (n, 3); p must be zero at pinned particles, and A p is
+        zero there (their rows and columns are out of the system)."""
+        p = np.asarray(p, dtype=np.float64).reshape(self.model.n_particles, 3)
+        self._dev.p.from_numpy(_padded(p, self._dev.p.shape[0]).astype(self._dtype))
+        pq = cg.cg_apply(self._dev, self._cfg)
+        return self._dev.read("q").astype(np.float64), float(pq)
+
+    def rhs(self):
+        """b = M v + dt (f - D v) of Eq. 15 (n, 3), zero at pinned particles."""
+        return self._dev.read("b").astype(np.float64)
+
+    def inverse_diagonal_blocks(self):
+        """The block-Jacobi preconditioner's A_ii^-1 (n, 3, 3), zero at pinned particles."""
+        return self._dev.read("minv").astype(np.float64)
+
+    def close(self):
+        if self._dev is not None:
+            POOL.give(self._dev)
+            self._dev = None

@@ -1,0 +1,127 @@
+"""Shared helpers of the tests: independent numpy references (forces, the dense
+Jacobians and system of Eq. 15), random test systems, and the driver switch.
+
+Nothing here uses the package's kernels or its algebraic shortcuts (the dense
+right-hand side keeps the -dt D v term instead of cancelling it against the
+damping force).
+"""
+
+import numpy as np
+
+import massspring as ms
+
+ZERO_LENGTH = 1e-12  # f64 zero-length rule: such a spring has no direction, force or stiffness
+
+# Each integrator has two drivers running the same algorithm: serial kernels (one
+# launch for a whole step or solve; chosen for systems below
+# ``massspring.simulation.SERIAL_BELOW`` springs, i.e. every system here) and
+# parallel kernels (one launch per phase; large systems). Tests run both on small
+# systems through Simulation's ``loops`` option.
+PATHS = ("serial", "parallel")
+
+
+def simulation(model, path, **kw):
+    """A Simulation whose integrator uses the ``path`` driver."""
+    sim = ms.Simulation(model, loops=path, **kw)
+    assert sim.loops == path
+    return sim
+
+
+def random_system(seed, n=None, rest=(0.6, 1.4), n_fixed=None, gravity=(0.0, 0.0, -9.81)):
+    """A random 3D system: n in 6..12 particles, about 2n random distinct springs with
+    rest lengths ``rest`` x their current length (< 1 stretched, > 1 compressed),
+    random ks, kd > 0, masses and velocities, 1-2 fixed particles."""
+    rng = np.random.default_rng(seed)
+    n = int(rng.integers(6, 13)) if n is None else n
+    x = rng.uniform(-1.0, 1.0, size=(n, 3))
+    pairs = np.array([(i, j) for i in range(n) for j in range(i + 1, n)])
+    springs = pairs[rng.choice(len(pairs), size=min(2 * n, len(pairs)), replace=False)]
+    springs = np.where(rng.random((len(springs), 1)) < 0.5, springs, springs[:, ::-1])  # both orders
+    length = np.linalg.norm(x[springs[:, 1]] - x[springs[:, 0]], axis=1)
+    k = len(springs)
+    n_fixed = int(rng.integers(1, 3)) if n_fixed is None else n_fixed
+    return ms.Model(
+        x, springs,
+        masses=rng.uniform(0.5, 2.0, n),
+        stiffness=rng.uniform(50.0, 500.0, k),
+        damping=rng.uniform(0.5, 5.0, k),
+        rest_lengths=length * rng.uniform(rest[0], rest[1], k),
+        velocities=rng.normal(size=(n, 3)),
+        gravity=gravity,
+        fixed=rng.choice(n, size=n_fixed, replace=False),
+    )
+
+
+def spring_geometry(x, i, j):
+    d = x[j] - x[i]
+    length = np.linalg.norm(d)
+    if length <= ZERO_LENGTH:
+        return None, length
+    return d / length, length
+
+
+def numpy_forces(model, x, v, magnitude=False):
+    """Total force (n, 3) of Eq. 1-3: spring + damping + gravity. With ``magnitude``,
+    also the per-particle sum of the terms' absolute values (n,) (the scale of the
+    round-off in summing them)."""
+    f = model.masses[:, None] * model.gravity[None, :]
+    mag = model.masses * np.linalg.norm(model.gravity)
+    for s, (i, j) in enumerate(model.springs):
+        nvec, length = spring_geometry(x, i, j)
+        if nvec is None:
+            continue
+        fs = model.stiffness[s] * (length - model.rest_lengths[s]) * nvec
+        fd = model.damping[s] * np.dot(v[j] - v[i], nvec) * nvec
+        f[i] += fs + fd
+        f[j] -= fs + fd
+        size = np.linalg.norm(fs) + np.linalg.norm(fd)
+        mag[i] += size
+        mag[j] += size
+    return (f, mag) if magnitude else f
+
+
+def dense_jacobians(model, x, definiteness_fix):
+    """K = df/dx (Eq. 13, damping's x-derivative ignored) and D = df/dv (Eq. 14), 3n x 3n.
+
+    K_ii = ks ((l0/l - 1) I - (l0/l) n n^T) = ks (c I - (1 + c) n n^T), c = l0/l - 1;
+    the definiteness fix uses min(c, 0) for c, i.e. drops the transverse part
+    c (I - n n^T) of compressed springs and keeps the axial part -ks n n^T.
+    """
+    n = model.n_particles
+    K = np.zeros((3 * n, 3 * n))
+    D = np.zeros((3 * n, 3 * n))
+    eye = np.eye(3)
+    for s, (i, j) in enumerate(model.springs):
+        nvec, length = spring_geometry(x, i, j)
+        if nvec is None:
+            continue
+        nn = np.outer(nvec, nvec)
+        l0, ks, kd = model.rest_lengths[s], model.stiffness[s], model.damping[s]
+        if definiteness_fix:
+            c = min(l0 / length - 1.0, 0.0)
+            kb = ks * (c * eye - (1.0 + c) * nn)
+        else:
+            kb = ks * ((l0 / length - 1.0) * eye - (l0 / length) * nn)  # Eq. 13 as written
+        db = -kd * nn
+        for blocks, sign in (((i, i), 1), ((j, j), 1), ((i, j), -1), ((j, i), -1)):
+            a, b = blocks
+            K[3 * a:3 * a + 3, 3 * b:3 * b + 3] += sign * kb
+            D[3 * a:3 * a + 3, 3 * b:3 * b + 3] += sign * db
+    return K, D
+
+
+def free_dofs(model):
+    return np.repeat(model.free_mask(), 3)
+
+
+def dense_system(model, dt, definiteness_fix, x=None, v=None):
+    """(A, b) of Eq. 15 restricted to the free particles' degrees of freedom."""
+    x = model.positions if x is None else x
+    v = model.velocities if v is None else v
+    K, D = dense_jacobians(model, x, definiteness_fix)
+    M = np.diag(np.repeat(model.masses, 3))
+    A = M - dt * D - dt * dt * K
+    vf = v.reshape(-1)
+    b = M @ vf + dt * numpy_forces(model, x, v).reshape(-1) - dt * D @ vf
+    keep = free_dofs(model)
+    return A[np.ix_(keep, keep)], b[keep]
