@@ -197,7 +197,9 @@ def cg_solve(dev: ti.template(), cfg: ti.template(), dt: ti.f64, tol: ti.f64,
              max_iter: ti.i32) -> ti.types.vector(3, ti.f64):
     """``refresh`` and the whole PCG solve of A v = b from v = v_n in one launch, serial loops.
 
-    Returns (iterations, true relative residual, reason code; see ``REASONS``).
+    The loop of ``massspring.solvers.cg``, written with ``begin`` once (the first
+    residual and every restart share it: half the code to compile). Returns
+    (iterations, true relative residual, reason code; see ``REASONS``).
     """
     iterations = 0
     reason = CONVERGED
@@ -205,21 +207,31 @@ def cg_solve(dev: ti.template(), cfg: ti.template(), dt: ti.f64, tol: ti.f64,
     ti.loop_config(serialize=True)
     for _ in range(1):
         refresh(dev, cfg, dev.x, dev.v, ti.cast(dt, cfg.real))
-        sums = begin(dev, cfg)
-        rz = sums[0]
-        rr = sums[1]
-        bb = sums[2]
-        if not is_finite(bb):
-            reason = NONFINITE
-            residual = bb
-        elif bb == 0.0:
-            for i in range(dev.size[0]):
-                dev.v[i] = ti.Vector.zero(cfg.real, 3)
-        else:
-            target = tol * tol * bb
-            best = 1e308
-            done = False
-            while not done:
+        bb = 0.0
+        target = 0.0
+        best = 1e308
+        cycle = -1  # iterations of the cycle just ended; -1 before the first
+        done = False
+        while not done:
+            sums = begin(dev, cfg)  # r = b - A v: the start, or the true residual after a cycle
+            rz = sums[0]
+            rr = sums[1]
+            if cycle < 0:
+                bb = sums[2]
+                target = tol * tol * bb
+                if not is_finite(bb):
+                    reason = NONFINITE
+                    residual = bb
+                    done = True
+                elif bb == 0.0:
+                    for i in range(dev.size[0]):
+                        dev.v[i] = ti.Vector.zero(cfg.real, 3)
+                    done = True
+            else:
+                residual = ti.sqrt(ti.max(rr, 0.0) / bb)
+                done, reason, best = next_action(is_finite(residual), iterations, cycle, residual, tol, best,
+                                                 reason, max_iter)
+            if not done:
                 cycle = 0
                 while rr > target and iterations < max_iter:
                     pq = apply(dev, cfg)
@@ -232,13 +244,10 @@ def cg_solve(dev: ti.template(), cfg: ti.template(), dt: ti.f64, tol: ti.f64,
                     direction(dev, cfg, s2[0] / rz)
                     rz = s2[0]
                     rr = s2[1]
-                if cycle > 0:
-                    restart = begin(dev, cfg)
-                    rz = restart[0]
-                    rr = restart[1]
-                residual = ti.sqrt(ti.max(rr, 0.0) / bb)
-                done, reason, best = next_action(is_finite(residual), iterations, cycle, residual, tol, best,
-                                                 reason, max_iter)
+                if cycle == 0:  # nothing to restart from: decide on the residual at hand
+                    residual = ti.sqrt(ti.max(rr, 0.0) / bb)
+                    done, reason, best = next_action(is_finite(residual), iterations, cycle, residual, tol,
+                                                     best, reason, max_iter)
     return ti.Vector([iterations, residual, reason], ti.f64)
 
 

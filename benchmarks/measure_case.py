@@ -1,0 +1,81 @@
+"""One measurement of ``compare_revisions.py``, printed as JSON: {"case", "value"}.
+
+Only public API that every revision since the first release has (``load_scene``,
+``Scene.with_params``, ``Scene.simulation``, ``Simulation.step``,
+``solver_stats``), so the same file measures old and new code.
+
+    python benchmarks/measure_case.py implicit-128
+"""
+
+import json
+import statistics
+import sys
+import time
+
+import massspring as ms
+
+ITERATIONS = 20  # CG iterations of the shorter capped solve (the longer has twice as many)
+
+
+def cloth(resolution):
+    return ms.load_scene("cloth").with_params(resolution=resolution)
+
+
+def implicit_ms_per_iteration(resolution, repeats=3):
+    """(t(2k) - t(k)) / k over solves capped at k and 2k iterations: the iteration alone."""
+    scene = cloth(resolution)
+
+    def solve_seconds(limit):
+        sim = scene.simulation(integrator="implicit", dt=1 / 60, cg_max_iter=limit)
+        sim.step(1)  # compile, and leave the flat start behind
+        times = []
+        for _ in range(repeats):
+            t0 = time.perf_counter()
+            sim.step(1)
+            times.append(time.perf_counter() - t0)
+            assert sim.solver_stats.iterations == limit, sim.solver_stats
+        return statistics.median(times)
+
+    return 1e3 * (solve_seconds(2 * ITERATIONS) - solve_seconds(ITERATIONS)) / ITERATIONS
+
+
+def explicit_ms_per_step(integrator, resolution, repeats=3):
+    sim = cloth(resolution).simulation(integrator=integrator, dt=2e-4 / resolution)
+    sim.step(2)
+    steps = max(10, int(4e6 / sim.model.n_springs))
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        sim.step(steps)
+        times.append((time.perf_counter() - t0) / steps)
+    return 1e3 * statistics.median(times)
+
+
+def cold_first_step(integrator, resolution):
+    """Seconds from building the Simulation to the end of its first step (kernels
+    compiled: run with an empty Taichi offline cache)."""
+    scene = cloth(resolution)
+    scene.model()  # the scene's own numpy work is not compilation
+    t0 = time.perf_counter()
+    sim = scene.simulation(integrator=integrator)
+    sim.step(1)
+    sim.positions  # noqa: B018 - the readback kernel too
+    return time.perf_counter() - t0
+
+
+def main(case):
+    kind, _, size = case.rpartition("-")
+    resolution = int(size)
+    if kind == "implicit":
+        value = implicit_ms_per_iteration(resolution)
+    elif kind in ("explicit", "symplectic"):
+        value = explicit_ms_per_step(kind, resolution)
+    elif kind.startswith("cold-"):
+        value = cold_first_step(kind[len("cold-"):], resolution)
+    else:
+        raise SystemExit(f"unknown case {case!r}")
+    print(json.dumps({"case": case, "value": value}))
+
+
+if __name__ == "__main__":
+    main(sys.argv[1])
