@@ -246,13 +246,14 @@ def divergence_hint(sim, exc):
 
 
 def add_export_arguments(p):
-    from massspring.io.camera import PROJECTIONS
-    from massspring.io.render import DEFAULT_MAX_FRAMES, MAX_FPS
+    from massspring.io.camera import FRAMINGS, PROJECTIONS
+    from massspring.io.render import DEFAULT_FPS, DEFAULT_MAX_FRAMES, MAX_FPS
 
     g = p.add_argument_group("pictures (headless: no display, GPU or ffmpeg needed)")
     g.add_argument("--gif", metavar="PATH", help="write an animated GIF of the run (.gif)")
     g.add_argument("--png", metavar="PATH", help="write the final frame as a PNG (.png)")
-    g.add_argument("--fps", type=float, help=f"GIF frames per second (default 30, at most {MAX_FPS})")
+    g.add_argument("--fps", type=float, help=f"GIF frames per second (default {DEFAULT_FPS}, at most {MAX_FPS}; "
+                   "GIF stores whole 1/100 s per frame, so 30 plays at 33.3)")
     count = g.add_mutually_exclusive_group()
     count.add_argument("--frames", type=int, metavar="N", help="frames from start to end (default: enough to "
                        f"play the simulated time in real time at --fps, at most {DEFAULT_MAX_FRAMES})")
@@ -261,6 +262,8 @@ def add_export_arguments(p):
     g.add_argument("--view", metavar="AZ,EL", help="camera azimuth and elevation in degrees "
                    "(default: the scene's [view])")
     g.add_argument("--projection", choices=PROJECTIONS, help="default: the scene's [view]")
+    g.add_argument("--framing", choices=FRAMINGS, help="run: fit the whole run (default); follow: keep the "
+                   "scale, centre each frame on the body; last: fit the last frame")
 
 
 @dataclass
@@ -269,6 +272,7 @@ class PicturePlan:
 
     recording: object  # render.Recording
     view: object       # camera.View
+    framing: str       # camera.FRAMINGS
     size: tuple
     fps: float
     gif: str | None
@@ -278,28 +282,32 @@ class PicturePlan:
 def plan_pictures(args, scene, sim, steps):
     """Check the picture options before the run: None without --gif/--png."""
     from massspring.io import render
-    from massspring.io.camera import View
+    from massspring.io.camera import Framing, View
     from massspring.io.files import check_writable
 
     if not (args.gif or args.png):
         for name in ("gif", "png"):
             if getattr(args, name) == "":
                 raise UsageError(f"--{name}: empty path")
-        for name in ("fps", "frames", "every", "size", "view", "projection"):
+        for name in ("fps", "frames", "every", "size", "view", "projection", "framing"):
             if getattr(args, name) is not None:
                 raise UsageError(f"--{name}: only with --gif or --png")
         return None
     for option, path, suffix in (("--gif", args.gif, ".gif"), ("--png", args.png, ".png")):
         if path is not None:
             check_writable(path, option, (suffix,))
-    fps = 30.0 if args.fps is None else args.fps
-    if not 0 < fps <= render.MAX_FPS:
+    fps = render.DEFAULT_FPS if args.fps is None else args.fps
+    if not (math.isfinite(fps) and 0 < fps <= render.MAX_FPS):
         raise UsageError(f"--fps: must be > 0 and <= {render.MAX_FPS}, got {fps:g}")
     size = parse_size(args.size or "480x480")
+    settings = dict(scene.view)
+    framing = args.framing or settings.pop("framing", "run")
     try:
-        view = View(**scene.view)
+        view = View(**settings)
+        Framing.fit(view, np.zeros((1, 1, 3)), (0, 0, 1, 1), framing)
     except ValueError as exc:
-        raise UsageError(f"{scene.source}: {exc}") from None
+        raise UsageError(f"{scene.source}: view.{exc}" if not str(exc).startswith("view.") else
+                         f"{scene.source}: {exc}") from None
     try:
         if args.view is not None:
             parts = args.view.split(",")
@@ -319,7 +327,7 @@ def plan_pictures(args, scene, sim, steps):
     if need > 2e9:
         raise UsageError(f"--frames: {len(steps_at)} frames of {sim.model.n_particles} particles would keep "
                          f"{need / 1e9:.1f} GB of positions; ask for fewer with --frames or --every")
-    return PicturePlan(render.Recording(steps_at), view, size, fps, args.gif, args.png)
+    return PicturePlan(render.Recording(steps_at), view, framing, size, fps, args.gif, args.png)
 
 
 def parse_size(text):
@@ -362,7 +370,8 @@ def finish_pictures(plan, scene, sim, steps):
         return []
     start = time.perf_counter()
     renderer = render.FrameRenderer(sim.model, np.stack(rec.positions), plan.view, plan.size,
-                                    label=f"{scene.name}  {sim.integrator}  dt = {format_seconds(sim.dt)}")
+                                    label=f"{scene.name}  {sim.integrator}  dt = {format_seconds(sim.dt)}",
+                                    framing=plan.framing)
     result = render.export(renderer, rec, gif=plan.gif, png=plan.png, fps=plan.fps)
     wall = time.perf_counter() - start
     for option, error in result.errors.items():
@@ -376,6 +385,8 @@ def finish_pictures(plan, scene, sim, steps):
     last = rec.times[result.count - 1] if plan.gif else rec.times[-1]
     note = (f"{written}: {result.count} frame(s) of {plan.size[0]}x{plan.size[1]}, t = {rec.times[0]:g} to "
             f"{last:g} s, rendered in {wall:.2f} s ({1e3 * wall / result.count:.1f} ms/frame)")
+    if plan.gif and "--gif" not in result.errors:
+        note += f"; the GIF plays at {render.gif_delay(plan.fps)[1]:g} frames/s"
     if rec.skipped:
         note += f"; {rec.skipped} frame(s) with non-finite positions left out"
     if result.interrupted:

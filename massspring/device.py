@@ -90,6 +90,19 @@ def _probe(arch):
                          f"{'; '.join(warnings) or 'no such device'}")
 
 
+def available_memory():
+    """Bytes of memory available to a new allocation (Linux: MemAvailable), or None
+    where the system does not say."""
+    try:
+        with open("/proc/meminfo") as fh:
+            for line in fh:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except OSError:
+        pass
+    return None
+
+
 def capacity(count, floor):
     """The capacity class of ``count`` items: the smallest 2^k or 3 * 2^(k-1) >= max(count, floor)."""
     need = max(int(count), int(floor), 1)
@@ -209,11 +222,16 @@ class Layout:
                    for dtype, shape, element, _ in self.decls.values())
 
     def allocate(self) -> "Bundle":
-        """The bundle: taken from the pool if one has these declarations, else new; filled."""
+        """The bundle: taken from the pool if one has these declarations, else new; filled.
+        A new one that would not fit in the memory available is refused (ValueError)."""
         signature = self.signature()
         bundle = POOL.take(signature)
         reused = bundle is not None
         if not reused:
+            need, available = self.nbytes(), available_memory()
+            if available is not None and need > available:
+                raise ValueError(f"model: {self.n:,} particles and {self.m:,} springs need {need / 1e9:.3g} GB of "
+                                 f"fields for this run; {available / 1e9:.3g} GB of memory is available")
             builder = ti.FieldsBuilder()
             fields = {name: _place(builder, dtype, shape, element)
                       for name, (dtype, shape, element, _) in self.decls.items()}

@@ -123,3 +123,26 @@ def test_serial_and_parallel_loops_agree_to_the_bit_on_explicit_steps(cloth):
         sim.close()
     np.testing.assert_array_equal(runs[0][0], runs[1][0])
     np.testing.assert_array_equal(runs[0][1], runs[1][1])
+
+
+def test_memory_does_not_grow_with_the_number_of_simulations():
+    """Before, every Simulation kept about 48 KB (196 to 266 MiB over 1,500 runs);
+    now its fields go back to the pool and nothing else stays: 300 more runs, half of
+    them closed and half dropped, grow the peak RSS by well under the 14 MB they cost."""
+    import resource
+
+    model = ms.load_scene("cloth").with_params(resolution=6).model()
+
+    def runs(count):
+        for k in range(count):
+            sim = ms.Simulation(model, integrator="implicit", dt=1 / 60)
+            sim.step(1)
+            if k % 2:
+                sim.close()
+            del sim
+
+    runs(50)  # compiled, pooled
+    before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss  # KiB on Linux
+    runs(300)
+    growth_kib = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - before
+    assert growth_kib < 4 * 1024, growth_kib

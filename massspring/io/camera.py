@@ -11,6 +11,7 @@ from dataclasses import dataclass
 import numpy as np
 
 PROJECTIONS = ("orthographic", "perspective")
+FRAMINGS = ("run", "follow", "last")
 PERSPECTIVE_DISTANCE = 3.0  # perspective camera distance from the run's centre, in bounding radii
 MARGIN = 0.05               # fraction of the plot area's width and height kept free on each side
 
@@ -67,7 +68,12 @@ class View:
 class Framing:
     """World -> pixel mapping of a run: ``view``'s projection around the run's bounding
     box, scaled uniformly to fit ``plot`` (left, top, width, height in pixels) with
-    ``MARGIN`` kept free, and centred there."""
+    ``MARGIN`` kept free, and centred there.
+
+    ``Framing.fit(..., mode)``: "run" fits every frame at once (nothing ever leaves
+    the picture); "follow" keeps the scale that fits the largest frame but centres
+    each frame on itself (``for_frame``: a falling body stays in the middle, at a
+    constant size); "last" fits the last frame alone."""
 
     view: View
     centre: np.ndarray
@@ -75,12 +81,25 @@ class Framing:
     middle: np.ndarray
     scale: float
     plot: tuple
+    follow: bool = False
 
     @classmethod
-    def fit(cls, view, frames, plot):
-        """The framing of ``frames`` (k, n, 3): their 3D box gives the centre and radius,
-        their projections' 2D box the scale."""
+    def fit(cls, view, frames, plot, mode="run"):
+        """The framing of ``frames`` (k, n, 3) for ``mode`` (see the class)."""
+        if mode not in FRAMINGS:
+            raise ValueError(f"framing: unknown value {mode!r}, expected one of {', '.join(FRAMINGS)}")
         frames = np.asarray(frames, dtype=np.float64)
+        if mode == "last":
+            return cls._fit(view, frames[-1:], plot)
+        if mode == "follow":
+            fits = [cls._fit(view, frame[None], plot) for frame in frames]
+            smallest = min(fits, key=lambda f: f.scale)
+            return cls(view, smallest.centre, smallest.radius, smallest.middle, smallest.scale, tuple(plot), True)
+        return cls._fit(view, frames, plot)
+
+    @classmethod
+    def _fit(cls, view, frames, plot):
+        """Their 3D box gives the centre and radius, their projections' 2D box the scale."""
         lo, hi = frames.reshape(-1, 3).min(axis=0), frames.reshape(-1, 3).max(axis=0)
         centre = (lo + hi) / 2
         radius = float(np.linalg.norm(hi - lo)) / 2 or 1.0
@@ -91,6 +110,17 @@ class Framing:
         fits = [room[i] / extent[i] for i in range(2) if extent[i] > 1e-9 * radius]
         scale = min(fits) if fits else float(min(room)) / (2 * radius)
         return cls(view, centre, radius, (lo2 + hi2) / 2, scale, tuple(plot))
+
+    def for_frame(self, positions):
+        """The framing to draw ``positions`` (n, 3) with: itself, or when following, the
+        same scale centred on that frame's box."""
+        if not self.follow:
+            return self
+        x = np.asarray(positions, dtype=np.float64)
+        centre = (x.min(axis=0) + x.max(axis=0)) / 2
+        xy, _ = self.view.project(x, centre, self.radius)
+        middle = (xy.min(axis=0) + xy.max(axis=0)) / 2
+        return Framing(self.view, centre, self.radius, middle, self.scale, self.plot, True)
 
     def pixels(self, points):
         """Pixel coordinates (..., 2) (x right, y down; pixel (i, j) covers [i, i+1) x

@@ -82,11 +82,11 @@ def check_writable(path, name, suffixes=None) -> Path:
     path = Path(path)
     if suffixes and path.suffix.lower() not in suffixes:
         raise ValueError(f"{name}: {str(path)!r} must end in {' or '.join(suffixes)}")
-    if path.is_dir():
-        raise ValueError(f"{name}: {str(path)!r} is a directory")
-    if not path.parent.is_dir():
-        raise ValueError(f"{name}: directory {str(path.parent)!r} does not exist")
     try:
+        if path.is_dir():
+            raise ValueError(f"{name}: {str(path)!r} is a directory")
+        if not path.parent.is_dir():
+            raise ValueError(f"{name}: directory {str(path.parent)!r} does not exist")
         fd, tmp = tempfile.mkstemp(**_temp_name(path))
         os.close(fd)
         os.unlink(tmp)

@@ -25,9 +25,10 @@ from massspring.io.files import atomic_output
 
 MAX_DOTS = 200              # free particles are dots when a model without a surface has at most this many
 MAX_FPS = 50                # GIF delays are in 1/100 s; viewers slow down delays below 2/100 s
+DEFAULT_FPS = 25            # a whole number of 1/100 s per frame (4): plays at exactly this rate
 DEFAULT_MAX_FRAMES = 150    # cap of the default frame count
 STRAIN_FLOOR = 1e-3         # smallest colour-scale limit: strains below 0.1% stay near neutral
-STRAIN_QUANTILE = 0.995     # colour-scale limit: this quantile of |strain| over the run
+STRAIN_QUANTILE = 0.995     # colour-scale limit: the median over frames of this quantile of |strain|
 
 BACKGROUND = (24, 26, 32)
 TEXT = (225, 225, 225)
@@ -77,7 +78,7 @@ def edge_springs(springs, triangles, n_particles):
     return np.where(sorted_keys[pos] == wanted, order[pos], -1)
 
 
-def frame_steps(steps, frames=None, every=None, duration=None, fps=30.0, max_frames=DEFAULT_MAX_FRAMES):
+def frame_steps(steps, frames=None, every=None, duration=None, fps=DEFAULT_FPS, max_frames=DEFAULT_MAX_FRAMES):
     """Steps (sorted int array, from 0 to ``steps``) at which to record a frame.
 
     ``every`` K: steps 0, K, 2K, ... and the last step. ``frames`` N: N steps spread
@@ -151,14 +152,14 @@ class FrameRenderer:
     each frame's caption (followed by the simulated time).
     """
 
-    def __init__(self, model, frames, view=View(), size=(480, 480), label=""):
+    def __init__(self, model, frames, view=View(), size=(480, 480), label="", framing="run"):
         import taichi as ti  # the canvas; no ti.init needed, nothing is compiled
 
         self.model = model
         self.width, self.height = size
         self.label = label
         self.font, _, self.legend_h = layout(size)
-        self.framing = Framing.fit(view, frames, plot_box(size))
+        self.framing = Framing.fit(view, frames, plot_box(size), framing)
         tris = model.triangles
         self.triangles = tris
         self.tri_springs = edge_springs(model.springs, tris, model.n_particles)
@@ -175,13 +176,15 @@ class FrameRenderer:
                           background_color=packed(BACKGROUND))
 
     def _strain_limit(self, frames):
-        """Colour-scale limit: the STRAIN_QUANTILE of |strain| over (up to 50) frames, >= STRAIN_FLOOR."""
+        """Colour-scale limit, fixed for the run: the median over (up to 50 evenly picked)
+        frames of each frame's STRAIN_QUANTILE of |strain|, at least STRAIN_FLOOR. A median
+        of frames, so that a few extreme frames (a crumpled start) do not grey out the rest."""
         if not self.model.n_springs:
             return STRAIN_FLOOR
         picks = np.unique(np.linspace(0, len(frames) - 1, min(len(frames), 50)).astype(np.int64))
-        strains = np.concatenate([np.abs(spring_strain(frames[i], self.model.springs, self.model.rest_lengths))
-                                  for i in picks])
-        return max(STRAIN_FLOOR, float(np.quantile(strains, STRAIN_QUANTILE)))
+        per_frame = [np.quantile(np.abs(spring_strain(frames[i], self.model.springs, self.model.rest_lengths)),
+                                 STRAIN_QUANTILE) for i in picks]
+        return max(STRAIN_FLOOR, float(np.median(per_frame)))
 
     def _to_canvas(self, px):
         """Pixel coordinates -> the canvas's [0, 1]^2 with y up."""
@@ -191,7 +194,8 @@ class FrameRenderer:
         """The frame of ``positions`` (n, 3) at simulated ``time`` (s): (H, W, 3) uint8."""
         gui = self.gui
         gui.clear()
-        px, depth = self.framing.pixels(positions)
+        framing = self.framing.for_frame(positions)
+        px, depth = framing.pixels(positions)
         uv = self._to_canvas(px)
         strain = spring_strain(positions, self.model.springs, self.model.rest_lengths) / self.strain_limit
         springs = self.model.springs[self.lines]
@@ -276,13 +280,20 @@ def to_palette(image):
                                                   dither=Image.Dither.NONE)
 
 
+def gif_delay(fps):
+    """The frame delay (in 1/100 s, as GIF stores it) closest to ``fps``, and the rate it plays at."""
+    delay = max(2, round(100.0 / fps))
+    return delay, 100.0 / delay
+
+
 def write_gif(path, frames, fps):
-    """Write PIL palette ``frames`` as a looping GIF at ``fps`` frames/s, atomically."""
+    """Write PIL palette ``frames`` as a looping GIF at ``fps`` frames/s (rounded to a
+    whole number of 1/100 s per frame, see ``gif_delay``), atomically."""
     if not frames:
         raise ValueError("frames: a GIF needs at least one frame")
+    delay, _ = gif_delay(fps)
     with atomic_output(path) as fh:
-        frames[0].save(fh, format="GIF", save_all=True, append_images=frames[1:],
-                       duration=round(1000 / fps), loop=0)
+        frames[0].save(fh, format="GIF", save_all=True, append_images=frames[1:], duration=10 * delay, loop=0)
 
 
 def write_png(path, image):
@@ -304,7 +315,7 @@ class ExportResult:
     errors: dict
 
 
-def export(renderer, recording, gif=None, png=None, fps=30.0) -> ExportResult:
+def export(renderer, recording, gif=None, png=None, fps=DEFAULT_FPS) -> ExportResult:
     """Render ``recording`` with ``renderer`` and write the GIF (every frame) and/or the
     PNG (the last frame rendered), each on its own: one failing does not stop the
     other. A Ctrl-C while rendering stops it, and what was rendered is still written."""

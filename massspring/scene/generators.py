@@ -180,6 +180,24 @@ def _slices(offset, start):
 GENERATORS = {"spring": spring, "chain": chain, "grid": grid, "lattice": lattice}
 
 
+def counts(generator, params):
+    """(particles, springs) a generator will make with ``params``, without making them
+    (so that a scene too large for memory is refused before any allocation)."""
+    if generator == "spring":
+        return 2, 1
+    if generator == "chain":
+        c = max(int(params["count"]), 0)
+        return c, max(c - 1, 0)
+    if generator == "grid":
+        r = max(int(params["resolution"]), 0)
+        springs = 2 * r * max(r - 1, 0)
+        springs += 2 * max(r - 1, 0) ** 2 if params["shear"] > 0 else 0
+        springs += 2 * r * max(r - 2, 0) if params["bend"] > 0 else 0
+        return r * r, springs
+    r = max(int(params["resolution"]), 0)
+    return r ** 3, sum(int(np.prod([max(r - abs(o), 0) for o in offset])) for offset in _neighbour_offsets())
+
+
 def _cell_triangles(idx):
     """Two triangles per cell of a 2D index grid, split along the (0, 0)-(1, 1) diagonal
     (its edges are structural or shear springs)."""

@@ -1,0 +1,151 @@
+"""What a first user and a fuzzer hit on the command line: every failure is exit 2
+(bad input) or 3 (divergence) with a one-line message and no traceback, decided before
+the first step; outputs are written independently and nothing computed is lost."""
+
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+
+from massspring import __version__
+from massspring.cli import main
+
+
+def run_cli(*args, timeout=300):
+    proc = subprocess.run([sys.executable, "-m", "massspring", *args], capture_output=True, text=True,
+                          timeout=timeout)
+    return proc.returncode, proc.stdout, proc.stderr
+
+
+def one_line_error(capsys, *words):
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "Traceback" not in err, err
+    for word in words:
+        assert word in err, (word, err)
+    return err
+
+
+@pytest.mark.parametrize("args, word", [
+    (["--cg-max-iter", "4294967297"], "cg_max_iter"),
+    (["--duration", "inf"], "--duration"),
+    (["--duration", "nan"], "--duration"),
+    (["--duration", "1e300"], "--duration"),
+    (["--dt", "inf"], "--dt"),
+    (["--set", "stiffness=inf"], "stiffness"),
+    (["--steps", "99999999999999999999"], "--steps"),
+    (["--out", ""], "--out"),
+    (["--gif", ""], "--gif"),
+    (["--png", "last.gif"], "--png"),
+    (["--gif", "run.png"], "--gif"),
+    (["--out", "state.txt"], "--out"),
+    (["--precision", "f32", "--set", "stiffness=1e30"], "stiffness"),
+])
+def test_bad_values_exit_2_before_the_run(args, word, tmp_path, capsys, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    assert main(["run", "spring", "--quiet", *args]) == 2
+    one_line_error(capsys, word)
+    assert not list(tmp_path.iterdir())  # nothing written, no temporary file
+
+
+@pytest.mark.parametrize("settings, word", [(["seed=-5"], "seed"), (["resolution=4", "resolution=5"], "resolution"),
+                                            (["resolution=5000"], "GB")])
+def test_bad_settings_name_the_key(settings, word, capsys):
+    args = ["run", "cloth", "--steps", "1", "--quiet"]
+    for item in settings:
+        args += ["--set", item]
+    assert main(args) == 2
+    one_line_error(capsys, word)
+
+
+def test_output_paths_checked_before_the_first_step(tmp_path, capsys):
+    locked = tmp_path / "locked"
+    locked.mkdir()
+    locked.chmod(0o500)
+    cases = [("--out", str(tmp_path)),                          # an existing directory
+             ("--gif", str(tmp_path / "no" / "such" / "x.gif")),  # a missing directory
+             ("--png", "/proc/massspring.png"),                   # a file system that refuses files
+             ("--out", str(tmp_path / ("x" * 300 + ".npz")))]     # a name too long
+    if os.geteuid() != 0:  # root may write anywhere
+        cases.append(("--out", str(locked / "x.npz")))
+    for option, path in cases:
+        start = time.perf_counter()
+        assert main(["run", "cloth", "--steps", "100000", "--quiet", option, path]) == 2, (option, path)
+        one_line_error(capsys, option)
+        assert time.perf_counter() - start < 30  # refused before 100000 steps, not after
+
+
+def test_failed_picture_keeps_the_state_file(tmp_path, capsys, monkeypatch):
+    from massspring.io import render
+
+    def fail(path, frames, fps):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(render, "write_gif", fail)
+    out, gif, png = tmp_path / "state.npz", tmp_path / "run.gif", tmp_path / "last.png"
+    code = main(["run", "spring", "--steps", "10", "--quiet", "--out", str(out), "--gif", str(gif),
+                 "--png", str(png)])
+    err = capsys.readouterr().err
+    assert code == 1 and "--gif" in err and "No space left" in err
+    assert out.is_file() and png.is_file() and not gif.exists()
+    assert int(np.load(out)["steps"]) == 10
+
+
+def test_stale_temporary_file_of_a_killed_run_is_cleaned(tmp_path, capsys):
+    # a process killed during the final write (SIGKILL) leaves its temporary file
+    proc = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"])
+    stale = tmp_path / f".run.gif.{proc.pid}.abc123.tmp"
+    stale.write_bytes(b"half a GIF")
+    proc.kill()
+    proc.wait()
+    mine = tmp_path / f".run.gif.{os.getpid()}.live.tmp"  # a write in progress (this process): kept
+    mine.write_bytes(b"")
+    assert main(["run", "spring", "--steps", "3", "--quiet", "--gif", str(tmp_path / "run.gif")]) == 0
+    assert not stale.exists() and mine.exists() and (tmp_path / "run.gif").is_file()
+
+
+def test_sigterm_is_handled_like_ctrl_c(tmp_path):
+    out, gif = tmp_path / "state.npz", tmp_path / "run.gif"
+    proc = subprocess.Popen([sys.executable, "-m", "massspring", "run", "cloth", "--steps", "100000", "--quiet",
+                             "--out", str(out), "--gif", str(gif), "--every", "50"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    time.sleep(6.0)  # past start-up (a few seconds): 100000 implicit steps take minutes
+    assert proc.poll() is None
+    proc.send_signal(signal.SIGTERM)
+    stdout, stderr = proc.communicate(timeout=300)
+    assert proc.returncode == 128 + signal.SIGTERM, stderr
+    assert "terminated after" in stderr and "Traceback" not in stderr
+    data = np.load(out)
+    assert 0 <= int(data["steps"]) < 100000 and np.all(np.isfinite(data["positions"]))
+    assert "steps       " in stdout  # the summary of the state reached
+
+
+def test_misspelt_option_prints_the_verbs_usage(capsys):
+    with pytest.raises(SystemExit) as info:
+        main(["run", "cloth", "--stpes", "5"])
+    assert info.value.code == 2
+    err = capsys.readouterr().err
+    assert "usage: massspring run" in err and "--stpes" in err
+
+
+def test_version(capsys):
+    with pytest.raises(SystemExit) as info:
+        main(["--version"])
+    assert info.value.code == 0 and capsys.readouterr().out.strip() == f"massspring {__version__}"
+
+
+def test_divergence_says_what_to_try(capsys):
+    code = main(["run", "stiffchain", "--integrator", "symplectic", "--dt", "1e-3", "--steps", "200", "--quiet"])
+    err = capsys.readouterr().err
+    assert code == 3 and err.count("\n") == 1
+    assert "diverged at step" in err and "--dt" in err and "--integrator implicit" in err
+
+
+def test_summary_prints_round_off_as_zero(capsys):
+    # the spring scene has no gravity: its gravity energy is 0, not -0 or 1e-26
+    assert main(["run", "spring", "--steps", "5", "--quiet"]) == 0
+    energy = next(line for line in capsys.readouterr().out.splitlines() if line.startswith("energy"))
+    assert "gravity 0)" in energy and "e-2" not in energy and "-0" not in energy
