@@ -1,8 +1,9 @@
 """Preconditioned conjugate gradient for Eq. 15, as Taichi kernels.
 
-The solve runs on the free particles only: pinned particles are removed from the
-system by keeping every CG vector zero there (no penalty springs). The operator
-is applied spring by spring (``operator.apply_row``); no matrix is formed.
+The solve runs on the unconstrained directions only (``constraints``): the iterate
+holds the prescribed velocity of pinned particles, and every CG vector is filtered
+(zero there), so no penalty springs are needed. The operator is applied spring by
+spring (``operator.apply_row``); no matrix is formed.
 
 Each CG phase is a ``ti.func`` with its loops at its top level, reducing in fixed
 blocks (``blocks``), so that two drivers run the same arithmetic:
@@ -34,7 +35,7 @@ import taichi as ti
 
 from .blocks import BLOCK, block_count, block_end, ordered_sum
 from .divergence import OK, check_code, is_finite, state_sums
-from .forces import moving
+from .constraints import constrain, is_free, prescribed
 from .operator import apply_row, refresh
 
 CONVERGED, MAX_ITER, INDEFINITE, STALLED, NONFINITE = 0, 1, 2, 3, 4
@@ -51,45 +52,40 @@ def precondition(i, dev, cfg: ti.template(), r):
 
 @ti.func
 def begin(dev, cfg: ti.template()):
-    """r = b - A x, z = P r, p = z on the free particles (all zero, and x too, at
-    pinned ones); returns (r.z, r.r, b.b). Without a pointwise preconditioner z and
-    p are left to the driver (r.z is then 0)."""
+    """r = S (b - A x), z = S P r, p = z, with the iterate x = ``dev.v`` set to the
+    prescribed velocity in constrained directions first; returns (r.z, r.r, b.b) over
+    the free directions. Without a pointwise preconditioner z and p are left to the
+    driver (r.z is then 0)."""
     n = dev.size[0]
+    for i in range(n):
+        if not is_free(i, dev, cfg):
+            dev.v[i] = constrain(i, dev, cfg, dev.v[i]) + prescribed(i, dev, cfg)
     for blk in range(block_count(n)):
         acc = ti.Vector.zero(ti.f64, 3)
         for i in range(blk * BLOCK, block_end(blk, n)):
-            zero = ti.Vector.zero(cfg.real, 3)
-            if moving(i, dev, cfg):
-                ri = dev.b[i] - apply_row(i, dev, cfg, dev.v)
-                dev.r[i] = ri
-                bi = ti.cast(dev.b[i], ti.f64)
-                r64 = ti.cast(ri, ti.f64)
-                rz = 0.0
-                if ti.static(cfg.pointwise):
-                    zi = precondition(i, dev, cfg, ri)
-                    dev.z[i] = zi
-                    dev.p[i] = zi
-                    rz = r64.dot(ti.cast(zi, ti.f64))
-                acc += ti.Vector([rz, r64.dot(r64), bi.dot(bi)], ti.f64)
-            else:
-                dev.v[i] = zero
-                dev.r[i] = zero
-                dev.z[i] = zero
-                dev.p[i] = zero
+            ri = constrain(i, dev, cfg, dev.b[i] - apply_row(i, dev, cfg, dev.v))
+            dev.r[i] = ri
+            bi = ti.cast(constrain(i, dev, cfg, dev.b[i]), ti.f64)
+            r64 = ti.cast(ri, ti.f64)
+            rz = 0.0
+            if ti.static(cfg.pointwise):
+                zi = constrain(i, dev, cfg, precondition(i, dev, cfg, ri))
+                dev.z[i] = zi
+                dev.p[i] = zi
+                rz = r64.dot(ti.cast(zi, ti.f64))
+            acc += ti.Vector([rz, r64.dot(r64), bi.dot(bi)], ti.f64)
         dev.partial[blk] = acc
     return ordered_sum(dev.partial, block_count(n))
 
 
 @ti.func
 def apply(dev, cfg: ti.template()):
-    """q = A p on the free particles (0 on pinned ones); returns p.q."""
+    """q = S A p (p is filtered already); returns p.q."""
     n = dev.size[0]
     for blk in range(block_count(n)):
         acc = 0.0
         for i in range(blk * BLOCK, block_end(blk, n)):
-            qi = apply_row(i, dev, cfg, dev.p)
-            if not moving(i, dev, cfg):
-                qi = ti.Vector.zero(cfg.real, 3)
+            qi = constrain(i, dev, cfg, apply_row(i, dev, cfg, dev.p))
             dev.q[i] = qi
             acc += ti.cast(dev.p[i], ti.f64).dot(ti.cast(qi, ti.f64))
         dev.partial[blk] = ti.Vector([acc, 0.0, 0.0], ti.f64)
@@ -98,7 +94,7 @@ def apply(dev, cfg: ti.template()):
 
 @ti.func
 def update(dev, cfg: ti.template(), alpha):
-    """x += alpha p, r -= alpha q, z = P r (pointwise preconditioners); returns (r.z, r.r)."""
+    """x += alpha p, r -= alpha q, z = S P r (pointwise preconditioners); returns (r.z, r.r)."""
     a = ti.cast(alpha, cfg.real)
     n = dev.size[0]
     for blk in range(block_count(n)):
@@ -110,7 +106,7 @@ def update(dev, cfg: ti.template(), alpha):
             r64 = ti.cast(ri, ti.f64)
             rz = 0.0
             if ti.static(cfg.pointwise):
-                zi = precondition(i, dev, cfg, ri)
+                zi = constrain(i, dev, cfg, precondition(i, dev, cfg, ri))
                 dev.z[i] = zi
                 rz = r64.dot(ti.cast(zi, ti.f64))
             acc += ti.Vector([rz, r64.dot(r64), 0.0], ti.f64)

@@ -19,7 +19,8 @@ import taichi as ti
 
 from .blocks import block_count, block_end, ordered_sum, BLOCK
 from .divergence import OK, check_code, state_sums
-from .forces import moving, particle_force, spring_forces
+from .constraints import is_free, prescribed
+from .forces import particle_force, spring_forces
 
 
 @ti.func
@@ -35,7 +36,7 @@ def update_particles(dev, cfg: ti.template(), src, dst, h, symplectic: ti.templa
         for i in range(b * BLOCK, block_end(b, n)):
             x = src.x[i]
             v = src.v[i]
-            if moving(i, dev, cfg):
+            if is_free(i, dev, cfg):
                 f = particle_force(i, dev, cfg, src.x, src.v, False)
                 v_new = v + h / dev.mass[i] * f
                 if ti.static(symplectic):
@@ -44,7 +45,8 @@ def update_particles(dev, cfg: ti.template(), src, dst, h, symplectic: ti.templa
                     x = x + h * v
                 v = v_new
             else:
-                v = ti.Vector.zero(cfg.real, 3)
+                v = prescribed(i, dev, cfg)
+                x = x + h * v
             dst.x[i] = x
             dst.v[i] = v
             acc += state_sums(x, v, dev.mass[i], g, cfg.has_gravity)

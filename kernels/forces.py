@@ -38,15 +38,6 @@ def spring_direction(d, real: ti.template()):
 
 
 @ti.func
-def moving(i, dev, cfg: ti.template()):
-    """Whether particle i is free (not pinned)."""
-    out = True
-    if ti.static(cfg.fixed):
-        out = dev.free[i] != 0
-    return out
-
-
-@ti.func
 def spring_forces(dev, cfg: ti.template(), x, v, rhs: ti.template()):
     """``dev.fs[s]``: spring s's force on its first end (N), the sum of the spring
     terms' ``tension`` (``rhs_tension`` with ``rhs``: Eq. 15's f - D v) times n."""

@@ -23,7 +23,8 @@ vec3 in kg m/s.
 
 import taichi as ti
 
-from .forces import moving, particle_force, spring_direction, tiny_length
+from .constraints import is_free
+from .forces import particle_force, spring_direction, tiny_length
 
 
 @ti.func
@@ -87,7 +88,7 @@ def refresh_row(i, dev, cfg: ti.template(), x, v, h):
     if ti.static(cfg.has_springs):
         gather_coefficients(i, dev, cfg)
     dev.diag[i] = diagonal_scalar(i, dev, cfg, h)
-    if moving(i, dev, cfg):
+    if is_free(i, dev, cfg):
         f = particle_force(i, dev, cfg, x, v, True)
         dev.b[i] = dev.mass[i] * v[i] + h * f
         if ti.static(cfg.needs_diagonal):
@@ -108,7 +109,7 @@ def refresh(dev, cfg: ti.template(), x, v, h):
 
 @ti.func
 def apply_row(i, dev, cfg: ti.template(), p):
-    """(A p)_i for the matrix-free A of Eq. 15 (p must be zero at pinned particles)."""
+    """(A p)_i for the matrix-free A of Eq. 15."""
     pi = p[i]
     out = dev.diag[i] * pi
     if ti.static(cfg.has_springs):

@@ -1,7 +1,8 @@
 """Classical fourth-order Runge-Kutta steps of seed Eq. 4.
 
 Eq. 4 is the first-order system y' = F(y) with y = (x, v) and F(x, v) = (v, M^-1 f(x, v)),
-f the total force (``forces``); pinned particles have F = 0. One step of size h
+f the total force (``forces``); a pinned particle has F = (its velocity, 0): it
+moves with its prescribed (constant) velocity. One step of size h
 from ``src`` to ``dst``:
 
     k1 = F(y), k2 = F(y + h/2 k1), k3 = F(y + h/2 k2), k4 = F(y + h k3),
@@ -17,7 +18,8 @@ import taichi as ti
 
 from .blocks import BLOCK, block_count, block_end, ordered_sum
 from .divergence import OK, check_code, state_sums
-from .forces import moving, particle_force, spring_forces
+from .constraints import is_free
+from .forces import particle_force, spring_forces
 
 
 @ti.func
@@ -36,7 +38,7 @@ def one_step(dev, cfg: ti.template(), src, dst, stage, h):
         for i in range(n):
             f = particle_force(i, dev, cfg, stage.x, stage.v, False)
             a = ti.Vector.zero(cfg.real, 3)
-            if moving(i, dev, cfg):
+            if is_free(i, dev, cfg):
                 a = f / dev.mass[i]
             vt = stage.v[i]
             dev.sx[i] += weight * vt
