@@ -158,6 +158,13 @@ next_action = ti.func(exit_rule)
 
 
 @ti.kernel
+def cg_precondition(dev: ti.template(), cfg: ti.template()):
+    """z = S P S r with a pointwise preconditioner (for ``massspring.operators``)."""
+    for i in range(dev.size[0]):
+        dev.z[i] = constrain(i, dev, cfg, precondition(i, dev, cfg, constrain(i, dev, cfg, dev.r[i])))
+
+
+@ti.kernel
 def cg_refresh(dev: ti.template(), cfg: ti.template(), dt: ti.f64):
     """``operator.refresh`` at the current state (x, v_n): parallel loops."""
     refresh(dev, cfg, dev.x, dev.v, ti.cast(dt, cfg.real))

@@ -176,7 +176,7 @@ class Bundle:
         for name, field in fields.items():
             setattr(self, name, field)
         self.states = {name: State(fields[x], fields[v]) for name, (x, v) in pairs.items()}
-        self.state = self.states["state"]
+        self.state = self.states.get("state")
         self.n = self.m = 0
 
     def read(self, name, count=None):

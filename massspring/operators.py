@@ -6,7 +6,8 @@ solver's own kernels: the small public device API for analysis and tests.
   not filtered: callers restrict u and the result as they need.
 * ``SystemOperator(model, dt, ...)``: A = M - dt D - dt^2 K of Eq. 15 at the model's
   state, on the free particles: ``apply(p)`` (A p, zero at pinned particles),
-  ``rhs()`` (b), ``inverse_diagonal_blocks()`` (A_ii^-1).
+  ``rhs()`` (b), ``inverse_diagonal_blocks()`` (A_ii^-1), ``precondition(r)`` (z = B r
+  for the chosen preconditioner, set up at this state).
 """
 
 from __future__ import annotations
@@ -85,16 +86,18 @@ def _padded(values, capacity):
 class SystemOperator:
     """A = M - dt D - dt^2 K of Eq. 15 (with the definiteness fix unless told not to) at
     ``positions``/``velocities`` (default: the model's), in ``precision``, as the
-    implicit integrator assembles it each step. ``close()`` hands the fields back."""
+    implicit integrator assembles it each step, with ``preconditioner`` set up for it.
+    ``close()`` hands the fields back."""
 
     def __init__(self, model: Model, dt, definiteness_fix=True, positions=None, velocities=None,
-                 precision="f64"):
+                 precision="f64", preconditioner="block-jacobi", loops="serial"):
         from massspring.integrators.implicit import ImplicitEuler
+        from massspring.solvers import PRECONDITIONERS
 
         ensure_taichi()
         self.model, self.dt = model, float(dt)
         settings = SimpleNamespace(precision=precision, definiteness_fix=bool(definiteness_fix),
-                                   preconditioner="block-jacobi")
+                                   preconditioner=preconditioner, dt=self.dt, loops=loops)
         layout = model_layout(model, precision)
         ImplicitEuler.declare(layout, model, settings)
         self._dev = layout.allocate()
@@ -104,6 +107,9 @@ class SystemOperator:
             if values is not None:
                 field.from_numpy(_padded(values, field.shape[0]).astype(self._dtype))
         cg.cg_refresh(self._dev, self._cfg, self.dt)
+        self._preconditioner = PRECONDITIONERS[preconditioner](self._dev, model, settings)
+        self._preconditioner.bind(self._cfg)
+        self._preconditioner.setup(self.dt)
 
     def apply(self, p):
         """(A p, p . A p) for p (n, 3); p must be zero at pinned particles, and A p is
@@ -112,6 +118,17 @@ class SystemOperator:
         self._dev.p.from_numpy(_padded(p, self._dev.p.shape[0]).astype(self._dtype))
         pq = cg.cg_apply(self._dev, self._cfg)
         return self._dev.read("q").astype(np.float64), float(pq)
+
+    def precondition(self, r):
+        """z = B r (n, 3) for r (n, 3): the preconditioner applied once, constrained
+        directions filtered out of r and z."""
+        r = np.asarray(r, dtype=np.float64).reshape(self.model.n_particles, 3)
+        self._dev.r.from_numpy(_padded(r, self._dev.r.shape[0]).astype(self._dtype))
+        if self._preconditioner.kernel is not None:
+            cg.cg_precondition(self._dev, self._cfg)
+        else:
+            self._preconditioner.apply()
+        return self._dev.read("z").astype(np.float64)
 
     def rhs(self):
         """b = M v + dt (f - D v) of Eq. 15 (n, 3), zero at pinned particles."""
@@ -123,5 +140,6 @@ class SystemOperator:
 
     def close(self):
         if self._dev is not None:
+            self._preconditioner.release()
             POOL.give(self._dev)
             self._dev = None

@@ -31,6 +31,7 @@ class ImplicitEuler(Integrator):
     def __init__(self, dev, model, settings):
         super().__init__(dev, model, settings)
         self.preconditioner = PRECONDITIONERS[settings.preconditioner](dev, model, settings)
+        self.preconditioner.bind(self.cfg)
         self._stats = None
 
     @classmethod

@@ -9,8 +9,9 @@ which one it has. Adding one means a module here (with its kernels in
 from .base import Preconditioner
 from .block_jacobi import BlockJacobi
 from .cg import SolverStats, solve
+from .multigrid import Multigrid
 from .none import NoPreconditioner
 
-PRECONDITIONERS = {cls.name: cls for cls in (BlockJacobi, NoPreconditioner)}
+PRECONDITIONERS = {cls.name: cls for cls in (BlockJacobi, Multigrid, NoPreconditioner)}
 
 __all__ = ["PRECONDITIONERS", "Preconditioner", "SolverStats", "solve"]

@@ -25,6 +25,9 @@ class Preconditioner:
     def declare(cls, layout, model, settings):
         """Add the fields this preconditioner needs to ``layout``."""
 
+    def bind(self, cfg):
+        """The compile-time switches (``device.Config``) of the integrator's kernels."""
+
     def setup(self, dt):
         """Per step, after ``kernels.cg.cg_refresh`` (global preconditioners)."""
 

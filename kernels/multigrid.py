@@ -1,0 +1,569 @@
+"""Kernels of the smoothed-aggregation multigrid preconditioner (``massspring.solvers.multigrid``).
+
+Level 0 is the particles with the matrix-free operator of Eq. 15 (``operator``):
+A_ii = ``diagonal_block``, A_ij = -S_e for adjacency entry e. Coarse levels
+1..L-1 hold 6 unknowns per node and are stored together (nodes of level l at
+``[base_l, base_l + n_l)``; ``g.c_diag`` (6x6 per node) and off-diagonal blocks
+``g.c_off`` in CSR ``g.c_rows``/``g.c_cols``, global node indices). The index lists
+come from ``massspring.solvers.aggregation`` (see ``Level`` there).
+
+Per step (values only, patterns fixed):
+* ``fine_inverse``: D^-1 of level 0 (inverse 3x3 diagonal blocks, zero where pinned);
+* ``smooth_p0`` / ``smooth_pc``: P = T - (omega / rho) D^-1 A T in P's pattern;
+* ``ap0`` / ``apc``: A P; ``galerkin0`` / ``galerkinc``: the upper blocks of P^T (A P),
+  ``mirror``: the lower ones;
+* ``coarse_inverse``: D^-1 of a coarse level (6x6, by Cholesky); ``lanczos_start`` and
+  ``lanczos_step``: Lanczos on D^-1 A (self-adjoint in the D inner product) for the
+  estimate of rho(D^-1 A) its smoothing uses; ``factor_coarsest``: dense Cholesky of
+  the last level.
+
+Per CG iteration, the V(nu, nu)-cycle: Chebyshev smoothing in D^-1 A on
+[rho / CHEB_RATIO, rho] (``cheb_start0``/``cheb_step0`` on level 0, ``..c`` on coarse
+levels), restriction P^T, the coarse cycle, prolongation P, the same smoothing
+again (so the cycle is a symmetric positive definite preconditioner), and the
+direct solve on the coarsest level. On level 0 every vector is filtered by the
+constraints (``constraints.constrain``): z = S V(S r).
+
+Every kernel takes ``serial`` (a template flag) to run its loops in one thread:
+small systems, where a parallel launch costs more than the work.
+"""
+
+import taichi as ti
+
+from .blocks import BLOCK
+from .constraints import constrain, is_free
+from .operator import apply_row, diagonal_block
+
+BS = 6  # unknowns per coarse node
+
+
+# ------------------------------------------------------------------ small dense algebra
+
+
+@ti.func
+def invert6(src: ti.template(), dst: ti.template(), k, real: ti.template()):
+    """dst[k] = src[k]^-1 for a symmetric positive definite 6x6 block, by Cholesky with
+    loops at run time (unrolled 6x6 algebra compiles for seconds); zero if it is not SPD.
+    Returns whether it was."""
+    lower = ti.Matrix.zero(real, BS, BS)
+    ok = True
+    for j in range(BS):
+        s = src[k][j, j]
+        for m in range(j):
+            s -= lower[j, m] * lower[j, m]
+        if s <= 0:
+            ok = False
+            s = ti.cast(1, real)
+        d = ti.sqrt(s)
+        lower[j, j] = d
+        for i in range(j + 1, BS):
+            t = src[k][i, j]
+            for m in range(j):
+                t -= lower[i, m] * lower[j, m]
+            lower[i, j] = t / d
+    for col in range(BS):  # column col of the inverse: L L^T y = e_col
+        y = ti.Vector.zero(real, BS)
+        for r in range(BS):
+            s = ti.cast(1 if r == col else 0, real)
+            for m in range(r):
+                s -= lower[r, m] * y[m]
+            y[r] = s / lower[r, r]
+        for step in range(BS):
+            r = BS - 1 - step
+            s = y[r]
+            for m in range(r + 1, BS):
+                s -= lower[m, r] * y[m]
+            y[r] = s / lower[r, r]
+        for r in range(BS):
+            dst[k][r, col] = y[r] if ok else ti.cast(0, real)
+    return ok
+
+
+@ti.func
+def add_product(dst: ti.template(), di, a: ti.template(), ai, b: ti.template(), bi, scale,
+                transpose_a: ti.template()):
+    """dst[di] += scale * a[ai] @ b[bi] (a[ai]^T with ``transpose_a``), 6-column blocks:
+    a loop over dst's rows at run time, each row's sums unrolled."""
+    for r in range(dst.n):
+        row = ti.Vector([a[ai][c, r] if ti.static(transpose_a) else a[ai][r, c] for c in ti.static(range(b.n))])
+        for col in ti.static(range(BS)):
+            acc = row[0] * b[bi][0, col]
+            for c in ti.static(range(1, b.n)):
+                acc += row[c] * b[bi][c, col]
+            dst[di][r, col] += scale * acc
+
+
+@ti.func
+def block_vector(a: ti.template(), ai, v, real: ti.template()):
+    """a[ai] @ v for a 6x6 block and a 6-vector, rows looped at run time."""
+    out = ti.Vector.zero(real, BS)
+    for r in range(BS):
+        acc = a[ai][r, 0] * v[0]
+        for c in ti.static(range(1, BS)):
+            acc += a[ai][r, c] * v[c]
+        out[r] = acc
+    return out
+
+
+@ti.func
+def block_t_vector(a: ti.template(), ai, v, real: ti.template()):
+    """a[ai]^T @ v for a (rows x 6) block and a rows-vector."""
+    out = ti.Vector.zero(real, BS)
+    for c in range(BS):
+        acc = a[ai][0, c] * v[0]
+        for r in ti.static(range(1, a.n)):
+            acc += a[ai][r, c] * v[r]
+        out[c] = acc
+    return out
+
+
+@ti.func
+def loops(serial: ti.template()):
+    ti.loop_config(serialize=serial)
+
+
+# ------------------------------------------------------------------------- setup
+
+
+@ti.kernel
+def fine_inverse(dev: ti.template(), cfg: ti.template(), serial: ti.template()) -> ti.f64:
+    """``dev.minv`` = A_ii^-1 on free particles, zero on constrained ones. Returns a bound on
+    rho(D^-1 A): the largest row sum of the infinity norms of D_i^-1 A_ij."""
+    bound = 0.0
+    loops(serial)
+    for i in range(dev.size[0]):
+        inverse = ti.Matrix.zero(cfg.real, 3, 3)
+        if is_free(i, dev, cfg):
+            block = diagonal_block(i, dev, cfg)
+            inverse = block.inverse()
+            row = ti.cast(_inf_norm(inverse @ block), ti.f64)
+            if ti.static(cfg.has_springs):
+                for e in range(dev.offsets[i], dev.offsets[i + 1]):
+                    c = dev.coef[e]
+                    n = ti.Vector([c[0], c[1], c[2]], cfg.real)
+                    s = c[3] * ti.Matrix.identity(cfg.real, 3) + c[4] * n.outer_product(n)
+                    row += ti.cast(_inf_norm(inverse @ s), ti.f64)
+            ti.atomic_max(bound, row)
+        dev.minv[i] = inverse
+    return bound
+
+
+@ti.kernel
+def smooth_p0(dev: ti.template(), cfg: ti.template(), g: ti.template(), scale: ti.f64, serial: ti.template()):
+    """Level 0's P = T - scale D^-1 A T (scale = omega / rho), row by row."""
+    s = ti.cast(scale, cfg.real)
+    loops(serial)
+    for i in range(dev.size[0]):
+        for k in range(g.p0_rows[i], g.p0_rows[i + 1]):
+            g.p0[k] = ti.Matrix.zero(cfg.real, 3, BS)
+        slot = g.t0_slot[i]
+        if slot >= 0:
+            block = diagonal_block(i, dev, cfg)
+            g.p0[slot] += block @ g.t0[i]
+        if ti.static(cfg.has_springs):
+            for e in range(dev.offsets[i], dev.offsets[i + 1]):
+                target = g.e0_slot[e]
+                if target >= 0:
+                    g.p0[target] -= spring_times(dev.coef[e], g.t0[dev.other[e]], cfg.real)
+        for k in range(g.p0_rows[i], g.p0_rows[i + 1]):
+            g.p0[k] = -s * (dev.minv[i] @ g.p0[k])
+        if slot >= 0:
+            g.p0[slot] += g.t0[i]
+
+
+@ti.func
+def spring_times(c, p, real: ti.template()):
+    """S p for a spring block S = a I + b n n^T (coefficients ``c`` = (n, a, b)) and a 3x6
+    block p: a p + b n (n^T p), a rank-one update (no 3x3 product)."""
+    n = ti.Vector([c[0], c[1], c[2]], real)
+    return c[3] * p + (c[4] * n).outer_product(p.transpose() @ n)
+
+
+@ti.kernel
+def ap0(dev: ti.template(), cfg: ti.template(), g: ti.template(), serial: ti.template()):
+    """Level 0's A P, row by row: A_ii P_i. then -S_e P_j. for each entry e = (i, j), in
+    the order of ``g.apt0_ap`` (the AP block each product goes to)."""
+    loops(serial)
+    for i in range(dev.size[0]):
+        for k in range(g.ap0_rows[i], g.ap0_rows[i + 1]):
+            g.ap0[k] = ti.Matrix.zero(cfg.real, 3, BS)
+        t = g.apt0_rows[i]
+        block = diagonal_block(i, dev, cfg)
+        for k in range(g.p0_rows[i], g.p0_rows[i + 1]):
+            g.ap0[g.apt0_ap[t]] += block @ g.p0[k]
+            t += 1
+        if ti.static(cfg.has_springs):
+            for e in range(dev.offsets[i], dev.offsets[i + 1]):
+                j = dev.other[e]
+                c = dev.coef[e]
+                for k in range(g.p0_rows[j], g.p0_rows[j + 1]):
+                    g.ap0[g.apt0_ap[t]] -= spring_times(c, g.p0[k], cfg.real)
+                    t += 1
+
+
+@ti.kernel
+def galerkin0(cfg: ti.template(), g: ti.template(), count: ti.i32, serial: ti.template()):
+    """The upper blocks of level 1's P^T A P from level 0's P and A P."""
+    loops(serial)
+    for b in range(count):
+        acc = ti.Matrix.zero(cfg.real, BS, BS)
+        for k in range(g.gal0_rows[b], g.gal0_rows[b + 1]):
+            acc += g.p0[g.gal0_p[k]].transpose() @ g.ap0[g.gal0_ap[k]]
+        target = g.gal0_block[b]
+        if target < 0:
+            g.c_diag[-1 - target] = acc
+        else:
+            g.c_off[target] = acc
+
+
+@ti.kernel
+def mirror(cfg: ti.template(), g: ti.template(), begin: ti.i32, end: ti.i32, serial: ti.template()):
+    """Lower off-diagonal blocks of a coarse level (entries ``g.lower[begin:end]``) from their
+    upper transposes."""
+    loops(serial)
+    for k in range(begin, end):
+        e = g.lower[k]
+        g.c_off[e] = g.c_off[g.c_mirror[e]].transpose()
+
+
+@ti.kernel
+def coarse_inverse(cfg: ti.template(), g: ti.template(), begin: ti.i32, end: ti.i32,
+                   serial: ti.template()) -> ti.i32:
+    """``g.c_dinv`` = inverse diagonal blocks of coarse nodes [begin, end); returns how many
+    blocks were not positive definite (their inverse is set to zero)."""
+    bad = 0
+    loops(serial)
+    for node in range(begin, end):
+        if not invert6(g.c_diag, g.c_dinv, node, cfg.real):
+            bad += 1
+    return bad
+
+
+@ti.func
+def ordered_range_sum(partial: ti.template(), count):
+    total = ti.Vector.zero(ti.f64, 2)
+    ti.loop_config(serialize=True)
+    for b in range(count):
+        total += partial[b]
+    return total
+
+
+@ti.kernel
+def lanczos_start(cfg: ti.template(), g: ti.template(), begin: ti.i32, end: ti.i32,
+                  serial: ti.template()) -> ti.f64:
+    """The start vector w of Lanczos on D^-1 A for nodes [begin, end) (a fixed
+    pseudo-random vector, in ``g.c_res``), v_old = 0 (``g.c_d``); returns w^T D w."""
+    count = (end - begin + BLOCK - 1) // BLOCK
+    loops(serial)
+    for blk in range(count):
+        acc = 0.0
+        for node in range(begin + blk * BLOCK, ti.min(end, begin + (blk + 1) * BLOCK)):
+            w = ti.Vector.zero(cfg.real, BS)
+            for c in ti.static(range(BS)):
+                h = ((node * BS + c) * 7919 + 12345) % 10007  # a fixed pseudo-random sequence
+                w[c] = ti.cast(h, cfg.real) / 10007 - ti.cast(0.5, cfg.real)
+            g.c_res[node] = w
+            g.c_d[node] = ti.Vector.zero(cfg.real, BS)
+            acc += ti.cast(w.dot(block_vector(g.c_diag, node, w, cfg.real)), ti.f64)
+        g.c_partial[blk] = ti.Vector([acc, 0.0], ti.f64)
+    return ordered_range_sum(g.c_partial, count)[0]
+
+
+@ti.kernel
+def lanczos_apply(cfg: ti.template(), g: ti.template(), begin: ti.i32, end: ti.i32, inv_beta: ti.f64,
+                  serial: ti.template()) -> ti.f64:
+    """One Lanczos step, first half: v_old = v; v = w / beta; A v (into ``g.c_b``);
+    returns alpha = v^T A v."""
+    ib = ti.cast(inv_beta, cfg.real)
+    count = (end - begin + BLOCK - 1) // BLOCK
+    loops(serial)
+    for blk in range(count):
+        acc = 0.0
+        for node in range(begin + blk * BLOCK, ti.min(end, begin + (blk + 1) * BLOCK)):
+            g.c_d[node] = g.c_x[node]
+            v = ib * g.c_res[node]
+            g.c_x[node] = v
+            av = ib * coarse_row(g, node, g.c_res, cfg.real)
+            g.c_b[node] = av
+            acc += ti.cast(v.dot(av), ti.f64)
+        g.c_partial[blk] = ti.Vector([acc, 0.0], ti.f64)
+    return ordered_range_sum(g.c_partial, count)[0]
+
+
+@ti.kernel
+def lanczos_next(cfg: ti.template(), g: ti.template(), begin: ti.i32, end: ti.i32, alpha: ti.f64, beta: ti.f64,
+                 serial: ti.template()) -> ti.f64:
+    """Second half: w = D^-1 A v - alpha v - beta v_old (into ``g.c_res``); returns w^T D w."""
+    a = ti.cast(alpha, cfg.real)
+    b = ti.cast(beta, cfg.real)
+    count = (end - begin + BLOCK - 1) // BLOCK
+    loops(serial)
+    for blk in range(count):
+        acc = 0.0
+        for node in range(begin + blk * BLOCK, ti.min(end, begin + (blk + 1) * BLOCK)):
+            w = block_vector(g.c_dinv, node, g.c_b[node], cfg.real) - a * g.c_x[node] - b * g.c_d[node]
+            g.c_res[node] = w
+            acc += ti.cast(w.dot(block_vector(g.c_diag, node, w, cfg.real)), ti.f64)
+        g.c_partial[blk] = ti.Vector([acc, 0.0], ti.f64)
+    return ordered_range_sum(g.c_partial, count)[0]
+
+
+@ti.func
+def _inf_norm(m):
+    out = ti.abs(m[0, 0]) * 0
+    for r in ti.static(range(m.n)):
+        s = ti.abs(m[r, 0]) * 0
+        for c in ti.static(range(m.m)):
+            s += ti.abs(m[r, c])
+        out = ti.max(out, s)
+    return out
+
+
+@ti.kernel
+def smooth_pc(cfg: ti.template(), g: ti.template(), begin: ti.i32, end: ti.i32, scale: ti.f64,
+              serial: ti.template()):
+    """A coarse level's P = T - scale D^-1 A T, rows = nodes [begin, end)."""
+    s = ti.cast(scale, cfg.real)
+    loops(serial)
+    for node in range(begin, end):
+        for k in range(g.pc_rows[node], g.pc_rows[node + 1]):
+            g.apc_tmp[k] = ti.Matrix.zero(cfg.real, BS, BS)
+        slot = g.tc_slot[node]
+        if slot >= 0:
+            add_product(g.apc_tmp, slot, g.c_diag, node, g.tc, node, 1, False)
+        for k in range(g.c_rows[node], g.c_rows[node + 1]):
+            target = g.ec_slot[k]
+            if target >= 0:
+                add_product(g.apc_tmp, target, g.c_off, k, g.tc, g.c_cols[k], 1, False)
+        for k in range(g.pc_rows[node], g.pc_rows[node + 1]):
+            g.pc[k] = ti.Matrix.zero(cfg.real, BS, BS)
+            add_product(g.pc, k, g.c_dinv, node, g.apc_tmp, k, -s, False)
+        if slot >= 0:
+            g.pc[slot] += g.tc[node]
+
+
+@ti.kernel
+def apc(cfg: ti.template(), g: ti.template(), begin: ti.i32, end: ti.i32, serial: ti.template()):
+    """A coarse level's A P, rows = nodes [begin, end): the diagonal block times the node's
+    P row, then each off-diagonal block times its column node's P row (``g.aptc_ap`` order)."""
+    loops(serial)
+    for node in range(begin, end):
+        for k in range(g.apc_rows[node], g.apc_rows[node + 1]):
+            g.apc[k] = ti.Matrix.zero(cfg.real, BS, BS)
+        t = g.aptc_rows[node]
+        for k in range(g.pc_rows[node], g.pc_rows[node + 1]):
+            add_product(g.apc, g.aptc_ap[t], g.c_diag, node, g.pc, k, 1, False)
+            t += 1
+        for e in range(g.c_rows[node], g.c_rows[node + 1]):
+            j = g.c_cols[e]
+            for k in range(g.pc_rows[j], g.pc_rows[j + 1]):
+                add_product(g.apc, g.aptc_ap[t], g.c_off, e, g.pc, k, 1, False)
+                t += 1
+
+
+@ti.kernel
+def galerkinc(cfg: ti.template(), g: ti.template(), begin: ti.i32, end: ti.i32, serial: ti.template()):
+    """Upper blocks of the next level's P^T A P: Galerkin blocks [begin, end) (global)."""
+    loops(serial)
+    for b in range(begin, end):
+        g.gal_tmp[b] = ti.Matrix.zero(cfg.real, BS, BS)
+        for k in range(g.galc_rows[b], g.galc_rows[b + 1]):
+            add_product(g.gal_tmp, b, g.pc, g.galc_p[k], g.apc, g.galc_ap[k], 1, True)
+        target = g.galc_block[b]
+        if target < 0:
+            g.c_diag[-1 - target] = g.gal_tmp[b]
+        else:
+            g.c_off[target] = g.gal_tmp[b]
+
+
+@ti.kernel
+def factor_coarsest(cfg: ti.template(), g: ti.template(), base: ti.i32, nodes: ti.i32) -> ti.i32:
+    """Dense Cholesky L L^T of the coarsest level (nodes [base, base + nodes)) into
+    ``g.chol`` (row-major, ``nodes * 6`` per row; lower triangle). Returns 0, or 1 + the
+    failing column if the level's operator is not positive definite."""
+    size = nodes * BS
+    failed = 0
+    ti.loop_config(serialize=True)
+    for _ in range(1):
+        for r in range(size * size):
+            g.chol[r] = ti.cast(0, cfg.real)
+        for node in range(nodes):
+            for a in range(BS):
+                for b in range(BS):
+                    g.chol[(node * BS + a) * size + node * BS + b] = g.c_diag[base + node][a, b]
+            for k in range(g.c_rows[base + node], g.c_rows[base + node + 1]):
+                other = g.c_cols[k] - base
+                for a in range(BS):
+                    for b in range(BS):
+                        g.chol[(node * BS + a) * size + other * BS + b] = g.c_off[k][a, b]
+        for j in range(size):
+            if failed == 0:
+                s = g.chol[j * size + j]
+                for k in range(j):
+                    s -= g.chol[j * size + k] * g.chol[j * size + k]
+                if s <= 0:
+                    failed = j + 1
+                else:
+                    d = ti.sqrt(s)
+                    g.chol[j * size + j] = d
+                    for i in range(j + 1, size):
+                        t = g.chol[i * size + j]
+                        for k in range(j):
+                            t -= g.chol[i * size + k] * g.chol[j * size + k]
+                        g.chol[i * size + j] = t / d
+    return failed
+
+
+# -------------------------------------------------------------------------- cycle
+
+
+@ti.kernel
+def cheb_start0(dev: ti.template(), cfg: ti.template(), first: ti.template(), inv_theta: ti.f64,
+                serial: ti.template()):
+    """Level 0, start of a smoothing: with ``first`` the pre-smoothing from x = 0 (residual =
+    the input r); else the post-smoothing from the current x (residual = r - A x). Then
+    d = D^-1 res / theta. Vectors: ``dev.mg_x``, ``mg_res``, ``mg_d``; input ``dev.r``."""
+    it = ti.cast(inv_theta, cfg.real)
+    loops(serial)
+    for i in range(dev.size[0]):
+        res = dev.r[i]
+        if ti.static(first):
+            dev.mg_x[i] = ti.Vector.zero(cfg.real, 3)
+        else:
+            res = constrain(i, dev, cfg, dev.r[i] - apply_row(i, dev, cfg, dev.mg_x))
+        dev.mg_res[i] = res
+        dev.mg_d[i] = constrain(i, dev, cfg, it * (dev.minv[i] @ res))
+
+
+@ti.kernel
+def cheb_step0(dev: ti.template(), cfg: ti.template(), src: ti.template(), dst: ti.template(), c1: ti.f64,
+               c2: ti.f64, last: ti.template(), serial: ti.template()):
+    """Level 0, one Chebyshev step: x += d, res -= A d, d' = c1 d + c2 D^-1 res (into ``dst``)."""
+    a = ti.cast(c1, cfg.real)
+    b = ti.cast(c2, cfg.real)
+    loops(serial)
+    for i in range(dev.size[0]):
+        d = src[i]
+        dev.mg_x[i] += d
+        res = dev.mg_res[i] - constrain(i, dev, cfg, apply_row(i, dev, cfg, src))
+        dev.mg_res[i] = res
+        if ti.static(not last):
+            dst[i] = a * d + constrain(i, dev, cfg, b * (dev.minv[i] @ res))
+
+
+@ti.kernel
+def restrict0(dev: ti.template(), cfg: ti.template(), g: ti.template(), nodes: ti.i32, serial: ti.template()):
+    """Level 1's right-hand side c_b = P0^T res (level 0's smoothed residual)."""
+    loops(serial)
+    for node in range(nodes):
+        acc = ti.Vector.zero(cfg.real, BS)
+        for k in range(g.pt0_rows[node], g.pt0_rows[node + 1]):
+            acc += block_t_vector(g.p0, g.pt0_block[k], dev.mg_res[g.pt0_fine[k]], cfg.real)
+        g.c_b[node] = acc
+
+
+@ti.kernel
+def prolong0(dev: ti.template(), cfg: ti.template(), g: ti.template(), serial: ti.template()):
+    """Level 0's x += P0 e (e: level 1's solution in ``g.c_x``), filtered."""
+    loops(serial)
+    for i in range(dev.size[0]):
+        acc = ti.Vector.zero(cfg.real, 3)
+        for k in range(g.p0_rows[i], g.p0_rows[i + 1]):
+            acc += g.p0[k] @ g.c_x[g.p0_cols[k]]
+        dev.mg_x[i] += constrain(i, dev, cfg, acc)
+
+
+@ti.kernel
+def finish0(dev: ti.template(), cfg: ti.template(), serial: ti.template()) -> ti.f64:
+    """z = S x (level 0's cycle output) into ``dev.z``; returns r . z."""
+    total = 0.0
+    loops(serial)
+    for i in range(dev.size[0]):
+        z = constrain(i, dev, cfg, dev.mg_x[i])
+        dev.z[i] = z
+        total += ti.cast(dev.r[i].dot(z), ti.f64)
+    return total
+
+
+@ti.func
+def coarse_row(g, node, x: ti.template(), real: ti.template()):
+    """(A x)_node on a coarse level (off-diagonal pattern plus the diagonal block)."""
+    out = block_vector(g.c_diag, node, x[node], real)
+    for k in range(g.c_rows[node], g.c_rows[node + 1]):
+        out += block_vector(g.c_off, k, x[g.c_cols[k]], real)
+    return out
+
+
+@ti.kernel
+def cheb_startc(cfg: ti.template(), g: ti.template(), begin: ti.i32, end: ti.i32, first: ti.template(),
+                inv_theta: ti.f64, serial: ti.template()):
+    """A coarse level's start of smoothing (as ``cheb_start0``), nodes [begin, end); input ``g.c_b``."""
+    it = ti.cast(inv_theta, cfg.real)
+    loops(serial)
+    for node in range(begin, end):
+        res = g.c_b[node]
+        if ti.static(first):
+            g.c_x[node] = ti.Vector.zero(cfg.real, BS)
+        else:
+            res = g.c_b[node] - coarse_row(g, node, g.c_x, cfg.real)
+        g.c_res[node] = res
+        g.c_d[node] = it * block_vector(g.c_dinv, node, res, cfg.real)
+
+
+@ti.kernel
+def cheb_stepc(cfg: ti.template(), g: ti.template(), src: ti.template(), dst: ti.template(), begin: ti.i32,
+               end: ti.i32, c1: ti.f64, c2: ti.f64, last: ti.template(), serial: ti.template()):
+    """A coarse level's Chebyshev step (as ``cheb_step0``), nodes [begin, end)."""
+    a = ti.cast(c1, cfg.real)
+    b = ti.cast(c2, cfg.real)
+    loops(serial)
+    for node in range(begin, end):
+        d = src[node]
+        g.c_x[node] += d
+        res = g.c_res[node] - coarse_row(g, node, src, cfg.real)
+        g.c_res[node] = res
+        if ti.static(not last):
+            dst[node] = a * d + b * block_vector(g.c_dinv, node, res, cfg.real)
+
+
+@ti.kernel
+def restrictc(cfg: ti.template(), g: ti.template(), begin: ti.i32, end: ti.i32, serial: ti.template()):
+    """The next level's c_b = P^T res, its nodes [begin, end) (global indices)."""
+    loops(serial)
+    for node in range(begin, end):
+        acc = ti.Vector.zero(cfg.real, BS)
+        for k in range(g.ptc_rows[node], g.ptc_rows[node + 1]):
+            acc += block_t_vector(g.pc, g.ptc_block[k], g.c_res[g.ptc_fine[k]], cfg.real)
+        g.c_b[node] = acc
+
+
+@ti.kernel
+def prolongc(cfg: ti.template(), g: ti.template(), begin: ti.i32, end: ti.i32, serial: ti.template()):
+    """x += P e on a coarse level, nodes [begin, end) (global); e: the next level's c_x."""
+    loops(serial)
+    for node in range(begin, end):
+        acc = ti.Vector.zero(cfg.real, BS)
+        for k in range(g.pc_rows[node], g.pc_rows[node + 1]):
+            acc += block_vector(g.pc, k, g.c_x[g.pc_cols[k]], cfg.real)
+        g.c_x[node] += acc
+
+
+@ti.kernel
+def solve_coarsest(cfg: ti.template(), g: ti.template(), base: ti.i32, nodes: ti.i32):
+    """c_x = A^-1 c_b on the coarsest level by the Cholesky factor in ``g.chol``."""
+    size = nodes * BS
+    ti.loop_config(serialize=True)
+    for _ in range(1):
+        for r in range(size):  # L y = b
+            s = g.c_b[base + r // BS][r % BS]
+            for k in range(r):
+                s -= g.chol[r * size + k] * g.chol_y[k]
+            g.chol_y[r] = s / g.chol[r * size + r]
+        for step in range(size):  # L^T x = y
+            r = size - 1 - step
+            s = g.chol_y[r]
+            for k in range(r + 1, size):
+                s -= g.chol[k * size + r] * g.chol_y[k]
+            g.chol_y[r] = s / g.chol[r * size + r]
+        for r in range(size):
+            g.c_x[base + r // BS][r % BS] = g.chol_y[r]

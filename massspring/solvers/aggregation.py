@@ -1,0 +1,485 @@
+"""The multigrid hierarchy's structure, built once per model with numpy: smoothed aggregation.
+
+Level 0 is the particles (the matrix-free operator of Eq. 15, 3x3 blocks); every
+coarser level has one node per aggregate of the level above and 6 unknowns per
+node (the 3 translations and 3 rotations of the aggregate: the rigid motions a
+spring network resists least, its near-nullspace). Built here, once:
+
+* the strength graph of each level: j is strong for i when the block of A at rest
+  (springs unstretched) satisfies ||A_ij|| >= THETA sqrt(||A_ii|| ||A_jj||)
+  (Frobenius norms): weak couplings (the cloth's bending springs) do not glue
+  aggregates together;
+* aggregates by greedy standard aggregation (Vanek, Mandel and Brezina 1996):
+  a node whose strong neighbours are all free starts an aggregate with them; every
+  other node joins the aggregate it is most strongly connected to; nodes without
+  strong neighbours (and pinned particles) belong to none;
+* the tentative prolongation T: per aggregate, the orthonormal basis (thin QR) of
+  its members' near-nullspace vectors, so T^T T = I; R of the QR gives the coarse
+  level's near-nullspace;
+* the patterns of what the per-step kernels (``kernels/multigrid.py``) fill in:
+  the smoothed prolongation P = (I - omega/rho D^-1 A) T (row i: the aggregates of i
+  and of its neighbours), A P and the Galerkin coarse operator P^T A P, with the
+  index lists that say which block products go where.
+
+Values change every step (K and D follow the positions): the kernels recompute P,
+A P and P^T A P in these patterns. Pinned particles have no aggregate and zero
+rows of P: the coarse levels see the free particles only.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+THETA = 0.08           # strength threshold on level 0 (drops the cloth's bending springs)
+COARSE_THETA = 0.0     # on coarser levels, whose summed coupling norms say less: every coupling
+MAX_COARSE = 600       # unknowns of the coarsest level (solved by dense Cholesky), at most
+MAX_LEVELS = 12
+COARSE_BS = 6          # unknowns per coarse node: 3 translations, 3 rotations
+
+
+@dataclass
+class Transfer:
+    """One level's prolongation structure, fine nodes ``nf`` -> coarse nodes ``nc``.
+
+    ``agg`` (nf,): aggregate of each fine node (-1: none); ``tent`` (nf, bf, 6): the
+    tentative prolongation's block of each fine node (zero without aggregate);
+    ``p_rows`` (nf+1,), ``p_cols`` (np,): P's pattern (CSR by fine node; columns are
+    coarse nodes); ``tent_slot`` (nf,): the block of P row i holding T's block (-1);
+    ``candidates`` (nc, 6, 6): the coarse near-nullspace (R of the QRs).
+    """
+
+    nf: int
+    nc: int
+    bf: int
+    agg: np.ndarray
+    tent: np.ndarray
+    p_rows: np.ndarray
+    p_cols: np.ndarray
+    tent_slot: np.ndarray
+    candidates: np.ndarray
+
+
+def rest_blocks(model, dt, free):
+    """Level 0's operator at rest, for strength only: per spring the Frobenius norm
+    b = dt kd + dt^2 ks of its block b n n^T (a = 0 unstretched), and per particle
+    the Frobenius norm of A_ii = m I + sum b n n^T (directions at the initial state).
+    Springs touching a pinned particle are left out (those couplings are not solved)."""
+    x, ends = model.positions, model.springs
+    d = x[ends[:, 1]] - x[ends[:, 0]]
+    length = np.linalg.norm(d, axis=1)
+    n = np.divide(d, length[:, None], out=np.zeros_like(d), where=length[:, None] > 0)
+    b = dt * model.damping + dt * dt * model.stiffness
+    keep = free[ends[:, 0]] & free[ends[:, 1]]
+    diag = model.masses[:, None, None] * np.eye(3)
+    for end in (0, 1):
+        np.add.at(diag, ends[keep, end], (b[keep, None, None] * n[keep, :, None] * n[keep, None, :]))
+    return ends[keep], b[keep], np.linalg.norm(diag, axis=(1, 2))
+
+
+def strength_graph(n, pairs, weights, diag_norm, theta=THETA):
+    """Symmetric strong neighbours (CSR: rows (n+1,), cols, weights) of n nodes from
+    undirected couplings ``pairs`` (k, 2) of Frobenius norm ``weights``; parallel
+    couplings add up."""
+    keys = np.minimum(pairs[:, 0], pairs[:, 1]) * n + np.maximum(pairs[:, 0], pairs[:, 1])
+    keys, inverse = np.unique(keys, return_inverse=True)
+    w = np.bincount(inverse, weights=weights)
+    i, j = keys // n, keys % n
+    strong = (i != j) & (w > 0) & (w >= theta * np.sqrt(diag_norm[i] * diag_norm[j]))
+    i, j, w = i[strong], j[strong], w[strong]
+    rows = np.concatenate([i, j])
+    cols = np.concatenate([j, i])
+    ws = np.concatenate([w, w])
+    order = np.lexsort((cols, rows))
+    offsets = np.zeros(n + 1, dtype=np.int64)
+    np.cumsum(np.bincount(rows, minlength=n), out=offsets[1:])
+    return offsets, cols[order], ws[order]
+
+
+def aggregate(offsets, cols, weights):
+    """Greedy standard aggregation (see the module docstring), deterministic in node
+    order. Returns (agg (n,) with aggregate ids or -1, number of aggregates)."""
+    n = len(offsets) - 1
+    agg = [-1] * n
+    count = 0
+    offs, nbrs = offsets.tolist(), cols.tolist()
+    for i in range(n):
+        if agg[i] >= 0 or offs[i] == offs[i + 1]:
+            continue
+        neighbours = nbrs[offs[i]:offs[i + 1]]
+        if all(agg[j] < 0 for j in neighbours):
+            agg[i] = count
+            for j in neighbours:
+                agg[j] = count
+            count += 1
+    first = np.array(agg)
+    out = first.copy()
+    for i in np.flatnonzero(first < 0):
+        lo, hi = offsets[i], offsets[i + 1]
+        if lo == hi:
+            continue
+        nb, w = cols[lo:hi], weights[lo:hi]
+        ok = first[nb] >= 0
+        if ok.any():
+            out[i] = first[nb[ok][np.argmax(w[ok])]]
+    return out, count
+
+
+def rigid_modes(x, agg, count):
+    """Near-nullspace of level 0 (n, 3, 6): translations and rotations about each
+    aggregate's centroid (about the origin for nodes without aggregate)."""
+    n = len(x)
+    centre = np.zeros((max(count, 1), 3))
+    members = agg >= 0
+    np.add.at(centre, agg[members], x[members])
+    centre /= np.maximum(np.bincount(agg[members], minlength=count), 1)[:max(count, 1), None]
+    rel = x - np.where(members[:, None], centre[np.maximum(agg, 0)], 0.0)
+    modes = np.zeros((n, 3, 6))
+    modes[:, :, :3] = np.eye(3)
+    for k in range(3):
+        axis = np.zeros(3)
+        axis[k] = 1.0
+        modes[:, :, 3 + k] = np.cross(axis[None, :], rel)
+    return modes
+
+
+def tentative(agg, count, candidates):
+    """T's blocks (n, bf, 6) and the coarse candidates (count, 6, 6): per aggregate a
+    thin QR of its members' stacked candidate blocks, signs fixed so R's diagonal >= 0."""
+    n, bf, k = candidates.shape
+    members = np.flatnonzero(agg >= 0)
+    order = members[np.argsort(agg[members], kind="stable")]
+    sizes = np.bincount(agg[members], minlength=count)
+    starts = np.concatenate([[0], np.cumsum(sizes)])
+    blocks = np.zeros((n, bf, k))
+    coarse = np.zeros((count, k, k))
+    for size in np.unique(sizes):
+        ids = np.flatnonzero(sizes == size)
+        nodes = order[starts[ids][:, None] + np.arange(size)[None, :]]
+        stack = candidates[nodes].reshape(len(ids), size * bf, k)
+        q, r = np.linalg.qr(stack)
+        sign = np.sign(np.diagonal(r, axis1=1, axis2=2))
+        sign[sign == 0] = 1.0
+        q *= sign[:, None, :]
+        r *= sign[:, :, None]
+        blocks[nodes.ravel()] = q.reshape(len(ids) * size, bf, k)
+        coarse[ids] = r
+    return blocks, coarse
+
+
+def csr_union(n, rows, cols):
+    """The sorted unique (row, col) pairs of ``rows``/``cols`` as CSR (offsets, cols),
+    and for every input pair its index in that pattern."""
+    width = int(cols.max()) + 1 if len(cols) else 1
+    keys = rows.astype(np.int64) * width + cols
+    unique, inverse = np.unique(keys, return_inverse=True)
+    offsets = np.zeros(n + 1, dtype=np.int64)
+    np.cumsum(np.bincount(unique // width, minlength=n), out=offsets[1:])
+    return offsets, unique % width, inverse
+
+
+def transfer(nf, bf, agg, count, tent_blocks, coarse_candidates, op_rows, op_cols):
+    """The prolongation structure of one level: P's row i holds the aggregates of i
+    and of its operator neighbours ``op_cols[op_rows[i]:op_rows[i+1]]``."""
+    owner = np.repeat(np.arange(nf), np.diff(op_rows))
+    rows = np.concatenate([np.arange(nf), owner])
+    cols = np.concatenate([agg, agg[op_cols]])
+    keep = cols >= 0
+    p_rows, p_cols, index = csr_union(nf, rows[keep], cols[keep])
+    tent_slot = np.full(nf, -1, dtype=np.int64)
+    has = agg >= 0
+    tent_slot[has] = index[:int(has.sum())]  # the kept self pairs come first, in node order
+    return Transfer(nf, count, bf, agg, tent_blocks, p_rows, p_cols, tent_slot, coarse_candidates)
+
+
+@dataclass
+class Level:
+    """Structure of one level ``l`` and its transfer to level l + 1 (all index arrays int64).
+
+    Operator pattern: node i's off-diagonal entries ``off_cols[off_rows[i]:off_rows[i+1]]``
+    (level 0: the adjacency entries of ``device.adjacency``, one per spring end;
+    coarse levels: the Galerkin pattern). ``transfer``: P's structure (None on the
+    coarsest level). Per-step index lists (for ``kernels/multigrid.py``):
+
+    * ``entry_slot`` (off,): the P block of row i that entry (i, j)'s A_ij T_j
+      lands in (P's block of agg(j)), or -1 when j has no aggregate;
+    * A P: ``ap_rows``/``ap_cols``: its pattern (CSR by fine node); ``apt_rows``
+      (nf+1,) and ``apt_entry`` (-1: the diagonal block, else an off-diagonal entry),
+      ``apt_p``, ``apt_ap``: per row, the products A_ij P_jJ and where they go;
+    * P^T A P, the upper triangle (I <= J) only (the operator is symmetric):
+      ``c_off_rows``/``c_off_cols`` its off-diagonal pattern (both triangles);
+      ``gal_rows`` (k+1,): for each coarse block of ``gal_block`` (the diagonal block
+      of node I as -1 - I, an off-diagonal entry as its index) the pairs
+      ``gal_p``, ``gal_ap`` whose products P_iI^T (AP)_iJ sum to it;
+      ``c_mirror`` (c_off,): the index of each off-diagonal entry's transpose;
+    * restriction P^T: ``pt_rows`` (nc+1,), ``pt_block``, ``pt_fine``: per coarse node,
+      P's blocks in its column and their fine nodes.
+    """
+
+    n: int
+    bs: int
+    off_rows: np.ndarray
+    off_cols: np.ndarray
+    transfer: Transfer | None = None
+    entry_slot: np.ndarray | None = None
+    ap_rows: np.ndarray | None = None
+    ap_cols: np.ndarray | None = None
+    apt_rows: np.ndarray | None = None
+    apt_entry: np.ndarray | None = None
+    apt_p: np.ndarray | None = None
+    apt_ap: np.ndarray | None = None
+    gal_rows: np.ndarray | None = None
+    gal_block: np.ndarray | None = None
+    gal_p: np.ndarray | None = None
+    gal_ap: np.ndarray | None = None
+    c_mirror: np.ndarray | None = None
+    pt_rows: np.ndarray | None = None
+    pt_block: np.ndarray | None = None
+    pt_fine: np.ndarray | None = None
+
+
+def _csr_offsets(n, rows):
+    offsets = np.zeros(n + 1, dtype=np.int64)
+    np.cumsum(np.bincount(rows, minlength=n), out=offsets[1:])
+    return offsets
+
+
+def link(level):
+    """Fill ``level``'s index lists from its operator pattern and transfer; returns the
+    next level's off-diagonal pattern (off_rows, off_cols)."""
+    t = level.transfer
+    nf, nc = t.nf, t.nc
+    off_owner = np.repeat(np.arange(nf), np.diff(level.off_rows))
+    # smoothing: the P block of row i for agg(j) of each off-diagonal entry
+    agg_j = t.agg[level.off_cols]
+    slot = np.full(len(agg_j), -1, dtype=np.int64)
+    ok = agg_j >= 0
+    slot[ok] = _find(t.p_rows, t.p_cols, off_owner[ok], agg_j[ok])
+    level.entry_slot = slot
+    # A P: row i gets A_ii P_i. and A_ij P_j. for every entry; first the pairs (i, source
+    # entry, P block) in row order, then their AP columns
+    p_len = np.diff(t.p_rows)
+    src_node = np.concatenate([np.arange(nf), level.off_cols])          # whose P row
+    src_entry = np.concatenate([np.full(nf, -1), np.arange(len(level.off_cols))])
+    src_owner = np.concatenate([np.arange(nf), off_owner])
+    counts = p_len[src_node]
+    owner = np.repeat(src_owner, counts)
+    entry = np.repeat(src_entry, counts)
+    first = np.repeat(t.p_rows[src_node], counts)
+    within = np.arange(counts.sum()) - np.repeat(np.cumsum(counts) - counts, counts)
+    p_block = first + within
+    order = np.argsort(owner, kind="stable")
+    owner, entry, p_block = owner[order], entry[order], p_block[order]
+    ap_rows, ap_cols, ap_index = csr_union(nf, owner, t.p_cols[p_block])
+    level.ap_rows, level.ap_cols = ap_rows, ap_cols
+    level.apt_rows = _csr_offsets(nf, owner)
+    level.apt_entry, level.apt_p, level.apt_ap = entry, p_block, ap_index
+    # P^T A P: pairs (P block (i, I), AP block (i, J)) for every fine i, I <= J
+    np_i, nap_i = p_len, np.diff(ap_rows)
+    pairs_per_row = np_i * nap_i
+    row = np.repeat(np.arange(nf), pairs_per_row)
+    start = np.repeat(np.cumsum(pairs_per_row) - pairs_per_row, pairs_per_row)
+    k = np.arange(pairs_per_row.sum()) - start
+    width = np.repeat(nap_i, pairs_per_row)
+    p_of = t.p_rows[row] + k // np.maximum(width, 1)
+    ap_of = ap_rows[row] + k % np.maximum(width, 1)
+    big_i, big_j = t.p_cols[p_of], ap_cols[ap_of]
+    upper = big_i <= big_j
+    p_of, ap_of, big_i, big_j = p_of[upper], ap_of[upper], big_i[upper], big_j[upper]
+    # the next level's off-diagonal pattern (both triangles) and its entry of each pair
+    offd = big_i != big_j
+    pairs = np.unique(big_i[offd] * nc + big_j[offd])
+    lo, hi = pairs // nc, pairs % nc
+    all_rows = np.concatenate([lo, hi])
+    all_cols = np.concatenate([hi, lo])
+    order = np.lexsort((all_cols, all_rows))
+    c_off_rows, c_off_cols = _csr_offsets(nc, all_rows), all_cols[order]
+    position = np.empty(len(order), dtype=np.int64)
+    position[order] = np.arange(len(order))
+    upper_entry = position[:len(lo)]                                   # entry (I, J), I < J
+    lower_entry = position[len(lo):]                                   # entry (J, I)
+    mirror = np.empty(len(order), dtype=np.int64)
+    mirror[upper_entry] = lower_entry
+    mirror[lower_entry] = upper_entry
+    level.c_mirror = mirror
+    block = -1 - big_i
+    block[offd] = upper_entry[np.searchsorted(pairs, big_i[offd] * nc + big_j[offd])]
+    order = np.argsort(block, kind="stable")
+    block, level.gal_p, level.gal_ap = block[order], p_of[order], ap_of[order]
+    targets, starts = np.unique(block, return_index=True)
+    level.gal_block = targets
+    level.gal_rows = np.concatenate([starts, [len(block)]]).astype(np.int64)
+    # restriction: P^T by coarse node
+    p_owner = np.repeat(np.arange(nf), p_len)
+    order = np.argsort(t.p_cols, kind="stable")
+    level.pt_rows = _csr_offsets(nc, t.p_cols)
+    level.pt_block, level.pt_fine = order, p_owner[order]
+    return c_off_rows, c_off_cols
+
+
+def _find(rows, cols, i, j):
+    """Index in a CSR pattern (sorted columns per row) of the entries (i[k], j[k]), all present."""
+    width = int(cols.max()) + 1
+    keys = np.repeat(np.arange(len(rows) - 1), np.diff(rows)) * width + cols
+    return np.searchsorted(keys, i * width + j)
+
+
+# ----------------------------------------------------------------- numeric (numpy)
+# The same products as the per-step kernels, on numpy arrays: for the setup (the
+# coarse levels' strength at rest) and as the tests' reference.
+
+
+def apply_operator(level, diag, off, x):
+    """A x for a level's operator given by its diagonal blocks (n, b, b) and off-diagonal
+    blocks (entries, b, b) in ``off_rows``/``off_cols``; x (n, b)."""
+    y = np.einsum("nij,nj->ni", diag, x)
+    owner = np.repeat(np.arange(level.n), np.diff(level.off_rows))
+    np.add.at(y, owner, np.einsum("eij,ej->ei", off, x[level.off_cols]))
+    return y
+
+
+def spectral_radius(level, diag, off, steps=20, seed=0):
+    """An estimate of rho(D^-1 A) by power iteration in the D inner product (numpy)."""
+    dinv = np.linalg.inv(diag)
+    x = np.random.default_rng(seed).standard_normal((level.n, diag.shape[1]))
+    rho = 0.0
+    for _ in range(steps):
+        y = np.einsum("nij,nj->ni", dinv, apply_operator(level, diag, off, x))
+        rho = float(np.sqrt(np.sum(y * y) / max(np.sum(x * x), 1e-300)))
+        x = y / max(np.abs(y).max(), 1e-300)
+    return rho
+
+
+def smooth_prolongation(level, diag, off, dinv, scale):
+    """P = T - scale D^-1 A T in P's pattern (scale = omega / rho); blocks (np, bf, 6)."""
+    t = level.transfer
+    owner = np.repeat(np.arange(level.n), np.diff(level.off_rows))
+    at = np.zeros((len(t.p_cols), t.bf, COARSE_BS))
+    has = t.tent_slot >= 0
+    np.add.at(at, t.tent_slot[has], np.einsum("nij,njk->nik", diag[has], t.tent[has]))
+    ok = level.entry_slot >= 0
+    np.add.at(at, level.entry_slot[ok], np.einsum("eij,ejk->eik", off[ok], t.tent[level.off_cols[ok]]))
+    p_owner = np.repeat(np.arange(level.n), np.diff(t.p_rows))
+    p = -scale * np.einsum("nij,njk->nik", dinv[p_owner], at)
+    p[t.tent_slot[has]] += t.tent[has]
+    del owner
+    return p
+
+
+def galerkin(level, diag, off, p):
+    """The coarse operator P^T A P: (diagonal blocks (nc, 6, 6), off-diagonal blocks)."""
+    t = level.transfer
+    ap = np.zeros((len(level.ap_cols), t.bf, COARSE_BS))
+    a = np.where((level.apt_entry < 0)[:, None, None], diag[np.repeat(np.arange(level.n),
+                                                                        np.diff(level.apt_rows))],
+                 off[np.maximum(level.apt_entry, 0)])
+    np.add.at(ap, level.apt_ap, np.einsum("eij,ejk->eik", a, p[level.apt_p]))
+    products = np.einsum("eji,ejk->eik", p[level.gal_p], ap[level.gal_ap])
+    sums = np.add.reduceat(products, level.gal_rows[:-1], axis=0) if len(products) else products
+    c_diag = np.zeros((t.nc, COARSE_BS, COARSE_BS))
+    c_off = np.zeros((len(level.c_mirror), COARSE_BS, COARSE_BS))
+    is_diag = level.gal_block < 0
+    c_diag[-1 - level.gal_block[is_diag]] = sums[is_diag]
+    c_off[level.gal_block[~is_diag]] = sums[~is_diag]
+    lower = np.setdiff1d(np.arange(len(c_off)), level.gal_block[~is_diag])
+    c_off[lower] = np.transpose(c_off[level.c_mirror[lower]], (0, 2, 1))
+    return c_diag, c_off
+
+
+@dataclass
+class Hierarchy:
+    """The levels of a model's hierarchy, finest first; the last has no transfer."""
+
+    levels: list
+
+    @property
+    def sizes(self):
+        return [level.n * level.bs for level in self.levels]
+
+
+def rest_operator(model, dt, free):
+    """Level 0's operator at rest (springs unstretched: blocks b n n^T, b = dt kd +
+    dt^2 ks, directions at the initial state) over the adjacency entries: (diag
+    (n, 3, 3), off (2m, 3, 3), off_rows, off_cols); couplings to pinned particles are
+    zero (they are not solved for). The tests' reference of the level-0 operator's
+    structure; ``build`` needs only its norms (``rest_couplings``)."""
+    from massspring.device import adjacency
+
+    offsets, other, entry = adjacency(model)
+    spring = np.where(entry >= 0, entry, -1 - entry)
+    block = _rest_blocks(model, dt)
+    owner = np.repeat(np.arange(model.n_particles), np.diff(offsets))
+    live = free[owner] & free[other]
+    off = np.where(live[:, None, None], -block[spring], 0.0)
+    diag = model.masses[:, None, None] * np.eye(3)
+    np.add.at(diag, owner[live], block[spring[live]])
+    return diag, off, offsets.astype(np.int64), other.astype(np.int64)
+
+
+def _rest_blocks(model, dt):
+    x, ends = model.positions, model.springs
+    d = x[ends[:, 1]] - x[ends[:, 0]]
+    length = np.linalg.norm(d, axis=1)
+    nvec = np.divide(d, length[:, None], out=np.zeros_like(d), where=length[:, None] > 0)
+    b = dt * model.damping + dt * dt * model.stiffness
+    return b[:, None, None] * nvec[:, :, None] * nvec[:, None, :]
+
+
+def rest_couplings(model, dt, free):
+    """Strength data of level 0 at rest: coupling pairs (k, 2) of free particles, their
+    Frobenius norms b (parallel springs add up later), and each particle's ||A_ii||."""
+    ends = model.springs
+    block = _rest_blocks(model, dt)
+    live = free[ends[:, 0]] & free[ends[:, 1]]
+    diag = model.masses[:, None, None] * np.eye(3)
+    for end in (0, 1):
+        np.add.at(diag, ends[live, end], block[live])
+    weights = np.linalg.norm(block, axis=(1, 2))
+    return ends[live], weights[live], np.linalg.norm(diag, axis=(1, 2))
+
+
+def coarse_couplings(pairs, weights, diag_norm, agg, count):
+    """The next level's strength data: couplings between aggregates summed, each
+    aggregate's diagonal norm the sum of its members' and of its inner couplings'."""
+    a, b = agg[pairs[:, 0]], agg[pairs[:, 1]]
+    ok = (a >= 0) & (b >= 0)
+    inner = ok & (a == b)
+    diag = np.zeros(count)
+    members = agg >= 0
+    np.add.at(diag, agg[members], diag_norm[members])
+    np.add.at(diag, a[inner], 2 * weights[inner])
+    between = ok & (a != b)
+    return np.stack([a[between], b[between]], 1), weights[between], diag
+
+
+def build(model, dt, theta=THETA, max_coarse=MAX_COARSE):
+    """The hierarchy of ``model`` for time step ``dt`` (s): structure only (see the
+    module docstring). Coarse levels are aggregated on the coupling graph that the
+    aggregates inherit (summed norms), not on numeric coarse operators."""
+    from massspring.device import adjacency
+
+    free = model.free_mask()
+    offsets, other, _ = adjacency(model)
+    pairs, weights, diag_norm = rest_couplings(model, dt, free)
+    level = Level(model.n_particles, 3, offsets.astype(np.int64), other.astype(np.int64))
+    levels = [level]
+    candidates = None
+    while level.n * level.bs > max_coarse and len(levels) < MAX_LEVELS:
+        s_rows, s_cols, s_w = strength_graph(level.n, pairs, weights, diag_norm,
+                                             theta if len(levels) == 1 else COARSE_THETA)
+        agg, count = aggregate(s_rows, s_cols, s_w)
+        if len(levels) == 1:
+            agg[~free] = -1
+        if count == 0 or count * COARSE_BS >= 0.8 * level.n * level.bs:
+            break  # no useful coarsening
+        if candidates is None:
+            candidates = rigid_modes(model.positions, agg, count)
+        tent, coarse = tentative(agg, count, candidates)
+        level.transfer = transfer(level.n, level.bs, agg, count, tent, coarse, level.off_rows, level.off_cols)
+        next_rows, next_cols = link(level)
+        pairs, weights, diag_norm = coarse_couplings(pairs, weights, diag_norm, agg, count)
+        level = Level(count, COARSE_BS, next_rows, next_cols)
+        levels.append(level)
+        candidates = coarse
+    return Hierarchy(levels)

@@ -1,0 +1,329 @@
+"""Smoothed-aggregation multigrid: a V-cycle as the preconditioner of the CG.
+
+The hierarchy's structure comes from the spring graph, once per simulation
+(``aggregation.build``): aggregates, the tentative prolongations (translations and
+rotations of each aggregate), and the patterns of P, A P and P^T A P. Every step,
+after the operator's refresh, ``setup`` recomputes the values in kernels
+(``kernels/multigrid.py``): D^-1 on each level, the smoothed prolongations
+P = (I - omega/rho D^-1 A) T, the Galerkin coarse operators P^T A P and the dense
+Cholesky factor of the coarsest level. The fine level stays matrix-free.
+
+``apply`` is one V(NU, NU)-cycle on CG's residual: Chebyshev smoothing of degree
+NU in D^-1 A on [rho / CHEB_RATIO, rho] before and after the coarse correction
+(the same polynomial, so the cycle is symmetric; it is positive definite when A
+is), with rho an upper bound of the spectral radius of D^-1 A: 2 on level 0 with
+the definiteness fix (then A = M + sum of positive semidefinite spring blocks),
+else the largest block row sum of |D^-1 A|; on coarse levels 1.1 times a
+10-step Lanczos estimate (a row-sum bound is useless there: 6x6 blocks mix
+translation and rotation scales). On every level but the last two the coarse
+problem gets two cycles (a W-cycle: a V-cycle's count grows with the number of
+levels). Constrained (pinned) directions are filtered out of its input and output.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import taichi as ti
+
+from massspring.device import POOL, Layout, capacity
+from massspring.kernels import multigrid as mg
+from massspring.solvers import aggregation
+from massspring.solvers.base import Preconditioner
+
+NU = 3              # Chebyshev degree of each smoothing (pre and post)
+CHEB_RATIO = 30.0   # the smoother targets eigenvalues of D^-1 A in [rho / CHEB_RATIO, rho]
+OMEGA = 4.0 / 3.0   # prolongation smoothing weight (times 1 / rho)
+LANCZOS_STEPS = 10  # per coarse level and step, for rho(D^-1 A)
+RHO_SAFETY = 1.1    # Lanczos underestimates rho; Chebyshev diverges if rho is too low by ~10%
+W_CYCLE = True      # two coarse cycles on every level but the last two (V grows with levels)
+FLOOR = 256         # smallest capacity of the hierarchy's arrays
+
+
+class Multigrid(Preconditioner):
+    """Smoothed-aggregation V-cycle (see the module docstring); a global preconditioner."""
+
+    name = "multigrid"
+    kernel = None
+
+    @classmethod
+    def declare(cls, layout, model, settings):
+        real = layout.real
+        layout.add("minv", real, "particle", (3, 3))
+        for name in ("mg_x", "mg_res", "mg_d", "mg_d2"):
+            layout.vectors(name, real)
+
+    def __init__(self, dev, model, settings):
+        super().__init__(dev, model, settings)
+        self.serial = settings.loops == "serial"
+        self.fix = settings.definiteness_fix
+        self.hierarchy = aggregation.build(model, settings.dt)
+        self.cfg = None  # the integrator's Config, set by ``bind``
+        self.plan = _Plan(self.hierarchy)
+        self.g = self.plan.layout(dev.x.dtype).allocate() if len(self.hierarchy.levels) > 1 else None
+        self.rho = [1.0] * len(self.hierarchy.levels)
+        self.factor_failed = 0
+
+    def bind(self, cfg):
+        self.cfg = cfg
+
+    # ------------------------------------------------------------------ setup
+    def setup(self, dt):
+        dev, cfg, g, plan, serial = self.dev, self.cfg, self.g, self.plan, self.serial
+        bound = mg.fine_inverse(dev, cfg, serial)
+        self.rho[0] = min(2.0, bound) if self.fix else bound
+        if g is None:
+            return
+        mg.smooth_p0(dev, cfg, g, OMEGA / _positive(self.rho[0]), serial)
+        mg.ap0(dev, cfg, g, serial)
+        mg.galerkin0(cfg, g, plan.gal0_count, serial)
+        last = plan.levels - 1
+        for level in range(1, plan.levels):
+            begin, end = plan.lower_range[level]
+            if end > begin:
+                mg.mirror(cfg, g, begin, end, serial)
+            nodes = plan.node_range[level]
+            if level == last:
+                self.factor_failed = int(mg.factor_coarsest(cfg, g, nodes[0], nodes[1] - nodes[0]))
+                break
+            mg.coarse_inverse(cfg, g, nodes[0], nodes[1], serial)
+            self.rho[level] = RHO_SAFETY * self._lanczos(nodes[0], nodes[1])
+            mg.smooth_pc(cfg, g, nodes[0], nodes[1], OMEGA / _positive(self.rho[level]), serial)
+            mg.apc(cfg, g, nodes[0], nodes[1], serial)
+            mg.galerkinc(cfg, g, *plan.gal_range[level], serial)
+
+    def _lanczos(self, begin, end):
+        """The largest Ritz value of D^-1 A on coarse nodes [begin, end) after LANCZOS_STEPS."""
+        cfg, g, serial = self.cfg, self.g, self.serial
+        beta = math.sqrt(max(mg.lanczos_start(cfg, g, begin, end, serial), 0.0))
+        alphas, betas = [], []
+        for _ in range(LANCZOS_STEPS):
+            if not (math.isfinite(beta) and beta > 0):
+                break
+            alpha = float(mg.lanczos_apply(cfg, g, begin, end, 1.0 / beta, serial))
+            previous = beta if alphas else 0.0
+            beta = math.sqrt(max(float(mg.lanczos_next(cfg, g, begin, end, alpha, previous, serial)), 0.0))
+            alphas.append(alpha)
+            betas.append(beta)
+        if not alphas:
+            return 1.0
+        k = len(alphas)
+        tri = np.diag(alphas) + np.diag(betas[:k - 1], 1) + np.diag(betas[:k - 1], -1)
+        return float(np.linalg.eigvalsh(tri)[-1])
+
+    # ------------------------------------------------------------------ cycle
+    def apply(self):
+        """z = B r (one V-cycle) into ``dev.z`` from ``dev.r``; returns r . z."""
+        dev, cfg, g, serial = self.dev, self.cfg, self.g, self.serial
+        self._smooth0(True)
+        if g is not None:
+            mg.restrict0(dev, cfg, g, self.plan.node_range[1][1], serial)
+            self._visits(1)
+            mg.prolong0(dev, cfg, g, serial)
+        self._smooth0(False)
+        return float(mg.finish0(dev, cfg, serial))
+
+    def _visits(self, level):
+        """The coarse correction from ``level``: one cycle, or two (W) unless it is the last."""
+        self._coarse(level, True)
+        if W_CYCLE and level < self.plan.levels - 1:
+            self._coarse(level, False)
+
+    def _coarse(self, level, first):
+        """A cycle on ``level`` for its right-hand side ``c_b``: from x = 0 (``first``), else
+        from the current ``c_x`` (the W-cycle's second visit: x + B (b - A x))."""
+        cfg, g, serial, plan = self.cfg, self.g, self.serial, self.plan
+        begin, end = plan.node_range[level]
+        if level == plan.levels - 1:
+            mg.solve_coarsest(cfg, g, begin, end - begin)
+            return
+        self._smoothc(level, first)
+        mg.restrictc(cfg, g, *plan.node_range[level + 1], serial)
+        self._visits(level + 1)
+        mg.prolongc(cfg, g, begin, end, serial)
+        self._smoothc(level, False)
+
+    def _smooth0(self, first):
+        dev, cfg, serial = self.dev, self.cfg, self.serial
+        steps = chebyshev(self.rho[0])
+        mg.cheb_start0(dev, cfg, first, steps[0], serial)
+        src, dst = dev.mg_d, dev.mg_d2
+        for k, (c1, c2) in enumerate(steps[1]):
+            last = k == len(steps[1]) - 1
+            mg.cheb_step0(dev, cfg, src, dst, c1, c2, last, serial)
+            src, dst = dst, src
+
+    def _smoothc(self, level, first):
+        cfg, g, serial = self.cfg, self.g, self.serial
+        begin, end = self.plan.node_range[level]
+        steps = chebyshev(self.rho[level])
+        mg.cheb_startc(cfg, g, begin, end, first, steps[0], serial)
+        src, dst = g.c_d, g.c_d2
+        for k, (c1, c2) in enumerate(steps[1]):
+            last = k == len(steps[1]) - 1
+            mg.cheb_stepc(cfg, g, src, dst, begin, end, c1, c2, last, serial)
+            src, dst = dst, src
+
+    def release(self):
+        if self.g is not None:
+            POOL.give(self.g)
+            self.g = None
+
+    def describe(self):
+        """Level sizes (unknowns), for reports."""
+        return self.hierarchy.sizes
+
+
+def chebyshev(rho, degree=NU, ratio=CHEB_RATIO):
+    """Coefficients of a degree-``degree`` Chebyshev smoother for D^-1 A on
+    [rho / ratio, rho] (Saad, Iterative Methods, Alg. 12.1): (1 / theta, [(c1, c2), ...])
+    with d_0 = D^-1 r / theta and d_{k+1} = c1 d_k + c2 D^-1 r_{k+1} (the last step
+    has no next direction)."""
+    rho = _positive(rho)
+    low = rho / ratio
+    theta, delta = 0.5 * (rho + low), 0.5 * (rho - low)
+    sigma = theta / delta
+    rh = 1.0 / sigma
+    steps = []
+    for _ in range(degree - 1):
+        rh_new = 1.0 / (2.0 * sigma - rh)
+        steps.append((rh_new * rh, 2.0 * rh_new / delta))
+        rh = rh_new
+    steps.append((0.0, 0.0))
+    return 1.0 / theta, steps
+
+
+def _positive(value):
+    return value if math.isfinite(value) and value > 0 else 1.0
+
+
+class _Plan:
+    """The hierarchy's index lists made global (coarse levels concatenated: level l's
+    nodes at ``node_range[l]``, its off-diagonal entries after the levels above), and
+    the field declarations of its bundle."""
+
+    def __init__(self, hierarchy):
+        levels = hierarchy.levels
+        self.levels = len(levels)
+        self.arrays = {}
+        if self.levels < 2:
+            return
+        coarse = levels[1:]
+        node_base = np.concatenate([[0], np.cumsum([lv.n for lv in coarse])])
+        off_base = np.concatenate([[0], np.cumsum([len(lv.off_cols) for lv in coarse])])
+        self.node_range = {l: (int(node_base[l - 1]), int(node_base[l])) for l in range(1, self.levels)}
+        total_nodes, total_off = int(node_base[-1]), int(off_base[-1])
+        a = self.arrays
+        f = levels[0]
+        t = f.transfer
+        a["t0"], a["t0_slot"], a["e0_slot"] = t.tent, t.tent_slot, f.entry_slot
+        a["p0_rows"], a["p0_cols"] = t.p_rows, t.p_cols
+        a["ap0_rows"] = f.ap_rows
+        a["apt0_rows"], a["apt0_ap"] = f.apt_rows, f.apt_ap
+        a["gal0_rows"], a["gal0_block"], a["gal0_p"], a["gal0_ap"] = f.gal_rows, f.gal_block, f.gal_p, f.gal_ap
+        a["pt0_rows"], a["pt0_block"], a["pt0_fine"] = f.pt_rows, f.pt_block, f.pt_fine
+        self.gal0_count = len(f.gal_block)
+        self.counts = {"p0": len(t.p_cols), "ap0": len(f.ap_cols), "fine": f.n}
+        # coarse operators (pattern from the transfer above each level)
+        rows, cols, mirrors, lower = [np.zeros(1, dtype=np.int64)], [], [], []
+        self.lower_range = {}
+        for l, lv in enumerate(coarse, start=1):
+            above = levels[l - 1]
+            rows.append(lv.off_rows[1:] + off_base[l - 1])
+            cols.append(lv.off_cols + node_base[l - 1])
+            mirrors.append(above.c_mirror + off_base[l - 1])
+            targeted = above.gal_block[above.gal_block >= 0]
+            low = np.setdiff1d(np.arange(len(lv.off_cols)), targeted) + off_base[l - 1]
+            self.lower_range[l] = (sum(len(x) for x in lower), sum(len(x) for x in lower) + len(low))
+            lower.append(low)
+        a["c_rows"], a["c_cols"] = np.concatenate(rows), _cat(cols)
+        a["c_mirror"], a["lower"] = _cat(mirrors), _cat(lower)
+        # transfers between coarse levels
+        tc = np.zeros((total_nodes, 6, 6))
+        tc_slot = np.full(total_nodes, -1, dtype=np.int64)
+        ec_slot = np.full(total_off, -1, dtype=np.int64)
+        pc_rows, apc_rows, aptc_rows = (np.zeros(total_nodes + 1, dtype=np.int64) for _ in range(3))
+        ptc_rows = np.zeros(total_nodes + 1, dtype=np.int64)
+        parts = {k: [] for k in ("pc_cols", "aptc_ap", "galc_block", "galc_p", "galc_ap", "ptc_block", "ptc_fine")}
+        galc_rows = [np.zeros(1, dtype=np.int64)]
+        pc_base = apc_base = trip_base = pair_base = blocks = pt_base = 0
+        self.gal_range = {}
+        for l in range(1, self.levels - 1):
+            lv, tr = levels[l], levels[l].transfer
+            n0, n1 = self.node_range[l]
+            nn0, nn1 = self.node_range[l + 1]
+            tc[n0:n1] = tr.tent
+            tc_slot[n0:n1] = np.where(tr.tent_slot >= 0, tr.tent_slot + pc_base, -1)
+            ec_slot[off_base[l - 1]:off_base[l]] = np.where(lv.entry_slot >= 0, lv.entry_slot + pc_base, -1)
+            pc_rows[n0 + 1:n1 + 1] = tr.p_rows[1:] + pc_base
+            apc_rows[n0 + 1:n1 + 1] = lv.ap_rows[1:] + apc_base
+            aptc_rows[n0 + 1:n1 + 1] = lv.apt_rows[1:] + trip_base
+            ptc_rows[nn0 + 1:nn1 + 1] = lv.pt_rows[1:] + pt_base
+            parts["pc_cols"].append(tr.p_cols + nn0)
+            parts["aptc_ap"].append(lv.apt_ap + apc_base)
+            parts["galc_block"].append(np.where(lv.gal_block < 0, lv.gal_block - nn0, lv.gal_block + off_base[l]))
+            parts["galc_p"].append(lv.gal_p + pc_base)
+            parts["galc_ap"].append(lv.gal_ap + apc_base)
+            galc_rows.append(lv.gal_rows[1:] + pair_base)
+            parts["ptc_block"].append(lv.pt_block + pc_base)
+            parts["ptc_fine"].append(lv.pt_fine + n0)
+            self.gal_range[l] = (blocks, blocks + len(lv.gal_block))
+            pc_base += len(tr.p_cols)
+            apc_base += len(lv.ap_cols)
+            trip_base += len(lv.apt_p)
+            pair_base += len(lv.gal_p)
+            blocks += len(lv.gal_block)
+            pt_base += len(lv.pt_block)
+        _fill_forward(pc_rows)
+        _fill_forward(apc_rows)
+        _fill_forward(aptc_rows)
+        _fill_forward(ptc_rows)
+        a["tc"], a["tc_slot"], a["ec_slot"] = tc, tc_slot, ec_slot
+        a["pc_rows"], a["apc_rows"], a["aptc_rows"], a["ptc_rows"] = pc_rows, apc_rows, aptc_rows, ptc_rows
+        for key, values in parts.items():
+            a[key] = _cat(values)
+        a["galc_rows"] = np.concatenate(galc_rows)
+        self.counts.update(pc=pc_base, apc=apc_base, nodes=total_nodes, off=total_off, gal_blocks=blocks)
+        last = levels[-1]
+        self.coarsest = last.n * last.bs
+
+    def layout(self, real) -> Layout:
+        """Declarations of the hierarchy's fields, sized by capacity classes."""
+        layout = Layout(0, 0, real)
+        c = self.counts
+
+        def cap(count):
+            return capacity(count, FLOOR)
+
+        for name, values in self.arrays.items():
+            if name in ("t0", "tc"):
+                continue
+            layout.add(name, ti.i32, cap(len(values)), values=values.astype(np.int32))
+        layout.add("t0", real, cap(c["fine"]), (3, 6), values=self.arrays["t0"])
+        layout.add("tc", real, cap(c["nodes"]), (6, 6), values=self.arrays["tc"])
+        layout.add("p0", real, cap(c["p0"]), (3, 6))
+        layout.add("ap0", real, cap(c["ap0"]), (3, 6))
+        layout.add("pc", real, cap(c["pc"]), (6, 6))
+        layout.add("apc", real, cap(c["apc"]), (6, 6))
+        layout.add("apc_tmp", real, cap(c["pc"]), (6, 6))        # A T while P is smoothed
+        layout.add("gal_tmp", real, cap(c["gal_blocks"]), (6, 6))  # Galerkin sums
+        for name in ("c_diag", "c_dinv"):
+            layout.add(name, real, cap(c["nodes"]), (6, 6))
+        layout.add("c_off", real, cap(c["off"]), (6, 6))
+        for name in ("c_b", "c_x", "c_res", "c_d", "c_d2"):
+            layout.vectors(name, real, cap(c["nodes"]), k=6)
+        layout.vectors("c_partial", ti.f64, cap(c["nodes"] // 256 + 1), k=2)
+        layout.add("chol", real, capacity(self.coarsest ** 2, FLOOR))
+        layout.add("chol_y", real, capacity(self.coarsest, FLOOR))
+        return layout
+
+
+def _cat(parts):
+    parts = [np.asarray(p, dtype=np.int64) for p in parts if len(p)]
+    return np.concatenate(parts) if parts else np.zeros(1, dtype=np.int64)
+
+
+def _fill_forward(rows):
+    """CSR offsets of levels without entries continue the previous level's last offset."""
+    np.maximum.accumulate(rows, out=rows)
