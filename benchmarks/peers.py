@@ -191,3 +191,46 @@ class TaichiMatrixFreeCG:
         self.ti.linalg.MatrixFreeCG(self.operator, self.b, self.x, tol=tol * np.linalg.norm(rhs),
                                     maxiter=100000)
         return self.x.to_numpy(), self.matvecs - 1  # one matvec is the initial residual
+
+
+def pyamg_pcg(matrix, rhs, x0, tol):
+    """SciPy CG preconditioned by pyamg's smoothed aggregation on ``matrix`` (3x3 blocks,
+    the three translations as near-nullspace, pyamg's defaults otherwise, coarsest level
+    at most 300 unknowns), built here: the caller times assembly + setup + solve, as a
+    sparse-matrix code pays them every step. Returns (solution, iterations)."""
+    import pyamg
+    from scipy.sparse.linalg import cg
+
+    bsr = matrix.tobsr(blocksize=(3, 3))
+    nodes = bsr.shape[0] // 3
+    translations = np.kron(np.ones((nodes, 1)), np.eye(3))
+    hierarchy = pyamg.smoothed_aggregation_solver(bsr, B=translations, max_coarse=300)
+    count = [0]
+
+    def callback(_):
+        count[0] += 1
+
+    sol, info = cg(bsr, rhs, x0=x0, rtol=tol, atol=0.0, M=hierarchy.aspreconditioner(cycle="V"), maxiter=20000,
+                   callback=callback)
+    return sol, count[0]
+
+
+def disc_model(count, stiffness=1e4, seed=0):
+    """An irregular mesh: ``count`` uniform random points in the unit disc (z = 0),
+    Delaunay triangulated, its edges as springs (ks = ``stiffness`` N/m each, kd = 2),
+    total mass 1 kg, gravity -z, the 4 rim points nearest 0, 90, 180 and 270 degrees
+    pinned; the triangles are its surface."""
+    import scipy.spatial
+
+    import massspring as ms
+
+    rng = np.random.default_rng(seed)
+    radius, angle = np.sqrt(rng.random(count)), 2 * np.pi * rng.random(count)
+    xy = np.stack([radius * np.cos(angle), radius * np.sin(angle)], axis=1)
+    triangles = scipy.spatial.Delaunay(xy).simplices.astype(np.int64)
+    edges = np.concatenate([triangles[:, [0, 1]], triangles[:, [1, 2]], triangles[:, [2, 0]]])
+    edges = np.unique(np.sort(edges, axis=1), axis=0)
+    rim = [int(np.argmin(np.linalg.norm(xy - [np.cos(a), np.sin(a)], axis=1))) for a in np.arange(4) * np.pi / 2]
+    positions = np.concatenate([xy, np.zeros((count, 1))], axis=1)
+    return ms.Model(positions, edges, masses=1.0 / count, stiffness=stiffness, damping=2.0,
+                    gravity=(0.0, 0.0, -9.81), fixed=rim, triangles=triangles)

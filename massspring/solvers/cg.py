@@ -15,6 +15,7 @@ otherwise Python drives one kernel per CG phase.
 from __future__ import annotations
 
 import math
+import time
 from dataclasses import dataclass
 
 from massspring.kernels import cg
@@ -28,25 +29,31 @@ class SolverStats:
     recomputed at exit; converged: residual <= tolerance; reason: why CG stopped
     ("converged", "max_iter", "indefinite" when p.Ap <= 0, "stalled" when a restart
     from the true residual no longer reduces it, as f32 round-off can cause,
-    "non-finite" when the right-hand side or the residual overflowed).
+    "non-finite" when the right-hand side or the residual overflowed); setup_s: seconds
+    of the preconditioner's per-step setup (0 for pointwise ones, set up in the
+    operator's refresh).
     """
 
     iterations: int
     residual: float
     converged: bool
     reason: str
+    setup_s: float = 0.0
 
 
 def solve(dev, cfg, preconditioner, dt, tol, max_iter, serial) -> SolverStats:
     """Refresh the operator at the bundle's state, then solve A v = b in ``dev.v``."""
+    setup_s = 0.0
     if serial and preconditioner.kernel is not None:
         iterations, residual, reason = cg.cg_solve(dev, cfg, dt, tol, max_iter)
         iterations, residual, reason = int(iterations), float(residual), int(reason)
     else:
         cg.cg_refresh(dev, cfg, dt)
+        start = time.perf_counter()
         preconditioner.setup(dt)
+        setup_s = time.perf_counter() - start
         iterations, residual, reason = _parallel(dev, cfg, preconditioner, tol, max_iter)
-    return SolverStats(iterations, residual, reason == cg.CONVERGED, cg.REASONS[reason])
+    return SolverStats(iterations, residual, reason == cg.CONVERGED, cg.REASONS[reason], setup_s)
 
 
 def _restart(dev, cfg, preconditioner):
