@@ -111,7 +111,13 @@ def cmd_info(args):
     scene, sim = make_simulation(args)
     info = sim.info()
     print(f"scene       {scene.name}: {scene.description}")
-    print(f"generator   {scene.generator}: " + ", ".join(f"{k}={v}" for k, v in scene.params.items()))
+    params = ", ".join(f"{k}={v}" for k, v in scene.params.items() if k != "mesh")
+    if scene.form == "mesh":
+        print(f"mesh        {scene.params['mesh']}: {params}")
+    elif scene.form == "particles":
+        print(f"model       hand-made ([particles] and [springs]): {params}")
+    else:
+        print(f"generator   {scene.generator}: {params}")
     print(f"size        {info['particles']} particles, {info['springs']} springs, "
           f"{sim.model.fixed.size} fixed")
     print(f"integrator  {sim.integrator}, dt = {format_seconds(sim.dt)}, precision {sim.precision}; "
