@@ -159,6 +159,14 @@ def _unique_pairs(a, b, n):
     return pairs[first]
 
 
+def _in_sorted(values, table):
+    """Whether each of ``values`` is in the sorted array ``table``."""
+    if not len(table):
+        return np.zeros(len(values), dtype=bool)
+    position = np.minimum(np.searchsorted(table, values), len(table) - 1)
+    return table[position] == values
+
+
 def mesh_springs(triangles, inner=None):
     """The springs of a triangulated mesh by family: a dict of (k, 2) int64 arrays
     "structural", "shear" and "bend" (see the module docstring), each sorted.
@@ -170,7 +178,9 @@ def mesh_springs(triangles, inner=None):
     opposite = np.roll(triangles, 1, axis=1).reshape(-1)                     # the vertex off that edge
     keys = np.minimum(a, b) * n + np.maximum(a, b)
     order = np.argsort(keys, kind="stable")
-    _, first, count = np.unique(keys[order], return_index=True, return_counts=True)
+    sorted_keys = keys[order]
+    first = np.flatnonzero(np.concatenate([[True], sorted_keys[1:] != sorted_keys[:-1]]))
+    count = np.diff(np.append(first, len(keys)))
     edge = order[first]  # one triangle edge per unique edge
     side = np.ones(len(keys), dtype=bool) if inner is None else ~np.asarray(inner, dtype=bool).reshape(-1)
     diagonal = np.add.reduceat(side[order], first) == 0  # every triangle edge on it is inside a face
@@ -183,8 +193,8 @@ def mesh_springs(triangles, inner=None):
     across = two & ~diagonal
     bend = _unique_pairs(opposite[edge[across]], opposite[other[across]], n)
     bend = bend[bend[:, 0] != bend[:, 1]]  # two copies of one triangle: the same vertex opposite
-    taken = np.concatenate([structural, shear])
-    bend = bend[~np.isin(bend[:, 0] * n + bend[:, 1], taken[:, 0] * n + taken[:, 1])]
+    taken = np.sort(np.concatenate([structural, shear]) @ np.array([n, 1]))
+    bend = bend[~_in_sorted(bend @ np.array([n, 1]), taken)]
     return {"structural": structural, "shear": shear, "bend": bend}
 
 

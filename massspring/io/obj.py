@@ -77,6 +77,8 @@ def read_obj(path) -> ObjMesh:
     vertices, vertex_lines, faces, face_lines = [], [], [], []
     with fh:
         for number, text in _logical_lines(fh):
+            if text.startswith(("vt", "vn", "#")):  # the most common lines this reader ignores
+                continue
             if "#" in text:
                 text = text.split("#", 1)[0]
             tokens = text.split()
@@ -94,11 +96,13 @@ def read_obj(path) -> ObjMesh:
     if not faces:
         raise ObjError(path, None, "no faces ('f' lines)")
     x = np.array(vertices, dtype=np.float64)
-    for face, line in zip(faces, face_lines):  # positive indices may point forward: checked at the end
-        if max(face) >= len(x):
-            raise ObjError(path, line, f"vertex index {max(face) + 1} is beyond the {len(x)} vertices of the file")
     indices = np.fromiter((i for face in faces for i in face), dtype=np.int64)
     sizes = np.fromiter((len(face) for face in faces), dtype=np.int64, count=len(faces))
+    beyond = np.flatnonzero(indices >= len(x))  # positive indices may point forward: checked at the end
+    if beyond.size:
+        k = int(np.searchsorted(np.cumsum(sizes), beyond[0], side="right"))
+        raise ObjError(path, face_lines[k], f"vertex index {indices[beyond[0]] + 1} is beyond the {len(x)} "
+                       "vertices of the file")
     triangles, face_of, _ = mesh.triangulate(indices, sizes)
     bad = mesh.degenerate_triangles(x, triangles)
     if bad.size:
@@ -119,7 +123,7 @@ def _vertex(path, number, args):
         xyz = (float(args[0]), float(args[1]), float(args[2]))
     except ValueError:
         raise ObjError(path, number, f"malformed number in vertex {' '.join(args[:3])!r}") from None
-    if not all(math.isfinite(c) for c in xyz):
+    if not (math.isfinite(xyz[0]) and math.isfinite(xyz[1]) and math.isfinite(xyz[2])):
         raise ObjError(path, number, f"non-finite vertex coordinate in {' '.join(args[:3])!r}")
     return xyz
 
@@ -131,7 +135,7 @@ def _face(path, number, args, count):
     face = []
     for arg in args:
         try:
-            i = int(arg.split("/", 1)[0])
+            i = int(arg if "/" not in arg else arg[:arg.index("/")])
         except ValueError:
             raise ObjError(path, number, f"malformed vertex index {arg!r}") from None
         if i > 0:
