@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 import massspring as ms
+from conftest import one_line_error
 from massspring.cli import main
 from massspring.io import frames as frames_io
 from massspring.io.obj import read_obj
@@ -22,13 +23,6 @@ CLOTH = ["cloth", "--set", "resolution=5", "--quiet"]
 
 def manifest(directory):
     return json.loads((directory / "manifest.json").read_text())
-
-
-def one_line_error(capsys, *words):
-    err = capsys.readouterr().err
-    assert err.count("\n") == 1 and "Traceback" not in err, err
-    for word in words:
-        assert word in err, (word, err)
 
 
 def test_obj_frames_at_the_gif_steps_read_back_exactly(tmp_path, capsys):

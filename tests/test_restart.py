@@ -7,16 +7,9 @@ import pytest
 import massspring as ms
 from massspring.cli import main
 from massspring.io.state import read_state
-from conftest import PATHS, random_system
+from conftest import PATHS, one_line_error, random_system
 
 CLOTH = ["cloth", "--set", "resolution=5", "--quiet"]  # pins, gravity, damping, a surface
-
-
-def one_line_error(capsys, *words):
-    err = capsys.readouterr().err
-    assert err.count("\n") == 1 and "Traceback" not in err, err
-    for word in words:
-        assert word in err, (word, err)
 
 
 @pytest.mark.parametrize("integrator", ["explicit", "symplectic", "implicit", "rk4"])
