@@ -149,3 +149,23 @@ def test_a_scene_without_a_model_says_what_is_missing(tmp_path):
         ms.load_scene(write_scene(tmp_path, ""))
     with pytest.raises(ms.SceneError, match="model.generator.*model.mesh"):
         ms.load_scene(write_scene(tmp_path, "[model]\nsize = 1.0\n"))
+
+
+def test_set_mesh_reads_another_file_relative_to_the_working_directory(tmp_path, monkeypatch):
+    square_obj(tmp_path / "cloth.obj", r=4)
+    (tmp_path / "other").mkdir()
+    square_obj(tmp_path / "other" / "fine.obj", r=6)
+    scene = ms.load_scene(write_scene(tmp_path, '[model]\nmesh = "cloth.obj"\n'))
+    monkeypatch.chdir(tmp_path / "other")
+    assert scene.with_settings(["mesh=fine.obj"]).model().n_particles == 36
+    with pytest.raises(ms.SceneError, match="none.obj: cannot be read"):
+        scene.with_settings(["mesh=none.obj"])
+
+
+def test_info_names_the_form(tmp_path, capsys):
+    square_obj(tmp_path / "cloth.obj")
+    assert main(["info", str(write_scene(tmp_path, '[model]\nmesh = "cloth.obj"\n', "m.toml"))]) == 0
+    assert f"mesh        {tmp_path / 'cloth.obj'}: density=None, mass=None" in capsys.readouterr().out
+    assert main(["info", str(write_scene(tmp_path, HANDMADE, "h.toml"))]) == 0
+    text = capsys.readouterr().out
+    assert "model       hand-made ([particles] and [springs])" in text and "3 particles, 3 springs, 1 fixed" in text

@@ -14,10 +14,11 @@ its triangles; a model without one (a chain) gets its springs as line elements:
   fingerprint, triangles), so any frame can start a ``--restart``.
 
 Frames are named ``frame_00000.EXT``, ``frame_00001.EXT``, ... in the order written
-(at least 5 digits, more for more frames). Every file is written to a temporary name
-and renamed, and ``manifest.json`` is rewritten the same way after each frame, so
-whatever stops the run, the manifest lists exactly the frames on disk and says how far
-the run got. Its keys: ``status`` ("running", "complete", "diverged", "interrupted",
+(at least 5 digits, more for more frames); files of an earlier run in the directory
+are replaced where the names repeat, and otherwise left alone. Every file is written
+to a temporary name and renamed, and ``manifest.json`` is rewritten the same way after
+each frame, so whatever stops the run, the manifest lists exactly the frames of this
+run on disk and says how far the run got. Its keys: ``status`` ("running", "complete", "diverged", "interrupted",
 "terminated", or "failed" when a frame could not be written), ``message`` (why it
 stopped, or ""), ``format``, ``frames`` (a list of {``file``, ``step``, ``time``}),
 ``last_step``/``last_time`` (the last good state reached), ``series`` (the .pvd, or
