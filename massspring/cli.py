@@ -50,8 +50,11 @@ def build_parser():
     length.add_argument("--steps", type=int, help="number of steps (default: the scene's duration / dt)")
     length.add_argument("--duration", type=float, help="simulated seconds (default: the scene's)")
     run.add_argument("--out", help="write the final state to this .npz file")
+    run.add_argument("--restart", metavar="FILE", help="continue from a state written by --out (or an npz "
+                     "frame of --export) of the same scene and dt; --steps/--duration then count the steps to add")
     run.add_argument("--quiet", action="store_true", help="no progress bar")
     add_export_arguments(run)
+    add_frame_arguments(run)
 
     verbs["scenes"] = sub.add_parser("scenes", help="list the built-in scenes")
 
@@ -111,7 +114,13 @@ def cmd_info(args):
     scene, sim = make_simulation(args)
     info = sim.info()
     print(f"scene       {scene.name}: {scene.description}")
-    print(f"generator   {scene.generator}: " + ", ".join(f"{k}={v}" for k, v in scene.params.items()))
+    params = ", ".join(f"{k}={v}" for k, v in scene.params.items() if k != "mesh")
+    if scene.form == "mesh":
+        print(f"mesh        {scene.params['mesh']}: {params}")
+    elif scene.form == "particles":
+        print(f"model       hand-made ([particles] and [springs]): {params}")
+    else:
+        print(f"generator   {scene.generator}: {params}")
     print(f"size        {info['particles']} particles, {info['springs']} springs, "
           f"{sim.model.fixed.size} fixed")
     print(f"integrator  {sim.integrator}, dt = {format_seconds(sim.dt)}, precision {sim.precision}; "
@@ -153,34 +162,74 @@ def cmd_run(args):
     from massspring.simulation import run
 
     scene, sim = make_simulation(args)
+    start_steps = restart(args, scene, sim)
     steps = run_steps(args, scene, sim)
     if args.out is not None:
         check_writable(args.out, "--out", (".npz",))
-    pictures = plan_pictures(args, scene, sim, steps)
+    frames = plan_frames(args, sim, steps)
+    pictures = plan_pictures(args, scene, sim, steps, frames)
+    export = plan_export(args, scene, sim, steps, frames)  # last: it creates the directory
+    callbacks = [c for c in (pictures.recording.record if pictures else None, export) if c is not None]
+
+    def on_frame(state):
+        for callback in callbacks:
+            callback(state)
 
     energy0 = sim.energy()
     start = time.perf_counter()
     stopped, diverged = None, None
     try:
         with progress_bar(sim, steps, show=not args.quiet and steps > 1) as progress:
-            run(sim, steps, frames=pictures.recording.steps if pictures else (),
-                on_frame=pictures.recording.record if pictures else None, progress=progress)
+            run(sim, steps, frames=frames if callbacks else (), on_frame=on_frame if callbacks else None,
+                progress=progress)
     except KeyboardInterrupt as exc:  # Ctrl-C or SIGTERM: the simulation holds the state reached
         stopped = exc
     except DivergenceError as exc:  # the simulation holds the last good state
         diverged = exc
     wall = time.perf_counter() - start
-    failed = write_outputs(args, scene, sim, steps, pictures)
-    print_summary(scene, sim, wall, energy0, args.out if args.out and "--out" not in failed else None)
+    failed = write_outputs(args, scene, sim, start_steps + steps, pictures)
+    if export is not None:
+        failed += finish_export(export, sim, start_steps + steps, diverged, stopped)
+    print_summary(scene, sim, wall, energy0, args.out if args.out and "--out" not in failed else None, start_steps)
+    done = sim.steps - start_steps
     if diverged is not None:
         print(f"massspring: {diverged}; {divergence_hint(sim, diverged)}", file=sys.stderr)
         return EXIT_DIVERGED
     if stopped is not None:
         what = "terminated" if isinstance(stopped, Terminated) else "interrupted"
-        print(f"massspring: {what} after {sim.steps} of {steps} steps; the state reached so far "
+        print(f"massspring: {what} after {done} of {steps} steps; the state reached so far "
               f"{'was written' if args.out and '--out' not in failed else 'is above'}", file=sys.stderr)
         return 128 + stopped.signum if isinstance(stopped, Terminated) else EXIT_INTERRUPTED
     return EXIT_OUTPUT if failed else EXIT_OK
+
+
+def restart(args, scene, sim):
+    """With --restart, put the saved state into ``sim`` after checking that it belongs to
+    this model and dt; returns the steps it had taken (0 without --restart)."""
+    from massspring.io.state import read_state
+
+    if args.restart is None:
+        return 0
+    try:
+        state = read_state(args.restart)
+    except ValueError as exc:
+        raise UsageError(f"--restart: {exc}") from None
+    model, path = sim.model, args.restart
+    if state.n_particles != model.n_particles:
+        raise UsageError(f"--restart: {path} holds {state.n_particles} particles; the model of scene "
+                         f"{scene.name!r} has {model.n_particles}")
+    if state.fingerprint != model.fingerprint():
+        raise UsageError(f"--restart: {path} was saved from another model (scene {state.scene!r}, fingerprint "
+                         f"{state.fingerprint[:12]}) than this run's (scene {scene.name!r}, {model.fingerprint()[:12]}):"
+                         f" a different scene file or --set")
+    if state.dt != sim.dt:
+        raise UsageError(f"--restart: {path} was computed with dt = {state.dt!r} s and this run's dt is "
+                         f"{sim.dt!r} s; time is counted in steps of dt, so pass --dt {state.dt!r}")
+    try:
+        sim.set_state(state.positions, state.velocities, state.steps)
+    except ValueError as exc:
+        raise UsageError(f"--restart: {path}: {exc}") from None
+    return state.steps
 
 
 class progress_bar:
@@ -208,20 +257,21 @@ class progress_bar:
         return False
 
 
-def write_outputs(args, scene, sim, steps, pictures):
+def write_outputs(args, scene, sim, end_step, pictures):
     """Write --out, then the pictures, each on its own: one failing does not stop the
-    others. Returns the options whose output failed (each reported on stderr)."""
+    others (``end_step``: the step the run was to reach). Returns the options whose
+    output failed (each reported on stderr)."""
     from massspring.io.state import write_state
 
     failed = []
     if args.out:
         try:
-            write_state(sim, args.out)
+            write_state(sim, args.out, scene.name)
         except OSError as exc:
             print(f"massspring: --out: could not write {args.out!r}: {exc.strerror or exc}", file=sys.stderr)
             failed.append("--out")
     if pictures is not None:
-        failed += finish_pictures(pictures, scene, sim, steps)
+        failed += finish_pictures(pictures, scene, sim, end_step)
     return failed
 
 
@@ -255,8 +305,9 @@ def add_export_arguments(p):
     g.add_argument("--fps", type=float, help=f"GIF frames per second (default {DEFAULT_FPS}, at most {MAX_FPS}; "
                    "GIF stores whole 1/100 s per frame, so 30 plays at 33.3)")
     count = g.add_mutually_exclusive_group()
-    count.add_argument("--frames", type=int, metavar="N", help="frames from start to end (default: enough to "
-                       f"play the simulated time in real time at --fps, at most {DEFAULT_MAX_FRAMES})")
+    count.add_argument("--frames", type=int, metavar="N", help="frames (of the GIF and of --export) from start "
+                       f"to end (default: enough to play the simulated time in real time at --fps, at most "
+                       f"{DEFAULT_MAX_FRAMES})")
     count.add_argument("--every", type=int, metavar="K", help="a frame every K steps (and the last step)")
     g.add_argument("--size", metavar="WxH", help="image size in pixels (default 480x480)")
     g.add_argument("--view", metavar="AZ,EL", help="camera azimuth and elevation in degrees "
@@ -264,6 +315,17 @@ def add_export_arguments(p):
     g.add_argument("--projection", choices=PROJECTIONS, help="default: the scene's [view]")
     g.add_argument("--framing", choices=FRAMINGS, help="run: fit the whole run (default); follow: keep the "
                    "scale, centre each frame on the body; last: fit the last frame")
+
+
+def add_frame_arguments(p):
+    from massspring.io.frames import FORMATS
+
+    g = p.add_argument_group("frames as files (for Blender, ParaView, Houdini); sampled like the GIF")
+    g.add_argument("--export", metavar="DIR", help="write one file per frame into DIR (created if missing), "
+                   "with manifest.json")
+    g.add_argument("--format", choices=tuple(FORMATS), help="frame files: obj (default), ply, vtk (.vtu and a "
+                   "ParaView .pvd) or npz (states that --restart takes); ply and vtk need meshio "
+                   "(pip install 'massspring[mesh]')")
 
 
 @dataclass
@@ -279,7 +341,26 @@ class PicturePlan:
     png: str | None
 
 
-def plan_pictures(args, scene, sim, steps):
+def plan_frames(args, sim, steps):
+    """The steps of this run (0..steps) at which --gif/--png record and --export writes a
+    frame (``render.frame_steps``); None without any of them."""
+    from massspring.io import render
+
+    if not (args.gif or args.png or args.export):
+        for name in ("fps", "frames", "every"):
+            if getattr(args, name) is not None:
+                raise UsageError(f"--{name}: only with --gif, --png or --export")
+        return None
+    fps = render.DEFAULT_FPS if args.fps is None else args.fps
+    if not (math.isfinite(fps) and 0 < fps <= render.MAX_FPS):
+        raise UsageError(f"--fps: must be > 0 and <= {render.MAX_FPS}, got {fps:g}")
+    try:
+        return render.frame_steps(steps, frames=args.frames, every=args.every, duration=steps * sim.dt, fps=fps)
+    except ValueError as exc:
+        raise UsageError(f"--{exc}") from None  # "frames: ..." or "every: ..."
+
+
+def plan_pictures(args, scene, sim, steps, steps_at):
     """Check the picture options before the run: None without --gif/--png."""
     from massspring.io import render
     from massspring.io.camera import Framing, View
@@ -289,7 +370,7 @@ def plan_pictures(args, scene, sim, steps):
         for name in ("gif", "png"):
             if getattr(args, name) == "":
                 raise UsageError(f"--{name}: empty path")
-        for name in ("fps", "frames", "every", "size", "view", "projection", "framing"):
+        for name in ("size", "view", "projection", "framing"):
             if getattr(args, name) is not None:
                 raise UsageError(f"--{name}: only with --gif or --png")
         return None
@@ -297,8 +378,6 @@ def plan_pictures(args, scene, sim, steps):
         if path is not None:
             check_writable(path, option, (suffix,))
     fps = render.DEFAULT_FPS if args.fps is None else args.fps
-    if not (math.isfinite(fps) and 0 < fps <= render.MAX_FPS):
-        raise UsageError(f"--fps: must be > 0 and <= {render.MAX_FPS}, got {fps:g}")
     size = parse_size(args.size or "480x480")
     settings = dict(scene.view)
     framing = args.framing or settings.pop("framing", "run")
@@ -319,15 +398,54 @@ def plan_pictures(args, scene, sim, steps):
             view = replace(view, projection=args.projection)
     except ValueError as exc:
         raise UsageError(f"--view: {exc}") from None
-    try:
-        steps_at = render.frame_steps(steps, frames=args.frames, every=args.every, duration=steps * sim.dt, fps=fps)
-    except ValueError as exc:
-        raise UsageError(f"--{exc}") from None  # "frames: ..." or "every: ..."
     need = len(steps_at) * sim.model.n_particles * 12
     if need > 2e9:
         raise UsageError(f"--frames: {len(steps_at)} frames of {sim.model.n_particles} particles would keep "
                          f"{need / 1e9:.1f} GB of positions; ask for fewer with --frames or --every")
     return PicturePlan(render.Recording(steps_at), view, framing, size, fps, args.gif, args.png)
+
+
+def plan_export(args, scene, sim, steps, steps_at):
+    """Check --export/--format before the run and create the directory: None without --export."""
+    from massspring.io.frames import DEFAULT_FORMAT, FrameExport
+
+    if not args.export:
+        if args.export == "":
+            raise UsageError("--export: empty path")
+        if args.format is not None:
+            raise UsageError("--format: only with --export")
+        return None
+    info = {"scene": {"name": scene.name, "source": scene.source, "form": scene.form,
+                      "generator": scene.generator, "params": scene.params},
+            "integrator": sim.integrator, "dt": sim.dt, "precision": sim.precision,
+            "particles": sim.model.n_particles, "springs": sim.model.n_springs,
+            "triangles": len(sim.model.triangles), "start_step": sim.steps, "end_step": sim.steps + steps}
+    export = FrameExport(args.export, args.format or DEFAULT_FORMAT, len(steps_at), scene.name, info)
+    export.prepare()
+    return export
+
+
+def finish_export(export, sim, end_step, diverged, stopped):
+    """Mark the manifest with how the run ended and say what was written (on stderr if
+    the run stopped early or a file failed). Returns ["--export"] if a file failed."""
+    if diverged is not None:
+        status, message = "diverged", str(diverged)
+    elif stopped is not None:
+        status = "terminated" if isinstance(stopped, Terminated) else "interrupted"
+        message = f"{status} after step {sim.steps}"
+    else:
+        status, message = "complete", ""
+    error = export.finish(status, sim, message)
+    where = f"{len(export)} {export.fmt} frame(s) in {str(export.directory)!r} (see manifest.json)"
+    if error is not None:
+        print(f"massspring: --export: {error}; {where}", file=sys.stderr)
+        return ["--export"]
+    if status != "complete":
+        print(f"massspring: the run stopped at step {sim.steps} of {end_step}; wrote {where}, the frames up to "
+              "then", file=sys.stderr)
+    else:
+        print(f"frames      wrote {where}")
+    return []
 
 
 def parse_size(text):
@@ -357,13 +475,13 @@ def format_seconds(dt):
     return f"{dt:.4g} s"
 
 
-def finish_pictures(plan, scene, sim, steps):
+def finish_pictures(plan, scene, sim, end_step):
     """Render what was recorded, write the GIF/PNG and say what was written (on stderr
     if the run or the rendering stopped early). Returns the options whose file failed."""
     from massspring.io import render
 
     rec = plan.recording
-    early = sim.steps < steps
+    early = sim.steps < end_step
     if not len(rec):
         print("massspring: no frame was recorded: nothing written to " +
               " or ".join(p for p in (plan.gif, plan.png) if p), file=sys.stderr)
@@ -392,20 +510,25 @@ def finish_pictures(plan, scene, sim, steps):
     if result.interrupted:
         print(f"massspring: rendering interrupted; wrote the frames rendered so far: {note}", file=sys.stderr)
     elif early:
-        print(f"massspring: the run stopped at step {sim.steps} of {steps}; wrote the frames recorded up to "
+        print(f"massspring: the run stopped at step {sim.steps} of {end_step}; wrote the frames recorded up to "
               f"then: {note}", file=sys.stderr)
     else:
         print(f"pictures    wrote {note}")
     return list(result.errors)
 
 
-def print_summary(scene, sim, wall, energy0, out):
+def print_summary(scene, sim, wall, energy0, out, start_steps=0):
     info = sim.info()
     energy1 = sim.energy()
-    rate = sim.steps / wall if wall > 0 else float("inf")
+    done = sim.steps - start_steps
+    rate = done / wall if wall > 0 else float("inf")
     print(f"scene       {scene.name} ({info['particles']} particles, {info['springs']} springs)")
     print(f"integrator  {sim.integrator}, dt = {format_seconds(sim.dt)}, {sim.precision}")
-    print(f"steps       {sim.steps} ({sim.time:g} s simulated) in {wall:.2f} s wall, {rate:.1f} steps/s")
+    if start_steps:
+        print(f"steps       {done} from the restart at step {start_steps} to step {sim.steps} (t = "
+              f"{start_steps * sim.dt:g} to {sim.time:g} s) in {wall:.2f} s wall, {rate:.1f} steps/s")
+    else:
+        print(f"steps       {sim.steps} ({sim.time:g} s simulated) in {wall:.2f} s wall, {rate:.1f} steps/s")
     if sim.integrator == "implicit" and sim.cg_iterations:
         its = np.array(sim.cg_iterations)
         print(f"CG          {its.mean():.1f} iterations/step mean, {its.max()} max, "

@@ -11,10 +11,14 @@ choice as long as it is consistent.
 
 from __future__ import annotations
 
+import hashlib
 from dataclasses import dataclass
 
 import numpy as np
 
+
+# The arrays that make up a model's physics (``Model.fingerprint``); ``triangles`` only draw it.
+PHYSICS = ("positions", "springs", "masses", "stiffness", "damping", "rest_lengths", "velocities", "gravity", "fixed")
 
 # Largest magnitude accepted for any input number (and 1 / smallest mass): squares
 # and products of a few inputs, which the kernels form (energies, momenta, b.b in
@@ -27,7 +31,7 @@ def _describe(value):
     return text if len(text) <= 40 else text[:37] + "..."
 
 
-def _real_array(name, value):
+def real_array(name, value):
     """``value`` as a float64 array of finite real numbers of magnitude <= MAX_MAGNITUDE.
 
     Refuses what numpy would silently convert: bools, complex numbers (the imaginary
@@ -54,7 +58,7 @@ def _real_array(name, value):
 def _per_item(name, value, count, what, low=None, low_text=""):
     """A scalar broadcast to ``count`` items, or an array of shape (count,); every
     value (the scalar too, even with no items) must be ``> low`` or ``>= low``."""
-    arr = _real_array(name, value)
+    arr = real_array(name, value)
     if arr.ndim != 0 and arr.shape != (count,):
         raise ValueError(f"{name}: expected a scalar or shape ({count},) (one per {what}), got shape {arr.shape}")
     if low is not None:
@@ -119,7 +123,7 @@ class Model:
 
     def __init__(self, positions, springs, masses=1.0, stiffness=1e3, damping=0.0,
                  rest_lengths=None, velocities=None, gravity=(0.0, 0.0, -9.81), fixed=None, triangles=None):
-        x = _real_array("positions", positions)
+        x = real_array("positions", positions)
         if x.ndim != 2 or x.shape[1] != 3 or x.shape[0] < 1:
             raise ValueError(f"positions: expected shape (n, 3) with n >= 1, got shape {x.shape}")
         n = x.shape[0]
@@ -158,12 +162,12 @@ class Model:
         if velocities is None:
             v = np.zeros((n, 3))
         else:
-            v = _real_array("velocities", velocities)
+            v = real_array("velocities", velocities)
             if v.shape != (n, 3):
                 raise ValueError(f"velocities: expected shape ({n}, 3), got shape {v.shape}")
             v = v.copy()
 
-        g = _real_array("gravity", gravity)
+        g = real_array("gravity", gravity)
         if g.shape != (3,):
             raise ValueError(f"gravity: expected 3 components, got shape {g.shape}")
 
@@ -175,6 +179,27 @@ class Model:
                             ("damping", kd), ("rest_lengths", l0), ("velocities", v),
                             ("gravity", g), ("fixed", fixed_idx), ("triangles", tris)):
             object.__setattr__(self, name, _readonly(np.ascontiguousarray(value)))
+
+    @classmethod
+    def from_mesh(cls, vertices, faces, **parameters) -> "Model":
+        """A cloth or shell from a polygon mesh: structural springs on its edges, shear
+        springs on the diagonals of its quads and larger faces, bending springs across
+        its interior edges, masses lumped from the triangle areas, pins by index or by a
+        box; the (fan-triangulated) faces become ``triangles``. Parameters and units:
+        ``massspring.mesh.model_from_mesh``."""
+        from massspring.mesh import model_from_mesh
+
+        return model_from_mesh(vertices, faces, **parameters)
+
+    def fingerprint(self) -> str:
+        """sha256 (hex) of the physics arrays (``PHYSICS``: names, dtypes, shapes and
+        bytes): two models with the same fingerprint step identically."""
+        digest = hashlib.sha256()
+        for name in PHYSICS:
+            arr = getattr(self, name)
+            digest.update(f"{name}:{arr.dtype.str}:{arr.shape}".encode())
+            digest.update(arr.tobytes())
+        return digest.hexdigest()
 
     @property
     def n_particles(self) -> int:

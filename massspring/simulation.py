@@ -13,7 +13,7 @@ from massspring.errors import DivergenceError, SimulationClosedError
 from massspring.integrators import INTEGRATORS
 from massspring.kernels import divergence
 from massspring.kernels.terms import active_terms
-from massspring.model import Model
+from massspring.model import Model, real_array
 from massspring.solvers import PRECONDITIONERS
 
 PRECISIONS = ("f64", "f32")
@@ -208,6 +208,37 @@ class Simulation:
     def cg_failures(self) -> int:
         """Implicit steps whose CG solve did not converge."""
         return self._cg_failures
+
+    def set_state(self, positions, velocities, steps=0):
+        """Continue from a given state (a restart): ``positions`` (n, 3) in m,
+        ``velocities`` (n, 3) in m/s, ``steps`` taken so far (``time`` is steps x dt).
+
+        The Model stays as it is (rest lengths, pins, the divergence check), so a run
+        of k steps, saved and set here, then continued for j steps equals an unbroken
+        run of k + j steps to the bit (in f64, with the same integrator and dt).
+        Values must be finite (and within an f32 run's range); a fixed particle's
+        velocity must be its prescribed velocity, 0. Raises ValueError naming the argument.
+        """
+        integrator = self._open()
+        n = self._model.n_particles
+        arrays = {}
+        for name, value in (("positions", positions), ("velocities", velocities)):
+            arr = real_array(name, value)
+            if arr.shape != (n, 3):
+                raise ValueError(f"{name}: expected shape ({n}, 3) (one row per particle), got shape {arr.shape}")
+            if self.precision == "f32" and arr.size and np.abs(arr).max() > F32_MAX_MAGNITUDE:
+                raise ValueError(f"{name}: {np.abs(arr).max():g} is beyond what an f32 run holds "
+                                 f"(|value| <= {F32_MAX_MAGNITUDE:g})")
+            arrays[name] = np.ascontiguousarray(arr)
+        moving = self._model.fixed[np.any(arrays["velocities"][self._model.fixed] != 0.0, axis=1)]
+        if moving.size:
+            i = int(moving[0])
+            raise ValueError(f"velocities: particle {i} is fixed, so its velocity must be 0, "
+                             f"got {arrays['velocities'][i].tolist()}")
+        steps = validate.count("steps", steps, low=0, high=2**62)
+        integrator.load_state(arrays["positions"], arrays["velocities"])
+        self._steps = steps
+        return self
 
     # ------------------------------------------------------------------ stepping
 

@@ -20,6 +20,15 @@ ZERO_LENGTH = 1e-12  # f64 zero-length rule: such a spring has no direction, for
 PATHS = ("serial", "parallel")
 
 
+def one_line_error(capsys, *words):
+    """The CLI's stderr after an error: one line, no traceback, holding each of ``words``."""
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "Traceback" not in err, err
+    for word in words:
+        assert word in err, (word, err)
+    return err
+
+
 def simulation(model, path, **kw):
     """A Simulation whose integrator uses the ``path`` driver."""
     sim = ms.Simulation(model, loops=path, **kw)

@@ -11,6 +11,7 @@ import time
 import numpy as np
 import pytest
 
+from conftest import one_line_error
 from massspring import __version__
 from massspring.cli import main
 
@@ -19,14 +20,6 @@ def run_cli(*args, timeout=300):
     proc = subprocess.run([sys.executable, "-m", "massspring", *args], capture_output=True, text=True,
                           timeout=timeout)
     return proc.returncode, proc.stdout, proc.stderr
-
-
-def one_line_error(capsys, *words):
-    err = capsys.readouterr().err
-    assert err.count("\n") == 1 and "Traceback" not in err, err
-    for word in words:
-        assert word in err, (word, err)
-    return err
 
 
 @pytest.mark.parametrize("args, word", [

@@ -298,3 +298,14 @@ def test_triangles_validated():
     assert model(triangles=[[0, 1, 2]]).triangles.tolist() == [[0, 1, 2]]
     for bad in ([[0, 1]], [[0, 1, 3]], [[0, 1, 1]], [[0.0, 1.0, 2.0]], [[-1, 0, 1]]):
         raises_naming("triangles", model, triangles=bad)
+
+
+def test_fingerprint_tells_models_apart_by_their_physics():
+    x = [[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]]
+    a = ms.Model(x, [[0, 1], [1, 2]], stiffness=[10.0, 20.0])
+    assert a.fingerprint() == ms.Model(x, [[0, 1], [1, 2]], stiffness=[10.0, 20.0]).fingerprint()
+    assert a.fingerprint() == ms.Model(x, [[0, 1], [1, 2]], stiffness=[10.0, 20.0], triangles=[[0, 1, 2]]).fingerprint()
+    for changed in (dict(stiffness=[10.0, 20.000000000000004]), dict(stiffness=[10.0, 20.0], fixed=[0]),
+                    dict(stiffness=[10.0, 20.0], rest_lengths=1.0), dict(stiffness=[10.0, 20.0], masses=2.0)):
+        assert ms.Model(x, [[0, 1], [1, 2]], **changed).fingerprint() != a.fingerprint(), changed
+    assert len(a.fingerprint()) == 64 and int(a.fingerprint(), 16) >= 0

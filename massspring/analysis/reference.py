@@ -186,11 +186,7 @@ def _integrate(model, counts, dt):
 
 def _cache_key(model, times, dt):
     digest = hashlib.sha256(CACHE_FORMAT)
-    for name in ("positions", "springs", "masses", "stiffness", "damping", "rest_lengths",
-                 "velocities", "gravity", "fixed"):
-        arr = np.ascontiguousarray(getattr(model, name))
-        digest.update(f"{name}:{arr.dtype.str}:{arr.shape}".encode())
-        digest.update(arr.tobytes())
+    digest.update(model.fingerprint().encode())
     digest.update(np.ascontiguousarray(times, dtype=np.float64).tobytes())
     digest.update(repr(float(dt)).encode())
     return digest.hexdigest()[:32]

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from massspring.device import Config
+from massspring.kernels import state as state_kernels
 
 
 class Integrator:
@@ -43,6 +44,12 @@ class Integrator:
         kinetic energy in J). A failed step's state is never the current one.
         """
         raise NotImplementedError
+
+    def load_state(self, positions, velocities):
+        """Make ``positions`` and ``velocities`` ((n, 3) float64 numpy, checked by the
+        caller) the current state, as if the last step had produced them."""
+        state_kernels.load_vectors(self.state.x, positions)
+        state_kernels.load_vectors(self.state.v, velocities)
 
     @property
     def stats(self):

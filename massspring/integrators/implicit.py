@@ -55,6 +55,11 @@ class ImplicitEuler(Integrator):
     def stats(self):
         return self._stats
 
+    def load_state(self, positions, velocities):
+        """The base's load, and ``keep`` (the last accepted velocity) set to ``velocities``."""
+        super().load_state(positions, velocities)
+        self.dev.keep.copy_from(self.dev.v)
+
     def advance(self, steps):
         """One implicit step (``steps`` must be 1: each step has its own solver stats)."""
         assert steps == 1

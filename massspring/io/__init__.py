@@ -1,2 +1,2 @@
-"""Output (and input) files: atomic writes (``files``), states (``state``), pictures
-(``camera``, ``render``)."""
+"""Output (and input) files: atomic writes (``files``), states (``state``), OBJ meshes
+(``obj``), per-frame export (``frames``), pictures (``camera``, ``render``)."""

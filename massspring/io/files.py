@@ -48,18 +48,16 @@ def _alive(pid):
 
 
 @contextlib.contextmanager
-def atomic_output(path):
-    """Open ``path`` for binary writing under a temporary name in the same directory.
-
-    The temporary file is renamed to ``path`` when the block completes, and removed
-    if the block raises (the exception propagates; an existing ``path`` is untouched).
-    """
+def atomic_path(path):
+    """A temporary path in ``path``'s directory for a writer that wants a file name
+    (meshio): the file is renamed to ``path`` when the block completes, and removed if
+    the block raises (the exception propagates; an existing ``path`` is untouched)."""
     path = Path(path)
     remove_stale_temporaries(path.parent)
     fd, tmp = tempfile.mkstemp(**_temp_name(path))
+    os.close(fd)
     try:
-        with os.fdopen(fd, "wb") as fh:
-            yield fh
+        yield tmp
         umask = os.umask(0)
         os.umask(umask)
         os.chmod(tmp, 0o666 & ~umask)  # mkstemp makes it private; give it a normal file's mode
@@ -67,6 +65,14 @@ def atomic_output(path):
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise
+
+
+@contextlib.contextmanager
+def atomic_output(path):
+    """Open ``path`` for binary writing under a temporary name in the same directory
+    (``atomic_path``): a reader never sees it half-written."""
+    with atomic_path(path) as tmp, open(tmp, "wb") as fh:
+        yield fh
 
 
 def check_writable(path, name, suffixes=None) -> Path:

@@ -1,6 +1,11 @@
-"""Scene files: TOML naming a generator, its parameters, and run defaults.
+"""Scene files: TOML describing a model (one of three forms) and run defaults.
 
-A scene file looks like::
+The model comes from exactly one of: ``[model] generator = "..."`` with the
+generator's parameters (``generators.PARAMETERS``); ``[model] mesh = "file.obj"`` (a
+path relative to the scene file) with the parameters of ``mesh.PARAMETERS``; or
+hand-made ``[particles]`` and ``[springs]`` tables (``PARTICLE_KEYS``,
+``SPRING_KEYS``; ``[model]`` then holds only ``HANDMADE_PARAMETERS``). docs/scenes.md
+lists every key. A generator scene file looks like::
 
     description = "Square cloth pinned at two corners"
     integrator = "implicit"          # default integrator
@@ -21,7 +26,8 @@ A scene file looks like::
     framing = "run"                  # or "follow" (each frame centred), "last" (fit the last frame)
 
 Unknown keys, wrong types and missing values raise ``SceneError`` (a
-``ValueError``) naming the key and the file.
+``ValueError``) naming the key and the file; an OBJ file that cannot be used is
+refused when the scene is loaded, naming the OBJ file and line.
 """
 
 from __future__ import annotations
@@ -33,6 +39,7 @@ from dataclasses import dataclass, field
 from importlib import resources
 from pathlib import Path
 
+from massspring import mesh
 from massspring.device import available_memory
 from massspring.integrators import INTEGRATORS
 from massspring.model import Model
@@ -50,8 +57,23 @@ BUILD_BYTES_PER_PARTICLE = 150
 BUILD_BYTES_PER_SPRING = 130
 SIZE_KEYS = {"chain": ("count",), "grid": ("resolution",), "lattice": ("resolution",)}
 TOP_KEYS = {"description": str, "integrator": str, "duration": float, "dt": dict, "model": dict,
-            "view": dict}
+            "view": dict, "particles": dict, "springs": dict}
 VIEW_KEYS = {"azimuth": float, "elevation": float, "projection": str, "framing": str}
+FORMS = ("generator", "mesh", "particles")
+# Hand-made scenes: key -> what it holds ("rows": a list of lists of numbers, "numbers": one
+# number or a list of them, "indices": a list of integers); the Model checks shapes and values.
+PARTICLE_KEYS = {"positions": "rows", "masses": "numbers", "velocities": "rows", "fixed": "indices"}
+SPRING_KEYS = {"pairs": "rows", "stiffness": "numbers", "damping": "numbers", "rest_lengths": "numbers"}
+REQUIRED_KEYS = ("particles.positions", "springs.pairs")
+# The [model] table of a hand-made scene (also what --set changes there).
+HANDMADE_PARAMETERS = {"gravity": [0.0, 0.0, -9.81], "triangles": []}
+HANDMADE_TYPES = {"triangles": "rows"}
+# Model argument -> the key of a hand-made scene that gives it (for error messages).
+HANDMADE_ARGUMENTS = {"positions": "particles.positions", "masses": "particles.masses",
+                      "velocities": "particles.velocities", "fixed": "particles.fixed", "springs": "springs.pairs",
+                      "stiffness": "springs.stiffness", "damping": "springs.damping",
+                      "rest_lengths": "springs.rest_lengths", "gravity": "model.gravity",
+                      "triangles": "model.triangles"}
 
 
 def builtin_scenes() -> dict:
@@ -62,9 +84,13 @@ def builtin_scenes() -> dict:
 
 @dataclass(frozen=True)
 class Scene:
-    """A parsed scene: ``params`` are the generator's full parameter set (defaults
-    filled in); ``dt`` the default time steps the file names; ``view`` its [view]
-    table (checked when a picture is made: see ``io.camera.View``)."""
+    """A parsed scene. ``form``: "generator", "mesh" or "particles" (hand-made);
+    ``generator``: the generator's name (None for the other forms); ``params``: the
+    [model] parameters with defaults filled in (a mesh scene's ``mesh`` is the OBJ
+    path, resolved against the scene file's folder); ``dt``: the default time steps
+    the file names; ``view``: its [view] table (checked when a picture is made: see
+    ``io.camera.View``); ``obj_mesh``: the ``io.obj.ObjMesh`` read (mesh form);
+    ``tables``: the [particles] and [springs] tables (hand-made form)."""
 
     name: str
     source: str
@@ -72,17 +98,35 @@ class Scene:
     integrator: str
     duration: float
     dt: dict
-    generator: str
+    generator: str | None
     params: dict = field(default_factory=dict)
     view: dict = field(default_factory=dict)
+    form: str = "generator"
+    obj_mesh: object = field(default=None, repr=False, compare=False)
+    tables: dict = field(default_factory=dict, repr=False)
     _suggested: dict = field(default_factory=dict, repr=False, compare=False)
 
     def with_params(self, **overrides) -> "Scene":
-        """A copy with some generator parameters replaced (checked like the file's)."""
+        """A copy with some [model] parameters replaced (checked like the file's). In a mesh
+        scene, ``density`` replaces ``mass`` and the other way round, and a new ``mesh``
+        path (relative to the working directory) is read at once."""
         params = dict(self.params)
+        surface = self.obj_mesh
         for key, value in overrides.items():
-            params[key] = _check_param(self.generator, key, value, self.source)
-        return dataclasses.replace(self, params=params, _suggested={})
+            params[key] = _check_param(self._parameters(), key, value, self.source)
+            if self.form == "mesh" and key in ("density", "mass"):
+                params["mass" if key == "density" else "density"] = None
+            if self.form == "mesh" and key == "mesh":
+                surface = _read_mesh(params["mesh"], f"{self.source}: model.mesh")
+        return dataclasses.replace(self, params=params, obj_mesh=surface, _suggested={})
+
+    def _parameters(self):
+        """(defaults, types, what) of this scene's [model] parameters (see ``_check_param``)."""
+        if self.form == "mesh":
+            return mesh.PARAMETERS, mesh.TYPES, "a mesh scene"
+        if self.form == "particles":
+            return HANDMADE_PARAMETERS, HANDMADE_TYPES, "a hand-made scene ([particles] and [springs])"
+        return generators.PARAMETERS[self.generator], {}, f"generator {self.generator!r}"
 
     def with_settings(self, settings) -> "Scene":
         """Apply ``key=value`` strings (values parsed as TOML, else taken as strings);
@@ -99,20 +143,35 @@ class Scene:
                 value = tomllib.loads(f"v = {text.strip()}")["v"]
             except tomllib.TOMLDecodeError:
                 value = text.strip()
-            overrides[key] = _check_param(self.generator, key, value, f"--set {key}")
+            overrides[key] = _check_param(self._parameters(), key, value, f"--set {key}")
         return self.with_params(**overrides)
 
     def model(self) -> Model:
         """Build the Model (raises SceneError naming the parameter if a value is out of range,
         or if the model would not fit in the memory available)."""
-        particles, springs = generators.counts(self.generator, self.params)
+        if self.form == "particles":
+            arguments = {name: value for table in self.tables.values() for name, value in table.items()}
+            arguments["springs"] = arguments.pop("pairs")
+            try:
+                return Model(**arguments, **self.params)
+            except ValueError as exc:
+                name, _, reason = str(exc).partition(": ")
+                raise SceneError(f"{self.source}: {HANDMADE_ARGUMENTS.get(name, name)}: {reason}") from None
+        if self.form == "mesh":
+            particles, springs = len(self.obj_mesh.vertices), 3 * sum(len(f) - 2 for f in self.obj_mesh.faces)
+            size = f"{self.params['mesh']} has {particles:,} vertices; it"
+        else:
+            particles, springs = generators.counts(self.generator, self.params)
+            size = ", ".join(f"{k} = {self.params[k]}" for k in SIZE_KEYS.get(self.generator, ()))
         need = particles * BUILD_BYTES_PER_PARTICLE + springs * BUILD_BYTES_PER_SPRING
         available = available_memory()
         if available is not None and need > available:
-            size = ", ".join(f"{k} = {self.params[k]}" for k in SIZE_KEYS.get(self.generator, ()))
             raise SceneError(f"{self.source}: model: {size} gives {particles:,} particles and {springs:,} springs, "
                              f"about {need / 1e9:.3g} GB to build; {available / 1e9:.3g} GB of memory is available")
         try:
+            if self.form == "mesh":
+                params = {key: value for key, value in self.params.items() if key != "mesh"}
+                return mesh.model_from_mesh(self.obj_mesh.vertices, self.obj_mesh.faces, **params)
             return Model(**generators.GENERATORS[self.generator](**self.params))
         except ValueError as exc:
             raise SceneError(f"{self.source}: model.{exc}") from None
@@ -160,12 +219,12 @@ def load_scene(name_or_path) -> Scene:
 
 
 def parse_scene(data: dict, name: str, source: str) -> Scene:
-    """Check a scene's TOML data and fill in defaults."""
+    """Check a scene's TOML data and fill in defaults (a mesh scene's OBJ file is read here)."""
     for key, value in data.items():
         if key not in TOP_KEYS:
             raise SceneError(f"{source}: unknown key {key!r} (expected {', '.join(TOP_KEYS)})")
         _check_type(key, value, TOP_KEYS[key], source)
-    for key in ("integrator", "duration", "model"):
+    for key in ("integrator", "duration"):
         if key not in data:
             raise SceneError(f"{source}: missing key {key!r}")
     integrator = data["integrator"]
@@ -182,34 +241,88 @@ def parse_scene(data: dict, name: str, source: str) -> Scene:
         if not (math.isfinite(value) and value > 0):
             raise SceneError(f"{source}: dt.{key}: must be a finite number > 0, got {value}")
         dt[key] = float(value)
-    model = dict(data["model"])
-    generator = model.pop("generator", None)
-    if generator is None:
-        raise SceneError(f"{source}: missing key 'model.generator'")
-    _check_type("model.generator", generator, str, source)
-    if generator not in generators.GENERATORS:
-        raise SceneError(f"{source}: model.generator: unknown value {generator!r} "
-                         f"(expected {', '.join(generators.GENERATORS)})")
-    params = dict(generators.PARAMETERS[generator])
-    for key, value in model.items():
-        params[key] = _check_param(generator, key, value, source)
     view = dict(data.get("view", {}))
     for key, value in view.items():
         if key not in VIEW_KEYS:
             raise SceneError(f"{source}: view.{key}: unknown key (expected {', '.join(VIEW_KEYS)})")
         _check_type(f"view.{key}", value, VIEW_KEYS[key], source)
-    return Scene(name=name, source=source, description=data.get("description", ""),
-                 integrator=integrator, duration=duration, dt=dt,
-                 generator=generator, params=params, view=view)
+    scene = Scene(name=name, source=source, description=data.get("description", ""), integrator=integrator,
+                  duration=duration, dt=dt, generator=None, view=view, form=_form(data, source))
+    model = dict(data.get("model", {}))
+    if scene.form == "generator":
+        generator = model.pop("generator")
+        _check_type("model.generator", generator, str, source)
+        if generator not in generators.GENERATORS:
+            raise SceneError(f"{source}: model.generator: unknown value {generator!r} "
+                             f"(expected {', '.join(generators.GENERATORS)})")
+        scene = dataclasses.replace(scene, generator=generator)
+    elif scene.form == "mesh":
+        _check_type("model.mesh", model["mesh"], str, source)
+        if "density" in model and "mass" in model:
+            raise SceneError(f"{source}: model.density, model.mass: give one of them, not both")
+        model["mesh"] = str(Path(source).parent / model["mesh"])
+        scene = dataclasses.replace(scene, obj_mesh=_read_mesh(model["mesh"], f"{source}: model.mesh"))
+    else:
+        scene = dataclasses.replace(scene, tables=_handmade_tables(data, source))
+    defaults = scene._parameters()
+    params = dict(defaults[0])
+    for key, value in model.items():
+        params[key] = _check_param(defaults, key, value, source)
+    return dataclasses.replace(scene, params=params)
 
 
-def _check_param(generator, key, value, source):
-    defaults = generators.PARAMETERS[generator]
+def _form(data, source):
+    """Which of the three forms a scene's data gives (exactly one)."""
+    model = data.get("model", {})
+    given = [form for form, present in (("generator", "generator" in model), ("mesh", "mesh" in model),
+                                        ("particles", "particles" in data or "springs" in data)) if present]
+    names = {"generator": "model.generator", "mesh": "model.mesh", "particles": "[particles] and [springs]"}
+    if len(given) > 1:
+        raise SceneError(f"{source}: {' and '.join(names[g] for g in given)}: give only one way to make the model")
+    if not given:
+        if "model" not in data:
+            raise SceneError(f"{source}: missing key 'model' (or [particles] and [springs] tables)")
+        raise SceneError(f"{source}: missing key 'model.generator' (or model.mesh, or [particles] and [springs])")
+    return given[0]
+
+
+def _read_mesh(path, where):
+    from massspring.io.obj import ObjError, read_obj
+
+    try:
+        return read_obj(path)
+    except ObjError as exc:
+        raise SceneError(f"{where}: {exc}" if exc.line is None else str(exc)) from None
+
+
+def _handmade_tables(data, source):
+    """The [particles] and [springs] tables, their keys known and of the right TOML types."""
+    tables = {}
+    for table, keys in (("particles", PARTICLE_KEYS), ("springs", SPRING_KEYS)):
+        tables[table] = dict(data.get(table, {}))
+        for key, value in tables[table].items():
+            if key not in keys:
+                raise SceneError(f"{source}: {table}.{key}: unknown key (expected {', '.join(keys)})")
+            _check_kind(f"{source}: {table}.{key}", value, keys[key])
+    for key in REQUIRED_KEYS:
+        table, _, name = key.partition(".")
+        if name not in tables[table]:
+            raise SceneError(f"{source}: missing key {key!r}")
+    return tables
+
+
+def _check_param(parameters, key, value, source):
+    """``value`` of [model] parameter ``key`` checked against ``parameters`` = (defaults,
+    types, what: the kind of scene, for messages): a known key, of its default's type (or
+    of ``types[key]``: float, "indices", "box" or "rows"), a float finite."""
+    defaults, types, what = parameters
     prefix = source if source.startswith("--set") else f"{source}: model.{key}"
     if key not in defaults:
-        raise SceneError(f"{prefix}: unknown parameter of generator {generator!r} "
-                         f"(expected {', '.join(defaults)})")
+        raise SceneError(f"{prefix}: unknown parameter of {what} (expected {', '.join(defaults)})")
     default = defaults[key]
+    kind = types.get(key)
+    if kind is not None and not isinstance(kind, type):
+        return _check_kind(prefix, value, kind)
     if isinstance(default, list):
         _check_type(prefix, value, list, None)
         if len(value) != len(default):
@@ -217,10 +330,29 @@ def _check_param(generator, key, value, source):
         for item in value:
             _check_type(prefix, item, float, None)
         return [float(item) for item in value]
-    _check_type(prefix, value, type(default), None)
-    if isinstance(default, float) and not math.isfinite(value):
+    kind = kind or type(default)
+    _check_type(prefix, value, kind, None)
+    if kind is float and not math.isfinite(value):
         raise SceneError(f"{prefix}: must be finite, got {value!r}")
-    return float(value) if isinstance(default, float) else value
+    return float(value) if kind is float else value
+
+
+def _check_kind(prefix, value, kind):
+    """A TOML value of one of the array kinds: "rows" (a list of lists of numbers),
+    "numbers" (a number or a list of numbers), "indices" (a list of integers), "box" (two
+    lists of 3 numbers: the low and high corners). Shapes and ranges are the Model's to check."""
+    if kind == "numbers" and not isinstance(value, list):
+        _check_type(prefix, value, float, None)
+        return value
+    _check_type(prefix, value, list, None)
+    if kind == "box" and not (len(value) == 2 and all(isinstance(c, list) and len(c) == 3 for c in value)):
+        raise SceneError(f"{prefix}: expected two corners [[x, y, z], [x, y, z]], got {value!r}")
+    rows = value if kind in ("rows", "box") else [value]
+    for row in rows:
+        _check_type(prefix, row, list, None)
+        for item in row:
+            _check_type(prefix, item, int if kind == "indices" else float, None)
+    return value
 
 
 def _check_type(key, value, expected, source):

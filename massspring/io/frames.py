@@ -1,0 +1,190 @@
+"""Per-frame export of a run (``run --export DIR --format FMT``): one file per frame, a
+JSON manifest, and for VTK a ParaView ``.pvd`` series.
+
+Each frame holds the positions (m) at one step and, where the Model has a surface,
+its triangles; a model without one (a chain) gets its springs as line elements:
+
+* ``obj`` (default; no dependency): ``v`` lines in shortest round-trip decimals (exact
+  float64), ``f`` triangles or ``l`` springs, 1-based (``io.obj.write_obj``);
+* ``ply``: binary PLY by meshio, float64 positions, triangles or springs as edges;
+* ``vtk``: VTK XML unstructured grid (``.vtu``, binary) by meshio, float64 positions,
+  triangles or springs as lines, and the ``velocity`` (m/s) as point data, plus
+  ``frames.pvd``: the series with each frame's simulated time, for ParaView;
+* ``npz``: a state file (``io.state``: positions, velocities, time, steps, the model's
+  fingerprint, triangles), so any frame can start a ``--restart``.
+
+Frames are named ``frame_00000.EXT``, ``frame_00001.EXT``, ... in the order written
+(at least 5 digits, more for more frames); files of an earlier run in the directory
+are replaced where the names repeat, and otherwise left alone. Every file is written
+to a temporary name and renamed, and ``manifest.json`` is rewritten the same way after
+each frame, so whatever stops the run, the manifest lists exactly the frames of this
+run on disk and says how far the run got. Its keys: ``status`` ("running", "complete", "diverged", "interrupted",
+"terminated", or "failed" when a frame could not be written), ``message`` (why it
+stopped, or ""), ``format``, ``frames`` (a list of {``file``, ``step``, ``time``}),
+``last_step``/``last_time`` (the last good state reached), ``series`` (the .pvd, or
+null), ``massspring`` (version) and whatever the caller describes the run with
+(``info``: scene, integrator, dt, ...).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from xml.sax.saxutils import quoteattr
+
+import numpy as np
+
+from massspring.io.files import atomic_output, atomic_path, check_writable, write_json
+from massspring.io.obj import write_obj
+from massspring.io.state import write_state
+
+FORMATS = {"obj": ".obj", "ply": ".ply", "vtk": ".vtu", "npz": ".npz"}
+DEFAULT_FORMAT = "obj"
+NEEDS_MESHIO = ("ply", "vtk")
+MANIFEST = "manifest.json"
+SERIES = "frames.pvd"
+EXTRA = "pip install 'massspring[mesh]'"
+
+
+def check_format(fmt, name="format"):
+    """Refuse an unknown format, or one whose writer (meshio) is not installed:
+    ValueError starting with ``name``."""
+    if fmt not in FORMATS:
+        raise ValueError(f"{name}: unknown format {fmt!r}, expected one of {', '.join(FORMATS)}")
+    if fmt in NEEDS_MESHIO:
+        try:
+            import meshio  # noqa: F401
+        except ImportError:
+            raise ValueError(f"{name} {fmt}: needs meshio, which is not installed ({EXTRA})") from None
+
+
+def _elements(model):
+    """(meshio cell type, (k, d) int32 indices) of a frame: the surface, else the springs."""
+    if len(model.triangles):
+        return "triangle", model.triangles.astype(np.int32)
+    return "line", model.springs.astype(np.int32)
+
+
+def write_obj_frame(path, sim, scene):
+    x = sim.positions
+    surface = sim.model.triangles
+    write_obj(path, x, surface, () if len(surface) else sim.model.springs,
+              comment=f"massspring {scene}: step {sim.steps}, t = {sim.time!r} s")
+
+
+def write_ply_frame(path, sim, scene):
+    import meshio
+
+    kind, cells = _elements(sim.model)
+    with atomic_path(path) as tmp:
+        meshio.write(tmp, meshio.Mesh(sim.positions, [(kind, cells)] if len(cells) else []), file_format="ply")
+
+
+def write_vtu_frame(path, sim, scene):
+    import meshio
+
+    kind, cells = _elements(sim.model)
+    mesh = meshio.Mesh(sim.positions, [(kind, cells)] if len(cells) else [],
+                       point_data={"velocity": sim.velocities})
+    with atomic_path(path) as tmp:
+        meshio.write(tmp, mesh, file_format="vtu")
+
+
+def write_npz_frame(path, sim, scene):
+    write_state(sim, path, scene)
+
+
+WRITERS = {"obj": write_obj_frame, "ply": write_ply_frame, "vtk": write_vtu_frame, "npz": write_npz_frame}
+
+
+def write_series(path, frames):
+    """ParaView's collection file: each frame's file (relative) at its simulated time, atomically."""
+    lines = ['<?xml version="1.0"?>', '<VTKFile type="Collection" version="0.1" byte_order="LittleEndian">',
+             "  <Collection>"]
+    lines += [f'    <DataSet timestep="{float(f["time"])!r}" group="" part="0" file={quoteattr(f["file"])}/>'
+              for f in frames]
+    lines += ["  </Collection>", "</VTKFile>", ""]
+    with atomic_output(path) as fh:
+        fh.write("\n".join(lines).encode())
+
+
+class FrameExport:
+    """Writes the frames of one run into ``directory`` as ``fmt`` (see the module
+    docstring). ``count``: the frames planned (for the width of their numbers);
+    ``scene``: the scene's name (in each file); ``info``: a JSON-able description of
+    the run, copied into the manifest. Call ``prepare()`` before the run, the object
+    itself as ``run``'s ``on_frame``, and ``finish`` after it.
+
+    A frame that cannot be written (a full disk) stops the export, not the run:
+    ``error`` then says why, and the manifest's status is "failed".
+    """
+
+    def __init__(self, directory, fmt, count, scene="", info=None, name="--export"):
+        self.directory, self.fmt, self.scene, self.name = Path(directory), fmt, scene, name
+        self.info = dict(info or {})
+        self.digits = max(5, len(str(max(count - 1, 0))))
+        self.frames = []
+        self.error = None
+        self.last = (None, None)  # (step, time) of the last state seen
+
+    def file_name(self, k):
+        return f"frame_{k:0{self.digits}d}{FORMATS[self.fmt]}"
+
+    def prepare(self):
+        """Before the run: check the format, create the directory (and its parents) if
+        missing, try the files a frame and the manifest would be written as, and write a
+        manifest saying "running". Raises ValueError starting with ``name``."""
+        check_format(self.fmt, "--format")
+        if self.directory.exists() and not self.directory.is_dir():
+            raise ValueError(f"{self.name}: {str(self.directory)!r} exists and is not a directory")
+        try:
+            self.directory.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise ValueError(f"{self.name}: cannot create the directory {str(self.directory)!r}: "
+                             f"{exc.strerror or exc}") from None
+        for file in (MANIFEST, self.file_name(0)):
+            check_writable(self.directory / file, self.name)
+        try:
+            self._write_manifest("running", "")
+        except OSError as exc:
+            raise ValueError(f"{self.name}: cannot write {str(self.directory / MANIFEST)!r}: "
+                             f"{exc.strerror or exc}") from None
+
+    def __call__(self, sim):
+        """Write ``sim``'s current state as the next frame, then the manifest (and series)."""
+        self.last = (sim.steps, sim.time)
+        if self.error is not None:
+            return
+        file = self.file_name(len(self.frames))
+        try:
+            WRITERS[self.fmt](self.directory / file, sim, self.scene)
+            self.frames.append({"file": file, "step": sim.steps, "time": sim.time})
+            self._write_manifest("running", "")
+        except OSError as exc:
+            self.error = f"could not write {str(self.directory / file)!r}: {exc.strerror or exc}"
+
+    def finish(self, status, sim, message=""):
+        """Mark the manifest with ``status`` ("complete", "diverged", "interrupted",
+        "terminated"; "failed" if a frame could not be written) and the last good state
+        ``sim`` reached. Returns ``error`` (None if every file was written)."""
+        self.last = (sim.steps, sim.time)
+        if self.error is not None:
+            status, message = "failed", self.error
+        try:
+            self._write_manifest(status, message)
+        except OSError as exc:
+            self.error = self.error or f"could not write {str(self.directory / MANIFEST)!r}: {exc.strerror or exc}"
+        return self.error
+
+    def _write_manifest(self, status, message):
+        from massspring import __version__
+
+        if self.fmt == "vtk" and self.frames:
+            write_series(self.directory / SERIES, self.frames)
+        step, time = self.last
+        write_json(self.directory / MANIFEST, {
+            "massspring": __version__, "status": status, "message": message, "format": self.fmt, **self.info,
+            "last_step": step, "last_time": time, "series": SERIES if self.fmt == "vtk" else None,
+            "frames": self.frames})
+
+    def __len__(self):
+        return len(self.frames)

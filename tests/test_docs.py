@@ -1,0 +1,74 @@
+"""docs/scenes.md cannot drift from the parser: every key it accepts is listed there (with its
+default where it has one), in the section of its table, generator or form; the complete example
+there is the shipped examples/my_scene.toml."""
+
+import json
+import re
+from pathlib import Path
+
+import pytest
+
+from massspring import mesh
+from massspring.integrators import INTEGRATORS
+from massspring.scene import generators, spec
+
+ROOT = Path(__file__).resolve().parent.parent
+DOCS = (ROOT / "docs" / "scenes.md").read_text()
+
+
+def section(prefix):
+    """The text of the section whose heading starts with ``prefix`` (up to the next heading)."""
+    parts = re.split(r"^(#{2,3} .*)$", DOCS, flags=re.M)
+    for heading, body in zip(parts[1::2], parts[2::2]):
+        if heading.lstrip("# ").startswith(prefix):
+            return body
+    raise AssertionError(f"docs/scenes.md has no section {prefix!r}")
+
+
+def row(text, key):
+    """The table row of ``key`` in ``text``."""
+    rows = [line for line in text.splitlines() if line.startswith(f"| `{key}` |")]
+    assert len(rows) == 1, f"docs/scenes.md: expected one table row for `{key}`, found {len(rows)}"
+    return rows[0]
+
+
+def shown(default):
+    return json.dumps(default) if isinstance(default, str) else repr(default)
+
+
+def test_top_level_keys_are_listed():
+    text = section("Top level")
+    for key, kind in spec.TOP_KEYS.items():
+        row(text, f"[{key}]" if kind is dict else key)
+    for key in INTEGRATORS:
+        row(section("`[dt]`"), key)
+    for key in spec.VIEW_KEYS:
+        row(section("`[view]`"), key)
+
+
+@pytest.mark.parametrize("name", sorted(generators.PARAMETERS))
+def test_every_generator_parameter_is_listed_with_its_default(name):
+    text = section(name)
+    for key, default in generators.PARAMETERS[name].items():
+        assert f"`{shown(default)}`" in row(text, key), (name, key, default)
+
+
+def test_mesh_parameters_are_listed_with_their_defaults():
+    text = section("A mesh")
+    for key, default in mesh.PARAMETERS.items():
+        line = row(text, key)
+        if default is not None and key != "mesh":
+            assert f"`{shown(default)}`" in line, (key, default)
+
+
+def test_hand_made_keys_are_listed():
+    text = section("By hand")
+    for key in [*spec.PARTICLE_KEYS, *spec.SPRING_KEYS, *spec.HANDMADE_PARAMETERS]:
+        row(text, key)
+    for key in spec.REQUIRED_KEYS:
+        assert "required" in row(text, key.split(".")[1])
+
+
+def test_the_complete_example_is_the_shipped_file():
+    block = re.search(r"```toml\n(.*?)```", section("A complete example"), flags=re.S).group(1)
+    assert block == (ROOT / "examples" / "my_scene.toml").read_text()

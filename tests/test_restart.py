@@ -1,0 +1,109 @@
+"""Restart: a run continued from a saved state equals the unbroken run to the bit (f64, every
+integrator); states of another model, count or dt, and broken state files, are refused."""
+
+import numpy as np
+import pytest
+
+import massspring as ms
+from massspring.cli import main
+from massspring.io.state import read_state
+from conftest import PATHS, one_line_error, random_system
+
+CLOTH = ["cloth", "--set", "resolution=5", "--quiet"]  # pins, gravity, damping, a surface
+
+
+@pytest.mark.parametrize("integrator", ["explicit", "symplectic", "implicit", "rk4"])
+def test_ten_plus_ten_steps_through_a_file_equal_twenty(integrator, tmp_path, capsys):
+    first, second, whole = (tmp_path / f"{name}.npz" for name in ("first", "second", "whole"))
+    args = ["run", *CLOTH, "--integrator", integrator]
+    assert main([*args, "--steps", "10", "--out", str(first)]) == 0
+    assert main([*args, "--steps", "10", "--restart", str(first), "--out", str(second)]) == 0
+    assert "from the restart at step 10 to step 20" in capsys.readouterr().out
+    assert main([*args, "--steps", "20", "--out", str(whole)]) == 0
+    a, b = np.load(second), np.load(whole)
+    assert np.array_equal(a["positions"], b["positions"]) and np.array_equal(a["velocities"], b["velocities"])
+    assert int(a["steps"]) == 20 and float(a["time"]) == float(b["time"])
+    assert not np.array_equal(a["positions"], np.load(first)["positions"])  # it did move
+
+
+@pytest.mark.parametrize("path", PATHS)
+@pytest.mark.parametrize("integrator", ["explicit", "symplectic", "implicit", "rk4"])
+def test_set_state_continues_bitwise(integrator, path):
+    model = random_system(3)
+    whole = ms.Simulation(model, integrator=integrator, dt=2e-3, loops=path).step(12)
+    part = ms.Simulation(model, integrator=integrator, dt=2e-3, loops=path).step(5)
+    x, v = part.positions, part.velocities
+    part.close()
+    rest = ms.Simulation(model, integrator=integrator, dt=2e-3, loops=path).set_state(x, v, steps=5).step(7)
+    assert rest.steps == 12 and rest.time == whole.time
+    assert np.array_equal(rest.positions, whole.positions) and np.array_equal(rest.velocities, whole.velocities)
+    whole.close()
+    rest.close()
+
+
+def test_set_state_checks_its_arguments():
+    model = random_system(4, n=8, n_fixed=1)
+    sim = ms.Simulation(model, integrator="symplectic", dt=1e-3)
+    pinned = int(model.fixed[0])
+    x, v = model.positions.copy(), np.zeros((8, 3))
+    for kwargs, word in ((dict(positions=x[:7], velocities=v), "positions: expected shape (8, 3)"),
+                         (dict(positions=x, velocities=v.ravel()), "velocities: expected shape"),
+                         (dict(positions=np.where(x == x[0, 0], np.nan, x), velocities=v), "positions: contains"),
+                         (dict(positions=x, velocities=v, steps=-1), "steps"),
+                         (dict(positions=x, velocities=np.where(np.arange(8)[:, None] == pinned, 1.0, v)),
+                          f"velocities: particle {pinned} is fixed")):
+        with pytest.raises(ValueError, match=word.replace("(", r"\(").replace(")", r"\)")):
+            sim.set_state(**kwargs)
+    assert sim.steps == 0 and np.array_equal(sim.positions, model.positions)  # nothing was changed
+    sim.close()
+
+
+def test_state_file_records_what_a_restart_checks(tmp_path):
+    out = tmp_path / "state.npz"
+    assert main(["run", *CLOTH, "--steps", "3", "--out", str(out)]) == 0
+    state = read_state(out)
+    model = ms.load_scene("cloth").with_params(resolution=5).model()
+    assert state.fingerprint == model.fingerprint() and state.scene == "cloth" and state.integrator == "implicit"
+    assert state.steps == 3 and state.n_particles == 25 and state.dt == pytest.approx(1 / 60)
+    with np.load(out) as data:  # the keys of earlier versions are unchanged
+        assert {"positions", "velocities", "springs", "time", "steps", "dt"} <= set(data.files)
+
+
+@pytest.mark.parametrize("options, words", [
+    (["cloth", "--set", "resolution=6"], ["holds 25 particles", "scene 'cloth' has 36"]),
+    (["spring"], ["holds 25 particles", "scene 'spring' has 2"]),
+    ([*CLOTH, "--set", "stiffness=2e4"], ["another model", "scene 'cloth'", "--set"]),
+    ([*CLOTH, "--set", "bend=0.2"], ["another model"]),
+    ([*CLOTH, "--dt", "0.01"], ["dt = 0.016666666666666666 s", "--dt 0.016666666666666666"]),
+])
+def test_restart_of_another_model_or_dt_is_refused(options, words, tmp_path, capsys):
+    out = tmp_path / "state.npz"
+    assert main(["run", *CLOTH, "--steps", "2", "--out", str(out)]) == 0
+    capsys.readouterr()
+    assert main(["run", *options, "--steps", "2", "--restart", str(out)]) == 2
+    one_line_error(capsys, "--restart", *words)
+
+
+def test_broken_state_files_are_refused(tmp_path, capsys):
+    good = tmp_path / "good.npz"
+    assert main(["run", *CLOTH, "--steps", "2", "--out", str(good)]) == 0
+    capsys.readouterr()
+    data = dict(np.load(good))
+    cases = {"text.npz": b"not a zip file", "old.npz": {k: v for k, v in data.items() if k != "fingerprint"},
+             "nan.npz": {**data, "positions": np.where(data["positions"] > 0.5, np.nan, data["positions"])},
+             "shape.npz": {**data, "velocities": data["velocities"][:3]},
+             "steps.npz": {**data, "steps": np.array(-4)},
+             "kind.npz": {**data, "dt": np.array("0.1")}}
+    words = {"text.npz": "not a state file", "old.npz": "fingerprint: missing", "nan.npz": "positions: holds a "
+             "non-finite", "shape.npz": "velocities: expected shape (n, 3) with n = 25", "steps.npz": "steps: must be",
+             "kind.npz": "dt: expected real numbers"}
+    for name, content in cases.items():
+        path = tmp_path / name
+        if isinstance(content, bytes):
+            path.write_bytes(content)
+        else:
+            np.savez(path, **content)
+        assert main(["run", *CLOTH, "--steps", "2", "--restart", str(path)]) == 2, name
+        one_line_error(capsys, "--restart", str(path), words[name])
+    assert main(["run", *CLOTH, "--steps", "2", "--restart", str(tmp_path / "none.npz")]) == 2
+    one_line_error(capsys, "--restart", "cannot be read")
