@@ -8,6 +8,9 @@ A_ii = ``diagonal_block``, A_ij = -S_e for adjacency entry e. Coarse levels
 come from ``massspring.solvers.aggregation`` (see ``Level`` there).
 
 Per step (values only, patterns fixed):
+* ``tentative0`` / ``tentativec``: T, per aggregate an orthonormal basis of its
+  members' rigid motions at the current positions (level 0) or of their candidate
+  blocks (coarser levels), and R, the next level's candidates (``g.c_cand``);
 * ``fine_inverse``: D^-1 of level 0 (inverse 3x3 diagonal blocks, zero where pinned);
 * ``smooth_p0`` / ``smooth_pc``: P = T - (omega / rho) D^-1 A T in P's pattern;
 * ``ap0`` / ``apc``: A P; ``galerkin0`` / ``galerkinc``: the upper blocks of P^T (A P),
@@ -47,14 +50,17 @@ BS = 6  # unknowns per coarse node
 def invert6(src: ti.template(), dst: ti.template(), k, real: ti.template()):
     """dst[k] = src[k]^-1 for a symmetric positive definite 6x6 block, by Cholesky with
     loops at run time (unrolled 6x6 algebra compiles for seconds); zero if it is not SPD.
-    Returns whether it was."""
+    Returns whether it was. An exactly zero pivot is an idle unknown (a dropped
+    candidate: its row and column are zero) and gets 1."""
     lower = ti.Matrix.zero(real, BS, BS)
     ok = True
     for j in range(BS):
         s = src[k][j, j]
         for m in range(j):
             s -= lower[j, m] * lower[j, m]
-        if s <= 0:
+        if s == 0:
+            s = ti.cast(1, real)
+        elif not s > 0:
             ok = False
             s = ti.cast(1, real)
         d = ti.sqrt(s)
@@ -126,6 +132,99 @@ def loops(serial: ti.template()):
 
 
 # ------------------------------------------------------------------------- setup
+
+
+@ti.func
+def orthonormalize(t: ti.template(), members: ti.template(), lo, hi, cand: ti.template(), a, drop,
+                   real: ti.template()):
+    """Modified Gram-Schmidt on the 6 columns of the stacked blocks t[members[lo:hi]]
+    (a thin QR, in place: they become Q), R into ``cand[a]``. A column whose remainder
+    is at most ``drop`` times its norm becomes zero, and so does R's diagonal entry."""
+    for j in range(BS):
+        norm0 = ti.cast(0, real)
+        for k in range(lo, hi):
+            for r in ti.static(range(t.n)):
+                norm0 += t[members[k]][r, j] * t[members[k]][r, j]
+        for p in range(j):
+            d = ti.cast(0, real)
+            for k in range(lo, hi):
+                for r in ti.static(range(t.n)):
+                    d += t[members[k]][r, p] * t[members[k]][r, j]
+            for k in range(lo, hi):
+                m = members[k]
+                for r in ti.static(range(t.n)):
+                    t[m][r, j] = t[m][r, j] - d * t[m][r, p]
+            cand[a][p, j] = d
+        norm2 = ti.cast(0, real)
+        for k in range(lo, hi):
+            for r in ti.static(range(t.n)):
+                norm2 += t[members[k]][r, j] * t[members[k]][r, j]
+        live = norm2 > drop * drop * norm0
+        scale = ti.cast(0, real)
+        if live:
+            scale = 1 / ti.sqrt(norm2)
+        for k in range(lo, hi):
+            m = members[k]
+            for r in ti.static(range(t.n)):
+                t[m][r, j] = t[m][r, j] * scale
+        cand[a][j, j] = norm2 * scale
+        for i in range(j + 1, BS):
+            cand[a][i, j] = ti.cast(0, real)
+
+
+@ti.kernel
+def tentative0(dev: ti.template(), cfg: ti.template(), g: ti.template(), count: ti.i32, drop: ti.f64,
+               serial: ti.template()):
+    """Level 0's T (``g.t0``), level 1's candidates (``g.c_cand``) and centres
+    (``g.c_centre``), aggregates [0, count): each member's block [I | e_k x r]
+    (translations and rotations about the aggregate's centre, r = x_i - centre, m),
+    orthonormalized per aggregate."""
+    dr = ti.cast(drop, cfg.real)
+    loops(serial)
+    for a in range(count):
+        lo, hi = g.agg0_rows[a], g.agg0_rows[a + 1]
+        centre = ti.Vector.zero(cfg.real, 3)
+        for k in range(lo, hi):
+            centre += dev.x[g.agg0_members[k]]
+        centre /= ti.cast(ti.max(hi - lo, 1), cfg.real)
+        for k in range(lo, hi):
+            m = g.agg0_members[k]
+            r = dev.x[m] - centre
+            g.t0[m] = ti.Matrix([[1, 0, 0, 0, r[2], -r[1]],
+                                 [0, 1, 0, -r[2], 0, r[0]],
+                                 [0, 0, 1, r[1], -r[0], 0]], cfg.real)
+        orthonormalize(g.t0, g.agg0_members, lo, hi, g.c_cand, a, dr, cfg.real)
+        g.c_centre[a] = centre
+
+
+@ti.kernel
+def tentativec(cfg: ti.template(), g: ti.template(), begin: ti.i32, end: ti.i32, drop: ti.f64,
+               serial: ti.template()):
+    """A coarse level's T (``g.tc`` of its nodes) and the next level's candidates and
+    centres, for the next level's nodes [begin, end) (global): each member's candidates
+    with their rotations moved to the aggregate's centre (a rotation about the member's
+    centre c_m is the one about the aggregate's centre c plus the translation
+    e_k x (c_m - c)), orthonormalized per aggregate."""
+    dr = ti.cast(drop, cfg.real)
+    loops(serial)
+    for a in range(begin, end):
+        lo, hi = g.aggc_rows[a], g.aggc_rows[a + 1]
+        centre = ti.Vector.zero(cfg.real, 3)
+        for k in range(lo, hi):
+            centre += g.c_centre[g.aggc_members[k]]
+        centre /= ti.cast(ti.max(hi - lo, 1), cfg.real)
+        for k in range(lo, hi):
+            m = g.aggc_members[k]
+            d = g.c_centre[m] - centre
+            for r in range(BS):
+                row = ti.Vector([g.c_cand[m][r, c] for c in ti.static(range(BS))])
+                g.tc[m][r, 3] = row[3] - row[1] * d[2] + row[2] * d[1]   # + row[:3] . (e_x x d)
+                g.tc[m][r, 4] = row[4] + row[0] * d[2] - row[2] * d[0]   # e_y x d
+                g.tc[m][r, 5] = row[5] - row[0] * d[1] + row[1] * d[0]   # e_z x d
+                for c in ti.static(range(3)):
+                    g.tc[m][r, c] = row[c]
+        orthonormalize(g.tc, g.aggc_members, lo, hi, g.c_cand, a, dr, cfg.real)
+        g.c_centre[a] = centre
 
 
 @ti.kernel
@@ -406,7 +505,9 @@ def factor_coarsest(cfg: ti.template(), g: ti.template(), base: ti.i32, nodes: t
                 s = g.chol[j * size + j]
                 for k in range(j):
                     s -= g.chol[j * size + k] * g.chol[j * size + k]
-                if s <= 0:
+                if s == 0:  # an idle unknown (see invert6)
+                    g.chol[j * size + j] = ti.cast(1, cfg.real)
+                elif not s > 0:
                     failed = j + 1
                 else:
                     d = ti.sqrt(s)

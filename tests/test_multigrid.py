@@ -27,6 +27,12 @@ def swinging_cloth(resolution, stiffness=1e4, steps=8, pin="corners"):
     return state
 
 
+def tentative_blocks(positions, transfer):
+    """T's blocks (numpy reference) for level 0 at ``positions``."""
+    modes, _ = aggregation.rigid_modes(positions, transfer.agg, transfer.nc)
+    return aggregation.tentative(transfer.agg, transfer.nc, modes)[0]
+
+
 # ----------------------------------------------------------------------------- structure
 
 
@@ -39,12 +45,13 @@ def test_aggregates_cover_the_free_particles_and_tentative_prolongation_is_ortho
     sizes = np.bincount(t.agg[free])
     assert sizes.min() >= 2 and sizes.max() <= 13  # 3x3 patches and a few extras
     # T^T T = I: per aggregate, the stacked blocks are orthonormal columns
+    tent = tentative_blocks(model.positions, t)
     dense = np.zeros((3 * model.n_particles, 6 * t.nc))
     for i in np.flatnonzero(free):
-        dense[3 * i:3 * i + 3, 6 * t.agg[i]:6 * t.agg[i] + 6] = t.tent[i]
+        dense[3 * i:3 * i + 3, 6 * t.agg[i]:6 * t.agg[i] + 6] = tent[i]
     np.testing.assert_allclose(dense.T @ dense, np.eye(6 * t.nc), atol=1e-12)
     # and they span the rigid modes of each aggregate: T T^T B = B
-    modes = aggregation.rigid_modes(model.positions, t.agg, t.nc)
+    modes, _ = aggregation.rigid_modes(model.positions, t.agg, t.nc)
     for k in range(6):
         b = np.zeros(3 * model.n_particles)
         b.reshape(-1, 3)[free] = modes[free, :, k]
@@ -68,11 +75,12 @@ def test_galerkin_pattern_and_numpy_product_match_dense_products():
         a[3 * i:3 * i + 3, 3 * i:3 * i + 3] += diag[i]
     dinv = np.linalg.inv(diag)
     scale = 0.5
-    p_blocks = aggregation.smooth_prolongation(level, diag, off, dinv, scale)
+    blocks = tentative_blocks(model.positions, t)
+    p_blocks = aggregation.smooth_prolongation(level, diag, off, dinv, scale, blocks)
     c_diag, c_off = aggregation.galerkin(level, diag, off, p_blocks)
     tent = np.zeros((3 * n, 6 * t.nc))
     for i in np.flatnonzero(t.agg >= 0):
-        tent[3 * i:3 * i + 3, 6 * t.agg[i]:6 * t.agg[i] + 6] = t.tent[i]
+        tent[3 * i:3 * i + 3, 6 * t.agg[i]:6 * t.agg[i] + 6] = blocks[i]
     dinv_dense = np.zeros_like(a)
     for i in range(n):
         dinv_dense[3 * i:3 * i + 3, 3 * i:3 * i + 3] = dinv[i]
@@ -91,6 +99,94 @@ def test_galerkin_pattern_and_numpy_product_match_dense_products():
     for i in range(nxt.n):
         ac_from_blocks[6 * i:6 * i + 6, 6 * i:6 * i + 6] = c_diag[i]
     np.testing.assert_allclose(ac_from_blocks, ac, atol=1e-11 * np.abs(ac).max())
+
+
+def test_tentative_kernels_match_the_numpy_reference():
+    """T, the coarse candidates R and the aggregates' centres that the kernels build at
+    the current positions equal the numpy reference (rigid modes about each aggregate's
+    centre, modified Gram-Schmidt per aggregate), on both transfers of a three-level
+    hierarchy."""
+    model = swinging_cloth(40)
+    system = SystemOperator(model, DT, preconditioner="multigrid")
+    pre = system._preconditioner
+    levels, g = pre.hierarchy.levels, pre.g
+    assert len(levels) == 3
+    t0, t1 = levels[0].transfer, levels[1].transfer
+    modes0, centres1 = aggregation.rigid_modes(model.positions, t0.agg, t0.nc)
+    blocks0, cand1 = aggregation.tentative(t0.agg, t0.nc, modes0)
+    modes1, centres2 = aggregation.coarse_modes(cand1, centres1, t1.agg, t1.nc)
+    blocks1, cand2 = aggregation.tentative(t1.agg, t1.nc, modes1)
+    (b1, e1), (b2, e2) = pre.plan.node_range[1], pre.plan.node_range[2]
+    has0, has1 = t0.agg >= 0, t1.agg >= 0
+    cand = g.c_cand.to_numpy()
+    np.testing.assert_allclose(g.t0.to_numpy()[:model.n_particles][has0], blocks0[has0], rtol=0, atol=1e-12)
+    np.testing.assert_allclose(cand[b1:e1], cand1, rtol=0, atol=1e-12 * np.abs(cand1).max())
+    np.testing.assert_allclose(g.tc.to_numpy()[b1:e1][has1], blocks1[has1], rtol=0, atol=1e-10)
+    np.testing.assert_allclose(cand[b2:e2], cand2, rtol=0, atol=1e-10 * np.abs(cand2).max())
+    centre = g.c_centre.to_numpy()
+    np.testing.assert_allclose(centre[b1:e1], centres1, rtol=0, atol=1e-14)
+    np.testing.assert_allclose(centre[b2:e2], centres2, rtol=0, atol=1e-14)
+    system.close()
+
+
+def test_composite_tentative_prolongation_spans_rigid_motions_of_coarse_aggregates():
+    """Independent of how the kernels shift centres: T0 T1 (level 2 -> particles) has
+    orthonormal columns and its range holds every rigid motion (3 translations, 3
+    rotations about the origin) of each level-2 aggregate's particles. Candidates that
+    disagree between members (rotations about each member's own centre) fail this."""
+    model = swinging_cloth(40)
+    system = SystemOperator(model, DT, preconditioner="multigrid")
+    pre = system._preconditioner
+    levels, g = pre.hierarchy.levels, pre.g
+    t0, t1 = levels[0].transfer, levels[1].transfer
+    b1, e1 = pre.plan.node_range[1]
+    n = model.n_particles
+    tent0 = np.zeros((3 * n, 6 * t0.nc))
+    blocks0 = g.t0.to_numpy()
+    for i in np.flatnonzero(t0.agg >= 0):
+        tent0[3 * i:3 * i + 3, 6 * t0.agg[i]:6 * t0.agg[i] + 6] = blocks0[i]
+    tent1 = np.zeros((6 * t0.nc, 6 * t1.nc))
+    blocks1 = g.tc.to_numpy()[b1:e1]
+    for i in np.flatnonzero(t1.agg >= 0):
+        tent1[6 * i:6 * i + 6, 6 * t1.agg[i]:6 * t1.agg[i] + 6] = blocks1[i]
+    composite = tent0 @ tent1
+    np.testing.assert_allclose(composite.T @ composite, np.eye(6 * t1.nc), rtol=0, atol=1e-12)
+    owner = np.where(t0.agg >= 0, t1.agg[np.maximum(t0.agg, 0)], -1)  # level-2 aggregate of each particle
+    x = model.positions
+    for a in range(t1.nc):
+        inside = owner == a
+        for k in range(6):
+            b = np.zeros((n, 3))
+            if k < 3:
+                b[inside, k] = 1.0
+            else:
+                b[inside] = np.cross(np.eye(3)[k - 3], x[inside])
+            b = b.reshape(-1)
+            np.testing.assert_allclose(composite @ (composite.T @ b), b, rtol=0, atol=1e-9 * np.abs(b).max())
+    system.close()
+
+
+def test_collinear_aggregates_leave_idle_unknowns_and_a_positive_cycle():
+    """A straight chain: every aggregate is collinear, so the rotation about the chain
+    is no candidate (a zero column of T, a zero row of R) on every level; those coarse
+    unknowns are idle (unit pivots, not failures) and the cycle stays symmetric
+    positive definite."""
+    model = ms.load_scene("chain").with_params(count=600).model()
+    system = SystemOperator(model, 0.01, preconditioner="multigrid")
+    pre = system._preconditioner
+    assert pre.plan.levels >= 3 and pre.factor_failed == 0
+    cand, tc = pre.g.c_cand.to_numpy(), pre.g.tc.to_numpy()
+    b1, e1 = pre.plan.node_range[1]
+    assert np.all(cand[b1:e1, 3, :] == 0) and np.all(tc[b1:e1, :, 3] == 0)
+    assert np.all(np.abs(np.diagonal(cand[b1:e1], axis1=1, axis2=2)[:, [0, 1, 2, 4, 5]]) > 0)
+    rng = np.random.default_rng(3)
+    keep = free_dofs(model).reshape(-1, 3)
+    for _ in range(3):
+        x, y = rng.normal(size=keep.shape) * keep, rng.normal(size=keep.shape) * keep
+        bx, by = system.precondition(x), system.precondition(y)
+        assert abs(np.sum(x * by) - np.sum(y * bx)) <= 1e-12 * np.linalg.norm(x) * np.linalg.norm(by)
+        assert np.sum(x * bx) > 0
+    system.close()
 
 
 # -------------------------------------------------------------------------------- cycle
@@ -149,9 +245,10 @@ def test_two_level_cycle_matches_a_dense_numpy_cycle():
         bound = max(bound, row)
     rho = min(2.0, bound)
     t = hierarchy.levels[0].transfer
+    blocks = tentative_blocks(model.positions, t)
     tent = np.zeros((3 * n, 6 * t.nc))
     for i in np.flatnonzero(t.agg >= 0):
-        tent[3 * i:3 * i + 3, 6 * t.agg[i]:6 * t.agg[i] + 6] = t.tent[i]
+        tent[3 * i:3 * i + 3, 6 * t.agg[i]:6 * t.agg[i] + 6] = blocks[i]
     p = tent - (multigrid.OMEGA / rho) * dinv @ a @ tent
     ac = p.T @ a @ p
     rng = np.random.default_rng(5)
@@ -192,6 +289,7 @@ def test_cycle_is_symmetric_and_positive_definite(resolution):
 @pytest.mark.parametrize("scene_name, params", [
     ("cloth", {"resolution": 20}), ("stiffcloth", {"resolution": 20}), ("compressed", {"resolution": 20}),
     ("crumpled", {"resolution": 20}), ("cube", {"resolution": 5}), ("chain", {"count": 80}),
+    ("chain", {"count": 600}),
 ])
 def test_multigrid_solves_eq15_as_block_jacobi_does(scene_name, params):
     """Same steps, tolerance 1e-10: the two preconditioners give the same velocities to

@@ -13,16 +13,23 @@ spring network resists least, its near-nullspace). Built here, once:
   a node whose strong neighbours are all free starts an aggregate with them; every
   other node joins the aggregate it is most strongly connected to; nodes without
   strong neighbours (and pinned particles) belong to none;
-* the tentative prolongation T: per aggregate, the orthonormal basis (thin QR) of
-  its members' near-nullspace vectors, so T^T T = I; R of the QR gives the coarse
-  level's near-nullspace;
+* the member lists of the aggregates, for the tentative prolongation T that the
+  kernels build every step: per aggregate, an orthonormal basis (modified
+  Gram-Schmidt, a thin QR) of its members' near-nullspace vectors at the current
+  positions, so T^T T = I; R of the QR is the coarse level's near-nullspace.
+  Rotations are taken about each aggregate's centre (the mean of its members'),
+  and a coarse node's candidates are shifted to its aggregate's centre before the
+  next QR: all members must describe the same rigid motions (``rigid_modes``,
+  ``coarse_modes`` and ``tentative`` here are the kernels' numpy reference);
 * the patterns of what the per-step kernels (``kernels/multigrid.py``) fill in:
   the smoothed prolongation P = (I - omega/rho D^-1 A) T (row i: the aggregates of i
   and of its neighbours), A P and the Galerkin coarse operator P^T A P, with the
   index lists that say which block products go where.
 
-Values change every step (K and D follow the positions): the kernels recompute P,
-A P and P^T A P in these patterns. Pinned particles have no aggregate and zero
+Values change every step (K and D follow the positions, and so do the rotations
+that K resists least): the kernels recompute T, P, A P and P^T A P in these
+patterns. Rotations about the initial geometry instead let the iteration count
+grow as the cloth moves (36 instead of 9-14 at 256^2, ks 1e6, by the third step). Pinned particles have no aggregate and zero
 rows of P: the coarse levels see the free particles only.
 """
 
@@ -37,28 +44,30 @@ COARSE_THETA = 0.0     # on coarser levels, whose summed coupling norms say less
 MAX_COARSE = 600       # unknowns of the coarsest level (solved by dense Cholesky), at most
 MAX_LEVELS = 12
 COARSE_BS = 6          # unknowns per coarse node: 3 translations, 3 rotations
+DROP = 1e-4            # a candidate whose part orthogonal to the previous ones is below DROP times
+                       # its norm is dropped (a zero column of T: the rotation about the axis of
+                       # collinear members); its coarse unknown is then idle
 
 
 @dataclass
 class Transfer:
     """One level's prolongation structure, fine nodes ``nf`` -> coarse nodes ``nc``.
 
-    ``agg`` (nf,): aggregate of each fine node (-1: none); ``tent`` (nf, bf, 6): the
-    tentative prolongation's block of each fine node (zero without aggregate);
-    ``p_rows`` (nf+1,), ``p_cols`` (np,): P's pattern (CSR by fine node; columns are
-    coarse nodes); ``tent_slot`` (nf,): the block of P row i holding T's block (-1);
-    ``candidates`` (nc, 6, 6): the coarse near-nullspace (R of the QRs).
+    ``agg`` (nf,): aggregate of each fine node (-1: none); ``member_rows`` (nc+1,),
+    ``members``: the fine nodes of each aggregate (CSR, ascending); ``p_rows``
+    (nf+1,), ``p_cols`` (np,): P's pattern (CSR by fine node; columns are coarse
+    nodes); ``tent_slot`` (nf,): the block of P row i holding T's block (-1).
     """
 
     nf: int
     nc: int
     bf: int
     agg: np.ndarray
-    tent: np.ndarray
+    member_rows: np.ndarray
+    members: np.ndarray
     p_rows: np.ndarray
     p_cols: np.ndarray
     tent_slot: np.ndarray
-    candidates: np.ndarray
 
 
 def rest_blocks(model, dt, free):
@@ -126,27 +135,54 @@ def aggregate(offsets, cols, weights):
     return out, count
 
 
-def rigid_modes(x, agg, count):
-    """Near-nullspace of level 0 (n, 3, 6): translations and rotations about each
-    aggregate's centroid (about the origin for nodes without aggregate)."""
-    n = len(x)
-    centre = np.zeros((max(count, 1), 3))
+def centres(points, agg, count):
+    """Each aggregate's centre (count, 3): the mean of its members' ``points`` (n, 3)."""
     members = agg >= 0
-    np.add.at(centre, agg[members], x[members])
-    centre /= np.maximum(np.bincount(agg[members], minlength=count), 1)[:max(count, 1), None]
-    rel = x - np.where(members[:, None], centre[np.maximum(agg, 0)], 0.0)
-    modes = np.zeros((n, 3, 6))
-    modes[:, :, :3] = np.eye(3)
+    total = np.zeros((count, 3))
+    np.add.at(total, agg[members], points[members])
+    return total / np.maximum(np.bincount(agg[members], minlength=count), 1)[:, None]
+
+
+def shift(d):
+    """S(d) (..., 6, 6): candidates given as translations and rotations about a point c,
+    times S(d), are the same motions with the rotations about c - d: rotation k about
+    c - d is rotation k about c plus the translation e_k x d."""
+    out = np.broadcast_to(np.eye(6), d.shape[:-1] + (6, 6)).copy()
     for k in range(3):
         axis = np.zeros(3)
         axis[k] = 1.0
-        modes[:, :, 3 + k] = np.cross(axis[None, :], rel)
-    return modes
+        out[..., :3, 3 + k] = np.cross(axis, d)
+    return out
 
 
-def tentative(agg, count, candidates):
-    """T's blocks (n, bf, 6) and the coarse candidates (count, 6, 6): per aggregate a
-    thin QR of its members' stacked candidate blocks, signs fixed so R's diagonal >= 0."""
+def rigid_modes(x, agg, count):
+    """Level 0's near-nullspace (n, 3, 6) and the aggregates' centres (count, 3):
+    translations and rotations about each particle's aggregate centre (zero for
+    particles without aggregate)."""
+    centre = centres(x, agg, count)
+    members = agg >= 0
+    modes = np.zeros((len(x), 3, 6))
+    modes[members] = shift(x[members] - centre[agg[members]])[:, :3, :]
+    return modes, centre
+
+
+def coarse_modes(candidates, node_centres, agg, count):
+    """A coarse level's near-nullspace for its aggregation (n, 6, 6) and the next
+    centres: each node's candidates (R of its QR, rotations about its own centre)
+    re-expressed with rotations about its aggregate's centre."""
+    centre = centres(node_centres, agg, count)
+    members = agg >= 0
+    modes = np.zeros_like(candidates)
+    modes[members] = candidates[members] @ shift(node_centres[members] - centre[agg[members]])
+    return modes, centre
+
+
+def tentative(agg, count, candidates, drop=DROP):
+    """T's blocks (n, bf, 6) and the coarse candidates (count, 6, 6): per aggregate, modified
+    Gram-Schmidt on its members' stacked candidate blocks (in member order), a thin QR
+    B = Q R with R's diagonal >= 0; a column whose remainder is at most ``drop`` times
+    its norm is dropped (zero in Q and on R's diagonal). The numpy reference of the
+    kernels' ``tentative0``/``tentativec``."""
     n, bf, k = candidates.shape
     members = np.flatnonzero(agg >= 0)
     order = members[np.argsort(agg[members], kind="stable")]
@@ -154,15 +190,21 @@ def tentative(agg, count, candidates):
     starts = np.concatenate([[0], np.cumsum(sizes)])
     blocks = np.zeros((n, bf, k))
     coarse = np.zeros((count, k, k))
-    for size in np.unique(sizes):
+    for size in np.unique(sizes[sizes > 0]):
         ids = np.flatnonzero(sizes == size)
         nodes = order[starts[ids][:, None] + np.arange(size)[None, :]]
-        stack = candidates[nodes].reshape(len(ids), size * bf, k)
-        q, r = np.linalg.qr(stack)
-        sign = np.sign(np.diagonal(r, axis1=1, axis2=2))
-        sign[sign == 0] = 1.0
-        q *= sign[:, None, :]
-        r *= sign[:, :, None]
+        q = candidates[nodes].reshape(len(ids), size * bf, k).copy()
+        r = np.zeros((len(ids), k, k))
+        for j in range(k):
+            norm0 = np.linalg.norm(q[:, :, j], axis=1)
+            for p in range(j):
+                d = np.sum(q[:, :, p] * q[:, :, j], axis=1)
+                r[:, p, j] = d
+                q[:, :, j] -= d[:, None] * q[:, :, p]
+            norm = np.linalg.norm(q[:, :, j], axis=1)
+            live = norm > drop * norm0
+            q[:, :, j] = np.where(live[:, None], q[:, :, j] / np.where(live, norm, 1.0)[:, None], 0.0)
+            r[:, j, j] = np.where(live, norm, 0.0)
         blocks[nodes.ravel()] = q.reshape(len(ids) * size, bf, k)
         coarse[ids] = r
     return blocks, coarse
@@ -179,9 +221,10 @@ def csr_union(n, rows, cols):
     return offsets, unique % width, inverse
 
 
-def transfer(nf, bf, agg, count, tent_blocks, coarse_candidates, op_rows, op_cols):
-    """The prolongation structure of one level: P's row i holds the aggregates of i
-    and of its operator neighbours ``op_cols[op_rows[i]:op_rows[i+1]]``."""
+def transfer(nf, bf, agg, count, op_rows, op_cols):
+    """The prolongation structure of one level: the aggregates' member lists, and P's
+    pattern, whose row i holds the aggregates of i and of its operator neighbours
+    ``op_cols[op_rows[i]:op_rows[i+1]]``."""
     owner = np.repeat(np.arange(nf), np.diff(op_rows))
     rows = np.concatenate([np.arange(nf), owner])
     cols = np.concatenate([agg, agg[op_cols]])
@@ -190,7 +233,9 @@ def transfer(nf, bf, agg, count, tent_blocks, coarse_candidates, op_rows, op_col
     tent_slot = np.full(nf, -1, dtype=np.int64)
     has = agg >= 0
     tent_slot[has] = index[:int(has.sum())]  # the kept self pairs come first, in node order
-    return Transfer(nf, count, bf, agg, tent_blocks, p_rows, p_cols, tent_slot, coarse_candidates)
+    members = np.flatnonzero(has)
+    members = members[np.argsort(agg[members], kind="stable")]
+    return Transfer(nf, count, bf, agg, _csr_offsets(count, agg[members]), members, p_rows, p_cols, tent_slot)
 
 
 @dataclass
@@ -351,19 +396,18 @@ def spectral_radius(level, diag, off, steps=20, seed=0):
     return rho
 
 
-def smooth_prolongation(level, diag, off, dinv, scale):
-    """P = T - scale D^-1 A T in P's pattern (scale = omega / rho); blocks (np, bf, 6)."""
+def smooth_prolongation(level, diag, off, dinv, scale, tent):
+    """P = T - scale D^-1 A T in P's pattern (scale = omega / rho), T's blocks ``tent``
+    (nf, bf, 6) from ``tentative``; blocks (np, bf, 6)."""
     t = level.transfer
-    owner = np.repeat(np.arange(level.n), np.diff(level.off_rows))
     at = np.zeros((len(t.p_cols), t.bf, COARSE_BS))
     has = t.tent_slot >= 0
-    np.add.at(at, t.tent_slot[has], np.einsum("nij,njk->nik", diag[has], t.tent[has]))
+    np.add.at(at, t.tent_slot[has], np.einsum("nij,njk->nik", diag[has], tent[has]))
     ok = level.entry_slot >= 0
-    np.add.at(at, level.entry_slot[ok], np.einsum("eij,ejk->eik", off[ok], t.tent[level.off_cols[ok]]))
+    np.add.at(at, level.entry_slot[ok], np.einsum("eij,ejk->eik", off[ok], tent[level.off_cols[ok]]))
     p_owner = np.repeat(np.arange(level.n), np.diff(t.p_rows))
     p = -scale * np.einsum("nij,njk->nik", dinv[p_owner], at)
-    p[t.tent_slot[has]] += t.tent[has]
-    del owner
+    p[t.tent_slot[has]] += tent[has]
     return p
 
 
@@ -464,7 +508,6 @@ def build(model, dt, theta=THETA, max_coarse=MAX_COARSE):
     pairs, weights, diag_norm = rest_couplings(model, dt, free)
     level = Level(model.n_particles, 3, offsets.astype(np.int64), other.astype(np.int64))
     levels = [level]
-    candidates = None
     while level.n * level.bs > max_coarse and len(levels) < MAX_LEVELS:
         s_rows, s_cols, s_w = strength_graph(level.n, pairs, weights, diag_norm,
                                              theta if len(levels) == 1 else COARSE_THETA)
@@ -473,13 +516,9 @@ def build(model, dt, theta=THETA, max_coarse=MAX_COARSE):
             agg[~free] = -1
         if count == 0 or count * COARSE_BS >= 0.8 * level.n * level.bs:
             break  # no useful coarsening
-        if candidates is None:
-            candidates = rigid_modes(model.positions, agg, count)
-        tent, coarse = tentative(agg, count, candidates)
-        level.transfer = transfer(level.n, level.bs, agg, count, tent, coarse, level.off_rows, level.off_cols)
+        level.transfer = transfer(level.n, level.bs, agg, count, level.off_rows, level.off_cols)
         next_rows, next_cols = link(level)
         pairs, weights, diag_norm = coarse_couplings(pairs, weights, diag_norm, agg, count)
         level = Level(count, COARSE_BS, next_rows, next_cols)
         levels.append(level)
-        candidates = coarse
     return Hierarchy(levels)

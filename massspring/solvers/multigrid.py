@@ -1,12 +1,13 @@
 """Smoothed-aggregation multigrid: a V-cycle as the preconditioner of the CG.
 
 The hierarchy's structure comes from the spring graph, once per simulation
-(``aggregation.build``): aggregates, the tentative prolongations (translations and
-rotations of each aggregate), and the patterns of P, A P and P^T A P. Every step,
-after the operator's refresh, ``setup`` recomputes the values in kernels
-(``kernels/multigrid.py``): D^-1 on each level, the smoothed prolongations
-P = (I - omega/rho D^-1 A) T, the Galerkin coarse operators P^T A P and the dense
-Cholesky factor of the coarsest level. The fine level stays matrix-free.
+(``aggregation.build``): aggregates and the patterns of P, A P and P^T A P. Every
+step, after the operator's refresh, ``setup`` recomputes the values in kernels
+(``kernels/multigrid.py``): the tentative prolongations T (translations and
+rotations of each aggregate at the current positions, orthonormalized), D^-1 on
+each level, the smoothed prolongations P = (I - omega/rho D^-1 A) T, the Galerkin
+coarse operators P^T A P and the dense Cholesky factor of the coarsest level. The
+fine level stays matrix-free.
 
 ``apply`` is one V(NU, NU)-cycle on CG's residual: Chebyshev smoothing of degree
 NU in D^-1 A on [rho / CHEB_RATIO, rho] before and after the coarse correction
@@ -75,6 +76,9 @@ class Multigrid(Preconditioner):
         self.rho[0] = min(2.0, bound) if self.fix else bound
         if g is None:
             return
+        mg.tentative0(dev, cfg, g, plan.node_range[1][1], aggregation.DROP, serial)
+        for level in range(1, plan.levels - 1):
+            mg.tentativec(cfg, g, *plan.node_range[level + 1], aggregation.DROP, serial)
         mg.smooth_p0(dev, cfg, g, OMEGA / _positive(self.rho[0]), serial)
         mg.ap0(dev, cfg, g, serial)
         mg.galerkin0(cfg, g, plan.gal0_count, serial)
@@ -217,7 +221,8 @@ class _Plan:
         a = self.arrays
         f = levels[0]
         t = f.transfer
-        a["t0"], a["t0_slot"], a["e0_slot"] = t.tent, t.tent_slot, f.entry_slot
+        a["t0_slot"], a["e0_slot"] = t.tent_slot, f.entry_slot
+        a["agg0_rows"], a["agg0_members"] = t.member_rows, t.members
         a["p0_rows"], a["p0_cols"] = t.p_rows, t.p_cols
         a["ap0_rows"] = f.ap_rows
         a["apt0_rows"], a["apt0_ap"] = f.apt_rows, f.apt_ap
@@ -240,26 +245,28 @@ class _Plan:
         a["c_rows"], a["c_cols"] = np.concatenate(rows), _cat(cols)
         a["c_mirror"], a["lower"] = _cat(mirrors), _cat(lower)
         # transfers between coarse levels
-        tc = np.zeros((total_nodes, 6, 6))
         tc_slot = np.full(total_nodes, -1, dtype=np.int64)
         ec_slot = np.full(total_off, -1, dtype=np.int64)
         pc_rows, apc_rows, aptc_rows = (np.zeros(total_nodes + 1, dtype=np.int64) for _ in range(3))
         ptc_rows = np.zeros(total_nodes + 1, dtype=np.int64)
-        parts = {k: [] for k in ("pc_cols", "aptc_ap", "galc_block", "galc_p", "galc_ap", "ptc_block", "ptc_fine")}
+        aggc_rows = np.zeros(total_nodes + 1, dtype=np.int64)
+        parts = {k: [] for k in ("pc_cols", "aptc_ap", "galc_block", "galc_p", "galc_ap", "ptc_block", "ptc_fine",
+                                 "aggc_members")}
         galc_rows = [np.zeros(1, dtype=np.int64)]
-        pc_base = apc_base = trip_base = pair_base = blocks = pt_base = 0
+        pc_base = apc_base = trip_base = pair_base = blocks = pt_base = member_base = 0
         self.gal_range = {}
         for l in range(1, self.levels - 1):
             lv, tr = levels[l], levels[l].transfer
             n0, n1 = self.node_range[l]
             nn0, nn1 = self.node_range[l + 1]
-            tc[n0:n1] = tr.tent
             tc_slot[n0:n1] = np.where(tr.tent_slot >= 0, tr.tent_slot + pc_base, -1)
             ec_slot[off_base[l - 1]:off_base[l]] = np.where(lv.entry_slot >= 0, lv.entry_slot + pc_base, -1)
             pc_rows[n0 + 1:n1 + 1] = tr.p_rows[1:] + pc_base
             apc_rows[n0 + 1:n1 + 1] = lv.ap_rows[1:] + apc_base
             aptc_rows[n0 + 1:n1 + 1] = lv.apt_rows[1:] + trip_base
             ptc_rows[nn0 + 1:nn1 + 1] = lv.pt_rows[1:] + pt_base
+            aggc_rows[nn0 + 1:nn1 + 1] = tr.member_rows[1:] + member_base
+            parts["aggc_members"].append(tr.members + n0)
             parts["pc_cols"].append(tr.p_cols + nn0)
             parts["aptc_ap"].append(lv.apt_ap + apc_base)
             parts["galc_block"].append(np.where(lv.gal_block < 0, lv.gal_block - nn0, lv.gal_block + off_base[l]))
@@ -275,11 +282,14 @@ class _Plan:
             pair_base += len(lv.gal_p)
             blocks += len(lv.gal_block)
             pt_base += len(lv.pt_block)
+            member_base += len(tr.members)
         _fill_forward(pc_rows)
         _fill_forward(apc_rows)
         _fill_forward(aptc_rows)
         _fill_forward(ptc_rows)
-        a["tc"], a["tc_slot"], a["ec_slot"] = tc, tc_slot, ec_slot
+        _fill_forward(aggc_rows)
+        a["tc_slot"], a["ec_slot"] = tc_slot, ec_slot
+        a["aggc_rows"] = aggc_rows
         a["pc_rows"], a["apc_rows"], a["aptc_rows"], a["ptc_rows"] = pc_rows, apc_rows, aptc_rows, ptc_rows
         for key, values in parts.items():
             a[key] = _cat(values)
@@ -297,11 +307,11 @@ class _Plan:
             return capacity(count, FLOOR)
 
         for name, values in self.arrays.items():
-            if name in ("t0", "tc"):
-                continue
             layout.add(name, ti.i32, cap(len(values)), values=values.astype(np.int32))
-        layout.add("t0", real, cap(c["fine"]), (3, 6), values=self.arrays["t0"])
-        layout.add("tc", real, cap(c["nodes"]), (6, 6), values=self.arrays["tc"])
+        layout.add("t0", real, cap(c["fine"]), (3, 6))
+        layout.add("tc", real, cap(c["nodes"]), (6, 6))
+        layout.add("c_cand", real, cap(c["nodes"]), (6, 6))      # each coarse node's candidates (R)
+        layout.vectors("c_centre", real, cap(c["nodes"]))        # and the centre of its rotations
         layout.add("p0", real, cap(c["p0"]), (3, 6))
         layout.add("ap0", real, cap(c["ap0"]), (3, 6))
         layout.add("pc", real, cap(c["pc"]), (6, 6))
