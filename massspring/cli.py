@@ -72,16 +72,20 @@ def build_parser():
 
 
 def add_scene_arguments(p, integrators):
+    from massspring.solvers import CHOICES, MULTIGRID_FROM
+
     p.add_argument("scene", help="a built-in scene name (see `massspring scenes`) or a TOML file")
     p.add_argument("--integrator", choices=tuple(integrators), help="time integrator (default: the scene's)")
     p.add_argument("--dt", type=float, help="time step in s (default: the scene's for the integrator)")
     p.add_argument("--precision", choices=("f64", "f32"), default="f64")
     p.add_argument("--arch", default="cpu", help="Taichi arch: cpu (default), cuda, vulkan, metal, gpu ...")
-    p.add_argument("--cg-tol", type=float, default=1e-6, help="implicit: relative CG tolerance (default 1e-6)")
+    p.add_argument("--cg-tol", type=float, help="implicit: relative CG tolerance (default: the scene's [solver], "
+                   "else 1e-6)")
     p.add_argument("--cg-max-iter", type=int, help="implicit: CG iteration limit per step "
-                   "(default 3 x free particles, at least 100)")
-    p.add_argument("--preconditioner", default="block-jacobi",
-                   help="implicit: block-jacobi (default) or none")
+                   "(default: the scene's [solver], else 3 x free particles, at least 100)")
+    p.add_argument("--preconditioner", choices=CHOICES,
+                   help="implicit: the CG's preconditioner (default: the scene's [solver], else auto: "
+                   f"multigrid from {MULTIGRID_FROM:,} free particles, block-jacobi below)")
     p.add_argument("--no-definiteness-fix", action="store_true",
                    help="implicit: use the stiffness of Eq. 13 as written (indefinite when springs are compressed)")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
@@ -96,10 +100,19 @@ def make_simulation(args):
     scene = load_scene(args.scene).with_settings(args.set)
     if args.dt is not None and not (math.isfinite(args.dt) and args.dt > 0):
         raise UsageError(f"--dt: must be a finite number > 0, got {args.dt:g}")
-    sim = scene.simulation(integrator=args.integrator, dt=args.dt, precision=args.precision,
-                           cg_tol=args.cg_tol, cg_max_iter=args.cg_max_iter, preconditioner=args.preconditioner,
-                           definiteness_fix=not args.no_definiteness_fix, arch=args.arch)
+    sim = scene.simulation(integrator=args.integrator, dt=args.dt, precision=args.precision, arch=args.arch,
+                           **solver_options(args))
     return scene, sim
+
+
+def solver_options(args):
+    """The implicit solver's options given on the command line; the scene's [solver]
+    table (``Scene.simulation``) supplies the others."""
+    given = {"cg_tol": args.cg_tol, "cg_max_iter": args.cg_max_iter, "preconditioner": args.preconditioner}
+    options = {key: value for key, value in given.items() if value is not None}
+    if getattr(args, "no_definiteness_fix", False):
+        options["definiteness_fix"] = False
+    return options
 
 
 def cmd_scenes(args):
@@ -128,6 +141,11 @@ def cmd_info(args):
     print("dt defaults " + ", ".join(f"{k} {format_seconds(scene.default_dt(k))}"
                                      + ("" if k in scene.dt else " (from the stability estimate)")
                                      for k in _integrator_names()))
+    if sim.integrator == "implicit":
+        levels = info.get("levels")
+        hierarchy = f" ({len(levels)} levels: {', '.join(f'{n:,}' for n in levels)} unknowns)" if levels else ""
+        print(f"solver      CG to {sim.cg_tol:g} (at most {sim.cg_max_iter:,} iterations), preconditioner "
+              f"{sim.preconditioner}{hierarchy}, definiteness fix {'on' if sim.definiteness_fix else 'off'}")
     print(f"terms       {', '.join(info['terms'])}")
     print(f"arrays      {', '.join(info['arrays'])} ({info['bytes'] / 1e6:.2f} MB)")
     print(f"kernels     {info['loops']} loops")
@@ -564,6 +582,9 @@ def add_study_arguments(p):
     p.add_argument("--integrators", default="explicit,symplectic,implicit", help="comma-separated list")
     p.add_argument("--rungs", type=int, default=7, help="dt values per line, a factor of 2 apart (default 7)")
     p.add_argument("--cg-tols", default="1e-2,1e-4,1e-6", help="implicit: comma-separated CG tolerances")
+    p.add_argument("--preconditioners", default="auto",
+                   help="implicit: comma-separated preconditioners, a line each (auto, block-jacobi, multigrid, "
+                   "none; default auto)")
     p.add_argument("--repeats", type=int, default=3, help="timed runs per configuration, at most (default 3)")
     p.add_argument("--cache-dir", help="RK4 reference cache (default $MASSSPRING_CACHE, "
                    "else $XDG_CACHE_HOME/massspring or ~/.cache/massspring)")
@@ -584,7 +605,9 @@ def cmd_study(args):
     except ValueError:
         raise UsageError(f"--cg-tols: expected comma-separated numbers, got {args.cg_tols!r}") from None
     result = study.run_study(scene, integrators=[s.strip() for s in args.integrators.split(",") if s.strip()],
-                             duration=args.duration, rungs=args.rungs, cg_tols=tols, repeats=args.repeats,
+                             duration=args.duration, rungs=args.rungs, cg_tols=tols,
+                             preconditioners=[s.strip() for s in args.preconditioners.split(",") if s.strip()],
+                             repeats=args.repeats,
                              cache=args.cache_dir, progress=report.print_progress)
     print(report.report(result))
     written = report.write_outputs(result, out)
@@ -629,8 +652,7 @@ def cmd_stability(args):
     prefix = Path(args.out) if args.out else Path(f"stability-{scene.name}")
     if not prefix.parent.is_dir():
         raise UsageError(f"--out: directory {str(prefix.parent)!r} does not exist")
-    options = dict(precision=args.precision, cg_tol=args.cg_tol, cg_max_iter=args.cg_max_iter,
-                   preconditioner=args.preconditioner)
+    options = dict(precision=args.precision, **solver_options(args))
     model, positions = scene.model(), None
     if args.at > 0:
         settle = scene.simulation("implicit", **options)

@@ -16,6 +16,7 @@ from types import SimpleNamespace
 
 import numpy as np
 
+from massspring import validate
 from massspring.device import POOL, Config, ensure_taichi, model_layout
 from massspring.kernels import cg, operator
 from massspring.kernels.terms import SpringDamping, Springs
@@ -28,9 +29,7 @@ class Jacobians:
 
     def __init__(self, model: Model, positions=None, definiteness_fix=False):
         ensure_taichi()
-        x = model.positions if positions is None else np.asarray(positions, dtype=np.float64)
-        if x.shape != model.positions.shape or not np.all(np.isfinite(x)):
-            raise ValueError(f"positions: expected finite values of shape {model.positions.shape}")
+        x = _state("positions", positions, model.positions)
         self.model = model
         layout = model_layout(model, "f64")
         layout.vectors("p", layout.real)
@@ -76,6 +75,14 @@ class Jacobians:
             self._dev = None
 
 
+def _state(name, values, default):
+    """``values`` (default: ``default``) as float64 of ``default``'s shape, finite."""
+    x = default if values is None else np.asarray(values, dtype=np.float64)
+    if x.shape != default.shape or not np.all(np.isfinite(x)):
+        raise ValueError(f"{name}: expected finite values of shape {default.shape}")
+    return x
+
+
 def _padded(values, capacity):
     values = np.asarray(values, dtype=np.float64)
     out = np.zeros((capacity, 3))
@@ -86,14 +93,24 @@ def _padded(values, capacity):
 class SystemOperator:
     """A = M - dt D - dt^2 K of Eq. 15 (with the definiteness fix unless told not to) at
     ``positions``/``velocities`` (default: the model's), in ``precision``, as the
-    implicit integrator assembles it each step, with ``preconditioner`` set up for it.
+    implicit integrator assembles it each step, with ``preconditioner`` (one of
+    ``solvers.CHOICES``, "auto" resolved as by ``Simulation``) set up for it.
     ``close()`` hands the fields back."""
 
     def __init__(self, model: Model, dt, definiteness_fix=True, positions=None, velocities=None,
-                 precision="f64", preconditioner="block-jacobi", loops="serial"):
+                 precision="f64", preconditioner="auto", loops="serial"):
         from massspring.integrators.implicit import ImplicitEuler
-        from massspring.solvers import PRECONDITIONERS
+        from massspring.solvers import CHOICES, PRECONDITIONERS, resolve
 
+        if not isinstance(model, Model):
+            raise ValueError(f"model: expected a massspring.Model, got {type(model).__name__}")
+        validate.choice("precision", precision, ("f64", "f32"))
+        validate.choice("preconditioner", preconditioner, CHOICES)
+        validate.choice("loops", loops, ("serial", "parallel"))
+        dt = validate.positive_float("dt", dt)
+        x = _state("positions", positions, model.positions)
+        v = _state("velocities", velocities, model.velocities)
+        preconditioner = resolve(preconditioner, model)
         ensure_taichi()
         self.model, self.dt = model, float(dt)
         settings = SimpleNamespace(precision=precision, definiteness_fix=bool(definiteness_fix),
@@ -103,9 +120,8 @@ class SystemOperator:
         self._dev = layout.allocate()
         self._cfg = ImplicitEuler.config(model, settings)
         self._dtype = np.float32 if precision == "f32" else np.float64
-        for field, values in ((self._dev.x, positions), (self._dev.v, velocities)):
-            if values is not None:
-                field.from_numpy(_padded(values, field.shape[0]).astype(self._dtype))
+        for field, values in ((self._dev.x, x), (self._dev.v, v)):
+            field.from_numpy(_padded(values, field.shape[0]).astype(self._dtype))
         cg.cg_refresh(self._dev, self._cfg, self.dt)
         self._preconditioner = PRECONDITIONERS[preconditioner](self._dev, model, settings)
         self._preconditioner.bind(self._cfg)

@@ -14,7 +14,7 @@ from massspring.integrators import INTEGRATORS
 from massspring.kernels import divergence
 from massspring.kernels.terms import active_terms
 from massspring.model import Model, real_array
-from massspring.solvers import PRECONDITIONERS
+from massspring.solvers import CHOICES, resolve
 
 PRECISIONS = ("f64", "f32")
 LOOPS = ("auto", "serial", "parallel")
@@ -85,7 +85,11 @@ class Simulation:
     definiteness_fix : bool
         Implicit only: clamp the transverse stiffness of compressed springs so that
         the system stays positive definite (see kernels/terms/springs.py).
-    preconditioner : "block-jacobi" (default) | "none" (``solvers.PRECONDITIONERS``)
+    preconditioner : "auto" (default) | "block-jacobi" | "multigrid" | "none"
+        Implicit only: the CG's preconditioner (``solvers.PRECONDITIONERS``). "auto"
+        picks multigrid from ``solvers.MULTIGRID_FROM`` free particles on (where it
+        is faster; its iteration count stays flat with resolution) and block-Jacobi
+        below; ``preconditioner`` then reports the one picked.
     arch : Taichi arch name, "cpu" by default; one that cannot start is a ValueError.
     loops : "auto" (default) | "serial" | "parallel"
         Serial kernels (a whole CG solve, or many explicit steps, per launch) or
@@ -101,7 +105,7 @@ class Simulation:
     """
 
     def __init__(self, model, integrator="implicit", dt=1e-2, precision="f64", cg_tol=1e-6,
-                 cg_max_iter=None, definiteness_fix=True, preconditioner="block-jacobi", arch="cpu",
+                 cg_max_iter=None, definiteness_fix=True, preconditioner="auto", arch="cpu",
                  loops="auto"):
         if not isinstance(model, Model):
             raise ValueError(f"model: expected a massspring.Model, got {type(model).__name__}")
@@ -110,7 +114,7 @@ class Simulation:
         dt = validate.positive_float("dt", dt)
         cg_tol = validate.fraction("cg_tol", cg_tol)
         cg_max_iter = default_cg_max_iter(model) if cg_max_iter is None else validate.count("cg_max_iter", cg_max_iter)
-        validate.choice("preconditioner", preconditioner, tuple(PRECONDITIONERS))
+        validate.choice("preconditioner", preconditioner, CHOICES)
         validate.choice("loops", loops, LOOPS)
         validate.choice("arch", arch, ARCHS)
         if precision == "f32":
@@ -118,6 +122,7 @@ class Simulation:
         ensure_taichi(arch)
         if loops == "auto":
             loops = "serial" if model.n_springs < SERIAL_BELOW and arch in CPU_ARCHS else "parallel"
+        preconditioner = resolve(preconditioner, model)
         self._model = model
         self._settings = Settings(integrator, dt, precision, cg_tol, cg_max_iter, bool(definiteness_fix),
                                   preconditioner, arch, loops)
@@ -285,16 +290,22 @@ class Simulation:
         return self._model.energy(self.positions, self.velocities)
 
     def info(self) -> dict:
-        """What this run compiled and allocated: force terms, arrays and their bytes."""
-        self._open()
+        """What this run compiled and allocated: force terms, arrays and their bytes (with
+        a multigrid hierarchy's: its level sizes in unknowns are "levels")."""
+        integrator = self._open()
         terms = [term.name for term in active_terms(self._model)]
         if self._model.has_fixed:
             terms.append("fixed-filter")
-        return {"integrator": self.integrator, "precision": self.precision, "dt": self.dt,
-                "particles": self._model.n_particles, "springs": self._model.n_springs,
-                "terms": terms, "arrays": list(self._layout_names), "loops": self.loops,
-                "preconditioner": self.preconditioner if self.integrator == "implicit" else None,
-                "bytes": self._bytes}
+        out = {"integrator": self.integrator, "precision": self.precision, "dt": self.dt,
+               "particles": self._model.n_particles, "springs": self._model.n_springs,
+               "terms": terms, "arrays": list(self._layout_names), "loops": self.loops,
+               "preconditioner": self.preconditioner if self.integrator == "implicit" else None,
+               "bytes": self._bytes}
+        if self.integrator == "implicit":
+            extra = integrator.preconditioner.describe()
+            out["bytes"] += extra.pop("bytes")
+            out.update(extra)
+        return out
 
     def close(self):
         """Hand the run's fields back for reuse by the next Simulation (else done at garbage

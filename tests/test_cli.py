@@ -118,3 +118,14 @@ def test_arch_that_cannot_start_is_a_usage_error_not_a_crash(arch):
     code, out, err = run_cli("run", "spring", "--steps", "1", "--arch", arch)
     assert code == 2, (code, err)
     assert "arch" in err and arch in err and len(err.strip().splitlines()) == 1
+
+
+def test_preconditioner_option_and_scene_solver_table(tmp_path, capsys):
+    path = tmp_path / "s.toml"
+    path.write_text('integrator = "implicit"\nduration = 1.0\n[solver]\npreconditioner = "none"\n'
+                    '[model]\ngenerator = "grid"\nresolution = 8\n')
+    for extra, expected in (([], "none"), (["--preconditioner", "multigrid"], "multigrid")):
+        assert main(["info", str(path), *extra]) == 0
+        assert f"preconditioner {expected}" in " ".join(capsys.readouterr().out.split())
+    code, out, err = run_cli("run", "cloth", "--preconditioner", "amg", "--steps", "1")
+    assert code == 2 and "--preconditioner" in err and "Traceback" not in err

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from massspring import mesh
+from massspring import mesh, solvers
 from massspring.integrators import INTEGRATORS
 from massspring.scene import generators, spec
 
@@ -44,6 +44,9 @@ def test_top_level_keys_are_listed():
         row(section("`[dt]`"), key)
     for key in spec.VIEW_KEYS:
         row(section("`[view]`"), key)
+    for key in spec.SOLVER_KEYS:
+        row(section("`[solver]`"), key)
+    assert f"{solvers.MULTIGRID_FROM:,} free particles" in row(section("`[solver]`"), "preconditioner")
 
 
 @pytest.mark.parametrize("name", sorted(generators.PARAMETERS))

@@ -320,3 +320,25 @@ def test_iteration_counts_stay_low(resolution, stiffness):
     assert sim.cg_failures == 0
     assert max(sim.cg_iterations) <= 20, sim.cg_iterations
     sim.close()
+
+
+# ----------------------------------------------------------------------------- choice
+
+
+def test_auto_picks_multigrid_from_the_crossover(monkeypatch):
+    """"auto" is multigrid from solvers.MULTIGRID_FROM free particles on, block-Jacobi
+    below; the Simulation reports the one picked, and a name is taken as given."""
+    from massspring import solvers
+
+    model = ms.load_scene("cloth").with_params(resolution=12).model()
+    free = int(model.free_mask().sum())
+    for threshold, expected in ((free, "multigrid"), (free + 1, "block-jacobi")):
+        monkeypatch.setattr(solvers, "MULTIGRID_FROM", threshold)
+        sim = ms.Simulation(model, dt=DT)
+        assert sim.preconditioner == expected and sim.info()["preconditioner"] == expected
+        sim.close()
+    sim = ms.Simulation(model, dt=DT, preconditioner="multigrid")
+    assert sim.preconditioner == "multigrid"
+    sim.close()
+    with pytest.raises(ValueError, match="preconditioner"):
+        ms.Simulation(model, dt=DT, preconditioner="amg")

@@ -125,3 +125,31 @@ def test_generators_parameters_match_signatures():
     import inspect
     for name, fn in generators.GENERATORS.items():
         assert list(inspect.signature(fn).parameters) == list(generators.PARAMETERS[name])
+
+
+def test_solver_table_sets_simulation_defaults_that_arguments_override(tmp_path):
+    path = tmp_path / "s.toml"
+    path.write_text('integrator = "implicit"\nduration = 1.0\n[solver]\npreconditioner = "multigrid"\n'
+                    'cg_tol = 1e-8\ncg_max_iter = 500\ndefiniteness_fix = false\n'
+                    '[model]\ngenerator = "chain"\ncount = 5\n')
+    scene = ms.load_scene(path)
+    sim = scene.simulation()
+    assert (sim.preconditioner, sim.cg_tol, sim.cg_max_iter, sim.definiteness_fix) == ("multigrid", 1e-8, 500, False)
+    sim.close()
+    sim = scene.simulation(preconditioner="none", cg_tol=1e-4)
+    assert (sim.preconditioner, sim.cg_tol, sim.cg_max_iter) == ("none", 1e-4, 500)
+    sim.close()
+
+
+@pytest.mark.parametrize("body, key", [
+    ('preconditioner = "amg"', "solver.preconditioner"), ("preconditioner = 3", "solver.preconditioner"),
+    ("cg_tol = 1.5", "solver.cg_tol"), ("cg_tol = nan", "solver.cg_tol"), ("cg_max_iter = 0", "solver.cg_max_iter"),
+    ("cg_max_iter = 2.5", "solver.cg_max_iter"), ('definiteness_fix = "yes"', "solver.definiteness_fix"),
+    ("tolerance = 1e-6", "solver.tolerance"),
+])
+def test_bad_solver_table_names_the_key(body, key, tmp_path):
+    path = tmp_path / "bad.toml"
+    path.write_text(f'integrator = "implicit"\nduration = 1.0\n[solver]\n{body}\n[model]\ngenerator = "spring"\n')
+    with pytest.raises(ms.SceneError) as info:
+        ms.load_scene(path)
+    assert key in str(info.value) and str(path) in str(info.value)

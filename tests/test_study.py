@@ -252,3 +252,18 @@ def test_cli_study_bad_input(args, key, tmp_path, capsys):
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and key in err
     assert not (tmp_path / "o").exists()
+
+
+def test_implicit_runs_get_a_line_per_preconditioner(tmp_path):
+    """Two preconditioners solving to 1e-8 give two lines of the same errors."""
+    result = study.run_study(tiny_chain(), integrators=["implicit"], duration=0.04,
+                             ladders={"implicit": [2e-3, 1e-3]}, cg_tols=[1e-8],
+                             preconditioners=["block-jacobi", "multigrid"], repeats=1, cache=tmp_path)
+    assert set(result.orders) == {"implicit (block-jacobi) cg_tol=1e-08", "implicit (multigrid) cg_tol=1e-08"}
+    by = {(r.preconditioner, r.dt): r for r in result.runs}
+    for dt in (2e-3, 1e-3):
+        bj, mg = by["block-jacobi", dt], by["multigrid", dt]
+        assert abs(bj.error - mg.error) <= 1e-4 * bj.error
+    assert "(multigrid)" in report.report(result)
+    with pytest.raises(ValueError, match="preconditioners"):
+        study.run_study(tiny_chain(), preconditioners=["amg"])

@@ -4,11 +4,11 @@ from __future__ import annotations
 
 import numpy as np
 
-TARGETS = (1e-2, 1e-4)
+TARGETS = (1e-2, 1e-3, 1e-4)
 
 
 def fit_orders(runs, finest=3) -> dict:
-    """{line: {"integrator", "cg_tol", "order", "order_finest", "points"}}.
+    """{line: {"integrator", "cg_tol", "preconditioner", "order", "order_finest", "points"}}.
 
     ``order``: least-squares slope of log(error) against log(dt) over the line's
     non-diverged runs with a positive error (None with fewer than 2 dt values);
@@ -23,6 +23,7 @@ def fit_orders(runs, finest=3) -> dict:
         good = sorted((r for r in members if not r.diverged and r.error is not None and r.error > 0),
                       key=lambda r: r.dt)
         out[line] = {"integrator": members[0].integrator, "cg_tol": members[0].cg_tol,
+                     "preconditioner": members[0].preconditioner,
                      "order": slope(good), "order_finest": slope(good[:finest]), "points": len(good)}
     return out
 
@@ -51,5 +52,5 @@ def cheapest(runs, target) -> dict | None:
     if not good:
         return None
     best = min(good, key=lambda r: r.wall_s)
-    return {"integrator": best.integrator, "dt": best.dt, "cg_tol": best.cg_tol,
+    return {"integrator": best.integrator, "dt": best.dt, "cg_tol": best.cg_tol, "preconditioner": best.preconditioner,
             "error": best.error, "wall_s": best.wall_s}

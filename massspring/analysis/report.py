@@ -25,8 +25,9 @@ def _fmt(value, spec=".3g"):
 
 def table(study) -> str:
     """The runs as a fixed-width text table."""
-    head = ("integrator", "cg_tol", "dt", "steps", "error", "err(t)", "energy", "wall_s", "CG its", "status")
-    rows = [(r.integrator, _fmt(r.cg_tol, ".0e"), _fmt(r.dt, ".4g"), str(r.steps), _fmt(r.error),
+    head = ("integrator", "precond", "cg_tol", "dt", "steps", "error", "err(t)", "energy", "wall_s", "CG its",
+            "status")
+    rows = [(r.integrator, _fmt(r.preconditioner), _fmt(r.cg_tol, ".0e"), _fmt(r.dt, ".4g"), str(r.steps), _fmt(r.error),
              _fmt(r.error_over_time), _fmt(r.energy_error), _fmt(r.wall_s, ".4g"),
              str(r.cg_iterations), r.status) for r in study.runs]
     widths = [max(len(h), *(len(row[i]) for row in rows)) if rows else len(h) for i, h in enumerate(head)]
@@ -49,7 +50,7 @@ def report(study) -> str:
         if best is None:
             out.append(f"error <= {target:g}: no run reached it")
         else:
-            tol = "" if best["cg_tol"] is None else f", cg_tol {best['cg_tol']:g}"
+            tol = "" if best["cg_tol"] is None else f" ({best['preconditioner']}), cg_tol {best['cg_tol']:g}"
             out.append(f"error <= {target:g}: cheapest {best['integrator']} dt {best['dt']:.4g} s{tol} "
                        f"(error {best['error']:.3g}, {best['wall_s']:.3g} s)")
     return "\n".join(out)
@@ -128,7 +129,8 @@ def new_out_dir(scene_name, base=".") -> Path:
 
 
 def progress_line(run) -> str:
-    what = f"{run.integrator:10s} dt {run.dt:<10.4g}" + ("" if run.cg_tol is None else f" cg_tol {run.cg_tol:g}")
+    what = f"{run.integrator:10s} dt {run.dt:<10.4g}" + ("" if run.cg_tol is None else
+                                                         f" {run.preconditioner} cg_tol {run.cg_tol:g}")
     done = run.status if run.diverged else f"{run.steps} steps in {run.wall_s:.3g} s"
     return f"  {what}: {done}"
 

@@ -1,8 +1,8 @@
 """Work-precision study: error against run time for every integrator, dt and CG tolerance.
 
 ``run_study`` runs a scene with each integrator over a ladder of dt values (a
-factor of 2 apart), the implicit one also at several CG tolerances, all to the
-same end time, and measures each run against a reference solution
+factor of 2 apart), the implicit one also at several CG tolerances and with each
+given preconditioner, all to the same end time, and measures each run against a reference solution
 (``analysis.reference``: exact for one spring, else RK4 checked by halving its dt).
 
 Measures of a run (all dimensionless unless stated):
@@ -36,7 +36,7 @@ from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
-from massspring import validate
+from massspring import solvers, validate
 from massspring.analysis import reference
 from massspring.analysis.fits import TARGETS, cheapest, fit_orders
 from massspring.errors import DivergenceError
@@ -51,7 +51,7 @@ DEFAULT_REPEATS = 3
 DEFAULT_TIME_BUDGET = 2.0    # s of timed runs per configuration before repeats stop
 REFERENCE_RATIO = 1e-3       # RK4 halving change / smallest reported error must be below this
 REFERENCE_HALVINGS = 4       # extra RK4 refinements tried before the check is reported failed
-COLUMNS = ("integrator", "dt", "cg_tol", "error", "error_over_time", "energy_error", "wall_s",
+COLUMNS = ("integrator", "dt", "cg_tol", "preconditioner", "error", "error_over_time", "energy_error", "wall_s",
            "steps", "cg_iterations", "diverged", "timed_runs", "status")
 
 
@@ -62,6 +62,7 @@ class Run:
     integrator: str
     dt: float
     cg_tol: float | None
+    preconditioner: str | None = None  # implicit runs: the one used ("auto" resolved)
     error: float | None = None
     error_over_time: float | None = None
     energy_error: float | None = None
@@ -80,7 +81,9 @@ class Run:
     @property
     def line(self) -> str:
         """The plot line (and slope fit) this run belongs to."""
-        return self.integrator if self.cg_tol is None else f"{self.integrator} cg_tol={self.cg_tol:g}"
+        if self.cg_tol is None:
+            return self.integrator
+        return f"{self.integrator} ({self.preconditioner}) cg_tol={self.cg_tol:g}"
 
 
 @dataclass
@@ -181,14 +184,15 @@ DEFAULT_INTEGRATORS = ("explicit", "symplectic", "implicit")
 
 
 def run_study(scene, *, integrators=DEFAULT_INTEGRATORS, duration=None, rungs=DEFAULT_RUNGS,
-              ladders=None, cg_tols=DEFAULT_CG_TOLS, repeats=DEFAULT_REPEATS,
+              ladders=None, cg_tols=DEFAULT_CG_TOLS, preconditioners=("auto",), repeats=DEFAULT_REPEATS,
               time_budget=DEFAULT_TIME_BUDGET, cache=None, use_cache=True,
               reference_ratio=REFERENCE_RATIO, reference_dt=None, progress=None) -> Study:
     """Run the sweep on ``scene`` (a Scene) and measure every run against the reference.
 
     ``ladders``: optional {integrator: [dt, ...]} replacing the default ladders (from
     the scene's default dt per integrator, ``dt_ladder``); save instants then follow
-    the largest dt given. ``reference_dt``: the RK4 step to start the self-check from
+    the largest dt given. ``preconditioners``: the implicit runs' (``solvers.CHOICES``),
+    each a line per CG tolerance. ``reference_dt``: the RK4 step to start the self-check from
     (default: the scene's explicit dt). ``progress``: a callable given each finished Run.
     """
     integrators = _check_integrators(integrators)
@@ -196,7 +200,10 @@ def run_study(scene, *, integrators=DEFAULT_INTEGRATORS, duration=None, rungs=DE
     rungs = validate.count("rungs", rungs)
     repeats = validate.count("repeats", repeats)
     cg_tols = [validate.fraction("cg_tols", t) for t in cg_tols] or list(DEFAULT_CG_TOLS)
+    for name in preconditioners:
+        validate.choice("preconditioners", name, solvers.CHOICES)
     model = scene.model()
+    preconditioners = list(dict.fromkeys(solvers.resolve(name, model) for name in preconditioners)) or ["auto"]
     if ladders is None:
         tops = ladder_tops(scene, model, integrators, duration)
         times = save_instants(duration, list(tops.values()))
@@ -214,13 +221,14 @@ def run_study(scene, *, integrators=DEFAULT_INTEGRATORS, duration=None, rungs=DE
 
     runs = []
     for name in integrators:
-        _warm_up(model, name, ladders[name][0])
-        for tol in (cg_tols if name == "implicit" else [None]):
-            for dt in ladders[name]:
-                run = _measure(model, name, dt, tol, times, size, repeats, time_budget)
-                runs.append(run)
-                if progress:
-                    progress(run)
+        for pre in (preconditioners if name == "implicit" else [None]):
+            _warm_up(model, name, ladders[name][0], pre)
+            for tol in (cg_tols if name == "implicit" else [None]):
+                for dt in ladders[name]:
+                    run = _measure(model, name, dt, tol, pre, times, size, repeats, time_budget)
+                    runs.append(run)
+                    if progress:
+                        progress(run)
     ref, check = _reference(model, times, scene.default_dt("explicit") if reference_dt is None else reference_dt,
                             runs, size, cache, use_cache, reference_ratio)
     for run in runs:
@@ -228,9 +236,9 @@ def run_study(scene, *, integrators=DEFAULT_INTEGRATORS, duration=None, rungs=DE
     return Study(scene.name, dict(scene.params), duration, times, size, runs, check, fit_orders(runs))
 
 
-def _warm_up(model, integrator, dt):
+def _warm_up(model, integrator, dt, preconditioner):
     """Compile this integrator's kernels (one step on a throwaway Simulation)."""
-    sim = Simulation(model, integrator=integrator, dt=dt)
+    sim = Simulation(model, integrator=integrator, dt=dt, **_solver(None, preconditioner))
     try:
         sim.step(1)
     except DivergenceError:
@@ -239,10 +247,16 @@ def _warm_up(model, integrator, dt):
     sim.close()  # its fields (if any) go to the pool: the runs below reuse them, compiled
 
 
-def _measure(model, integrator, dt, cg_tol, times, size, repeats, time_budget) -> Run:
+def _solver(cg_tol, preconditioner):
+    """Simulation arguments of an implicit run (none for the others)."""
+    out = {} if cg_tol is None else {"cg_tol": cg_tol}
+    return out if preconditioner is None else {**out, "preconditioner": preconditioner}
+
+
+def _measure(model, integrator, dt, cg_tol, preconditioner, times, size, repeats, time_budget) -> Run:
     """The measured run (states at the save instants, stepping timed) and the extra timed runs."""
-    kwargs = {} if cg_tol is None else {"cg_tol": cg_tol}
-    run = Run(integrator, dt, cg_tol)
+    kwargs = _solver(cg_tol, preconditioner)
+    run = Run(integrator, dt, cg_tol, preconditioner)
     counts = reference.steps_between(times, dt)
     sim = Simulation(model, integrator=integrator, dt=dt, **kwargs)
     positions, wall = [], 0.0
@@ -338,8 +352,8 @@ def _reference(model, times, dt0, runs, size, cache, use_cache, ratio):
         fine = reference.rk4(model, times, dt, cache=cache, use_cache=use_cache)
         diff = coarse.positions[:, moving] - fine.positions[:, moving]
         change = max(_rms(diff[-1]), _rms(diff)) / size if np.all(np.isfinite(diff)) else math.inf
-        provisional = [Run(r.integrator, r.dt, r.cg_tol, positions=r.positions, velocities=r.velocities,
-                           diverged=r.diverged) for r in runs]
+        provisional = [Run(r.integrator, r.dt, r.cg_tol, r.preconditioner, positions=r.positions,
+                           velocities=r.velocities, diverged=r.diverged) for r in runs]
         for run in provisional:
             _score(run, fine, model, size)
         smallest = _smallest_error(provisional)

@@ -19,6 +19,10 @@ lists every key. A generator scene file looks like::
     generator = "grid"               # one of generators.GENERATORS
     resolution = 32                  # generator parameters; see generators.PARAMETERS
 
+    [solver]                         # optional: implicit integrator's solver (Simulation arguments)
+    preconditioner = "auto"          # or "block-jacobi", "multigrid", "none"
+    cg_tol = 1e-6                    # relative CG tolerance
+
     [view]                           # optional: camera of GIF/PNG pictures (io.camera.View)
     azimuth = -60.0                  # degrees about +z, 0 = looking from +x
     elevation = 20.0                 # degrees above the xy plane
@@ -57,7 +61,10 @@ BUILD_BYTES_PER_PARTICLE = 150
 BUILD_BYTES_PER_SPRING = 130
 SIZE_KEYS = {"chain": ("count",), "grid": ("resolution",), "lattice": ("resolution",)}
 TOP_KEYS = {"description": str, "integrator": str, "duration": float, "dt": dict, "model": dict,
-            "view": dict, "particles": dict, "springs": dict}
+            "solver": dict, "view": dict, "particles": dict, "springs": dict}
+# [solver]: Simulation arguments of the implicit integrator a scene may set (the CLI's
+# options and the API's arguments override them).
+SOLVER_KEYS = {"preconditioner": str, "cg_tol": float, "cg_max_iter": int, "definiteness_fix": bool}
 VIEW_KEYS = {"azimuth": float, "elevation": float, "projection": str, "framing": str}
 FORMS = ("generator", "mesh", "particles")
 # Hand-made scenes: key -> what it holds ("rows": a list of lists of numbers, "numbers": one
@@ -90,7 +97,8 @@ class Scene:
     path, resolved against the scene file's folder); ``dt``: the default time steps
     the file names; ``view``: its [view] table (checked when a picture is made: see
     ``io.camera.View``); ``obj_mesh``: the ``io.obj.ObjMesh`` read (mesh form);
-    ``tables``: the [particles] and [springs] tables (hand-made form)."""
+    ``tables``: the [particles] and [springs] tables (hand-made form); ``solver``: its
+    [solver] table (checked Simulation arguments)."""
 
     name: str
     source: str
@@ -101,6 +109,7 @@ class Scene:
     generator: str | None
     params: dict = field(default_factory=dict)
     view: dict = field(default_factory=dict)
+    solver: dict = field(default_factory=dict)
     form: str = "generator"
     obj_mesh: object = field(default=None, repr=False, compare=False)
     tables: dict = field(default_factory=dict, repr=False)
@@ -191,12 +200,13 @@ class Scene:
         return self._suggested[name]
 
     def simulation(self, integrator=None, dt=None, **kwargs):
-        """A Simulation with the scene's defaults; any Simulation argument may be overridden."""
+        """A Simulation with the scene's defaults (integrator, dt, [solver]); any Simulation
+        argument may be overridden."""
         from massspring.simulation import Simulation
 
         integrator = integrator or self.integrator
         dt = self.default_dt(integrator) if dt is None else dt
-        return Simulation(self.model(), integrator=integrator, dt=dt, **kwargs)
+        return Simulation(self.model(), integrator=integrator, dt=dt, **{**self.solver, **kwargs})
 
 
 def load_scene(name_or_path) -> Scene:
@@ -247,7 +257,8 @@ def parse_scene(data: dict, name: str, source: str) -> Scene:
             raise SceneError(f"{source}: view.{key}: unknown key (expected {', '.join(VIEW_KEYS)})")
         _check_type(f"view.{key}", value, VIEW_KEYS[key], source)
     scene = Scene(name=name, source=source, description=data.get("description", ""), integrator=integrator,
-                  duration=duration, dt=dt, generator=None, view=view, form=_form(data, source))
+                  duration=duration, dt=dt, generator=None, view=view, solver=_solver(data, source),
+                  form=_form(data, source))
     model = dict(data.get("model", {}))
     if scene.form == "generator":
         generator = model.pop("generator")
@@ -269,6 +280,26 @@ def parse_scene(data: dict, name: str, source: str) -> Scene:
     for key, value in model.items():
         params[key] = _check_param(defaults, key, value, source)
     return dataclasses.replace(scene, params=params)
+
+
+def _solver(data, source):
+    """The [solver] table, its keys known and values valid."""
+    from massspring.solvers import CHOICES
+
+    solver = dict(data.get("solver", {}))
+    for key, value in solver.items():
+        if key not in SOLVER_KEYS:
+            raise SceneError(f"{source}: solver.{key}: unknown key (expected {', '.join(SOLVER_KEYS)})")
+        _check_type(f"solver.{key}", value, SOLVER_KEYS[key], source)
+    if solver.get("preconditioner", "auto") not in CHOICES:
+        raise SceneError(f"{source}: solver.preconditioner: unknown value {solver['preconditioner']!r} "
+                         f"(expected {', '.join(CHOICES)})")
+    tol = solver.get("cg_tol", 0.5)
+    if not (math.isfinite(tol) and 0 < tol < 1):
+        raise SceneError(f"{source}: solver.cg_tol: must be in (0, 1), got {tol}")
+    if solver.get("cg_max_iter", 1) < 1:
+        raise SceneError(f"{source}: solver.cg_max_iter: must be >= 1, got {solver['cg_max_iter']}")
+    return solver
 
 
 def _form(data, source):
@@ -366,6 +397,8 @@ def _check_type(key, value, expected, source):
         ok, what = isinstance(value, dict), "a table"
     elif expected is list:
         ok, what = isinstance(value, list), "a list"
+    elif expected is bool:
+        ok, what = isinstance(value, bool), "true or false"
     else:
         ok, what = isinstance(value, expected), "a string"
     if not ok:

@@ -13,5 +13,19 @@ from .multigrid import Multigrid
 from .none import NoPreconditioner
 
 PRECONDITIONERS = {cls.name: cls for cls in (BlockJacobi, Multigrid, NoPreconditioner)}
+CHOICES = ("auto", *PRECONDITIONERS)  # what the API, scene files and the CLI accept
 
-__all__ = ["PRECONDITIONERS", "Preconditioner", "SolverStats", "solve"]
+# "auto" picks multigrid from this many free particles on, block-Jacobi below: the
+# crossover of the step time measured by benchmarks/scaling.py (cloth, dt 1/60, f64).
+MULTIGRID_FROM = 10_000
+
+
+def resolve(name, model) -> str:
+    """The preconditioner ``name`` stands for on ``model``: itself, or for "auto"
+    multigrid from ``MULTIGRID_FROM`` free particles on, else block-Jacobi."""
+    if name != "auto":
+        return name
+    return "multigrid" if int(model.free_mask().sum()) >= MULTIGRID_FROM else "block-jacobi"
+
+
+__all__ = ["CHOICES", "MULTIGRID_FROM", "PRECONDITIONERS", "Preconditioner", "SolverStats", "resolve", "solve"]

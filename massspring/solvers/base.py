@@ -37,3 +37,8 @@ class Preconditioner:
 
     def release(self):
         """Hand back resources other than the simulation's bundle."""
+
+    def describe(self) -> dict:
+        """What it holds beyond the simulation's bundle, for ``Simulation.info``: "bytes"
+        of its own fields, and anything else worth reporting."""
+        return {"bytes": 0}

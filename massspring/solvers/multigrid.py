@@ -62,7 +62,9 @@ class Multigrid(Preconditioner):
         self.hierarchy = aggregation.build(model, settings.dt)
         self.cfg = None  # the integrator's Config, set by ``bind``
         self.plan = _Plan(self.hierarchy)
-        self.g = self.plan.layout(dev.x.dtype).allocate() if len(self.hierarchy.levels) > 1 else None
+        layout = self.plan.layout(dev.x.dtype) if len(self.hierarchy.levels) > 1 else None
+        self.nbytes = layout.nbytes() if layout is not None else 0
+        self.g = layout.allocate() if layout is not None else None
         self.rho = [1.0] * len(self.hierarchy.levels)
         self.factor_failed = 0
 
@@ -175,8 +177,8 @@ class Multigrid(Preconditioner):
             self.g = None
 
     def describe(self):
-        """Level sizes (unknowns), for reports."""
-        return self.hierarchy.sizes
+        """Bytes of the hierarchy's fields and the unknowns of each level."""
+        return {"bytes": self.nbytes, "levels": self.hierarchy.sizes}
 
 
 def chebyshev(rho, degree=NU, ratio=CHEB_RATIO):
