@@ -27,10 +27,10 @@ def load(folder, name):
 
 
 def implicit_table(data):
-    lines = ["| res | ks | springs | massspring ms/step | CG it | ms/it | SciPy Jacobi-PCG ms/step "
-             "(it: SciPy vs massspring), speed-up | ti.linalg.MatrixFreeCG ms/step (it), speed-up | "
-             "SciPy LU ms/step, speed-up |",
-             "|---|---|---|---|---|---|---|---|---|"]
+    lines = ["| res | ks | springs | preconditioner | massspring ms/step | CG it | ms/it | "
+             "SciPy Jacobi-PCG ms/step (it: SciPy vs massspring), speed-up | SciPy + pyamg ms/step (it), speed-up | "
+             "ti.linalg.MatrixFreeCG ms/step (it), speed-up | SciPy LU ms/step, speed-up |",
+             "|---|---|---|---|---|---|---|---|---|---|---|"]
     for row in data["rows"]:
         if row["precision"] != "f64":
             continue
@@ -43,9 +43,20 @@ def implicit_table(data):
             its = f" ({p['iterations']:.0f} vs {p['massspring_iterations']:.0f})" if p.get("iterations") else ""
             return f"{p['step_ms']:.0f}{its}, {p['speedup']:.1f}x"
 
-        lines.append(f"| {row['resolution']} | {row['stiffness']:.0e} | {row['springs']} | {row['step_ms']:.1f} | "
-                     f"{row['iterations']:.0f} | {row['ms_per_iteration']:.3f} | {cell('scipy')} | "
-                     f"{cell('taichi-cg')} | {cell('direct')} |")
+        lines.append(f"| {row['resolution']} | {row['stiffness']:.0e} | {row['springs']} | {row['preconditioner']} | "
+                     f"{row['step_ms']:.1f} | {row['iterations']:.0f} | {row['ms_per_iteration']:.3f} | "
+                     f"{cell('scipy')} | {cell('pyamg')} | {cell('taichi-cg')} | {cell('direct')} |")
+    return "\n".join(lines)
+
+
+def scaling_table(data):
+    lines = ["| mesh | size | ks | springs | solver | CG it mean / max | ms/step | setup share |",
+             "|---|---|---|---|---|---|---|---|"]
+    for r in data["rows"]:
+        size = f"{r['size']}^2" if r["mesh"] == "cloth" else f"{r['size']} points"
+        lines.append(f"| {r['mesh']} | {size} | {r['stiffness']:.0e} | {r['springs']} | {r['solver']} | "
+                     f"{r['iterations_mean']:.1f} / {r['iterations_max']} | {r['ms_per_step']:.1f} | "
+                     f"{r['setup_share']:.0%} |" + ("" if r["converged"] else " (not converged)"))
     return "\n".join(lines)
 
 
@@ -60,6 +71,9 @@ def explicit_table(data):
     return "\n".join(lines)
 
 
+SOLVER_STYLES = {"none": "x", "block-jacobi": "o", "multigrid": "^", "pyamg": "s"}
+
+
 def plot(implicit, explicit, scaling, png):
     try:
         import matplotlib
@@ -68,21 +82,40 @@ def plot(implicit, explicit, scaling, png):
     except ImportError:
         print('matplotlib is not installed: no figure (pip install "massspring[plot]")')
         return
-    fig, axes = plt.subplots(1, 3, figsize=(15, 4.5))
+    fig, axes = plt.subplots(2, 2, figsize=(13, 9))
     if implicit:
-        ax = axes[0]
+        ax = axes[0, 0]
         rows = [r for r in implicit["rows"] if r["precision"] == "f64" and r["stiffness"] == 1e4]
-        springs = [r["springs"] for r in rows]
-        ax.loglog(springs, [r["step_ms"] for r in rows], "o-", label="massspring (block-Jacobi PCG)")
-        for name, label in (("scipy", "SciPy assembled + Jacobi PCG"), ("taichi-cg", "ti.linalg.MatrixFreeCG"),
-                            ("direct", "SciPy sparse LU")):
-            pts = [(r["springs"], r["peers"][name]["step_ms"]) for r in rows if name in r["peers"]]
+        for pre in dict.fromkeys(r["preconditioner"] for r in rows):
+            mine = [r for r in rows if r["preconditioner"] == pre]
+            ax.loglog([r["springs"] for r in mine], [r["step_ms"] for r in mine], SOLVER_STYLES.get(pre, "o") + "-",
+                      label=f"massspring ({pre} PCG)")
+        first = [r for r in rows if r["preconditioner"] == rows[0]["preconditioner"]] if rows else []
+        for name, label in (("scipy", "SciPy assembled + Jacobi PCG"), ("pyamg", "SciPy + pyamg SA (setup each step)"),
+                            ("taichi-cg", "ti.linalg.MatrixFreeCG"), ("direct", "SciPy sparse LU")):
+            pts = [(r["springs"], r["peers"][name]["step_ms"]) for r in first if name in r["peers"]]
             if pts:
-                ax.loglog(*zip(*pts), "s--", label=label)
+                ax.loglog(*zip(*pts), "s--", label=label, alpha=0.8)
         ax.set(xlabel="springs", ylabel="ms per implicit step", title="Implicit step, cloth, ks = 1e4, f64")
-        ax.legend(fontsize=8)
+        ax.legend(fontsize=7)
+    if scaling:
+        cloth = [r for r in scaling["rows"] if r["mesh"] == "cloth"]
+        for ax, key, ylabel, title, log in ((axes[0, 1], "iterations_mean", "CG iterations per step (mean)",
+                                              "CG iterations against size (ks 1e4 solid, 1e6 dashed)", False),
+                                             (axes[1, 0], "ms_per_step", "ms per implicit step",
+                                              "Step time against size (ks 1e4 solid, 1e6 dashed)", True)):
+            for solver, marker in SOLVER_STYLES.items():
+                for ks, line in ((1e4, "-"), (1e6, "--")):
+                    pts = [(r["springs"], r[key]) for r in cloth if r["solver"] == solver and r["stiffness"] == ks]
+                    if pts:
+                        ax.plot(*zip(*pts), marker + line, label=f"{solver}, ks {ks:.0e}")
+            ax.set_xscale("log")
+            if log:
+                ax.set_yscale("log")
+            ax.set(xlabel="springs", ylabel=ylabel, title=title)
+            ax.legend(fontsize=7, ncol=2)
     if explicit:
-        ax = axes[1]
+        ax = axes[1, 1]
         for integrator, style in (("explicit", "o-"), ("symplectic", "^-")):
             rows = [r for r in explicit["rows"] if r["integrator"] == integrator]
             springs = [r["springs"] for r in rows]
@@ -91,19 +124,8 @@ def plot(implicit, explicit, scaling, png):
                 pts = [(r["springs"], r["peers"][name]["steps_per_s"]) for r in rows if name in r["peers"]]
                 if pts:
                     ax.loglog(*zip(*pts), style.replace("-", ":"), label=f"{name} {integrator}", alpha=0.7)
-        ax.set(xlabel="springs", ylabel="steps per second", title="Explicit steps, cloth, f64")
+        ax.set(xlabel="springs", ylabel="steps per second", title="Explicit steps, cloth")
         ax.legend(fontsize=7)
-    if scaling:
-        ax = axes[2]
-        rows = [r for r in scaling["rows"] if r["integrator"] == "implicit"]
-        ax.semilogx([r["springs"] for r in rows], [r["ns_per_spring_iteration"] for r in rows], "o-",
-                    label="implicit: ns per spring-iteration")
-        for integrator in ("explicit", "symplectic"):
-            rows = [r for r in scaling["rows"] if r["integrator"] == integrator]
-            ax.semilogx([r["springs"] for r in rows], [r["ns_per_spring_step"] for r in rows], "^--",
-                        label=f"{integrator}: ns per spring-step")
-        ax.set(xlabel="springs", ylabel="ns", title="Cost per unit of work (flat = linear scaling)", ylim=(0, None))
-        ax.legend(fontsize=8)
     fig.tight_layout()
     Path(png).parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(png, dpi=80)
@@ -116,6 +138,8 @@ def main(argv=None):
     scaling, roofline = load(args.results, "scaling"), load(args.results, "roofline")
     if implicit:
         print(implicit_table(implicit), end="\n\n")
+    if scaling:
+        print(scaling_table(scaling), end="\n\n")
     if explicit:
         print(explicit_table(explicit), end="\n\n")
     if roofline:

@@ -162,7 +162,7 @@ def orthonormalize(t: ti.template(), members: ti.template(), lo, hi, cand: ti.te
         live = norm2 > drop * drop * norm0
         scale = ti.cast(0, real)
         if live:
-            scale = 1 / ti.sqrt(norm2)
+            scale = ti.cast(1, real) / ti.sqrt(norm2)
         for k in range(lo, hi):
             m = members[k]
             for r in ti.static(range(t.n)):
@@ -237,7 +237,7 @@ def fine_inverse(dev: ti.template(), cfg: ti.template(), serial: ti.template()) 
         inverse = ti.Matrix.zero(cfg.real, 3, 3)
         if is_free(i, dev, cfg):
             block = diagonal_block(i, dev, cfg)
-            inverse = block.inverse()
+            inverse = ti.cast(block.inverse(), cfg.real)
             row = ti.cast(_inf_norm(inverse @ block), ti.f64)
             if ti.static(cfg.has_springs):
                 for e in range(dev.offsets[i], dev.offsets[i + 1]):
@@ -365,7 +365,7 @@ def lanczos_start(cfg: ti.template(), g: ti.template(), begin: ti.i32, end: ti.i
             w = ti.Vector.zero(cfg.real, BS)
             for c in ti.static(range(BS)):
                 h = ((node * BS + c) * 7919 + 12345) % 10007  # a fixed pseudo-random sequence
-                w[c] = ti.cast(h, cfg.real) / 10007 - ti.cast(0.5, cfg.real)
+                w[c] = ti.cast(h / 10007 - 0.5, cfg.real)
             g.c_res[node] = w
             g.c_d[node] = ti.Vector.zero(cfg.real, BS)
             acc += ti.cast(w.dot(block_vector(g.c_diag, node, w, cfg.real)), ti.f64)

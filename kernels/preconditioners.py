@@ -32,7 +32,7 @@ class BlockJacobi:
     @staticmethod
     @ti.func
     def setup_row(i, dev, cfg: ti.template(), block):
-        dev.minv[i] = block.inverse()
+        dev.minv[i] = ti.cast(block.inverse(), cfg.real)  # inverse() divides in the default f64
 
     @staticmethod
     @ti.func

@@ -32,8 +32,8 @@ def one_step(dev, cfg: ti.template(), src, dst, stage, h):
         dev.sx[i] = ti.Vector.zero(cfg.real, 3)
         dev.sv[i] = ti.Vector.zero(cfg.real, 3)
     for k in ti.static(range(4)):
-        weight = ti.static(1.0 if k in (0, 3) else 2.0)
-        offset = ti.static(1.0 if k == 2 else 0.5)  # where the next stage is evaluated, in units of h
+        weight = ti.static(1 if k in (0, 3) else 2)
+        offset = ti.cast(ti.static(1.0 if k == 2 else 0.5), cfg.real)  # where the next stage is evaluated, in units of h
         spring_forces(dev, cfg, stage.x, stage.v, False)
         for i in range(n):
             f = particle_force(i, dev, cfg, stage.x, stage.v, False)
@@ -52,8 +52,8 @@ def one_step(dev, cfg: ti.template(), src, dst, stage, h):
     for b in range(block_count(n)):
         acc = ti.Vector.zero(ti.f64, 3)
         for i in range(b * BLOCK, block_end(b, n)):
-            x = src.x[i] + h / 6 * dev.sx[i]
-            v = src.v[i] + h / 6 * dev.sv[i]
+            x = src.x[i] + h / ti.cast(6, cfg.real) * dev.sx[i]
+            v = src.v[i] + h / ti.cast(6, cfg.real) * dev.sv[i]
             dst.x[i] = x
             dst.v[i] = v
             acc += state_sums(x, v, dev.mass[i], g, cfg.has_gravity)

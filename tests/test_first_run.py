@@ -142,3 +142,19 @@ def test_summary_prints_round_off_as_zero(capsys):
     assert main(["run", "spring", "--steps", "5", "--quiet"]) == 0
     energy = next(line for line in capsys.readouterr().out.splitlines() if line.startswith("energy"))
     assert "gravity 0)" in energy and "e-2" not in energy and "-0" not in energy
+
+
+def test_f32_kernels_compile_without_precision_warnings(tmp_path):
+    """Taichi warns on every implicit f64 -> f32 conversion when it compiles a kernel
+    (once per kernel, then cached): an f32 run must print none. Fresh process, cache off."""
+    script = ("import massspring as ms\n"
+              "scene = ms.load_scene('cloth').with_params(resolution=40)\n"
+              "for integrator, pre in (('rk4', 'auto'), ('implicit', 'block-jacobi'), ('implicit', 'multigrid')):\n"
+              "    sim = scene.simulation(integrator=integrator, precision='f32', preconditioner=pre,"
+              " dt=1e-4 if integrator == 'rk4' else 1 / 60)\n"
+              "    sim.step(2)\n"
+              "    sim.close()\n")
+    env = dict(os.environ, TI_OFFLINE_CACHE="0")
+    proc = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, env=env, cwd=tmp_path)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert "lose precision" not in proc.stderr and "TaichiWarning" not in proc.stderr, proc.stderr[-2000:]

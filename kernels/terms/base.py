@@ -10,12 +10,12 @@ class SpringTerm:
     @staticmethod
     @ti.func
     def rhs_tension(s, dev, i, j, x, v, n, length):
-        return 0.0
+        return 0
 
     @staticmethod
     @ti.func
     def coefficients(s, dev, n, length, h, fix: ti.template()):
-        return 0.0, 0.0
+        return 0, 0
 
 
 class ParticleTerm:
@@ -25,4 +25,4 @@ class ParticleTerm:
     @staticmethod
     @ti.func
     def diagonal(i, dev, h):
-        return 0.0
+        return 0

@@ -31,4 +31,4 @@ class SpringDamping(SpringTerm):
     @staticmethod
     @ti.func
     def coefficients(s, dev, n, length, h, fix: ti.template()):
-        return 0.0, h * dev.kd[s]
+        return 0, h * dev.kd[s]
