@@ -554,6 +554,9 @@ def print_summary(scene, sim, wall, energy0, out, start_steps=0):
         if sim.cg_failures and sim.precision == "f32":
             print("note        f32 CG stalls near a relative residual of 1e-5 (round-off): "
                   "use --cg-tol 1e-4 or --precision f64")
+        if sim.cg_failures and not sim.definiteness_fix:
+            print("note        CG stops when A is indefinite, as compressed springs make it without the "
+                  "definiteness fix: drop --no-definiteness-fix")
     print("energy      " + format_energy(energy0, energy1))
     print(f"compiled    terms: {', '.join(info['terms'])}; arrays: {', '.join(info['arrays'])} "
           f"({info['loops']} loops)")
