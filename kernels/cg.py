@@ -2,7 +2,9 @@
 
 The solve runs on the unconstrained directions only (``constraints``): the iterate
 holds the prescribed velocity of pinned particles, and every CG vector is filtered
-(zero there), so no penalty springs are needed. The operator is applied spring by
+(zero there), so no penalty springs are needed. The tolerance is relative to
+||S b||, or to the first residual when S b = 0 (only prescribed velocities drive the
+solve). The operator is applied spring by
 spring (``operator.apply_row``); no matrix is formed.
 
 Each CG phase is a ``ti.func`` with its loops at its top level, reducing in fixed
@@ -214,14 +216,14 @@ def cg_solve(dev: ti.template(), cfg: ti.template(), dt: ti.f64, tol: ti.f64,
             rr = sums[1]
             if cycle < 0:
                 bb = sums[2]
+                if bb == 0.0:  # b vanishes on the free directions: prescribed velocities drive the solve
+                    bb = rr
                 target = tol * tol * bb
                 if not is_finite(bb):
                     reason = NONFINITE
                     residual = bb
                     done = True
-                elif bb == 0.0:
-                    for i in range(dev.size[0]):
-                        dev.v[i] = ti.Vector.zero(cfg.real, 3)
+                elif bb == 0.0:  # the iterate solves the system exactly
                     done = True
             else:
                 residual = ti.sqrt(ti.max(rr, 0.0) / bb)

@@ -118,7 +118,7 @@ class Config:
     real: ti.f32 or ti.f64; spring_terms, particle_terms: the active force terms
     (``kernels.terms``); fixed: whether any particle is pinned; fix: the
     definiteness fix (implicit); precond: a pointwise preconditioner class of
-    ``kernels.preconditioners`` or None.
+    ``kernels.preconditioners`` or None; moving_pins: whether some pin has a velocity.
     """
 
     real: object
@@ -127,6 +127,7 @@ class Config:
     fixed: bool
     fix: bool = True
     precond: object = None
+    moving_pins: bool = False
 
     @property
     def has_springs(self):
@@ -151,7 +152,8 @@ class Config:
     def of(cls, model, precision, **switches):
         terms = active_terms(model)
         return cls(REAL[precision], tuple(t for t in terms if t.kind == "spring"),
-                   tuple(t for t in terms if t.kind == "particle"), model.has_fixed, **switches)
+                   tuple(t for t in terms if t.kind == "particle"), model.has_fixed,
+                   moving_pins=model.has_moving_pins, **switches)
 
 
 @ti.data_oriented
@@ -355,8 +357,8 @@ POOL = Pool()
 
 
 def model_layout(model, precision) -> "Layout":
-    """Declarations of a Model's fields: the state, masses, pins, adjacency, the
-    force terms' arrays, the divergence check and block partial sums."""
+    """Declarations of a Model's fields: the state, masses, pins (and their velocities),
+    adjacency, the force terms' arrays, the divergence check and block partial sums."""
     real = REAL[precision]
     n, m = model.n_particles, model.n_springs
     layout = Layout(n, m, real)
@@ -365,6 +367,10 @@ def model_layout(model, precision) -> "Layout":
     layout.add("mass", real, "particle", values=model.masses)
     if model.has_fixed:
         layout.add("free", ti.i32, "particle", values=model.free_mask())
+    if model.has_moving_pins:
+        pins = np.zeros((n, 3))
+        pins[model.fixed] = model.pin_velocity
+        layout.vectors("pin_velocity", real, values=pins)
     if m:
         offsets, other, entry = adjacency(model)
         layout.vectors("ends", ti.i32, "spring", values=model.springs, k=2)

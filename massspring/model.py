@@ -95,10 +95,19 @@ class Model:
     gravity : (3,) float, m/s^2
         Uniform gravitational acceleration ``g`` (Eq. 3).
     fixed : None, indices (k,) int, or a bool mask (n,)
-        Pinned particles: their velocity is exactly 0 at all times.
+        Pinned particles: their velocity is exactly their pin velocity (0 by default) at all times.
     triangles : None or (t, 3) int
         Surface triangles (particle indices) for drawing; the physics never reads
         them. Empty when None.
+    drag : float, N s/m, >= 0
+        Linear air drag on every particle: f_i = -drag (v_i - wind).
+    wind : (3,) float, m/s
+        The air's velocity; non-zero only with drag > 0 (it acts through drag alone).
+    pin_velocity : None or (k, 3) float, m/s
+        Kinematic pins: the constant velocity of each pinned particle, one row per
+        entry of ``fixed`` in the order given (ascending indices for a mask); zero
+        if None. Stored in the order of the stored ``fixed`` (sorted); a pinned
+        particle's initial velocity is its pin velocity.
 
     All arrays are stored as read-only float64/int64 copies under the constructor's
     argument names; ``fixed`` is stored as sorted unique indices. Numbers must be
@@ -116,9 +125,13 @@ class Model:
     gravity: np.ndarray
     fixed: np.ndarray
     triangles: np.ndarray
+    drag: float
+    wind: np.ndarray
+    pin_velocity: np.ndarray
 
     def __init__(self, positions, springs, masses=1.0, stiffness=1e3, damping=0.0,
-                 rest_lengths=None, velocities=None, gravity=(0.0, 0.0, -9.81), fixed=None, triangles=None):
+                 rest_lengths=None, velocities=None, gravity=(0.0, 0.0, -9.81), fixed=None, triangles=None,
+                 drag=0.0, wind=(0.0, 0.0, 0.0), pin_velocity=None):
         x = _real_array("positions", positions)
         if x.ndim != 2 or x.shape[1] != 3 or x.shape[0] < 1:
             raise ValueError(f"positions: expected shape (n, 3) with n >= 1, got shape {x.shape}")
@@ -168,13 +181,24 @@ class Model:
             raise ValueError(f"gravity: expected 3 components, got shape {g.shape}")
 
         fixed_idx = _fixed_indices(fixed, n)
-        v[fixed_idx] = 0.0
+        pins = _pin_velocities(pin_velocity, fixed, fixed_idx)
+        v[fixed_idx] = pins
         tris = _triangles(triangles, n)
+        air = _real_array("drag", drag)
+        if air.shape != () or not air >= 0:
+            raise ValueError(f"drag: expected a number >= 0 (N s/m), got {_describe(drag)}")
+        wind_v = _real_array("wind", wind)
+        if wind_v.shape != (3,):
+            raise ValueError(f"wind: expected 3 components, got shape {wind_v.shape}")
+        if np.any(wind_v != 0) and air == 0:
+            raise ValueError("wind: has no effect without drag (drag = 0): give drag > 0 or no wind")
 
         for name, value in (("positions", x), ("springs", s), ("masses", mass), ("stiffness", ks),
                             ("damping", kd), ("rest_lengths", l0), ("velocities", v),
-                            ("gravity", g), ("fixed", fixed_idx), ("triangles", tris)):
+                            ("gravity", g), ("fixed", fixed_idx), ("triangles", tris), ("wind", wind_v),
+                            ("pin_velocity", pins)):
             object.__setattr__(self, name, _readonly(np.ascontiguousarray(value)))
+        object.__setattr__(self, "drag", float(air))
 
     @property
     def n_particles(self) -> int:
@@ -196,6 +220,15 @@ class Model:
     @property
     def has_fixed(self) -> bool:
         return self.fixed.size > 0
+
+    @property
+    def has_moving_pins(self) -> bool:
+        """True if some pinned particle has a non-zero pin velocity."""
+        return bool(np.any(self.pin_velocity != 0))
+
+    @property
+    def has_drag(self) -> bool:
+        return self.drag > 0
 
     def free_mask(self) -> np.ndarray:
         """(n,) bool: True for particles that move."""
@@ -242,6 +275,26 @@ def _fixed_indices(fixed, n):
         bad = int(arr[(arr < 0) | (arr >= n)][0])
         raise ValueError(f"fixed: index {bad} is outside 0..{n - 1}")
     return np.unique(arr.astype(np.int64))
+
+
+def _pin_velocities(pin_velocity, fixed, fixed_idx):
+    """(k, 3) pin velocities in the order of the sorted ``fixed_idx``, from rows given in the
+    order of ``fixed`` as passed (a pin listed twice must get the same velocity twice)."""
+    if pin_velocity is None:
+        return np.zeros((fixed_idx.size, 3))
+    fixed = np.asarray([] if fixed is None else fixed)
+    given = np.flatnonzero(fixed) if fixed.dtype == bool else fixed.reshape(-1).astype(np.int64)
+    rows = _real_array("pin_velocity", pin_velocity)
+    if rows.shape != (given.size, 3):
+        raise ValueError(f"pin_velocity: expected shape ({given.size}, 3) (one row per entry of fixed), "
+                         f"got shape {rows.shape}")
+    out = np.zeros((fixed_idx.size, 3))
+    out[np.searchsorted(fixed_idx, given)] = rows
+    clash = np.flatnonzero(np.any(out[np.searchsorted(fixed_idx, given)] != rows, axis=1))
+    if clash.size:
+        raise ValueError(f"pin_velocity: particle {given[clash[0]]} is listed in fixed more than once "
+                         "with different velocities")
+    return out
 
 
 def _triangles(triangles, n):

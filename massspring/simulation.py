@@ -50,16 +50,19 @@ def divergence_check(model: Model, factor=DIVERGENCE_FACTOR):
     since the start (sum m g . (x - x0)). ``base`` (J) is the initial kinetic plus
     spring energy plus a floor, the kinetic energy of the whole mass moving at one
     scene size per second (size: the diagonal of the initial bounding box, or the
-    longest rest length if larger; 1 m if both are 0). Physically kinetic energy
-    never exceeds base - floor + W (springs only store and dampers only dissipate),
-    so ``factor`` = 100 leaves room for the energy error of a stable integrator
+    longest rest length if larger; 1 m if both are 0) plus the fastest drive: the
+    wind speed or the fastest pin (what the air or a moving pin can give the
+    particles). Physically kinetic energy never exceeds base - floor + W (springs
+    only store and dampers only dissipate), so
+    ``factor`` = 100 leaves room for the energy error of a stable integrator
     (symplectic Euler's oscillates by up to ~40x just below its limit) while an
     unstable mode, growing geometrically, crosses it within a few dozen steps.
     """
     energy = model.energy(model.positions, model.velocities)
     extent = float(np.linalg.norm(np.ptp(model.positions, axis=0)))
     size = max(extent, float(model.rest_lengths.max(initial=0.0))) or 1.0
-    floor = 0.5 * float(model.masses.sum()) * size ** 2
+    drive = max([float(np.linalg.norm(model.wind))] + [float(np.linalg.norm(v)) for v in model.pin_velocity])
+    floor = 0.5 * float(model.masses.sum()) * (size + drive) ** 2
     return (energy["kinetic"] + energy["spring"] + floor, -energy["gravity"], float(factor))
 
 
@@ -95,7 +98,8 @@ class Simulation:
 
     Only what the run needs is allocated and compiled: no CG vectors for the
     explicit integrators, no damping term with kd = 0, no gravity term with g = 0,
-    no pin filter without pinned particles (see ``info()``). Settings are read-only.
+    no pin filter without pinned particles, no pin-velocity read without moving pins,
+    no drag term without drag (see ``info()``). Settings are read-only.
     ``close()`` hands the fields back for reuse; any later call raises
     ``SimulationClosedError``.
     """
@@ -259,6 +263,8 @@ class Simulation:
         terms = [term.name for term in active_terms(self._model)]
         if self._model.has_fixed:
             terms.append("fixed-filter")
+        if self._model.has_moving_pins:
+            terms.append("moving-pins")
         return {"integrator": self.integrator, "precision": self.precision, "dt": self.dt,
                 "particles": self._model.n_particles, "springs": self._model.n_springs,
                 "terms": terms, "arrays": list(self._layout_names), "loops": self.loops,
@@ -278,8 +284,9 @@ def _release(dev, integrator):
 
 
 def _check_f32_range(model):
-    for name in ("positions", "masses", "stiffness", "damping", "rest_lengths", "velocities", "gravity"):
-        values = np.abs(getattr(model, name))
+    for name in ("positions", "masses", "stiffness", "damping", "rest_lengths", "velocities", "gravity", "drag",
+                 "wind", "pin_velocity"):
+        values = np.abs(np.asarray(getattr(model, name)))
         if values.size and values.max() > F32_MAX_MAGNITUDE:
             raise ValueError(f"{name}: {values.max():g} is beyond what an f32 run holds "
                              f"(|value| <= {F32_MAX_MAGNITUDE:g}); use precision='f64'")
