@@ -99,6 +99,8 @@ class Model:
     triangles : None or (t, 3) int
         Surface triangles (particle indices) for drawing; the physics never reads
         them. Empty when None.
+    colliders : sequence of ``massspring.Plane``, ``Sphere``, ``Box``
+        Obstacles the particles cannot enter (at most 31); stored as a tuple.
     drag : float, N s/m, >= 0
         Linear air drag on every particle: f_i = -drag (v_i - wind).
     wind : (3,) float, m/s
@@ -125,13 +127,14 @@ class Model:
     gravity: np.ndarray
     fixed: np.ndarray
     triangles: np.ndarray
+    colliders: tuple
     drag: float
     wind: np.ndarray
     pin_velocity: np.ndarray
 
     def __init__(self, positions, springs, masses=1.0, stiffness=1e3, damping=0.0,
                  rest_lengths=None, velocities=None, gravity=(0.0, 0.0, -9.81), fixed=None, triangles=None,
-                 drag=0.0, wind=(0.0, 0.0, 0.0), pin_velocity=None):
+                 colliders=(), drag=0.0, wind=(0.0, 0.0, 0.0), pin_velocity=None):
         x = _real_array("positions", positions)
         if x.ndim != 2 or x.shape[1] != 3 or x.shape[0] < 1:
             raise ValueError(f"positions: expected shape (n, 3) with n >= 1, got shape {x.shape}")
@@ -199,6 +202,7 @@ class Model:
                             ("pin_velocity", pins)):
             object.__setattr__(self, name, _readonly(np.ascontiguousarray(value)))
         object.__setattr__(self, "drag", float(air))
+        object.__setattr__(self, "colliders", _colliders(colliders))
 
     @property
     def n_particles(self) -> int:
@@ -225,6 +229,10 @@ class Model:
     def has_moving_pins(self) -> bool:
         """True if some pinned particle has a non-zero pin velocity."""
         return bool(np.any(self.pin_velocity != 0))
+
+    @property
+    def has_colliders(self) -> bool:
+        return len(self.colliders) > 0
 
     @property
     def has_drag(self) -> bool:
@@ -295,6 +303,22 @@ def _pin_velocities(pin_velocity, fixed, fixed_idx):
         raise ValueError(f"pin_velocity: particle {given[clash[0]]} is listed in fixed more than once "
                          "with different velocities")
     return out
+
+
+def _colliders(colliders):
+    from massspring.colliders import MAX_COLLIDERS, Collider  # colliders.py reads this module's checks
+
+    try:
+        items = tuple(colliders)
+    except TypeError:
+        raise ValueError(f"colliders: expected a sequence of Plane, Sphere or Box, got {_describe(colliders)}") \
+            from None
+    for k, item in enumerate(items):
+        if not isinstance(item, Collider):
+            raise ValueError(f"colliders: item {k} is not a Plane, Sphere or Box: {_describe(item)}")
+    if len(items) > MAX_COLLIDERS:
+        raise ValueError(f"colliders: at most {MAX_COLLIDERS}, got {len(items)}")
+    return items
 
 
 def _triangles(triangles, n):

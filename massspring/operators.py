@@ -103,7 +103,7 @@ class SystemOperator:
         for field, values in ((self._dev.x, positions), (self._dev.v, velocities)):
             if values is not None:
                 field.from_numpy(_padded(values, field.shape[0]).astype(self._dtype))
-        cg.cg_refresh(self._dev, self._cfg, self.dt)
+        cg.cg_refresh(self._dev, self._cfg, self.dt, 0.0)
 
     def apply(self, p):
         """(A p, p . A p) for p (n, 3); p must be zero at pinned particles, and A p is

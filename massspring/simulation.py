@@ -8,6 +8,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from massspring import validate
+from massspring.colliders import COLLIDERS
 from massspring.device import ARCHS, CPU_ARCHS, POOL, ensure_taichi, model_layout
 from massspring.errors import DivergenceError, SimulationClosedError
 from massspring.integrators import INTEGRATORS
@@ -51,9 +52,9 @@ def divergence_check(model: Model, factor=DIVERGENCE_FACTOR):
     spring energy plus a floor, the kinetic energy of the whole mass moving at one
     scene size per second (size: the diagonal of the initial bounding box, or the
     longest rest length if larger; 1 m if both are 0) plus the fastest drive: the
-    wind speed or the fastest pin (what the air or a moving pin can give the
-    particles). Physically kinetic energy never exceeds base - floor + W (springs
-    only store and dampers only dissipate), so
+    wind speed, the fastest pin or twice the fastest collider (what the air, a moving
+    pin or a collider can give the particles). Physically kinetic energy never
+    exceeds base - floor + W (springs only store and dampers only dissipate), so
     ``factor`` = 100 leaves room for the energy error of a stable integrator
     (symplectic Euler's oscillates by up to ~40x just below its limit) while an
     unstable mode, growing geometrically, crosses it within a few dozen steps.
@@ -61,7 +62,8 @@ def divergence_check(model: Model, factor=DIVERGENCE_FACTOR):
     energy = model.energy(model.positions, model.velocities)
     extent = float(np.linalg.norm(np.ptp(model.positions, axis=0)))
     size = max(extent, float(model.rest_lengths.max(initial=0.0))) or 1.0
-    drive = max([float(np.linalg.norm(model.wind))] + [float(np.linalg.norm(v)) for v in model.pin_velocity])
+    drive = max([float(np.linalg.norm(model.wind))] + [float(np.linalg.norm(v)) for v in model.pin_velocity]
+                + [2 * float(np.linalg.norm(c.velocity)) for c in model.colliders])
     floor = 0.5 * float(model.masses.sum()) * (size + drive) ** 2
     return (energy["kinetic"] + energy["spring"] + floor, -energy["gravity"], float(factor))
 
@@ -99,7 +101,8 @@ class Simulation:
     Only what the run needs is allocated and compiled: no CG vectors for the
     explicit integrators, no damping term with kd = 0, no gravity term with g = 0,
     no pin filter without pinned particles, no pin-velocity read without moving pins,
-    no drag term without drag (see ``info()``). Settings are read-only.
+    no collider code or array without colliders, no drag term without drag (see
+    ``info()``). Settings are read-only.
     ``close()`` hands the fields back for reuse; any later call raises
     ``SimulationClosedError``.
     """
@@ -265,6 +268,9 @@ class Simulation:
             terms.append("fixed-filter")
         if self._model.has_moving_pins:
             terms.append("moving-pins")
+        if self._model.has_colliders:
+            kinds = sorted({c.kind for c in self._model.colliders}, key=list(COLLIDERS).index)
+            terms.append("contact (" + ", ".join(kinds) + ")")
         return {"integrator": self.integrator, "precision": self.precision, "dt": self.dt,
                 "particles": self._model.n_particles, "springs": self._model.n_springs,
                 "terms": terms, "arrays": list(self._layout_names), "loops": self.loops,

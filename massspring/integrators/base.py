@@ -26,6 +26,12 @@ class Integrator:
         self.serial = settings.loops == "serial"
         self.cfg = self.config(model, settings)
         self.state = dev.state
+        self.steps = 0  # good steps taken: the current state is at time steps * dt (moving colliders need it)
+
+    @property
+    def time(self) -> float:
+        """Simulated time (s) of the current state."""
+        return self.steps * self.settings.dt
 
     @classmethod
     def config(cls, model, settings) -> Config:

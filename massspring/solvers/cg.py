@@ -38,13 +38,14 @@ class SolverStats:
     reason: str
 
 
-def solve(dev, cfg, preconditioner, dt, tol, max_iter, serial) -> SolverStats:
-    """Refresh the operator at the bundle's state, then solve A v = b in ``dev.v``."""
+def solve(dev, cfg, preconditioner, dt, tol, max_iter, serial, time=0.0) -> SolverStats:
+    """Refresh the operator at the bundle's state (at simulated ``time``, s: where moving
+    colliders are), then solve A v = b in ``dev.v``."""
     if serial and preconditioner.kernel is not None:
-        iterations, residual, reason = cg.cg_solve(dev, cfg, dt, tol, max_iter)
+        iterations, residual, reason = cg.cg_solve(dev, cfg, dt, time, tol, max_iter)
         iterations, residual, reason = int(iterations), float(residual), int(reason)
     else:
-        cg.cg_refresh(dev, cfg, dt)
+        cg.cg_refresh(dev, cfg, dt, time)
         preconditioner.setup(dt)
         iterations, residual, reason = _parallel(dev, cfg, preconditioner, tol, max_iter)
     return SolverStats(iterations, residual, reason == cg.CONVERGED, cg.REASONS[reason])
