@@ -82,8 +82,8 @@ def add_scene_arguments(p, integrators):
     p.add_argument("--no-definiteness-fix", action="store_true",
                    help="implicit: use the stiffness of Eq. 13 as written (indefinite when springs are compressed)")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
-                   help="override a scene model parameter, e.g. --set resolution=64 or "
-                   "--set gravity=[0,0,-1.62] (TOML values; repeatable)")
+                   help="override a scene model parameter, e.g. --set resolution=64, "
+                   "--set gravity=[0,0,-1.62] or --set drag=0.5 (TOML values; repeatable)")
 
 
 def make_simulation(args):
@@ -113,7 +113,12 @@ def cmd_info(args):
     print(f"scene       {scene.name}: {scene.description}")
     print(f"generator   {scene.generator}: " + ", ".join(f"{k}={v}" for k, v in scene.params.items()))
     print(f"size        {info['particles']} particles, {info['springs']} springs, "
-          f"{sim.model.fixed.size} fixed")
+          f"{sim.model.fixed.size} fixed" + (", moving" if sim.model.has_moving_pins else ""))
+    if sim.model.has_colliders:
+        print("colliders   " + "; ".join(f"{c.kind} (friction {c.friction:g}, restitution {c.restitution:g}"
+                                         + (", moving" if c.moving else "") + ")" for c in sim.model.colliders))
+    if sim.model.has_drag:
+        print(f"air         drag {sim.model.drag:g} N s/m per particle, wind {sim.model.wind.tolist()} m/s")
     print(f"integrator  {sim.integrator}, dt = {format_seconds(sim.dt)}, precision {sim.precision}; "
           f"default duration {scene.duration:g} s")
     print("dt defaults " + ", ".join(f"{k} {format_seconds(scene.default_dt(k))}"

@@ -20,6 +20,23 @@ A scene file looks like::
     projection = "orthographic"      # or "perspective"
     framing = "run"                  # or "follow" (each frame centred), "last" (fit the last frame)
 
+Contact, pins and air (optional; ``COMMON_KEYS`` work with every generator and ``--set``)::
+
+    [model]
+    drag = 0.05                      # N s/m per particle: f = -drag (v - wind)
+    wind = [2.0, 0.0, 0.0]           # m/s; only with drag > 0
+    pin_velocity = [0.0, 0.0, 0.5]   # m/s: every pin of the generator moves so
+
+    [[pin]]                          # a pinned particle with its own velocity (repeatable)
+    index = -1                       # particle index; negative counts from the end
+    velocity = [0.5, 0.0, 0.0]       # m/s (default 0)
+
+    [[collider]]                     # repeatable; the fields of massspring.Plane/Sphere/Box
+    type = "sphere"                  # "plane" | "sphere" | "box"
+    center = [0.5, 0.5, -0.4]
+    radius = 0.3
+    friction = 0.5                   # optional: friction, restitution, velocity
+
 Unknown keys, wrong types and missing values raise ``SceneError`` (a
 ``ValueError``) naming the key and the file.
 """
@@ -33,6 +50,9 @@ from dataclasses import dataclass, field
 from importlib import resources
 from pathlib import Path
 
+import numpy as np
+
+from massspring.colliders import COLLIDERS
 from massspring.device import available_memory
 from massspring.integrators import INTEGRATORS
 from massspring.model import Model
@@ -50,8 +70,11 @@ BUILD_BYTES_PER_PARTICLE = 150
 BUILD_BYTES_PER_SPRING = 130
 SIZE_KEYS = {"chain": ("count",), "grid": ("resolution",), "lattice": ("resolution",)}
 TOP_KEYS = {"description": str, "integrator": str, "duration": float, "dt": dict, "model": dict,
-            "view": dict}
+            "view": dict, "collider": list, "pin": list}
 VIEW_KEYS = {"azimuth": float, "elevation": float, "projection": str, "framing": str}
+# Model keys of every generator, applied to the Model arguments it returns: name -> default.
+COMMON_KEYS = {"drag": 0.0, "wind": [0.0, 0.0, 0.0], "pin_velocity": [0.0, 0.0, 0.0]}
+PIN_KEYS = {"index": int, "velocity": list}
 
 
 def builtin_scenes() -> dict:
@@ -64,7 +87,10 @@ def builtin_scenes() -> dict:
 class Scene:
     """A parsed scene: ``params`` are the generator's full parameter set (defaults
     filled in); ``dt`` the default time steps the file names; ``view`` its [view]
-    table (checked when a picture is made: see ``io.camera.View``)."""
+    table (checked when a picture is made: see ``io.camera.View``); ``common`` the
+    ``COMMON_KEYS`` (defaults filled in), ``colliders`` its [[collider]] tables as
+    ``massspring.Plane``/``Sphere``/``Box``, ``pins`` its [[pin]] tables as
+    (index, velocity) pairs."""
 
     name: str
     source: str
@@ -75,14 +101,20 @@ class Scene:
     generator: str
     params: dict = field(default_factory=dict)
     view: dict = field(default_factory=dict)
+    common: dict = field(default_factory=lambda: dict(COMMON_KEYS))
+    colliders: tuple = ()
+    pins: tuple = ()
     _suggested: dict = field(default_factory=dict, repr=False, compare=False)
 
     def with_params(self, **overrides) -> "Scene":
-        """A copy with some generator parameters replaced (checked like the file's)."""
-        params = dict(self.params)
+        """A copy with some generator parameters or ``COMMON_KEYS`` replaced (checked like the file's)."""
+        params, common = dict(self.params), dict(self.common)
         for key, value in overrides.items():
-            params[key] = _check_param(self.generator, key, value, self.source)
-        return dataclasses.replace(self, params=params, _suggested={})
+            if key in COMMON_KEYS:
+                common[key] = _check_common(key, value, self.source)
+            else:
+                params[key] = _check_param(self.generator, key, value, self.source)
+        return dataclasses.replace(self, params=params, common=common, _suggested={})
 
     def with_settings(self, settings) -> "Scene":
         """Apply ``key=value`` strings (values parsed as TOML, else taken as strings);
@@ -99,7 +131,10 @@ class Scene:
                 value = tomllib.loads(f"v = {text.strip()}")["v"]
             except tomllib.TOMLDecodeError:
                 value = text.strip()
-            overrides[key] = _check_param(self.generator, key, value, f"--set {key}")
+            if key in COMMON_KEYS:
+                overrides[key] = _check_common(key, value, f"--set {key}")
+            else:
+                overrides[key] = _check_param(self.generator, key, value, f"--set {key}")
         return self.with_params(**overrides)
 
     def model(self) -> Model:
@@ -113,9 +148,25 @@ class Scene:
             raise SceneError(f"{self.source}: model: {size} gives {particles:,} particles and {springs:,} springs, "
                              f"about {need / 1e9:.3g} GB to build; {available / 1e9:.3g} GB of memory is available")
         try:
-            return Model(**generators.GENERATORS[self.generator](**self.params))
+            args = generators.GENERATORS[self.generator](**self.params)
+            args.update(self._contact_and_air(args))
+            return Model(**args)
         except ValueError as exc:
-            raise SceneError(f"{self.source}: model.{exc}") from None
+            raise SceneError(f"{self.source}: {exc if str(exc).startswith('pin[') else f'model.{exc}'}") from None
+
+    def _contact_and_air(self, args) -> dict:
+        """The Model arguments of ``common``, ``pins`` and ``colliders`` for a generator's
+        ``args``: the generator's pins move with ``pin_velocity``; each [[pin]] pins its
+        particle (a generator's pin too) with its own velocity."""
+        n = len(args["positions"])
+        pins = dict.fromkeys(np.asarray(args.get("fixed", []), dtype=np.int64).tolist(), self.common["pin_velocity"])
+        for k, (index, velocity) in enumerate(self.pins):
+            if not -n <= index < n:
+                raise ValueError(f"pin[{k}].index: {index} is outside -{n}..{n - 1} ({n} particles)")
+            pins[index % n] = velocity
+        return {"fixed": np.array(list(pins), dtype=np.int64),
+                "pin_velocity": np.array(list(pins.values())).reshape(-1, 3),
+                "drag": self.common["drag"], "wind": self.common["wind"], "colliders": self.colliders}
 
     def default_dt(self, integrator=None) -> float:
         """The scene's dt (s) for ``integrator`` (default: the scene's): the [dt] entry, else
@@ -190,17 +241,84 @@ def parse_scene(data: dict, name: str, source: str) -> Scene:
     if generator not in generators.GENERATORS:
         raise SceneError(f"{source}: model.generator: unknown value {generator!r} "
                          f"(expected {', '.join(generators.GENERATORS)})")
-    params = dict(generators.PARAMETERS[generator])
+    params, common = dict(generators.PARAMETERS[generator]), dict(COMMON_KEYS)
     for key, value in model.items():
-        params[key] = _check_param(generator, key, value, source)
+        if key in COMMON_KEYS:
+            common[key] = _check_common(key, value, f"{source}: model.{key}")
+        else:
+            params[key] = _check_param(generator, key, value, source)
     view = dict(data.get("view", {}))
     for key, value in view.items():
         if key not in VIEW_KEYS:
             raise SceneError(f"{source}: view.{key}: unknown key (expected {', '.join(VIEW_KEYS)})")
         _check_type(f"view.{key}", value, VIEW_KEYS[key], source)
+    colliders = tuple(_collider(k, table, source) for k, table in enumerate(data.get("collider", [])))
+    pins = tuple(_pin(k, table, source) for k, table in enumerate(data.get("pin", [])))
     return Scene(name=name, source=source, description=data.get("description", ""),
                  integrator=integrator, duration=duration, dt=dt,
-                 generator=generator, params=params, view=view)
+                 generator=generator, params=params, view=view, common=common, colliders=colliders, pins=pins)
+
+
+def _tables(name, table, k, source):
+    where = f"{source}: {name}[{k}]"
+    if not isinstance(table, dict):
+        raise SceneError(f"{where}: expected a table ([[{name}]]), got {type(table).__name__} {table!r}")
+    return where
+
+
+def _collider(k, table, source):
+    """A [[collider]] table as a massspring collider; errors name collider[k].<field> and the file."""
+    where = _tables("collider", table, k, source)
+    fields = dict(table)
+    kind = fields.pop("type", None)
+    if kind not in COLLIDERS:
+        raise SceneError(f"{where}.type: expected one of {', '.join(map(repr, COLLIDERS))}, got {kind!r}")
+    cls = COLLIDERS[kind]
+    names = [f.name for f in dataclasses.fields(cls)]
+    for key in fields:
+        if key not in names:
+            raise SceneError(f"{where}.{key}: unknown key of a {kind} (expected type, {', '.join(names)})")
+    required = [f.name for f in dataclasses.fields(cls) if f.default is dataclasses.MISSING]
+    missing = [key for key in required if key not in fields]
+    if missing:
+        raise SceneError(f"{where}.{missing[0]}: missing (a {kind} needs {', '.join(required)})")
+    try:
+        return cls(**fields)
+    except ValueError as exc:
+        raise SceneError(f"{where}.{exc}") from None
+
+
+def _pin(k, table, source):
+    """A [[pin]] table as (index, velocity)."""
+    where = _tables("pin", table, k, source)
+    for key in table:
+        if key not in PIN_KEYS:
+            raise SceneError(f"{where}.{key}: unknown key (expected {', '.join(PIN_KEYS)})")
+    if "index" not in table:
+        raise SceneError(f"{where}.index: missing (the pinned particle's index)")
+    _check_type(f"{where}.index", table["index"], int, None)
+    return table["index"], _check_common("pin_velocity", table.get("velocity", [0.0, 0.0, 0.0]),
+                                         f"{where}.velocity")
+
+
+def _check_common(key, value, prefix):
+    """A ``COMMON_KEYS`` value: a finite number >= 0 (drag) or 3 finite numbers."""
+    default = COMMON_KEYS[key]
+    if isinstance(default, list):
+        _check_type(prefix, value, list, None)
+        if len(value) != len(default):
+            raise SceneError(f"{prefix}: expected {len(default)} numbers, got {value!r}")
+        for item in value:
+            _check_type(prefix, item, float, None)
+        out = [float(item) for item in value]
+    else:
+        _check_type(prefix, value, float, None)
+        out = float(value)
+        if not out >= 0:
+            raise SceneError(f"{prefix}: must be >= 0, got {value!r}")
+    if not np.all(np.isfinite(out)):
+        raise SceneError(f"{prefix}: must be finite, got {value!r}")
+    return out
 
 
 def _check_param(generator, key, value, source):
