@@ -376,7 +376,7 @@ def finish_pictures(plan, scene, sim, steps):
     start = time.perf_counter()
     renderer = render.FrameRenderer(sim.model, np.stack(rec.positions), plan.view, plan.size,
                                     label=f"{scene.name}  {sim.integrator}  dt = {format_seconds(sim.dt)}",
-                                    framing=plan.framing)
+                                    framing=plan.framing, times=rec.times)
     result = render.export(renderer, rec, gif=plan.gif, png=plan.png, fps=plan.fps)
     wall = time.perf_counter() - start
     for option, error in result.errors.items():
