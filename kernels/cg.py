@@ -38,7 +38,7 @@ import taichi as ti
 from .blocks import BLOCK, block_count, block_end, ordered_sum
 from .divergence import OK, check_code, is_finite, state_sums
 from .constraints import constrain, is_free, is_pinned, prescribed
-from .contact import landing, project
+from .contact import landing, project, total
 from .operator import apply_row, refresh
 
 CONVERGED, MAX_ITER, INDEFINITE, STALLED, NONFINITE = 0, 1, 2, 3, 4
@@ -260,7 +260,7 @@ def next_position(i, dev, cfg: ti.template(), h, t):
     if ti.static(cfg.has_colliders):
         if not is_pinned(i, dev, cfg):
             back = landing(i, dev, cfg, dev.x[i], t - h)
-            moved = project(dev, cfg, dev.x[i] + h * dev.v[i] - back, t)
+            moved = project(dev, cfg, dev.x[i] + h * dev.v[i] - back, t, ti.static(total(cfg)))
             x = moved
     return x
 

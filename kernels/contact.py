@@ -24,8 +24,9 @@ recomputed from the corrected velocity, x0 + dt v (a symplectic Euler step at
 contact, so a sticking particle does not creep), and moved along the normal onto the
 surface (the particle has landed: neither hovering where the step began nor inside).
 A particle inside but moving out is only projected onto the surface; with several
-colliders, a particle that responded to one is finally projected out of all
-(``project``). The response is first order in dt whatever the integrator.
+colliders, a particle whose position was recomputed for one is projected out of the
+ones before it (``project``). The response is first order in dt whatever the
+integrator.
 
 Implicit (``detect``, fused into ``operator.refresh_row``): at the start of the step
 (x_n, v_n, time t_n) a particle is in contact with a collider if the predicted
@@ -189,7 +190,6 @@ def respond(dev, cfg: ti.template(), x0, x, v, h, t):
     step x0 -> (x, v) of a free particle ending at time t: returns the new (x, v)."""
     xr = x
     vr = v
-    hit = False
     shift = ti.Vector.zero(cfg.real, 3)  # the moves onto surfaces so far: kept when the position is recomputed
     for kind, count, first in ti.static(cfg.colliders):
         for k in ti.static(range(count)):
@@ -211,25 +211,25 @@ def respond(dev, cfg: ti.template(), x0, x, v, h, t):
                     gap, normal = kind.distance(dev, cfg, k, moved, t)
                     shift -= gap * normal
                     xr = x0 + shift + h * vr
-                    hit = True
+                    if ti.static(first + k > 0):  # the new velocity may carry it back into an earlier one
+                        out = project(dev, cfg, xr, t, first + k)
+                        xr = out
                 elif d < 0:
                     xr = xr - d * n
-    if ti.static(total(cfg) > 1):
-        if hit:  # the position recomputed for one collider may have gone back into another
-            out = project(dev, cfg, xr, t)
-            xr = out
     return xr, vr
 
 
 @ti.func
-def project(dev, cfg: ti.template(), x, t):
-    """x moved onto the surface of each collider it is inside at time t, in turn."""
+def project(dev, cfg: ti.template(), x, t, upto: ti.template()):
+    """x moved onto the surface of each of the first ``upto`` colliders it is inside at time t,
+    in turn."""
     xr = x
     for kind, count, first in ti.static(cfg.colliders):
         for k in ti.static(range(count)):
-            d, n = kind.distance(dev, cfg, k, xr, t)
-            if d < 0:
-                xr = xr - d * n
+            if ti.static(first + k < upto):
+                d, n = kind.distance(dev, cfg, k, xr, t)
+                if d < 0:
+                    xr = xr - d * n
     return xr
 
 

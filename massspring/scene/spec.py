@@ -305,12 +305,7 @@ def _check_common(key, value, prefix):
     """A ``COMMON_KEYS`` value: a finite number >= 0 (drag) or 3 finite numbers."""
     default = COMMON_KEYS[key]
     if isinstance(default, list):
-        _check_type(prefix, value, list, None)
-        if len(value) != len(default):
-            raise SceneError(f"{prefix}: expected {len(default)} numbers, got {value!r}")
-        for item in value:
-            _check_type(prefix, item, float, None)
-        out = [float(item) for item in value]
+        out = _numbers(prefix, value, len(default))
     else:
         _check_type(prefix, value, float, None)
         out = float(value)
@@ -321,6 +316,16 @@ def _check_common(key, value, prefix):
     return out
 
 
+def _numbers(prefix, value, count):
+    """A list of ``count`` numbers, as floats."""
+    _check_type(prefix, value, list, None)
+    if len(value) != count:
+        raise SceneError(f"{prefix}: expected {count} numbers, got {value!r}")
+    for item in value:
+        _check_type(prefix, item, float, None)
+    return [float(item) for item in value]
+
+
 def _check_param(generator, key, value, source):
     defaults = generators.PARAMETERS[generator]
     prefix = source if source.startswith("--set") else f"{source}: model.{key}"
@@ -329,12 +334,7 @@ def _check_param(generator, key, value, source):
                          f"(expected {', '.join(defaults)})")
     default = defaults[key]
     if isinstance(default, list):
-        _check_type(prefix, value, list, None)
-        if len(value) != len(default):
-            raise SceneError(f"{prefix}: expected {len(default)} numbers, got {value!r}")
-        for item in value:
-            _check_type(prefix, item, float, None)
-        return [float(item) for item in value]
+        return _numbers(prefix, value, len(default))
     _check_type(prefix, value, type(default), None)
     if isinstance(default, float) and not math.isfinite(value):
         raise SceneError(f"{prefix}: must be finite, got {value!r}")
