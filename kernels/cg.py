@@ -1,8 +1,10 @@
 """Preconditioned conjugate gradient for Eq. 15, as Taichi kernels.
 
 The solve runs on the unconstrained directions only (``constraints``): the iterate
-holds the prescribed velocity of pinned particles, and every CG vector is filtered
-(zero there), so no penalty springs are needed. The operator is applied spring by
+holds the prescribed velocity in the constrained directions (pins, contact normals),
+and every CG vector is filtered (zero there), so no penalty springs are needed. The
+tolerance is relative to ||S b||, or to the first residual when S b = 0 (only
+prescribed velocities drive the solve). The operator is applied spring by
 spring (``operator.apply_row``); no matrix is formed.
 
 Each CG phase is a ``ti.func`` with its loops at its top level, reducing in fixed
@@ -35,7 +37,8 @@ import taichi as ti
 
 from .blocks import BLOCK, block_count, block_end, ordered_sum
 from .divergence import OK, check_code, is_finite, state_sums
-from .constraints import constrain, is_free, prescribed
+from .constraints import constrain, is_free, is_pinned, prescribed
+from .contact import landing, project, total
 from .operator import apply_row, refresh
 
 CONVERGED, MAX_ITER, INDEFINITE, STALLED, NONFINITE = 0, 1, 2, 3, 4
@@ -165,9 +168,9 @@ def cg_precondition(dev: ti.template(), cfg: ti.template()):
 
 
 @ti.kernel
-def cg_refresh(dev: ti.template(), cfg: ti.template(), dt: ti.f64):
-    """``operator.refresh`` at the current state (x, v_n): parallel loops."""
-    refresh(dev, cfg, dev.x, dev.v, ti.cast(dt, cfg.real))
+def cg_refresh(dev: ti.template(), cfg: ti.template(), dt: ti.f64, t: ti.f64):
+    """``operator.refresh`` at the current state (x, v_n) at time t (s): parallel loops."""
+    refresh(dev, cfg, dev.x, dev.v, ti.cast(dt, cfg.real), ti.cast(t, cfg.real))
 
 
 @ti.kernel
@@ -196,9 +199,10 @@ def cg_direction(dev: ti.template(), cfg: ti.template(), beta: ti.f64):
 
 
 @ti.kernel
-def cg_solve(dev: ti.template(), cfg: ti.template(), dt: ti.f64, tol: ti.f64,
+def cg_solve(dev: ti.template(), cfg: ti.template(), dt: ti.f64, t: ti.f64, tol: ti.f64,
              max_iter: ti.i32) -> ti.types.vector(3, ti.f64):
-    """``refresh`` and the whole PCG solve of A v = b from v = v_n in one launch, serial loops.
+    """``refresh`` at time t (s) and the whole PCG solve of A v = b from v = v_n in one
+    launch, serial loops.
 
     The loop of ``massspring.solvers.cg``, written with ``begin`` once (the first
     residual and every restart share it: half the code to compile). Returns
@@ -209,7 +213,7 @@ def cg_solve(dev: ti.template(), cfg: ti.template(), dt: ti.f64, tol: ti.f64,
     residual = 0.0
     ti.loop_config(serialize=True)
     for _ in range(1):
-        refresh(dev, cfg, dev.x, dev.v, ti.cast(dt, cfg.real))
+        refresh(dev, cfg, dev.x, dev.v, ti.cast(dt, cfg.real), ti.cast(t, cfg.real))
         bb = 0.0
         target = 0.0
         best = 1e308
@@ -221,14 +225,14 @@ def cg_solve(dev: ti.template(), cfg: ti.template(), dt: ti.f64, tol: ti.f64,
             rr = sums[1]
             if cycle < 0:
                 bb = sums[2]
+                if bb == 0.0:  # b vanishes on the free directions: prescribed velocities drive the solve
+                    bb = rr
                 target = tol * tol * bb
                 if not is_finite(bb):
                     reason = NONFINITE
                     residual = bb
                     done = True
-                elif bb == 0.0:
-                    for i in range(dev.size[0]):
-                        dev.v[i] = ti.Vector.zero(cfg.real, 3)
+                elif bb == 0.0:  # the iterate solves the system exactly
                     done = True
             else:
                 residual = ti.sqrt(ti.max(rr, 0.0) / bb)
@@ -255,8 +259,22 @@ def cg_solve(dev: ti.template(), cfg: ti.template(), dt: ti.f64, tol: ti.f64,
 
 
 @ti.func
-def advance_sums(dev, cfg: ti.template(), h):
-    """Summed ``state_sums`` of the candidate state (x + dt v, v), storing nothing."""
+def next_position(i, dev, cfg: ti.template(), h, t):
+    """x_n + dt v_{n+1} (seed Eq. 9) of particle i at the step's end time t; with colliders,
+    less the landing correction of a particle in contact (``contact.landing``), and moved
+    onto the surface of any collider it would end inside (``contact.project``)."""
+    x = dev.x[i] + h * dev.v[i]
+    if ti.static(cfg.has_colliders):
+        if not is_pinned(i, dev, cfg):
+            back = landing(i, dev, cfg, dev.x[i], t - h)
+            moved = project(dev, cfg, dev.x[i] + h * dev.v[i] - back, t, ti.static(total(cfg)))
+            x = moved
+    return x
+
+
+@ti.func
+def advance_sums(dev, cfg: ti.template(), h, t):
+    """Summed ``state_sums`` of the candidate state (``next_position``, v), storing nothing."""
     n = dev.size[0]
     g = ti.Vector.zero(ti.f64, 3)
     if ti.static(cfg.has_gravity):
@@ -264,28 +282,29 @@ def advance_sums(dev, cfg: ti.template(), h):
     for blk in range(block_count(n)):
         acc = ti.Vector.zero(ti.f64, 3)
         for i in range(blk * BLOCK, block_end(blk, n)):
-            acc += state_sums(dev.x[i] + h * dev.v[i], dev.v[i], dev.mass[i], g, cfg.has_gravity)
+            acc += state_sums(next_position(i, dev, cfg, h, t), dev.v[i], dev.mass[i], g, cfg.has_gravity)
         dev.partial[blk] = acc
     return ordered_sum(dev.partial, block_count(n))
 
 
 @ti.func
-def commit(dev, cfg: ti.template(), h):
-    """Check the candidate state (x + dt v, v); if it passes, store it (see
+def commit(dev, cfg: ti.template(), h, t):
+    """Check the candidate state (``next_position``, v); if it passes, store it (see
     ``advance_positions``). Returns (check code, kinetic energy) as a float64 2-vector."""
-    sums = advance_sums(dev, cfg, h)
+    sums = advance_sums(dev, cfg, h, t)
     code = check_code(sums, dev.check[None])
     for i in range(dev.size[0]):
         if code == OK:
-            dev.x[i] += h * dev.v[i]
+            dev.x[i] = next_position(i, dev, cfg, h, t)
             dev.keep[i] = dev.v[i]
     return ti.Vector([code, sums[0]], ti.f64)
 
 
 @ti.kernel
-def advance_positions(dev: ti.template(), cfg: ti.template(), dt: ti.f64,
+def advance_positions(dev: ti.template(), cfg: ti.template(), dt: ti.f64, t: ti.f64,
                       serial: ti.template()) -> ti.types.vector(2, ti.f64):
-    """x_{n+1} = x_n + dt v_{n+1} (seed Eq. 9), committed only if the new state passes the check.
+    """x_{n+1} = x_n + dt v_{n+1} (seed Eq. 9) at the step's end time t (s), committed only if
+    the new state passes the check.
 
     The first loops reduce ``divergence.state_sums`` of (x_n + dt v_{n+1}, v_{n+1})
     without storing anything; if ``divergence.check_code`` accepts it, the last loop
@@ -295,15 +314,16 @@ def advance_positions(dev: ti.template(), cfg: ti.template(), dt: ti.f64,
     Returns (check code, kinetic energy of the new state).
     """
     h = ti.cast(dt, cfg.real)
+    end = ti.cast(t, cfg.real)
     out = ti.Vector.zero(ti.f64, 2)
     if ti.static(serial):
         ti.loop_config(serialize=True)
         for _ in range(1):
-            result = commit(dev, cfg, h)
+            result = commit(dev, cfg, h, end)
             out[0] = result[0]
             out[1] = result[1]
     else:
-        result = commit(dev, cfg, h)
+        result = commit(dev, cfg, h, end)
         out[0] = result[0]
         out[1] = result[1]
     return out

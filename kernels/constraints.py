@@ -1,20 +1,34 @@
 """Per-particle constraints: which directions of a particle's velocity are prescribed.
 
 A pinned particle's velocity is prescribed in all three directions (``prescribed``:
-zero for a fixed pin). The integrators step free particles and move constrained
-ones with their prescribed velocity. The implicit solve runs on the unconstrained
-directions only (Baraff and Witkin's filtered CG): every CG vector is filtered by
-S_i (``constrain``), the identity for a free particle and zero for a pinned one,
-and the iterate starts at the prescribed velocity there, so A's columns of the
-constrained directions enter the right-hand side. Adding a kind of constraint
-(contact normals: S_i = I - n n^T) means extending these functions and the
-arrays they read.
+its pin velocity, zero for a fixed pin); an implicit step's contact prescribes the
+components along the contact normals (``kernels/contact.py``). The integrators step
+free particles and move pinned ones with their prescribed velocity. The implicit
+solve runs on the unconstrained directions only (Baraff and Witkin's filtered CG):
+every CG vector is filtered by S_i (``constrain``): the identity for a free
+particle, zero for a pinned one, I - sum e e^T over the orthonormalised contact
+normals e of a particle in contact; the iterate starts at the prescribed velocity in
+the constrained directions, so A's columns of those directions enter the right-hand
+side and Eq. 15 holds exactly on the free directions with the prescribed ones given.
 
-Arrays read: ``dev.free`` (n,) int32, 1 for free particles (only when the model has
-pins: ``cfg.fixed``).
+Arrays read, each only when its switch is on: ``dev.free`` (n,) int32, 1 for free
+particles (``cfg.fixed``: the model has pins); ``dev.pin_velocity`` (n,) vec3 m/s,
+zero but at pins (``cfg.moving_pins``); ``dev.contacts`` (n,) int32 (non-zero in
+contact), ``dev.cfilter`` (n,) 3x3 S_i and ``dev.cvel`` (n,) vec3 m/s, the prescribed
+velocity in the constrained directions (``cfg.contact_filter``: implicit steps
+with colliders).
 """
 
 import taichi as ti
+
+
+@ti.func
+def is_pinned(i, dev, cfg: ti.template()):
+    """Whether particle i is pinned (all three directions prescribed)."""
+    out = False
+    if ti.static(cfg.fixed):
+        out = dev.free[i] == 0
+    return out
 
 
 @ti.func
@@ -23,6 +37,9 @@ def is_free(i, dev, cfg: ti.template()):
     out = True
     if ti.static(cfg.fixed):
         out = dev.free[i] != 0
+    if ti.static(cfg.contact_filter):
+        if dev.contacts[i] != 0:
+            out = False
     return out
 
 
@@ -33,10 +50,21 @@ def constrain(i, dev, cfg: ti.template(), vec):
     if ti.static(cfg.fixed):
         if dev.free[i] == 0:
             out = ti.Vector.zero(cfg.real, 3)
+    if ti.static(cfg.contact_filter):
+        if dev.contacts[i] != 0:
+            out = dev.cfilter[i] @ vec
     return out
 
 
 @ti.func
 def prescribed(i, dev, cfg: ti.template()):
-    """The velocity (m/s) prescribed for particle i's constrained directions (0: fixed pins)."""
-    return ti.Vector.zero(cfg.real, 3)
+    """The velocity (m/s) prescribed for particle i's constrained directions: the pin
+    velocity of a pinned particle (0 for fixed pins), the contact velocity of a particle
+    in contact (zero in its free directions)."""
+    out = ti.Vector.zero(cfg.real, 3)
+    if ti.static(cfg.moving_pins):
+        out = dev.pin_velocity[i]
+    if ti.static(cfg.contact_filter):
+        if dev.contacts[i] != 0:
+            out = dev.cvel[i]
+    return out

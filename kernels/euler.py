@@ -6,8 +6,11 @@ One step from state ``src`` to state ``dst`` (``x``, ``v`` fields; they must dif
     explicit:    x' = x + dt v,   v' = v + dt f(x, v) / m
     symplectic:  v' = v + dt f(x, v) / m,   x' = x + dt v'
 
-with pinned particles kept in place at zero velocity, fused with the reduction of
-the new state's ``divergence.state_sums`` (fixed blocks, see ``blocks``).
+with pinned particles moved with their prescribed velocity (``constraints``) and,
+in a model with colliders, free particles' contact response after the update
+(``contact.respond``; ``t`` is the simulated time at the start of the step, s),
+fused with the reduction of the new state's ``divergence.state_sums`` (fixed
+blocks, see ``blocks``).
 
 ``euler_step`` runs one step as parallel loops and returns (check code, kinetic
 energy); ``euler_steps`` runs up to ``steps`` steps in one launch with serial
@@ -20,13 +23,14 @@ import taichi as ti
 from .blocks import block_count, block_end, ordered_sum, BLOCK
 from .divergence import OK, check_code, state_sums
 from .constraints import is_free, prescribed
+from .contact import respond
 from .forces import particle_force, spring_forces
 
 
 @ti.func
-def update_particles(dev, cfg: ti.template(), src, dst, h, symplectic: ti.template()):
-    """The per-particle half of a step (after ``spring_forces`` on ``src``); returns
-    the new state's summed ``state_sums``."""
+def update_particles(dev, cfg: ti.template(), src, dst, h, t, symplectic: ti.template()):
+    """The per-particle half of a step ending at time ``t`` (after ``spring_forces`` on
+    ``src``); returns the new state's summed ``state_sums``."""
     n = dev.size[0]
     g = ti.Vector.zero(ti.f64, 3)
     if ti.static(cfg.has_gravity):
@@ -44,6 +48,10 @@ def update_particles(dev, cfg: ti.template(), src, dst, h, symplectic: ti.templa
                 else:
                     x = x + h * v
                 v = v_new
+                if ti.static(cfg.has_colliders):
+                    x_out, v_out = respond(dev, cfg, src.x[i], x, v, h, t)
+                    x = x_out
+                    v = v_out
             else:
                 v = prescribed(i, dev, cfg)
                 x = x + h * v
@@ -56,18 +64,18 @@ def update_particles(dev, cfg: ti.template(), src, dst, h, symplectic: ti.templa
 
 @ti.kernel
 def euler_step(dev: ti.template(), cfg: ti.template(), src: ti.template(), dst: ti.template(), dt: ti.f64,
-               symplectic: ti.template()) -> ti.types.vector(2, ti.f64):
-    """One step src -> dst with parallel loops; returns (check code, kinetic energy J)."""
+               t: ti.f64, symplectic: ti.template()) -> ti.types.vector(2, ti.f64):
+    """One step src -> dst from time t (s) with parallel loops; returns (check code, kinetic energy J)."""
     h = ti.cast(dt, cfg.real)
     spring_forces(dev, cfg, src.x, src.v, False)
-    sums = update_particles(dev, cfg, src, dst, h, symplectic)
+    sums = update_particles(dev, cfg, src, dst, h, ti.cast(t + dt, cfg.real), symplectic)
     return ti.Vector([check_code(sums, dev.check[None]), sums[0]], ti.f64)
 
 
 @ti.kernel
 def euler_steps(dev: ti.template(), cfg: ti.template(), a: ti.template(), b: ti.template(), dt: ti.f64,
-                steps: ti.i32, symplectic: ti.template()) -> ti.types.vector(3, ti.f64):
-    """Up to ``steps`` steps in one launch with serial loops, a -> b, b -> a, ...
+                t: ti.f64, steps: ti.i32, symplectic: ti.template()) -> ti.types.vector(3, ti.f64):
+    """Up to ``steps`` steps from time t (s) in one launch with serial loops, a -> b, b -> a, ...
 
     Returns (good steps done k, check code, kinetic energy of the last state
     computed). The last good state is in ``a`` if k is even, else in ``b``; a
@@ -80,14 +88,15 @@ def euler_steps(dev: ti.template(), cfg: ti.template(), a: ti.template(), b: ti.
     ti.loop_config(serialize=True)
     for _ in range(1):
         while done < steps and code == OK:
+            end = ti.cast(t + (done + 1) * dt, cfg.real)
             if done % 2 == 0:
                 spring_forces(dev, cfg, a.x, a.v, False)
-                even = update_particles(dev, cfg, a, b, h, symplectic)
+                even = update_particles(dev, cfg, a, b, h, end, symplectic)
                 kinetic = even[0]
                 code = check_code(even, dev.check[None])
             else:
                 spring_forces(dev, cfg, b.x, b.v, False)
-                odd = update_particles(dev, cfg, b, a, h, symplectic)
+                odd = update_particles(dev, cfg, b, a, h, end, symplectic)
                 kinetic = odd[0]
                 code = check_code(odd, dev.check[None])
             if code == OK:

@@ -23,7 +23,8 @@ vec3 in kg m/s.
 
 import taichi as ti
 
-from .constraints import is_free
+from .constraints import is_pinned
+from .contact import detect, friction_diagonal, friction_impulse
 from .forces import particle_force, spring_direction, tiny_length
 
 
@@ -81,16 +82,25 @@ def diagonal_block(i, dev, cfg: ti.template()):
 
 
 @ti.func
-def refresh_row(i, dev, cfg: ti.template(), x, v, h):
-    """Particle i's part of ``refresh`` (after ``spring_coefficients``): its entries of
+def refresh_row(i, dev, cfg: ti.template(), x, v, h, t):
+    """Particle i's part of ``refresh`` (after ``spring_coefficients``): its contact
+    constraints at time t (``contact.detect``, with colliders), its entries of
     ``coef``, ``diag``, the right-hand side b_i = m_i v_i + dt (f - D v)_i of Eq. 15
-    (0 at pinned particles) and, for a preconditioner that needs it, its setup from A_ii."""
+    (0 at pinned particles), with a contact's friction (``contact.friction_diagonal``, ``friction_impulse``) in
+    both, and, for a preconditioner that needs it, its setup from A_ii."""
+    carrier = ti.Vector.zero(cfg.real, 3)
     if ti.static(cfg.has_springs):
         gather_coefficients(i, dev, cfg)
     dev.diag[i] = diagonal_scalar(i, dev, cfg, h)
-    if is_free(i, dev, cfg):
+    if ti.static(cfg.contact_filter):
+        found = detect(i, dev, cfg, x, v, h, t)
+        carrier = found
+        dev.diag[i] += friction_diagonal(i, dev, cfg)
+    if not is_pinned(i, dev, cfg):
         f = particle_force(i, dev, cfg, x, v, True)
         dev.b[i] = dev.mass[i] * v[i] + h * f
+        if ti.static(cfg.contact_filter):
+            dev.b[i] += friction_impulse(i, dev, cfg, carrier)
         if ti.static(cfg.needs_diagonal):
             block = diagonal_block(i, dev, cfg)
             cfg.precond.setup_row(i, dev, cfg, block)
@@ -99,12 +109,12 @@ def refresh_row(i, dev, cfg: ti.template(), x, v, h):
 
 
 @ti.func
-def refresh(dev, cfg: ti.template(), x, v, h):
-    """Operator coefficients, diagonal, right-hand side and pointwise preconditioner
-    for the state (x, v): two loops, over springs then particles."""
+def refresh(dev, cfg: ti.template(), x, v, h, t):
+    """Operator coefficients, diagonal, right-hand side, contact constraints and pointwise
+    preconditioner for the state (x, v) at time t (s): two loops, over springs then particles."""
     spring_coefficients(dev, cfg, x, v, h)
     for i in range(dev.size[0]):
-        refresh_row(i, dev, cfg, x, v, h)
+        refresh_row(i, dev, cfg, x, v, h, t)
 
 
 @ti.func

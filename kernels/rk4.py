@@ -3,15 +3,17 @@
 Eq. 4 is the first-order system y' = F(y) with y = (x, v) and F(x, v) = (v, M^-1 f(x, v)),
 f the total force (``forces``); a pinned particle has F = (its velocity, 0): it
 moves with its prescribed (constant) velocity. One step of size h
-from ``src`` to ``dst``:
+from ``src`` to ``dst`` (ending at time t, s):
 
     k1 = F(y), k2 = F(y + h/2 k1), k3 = F(y + h/2 k2), k4 = F(y + h k3),
     y' = y + h/6 (k1 + 2 k2 + 2 k3 + k4),
 
 with the stage state in ``stage`` (x, v) and the weighted sums of the stages in
 ``dev.sx``, ``dev.sv``; the new state's ``divergence.state_sums`` are reduced in
-the last loop. ``rk4_step`` runs one step with parallel loops, ``rk4_steps`` up
-to ``steps`` in one launch with serial loops (as ``euler``).
+the last loop, where a model with colliders also gets the explicit integrators'
+contact response (``contact.respond``: first order in dt at contact). ``rk4_step``
+runs one step with parallel loops, ``rk4_steps`` up to ``steps`` in one launch with
+serial loops (as ``euler``).
 """
 
 import taichi as ti
@@ -19,11 +21,12 @@ import taichi as ti
 from .blocks import BLOCK, block_count, block_end, ordered_sum
 from .divergence import OK, check_code, state_sums
 from .constraints import is_free
+from .contact import respond
 from .forces import particle_force, spring_forces
 
 
 @ti.func
-def one_step(dev, cfg: ti.template(), src, dst, stage, h):
+def one_step(dev, cfg: ti.template(), src, dst, stage, h, t):
     """One RK4 step src -> dst; returns the new state's summed ``state_sums``."""
     n = dev.size[0]
     for i in range(n):
@@ -54,6 +57,11 @@ def one_step(dev, cfg: ti.template(), src, dst, stage, h):
         for i in range(b * BLOCK, block_end(b, n)):
             x = src.x[i] + h / ti.cast(6, cfg.real) * dev.sx[i]
             v = src.v[i] + h / ti.cast(6, cfg.real) * dev.sv[i]
+            if ti.static(cfg.has_colliders):
+                if is_free(i, dev, cfg):
+                    x_out, v_out = respond(dev, cfg, src.x[i], x, v, h, t)
+                    x = x_out
+                    v = v_out
             dst.x[i] = x
             dst.v[i] = v
             acc += state_sums(x, v, dev.mass[i], g, cfg.has_gravity)
@@ -63,16 +71,16 @@ def one_step(dev, cfg: ti.template(), src, dst, stage, h):
 
 @ti.kernel
 def rk4_step(dev: ti.template(), cfg: ti.template(), src: ti.template(), dst: ti.template(),
-             stage: ti.template(), dt: ti.f64) -> ti.types.vector(2, ti.f64):
-    """One step src -> dst with parallel loops; returns (check code, kinetic energy J)."""
-    sums = one_step(dev, cfg, src, dst, stage, ti.cast(dt, cfg.real))
+             stage: ti.template(), dt: ti.f64, t: ti.f64) -> ti.types.vector(2, ti.f64):
+    """One step src -> dst from time t (s) with parallel loops; returns (check code, kinetic energy J)."""
+    sums = one_step(dev, cfg, src, dst, stage, ti.cast(dt, cfg.real), ti.cast(t + dt, cfg.real))
     return ti.Vector([check_code(sums, dev.check[None]), sums[0]], ti.f64)
 
 
 @ti.kernel
 def rk4_steps(dev: ti.template(), cfg: ti.template(), a: ti.template(), b: ti.template(), stage: ti.template(),
-              dt: ti.f64, steps: ti.i32) -> ti.types.vector(3, ti.f64):
-    """Up to ``steps`` steps in one launch with serial loops, as ``euler.euler_steps``."""
+              dt: ti.f64, t: ti.f64, steps: ti.i32) -> ti.types.vector(3, ti.f64):
+    """Up to ``steps`` steps from time t (s) in one launch with serial loops, as ``euler.euler_steps``."""
     h = ti.cast(dt, cfg.real)
     done = 0
     code = OK
@@ -80,12 +88,13 @@ def rk4_steps(dev: ti.template(), cfg: ti.template(), a: ti.template(), b: ti.te
     ti.loop_config(serialize=True)
     for _ in range(1):
         while done < steps and code == OK:
+            end = ti.cast(t + (done + 1) * dt, cfg.real)
             if done % 2 == 0:
-                even = one_step(dev, cfg, a, b, stage, h)
+                even = one_step(dev, cfg, a, b, stage, h, end)
                 kinetic = even[0]
                 code = check_code(even, dev.check[None])
             else:
-                odd = one_step(dev, cfg, b, a, stage, h)
+                odd = one_step(dev, cfg, b, a, stage, h, end)
                 kinetic = odd[0]
                 code = check_code(odd, dev.check[None])
             if code == OK:

@@ -89,8 +89,8 @@ def add_scene_arguments(p, integrators):
     p.add_argument("--no-definiteness-fix", action="store_true",
                    help="implicit: use the stiffness of Eq. 13 as written (indefinite when springs are compressed)")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
-                   help="override a scene model parameter, e.g. --set resolution=64 or "
-                   "--set gravity=[0,0,-1.62] (TOML values; repeatable)")
+                   help="override a scene model parameter, e.g. --set resolution=64, "
+                   "--set gravity=[0,0,-1.62] or --set drag=0.5 (TOML values; repeatable)")
 
 
 def make_simulation(args):
@@ -135,7 +135,12 @@ def cmd_info(args):
     else:
         print(f"generator   {scene.generator}: {params}")
     print(f"size        {info['particles']} particles, {info['springs']} springs, "
-          f"{sim.model.fixed.size} fixed")
+          f"{sim.model.fixed.size} fixed" + (", moving" if sim.model.has_moving_pins else ""))
+    if sim.model.has_colliders:
+        print("colliders   " + "; ".join(f"{c.kind} (friction {c.friction:g}, restitution {c.restitution:g}"
+                                         + (", moving" if c.moving else "") + ")" for c in sim.model.colliders))
+    if sim.model.has_drag:
+        print(f"air         drag {sim.model.drag:g} N s/m per particle, wind {sim.model.wind.tolist()} m/s")
     print(f"integrator  {sim.integrator}, dt = {format_seconds(sim.dt)}, precision {sim.precision}; "
           f"default duration {scene.duration:g} s")
     print("dt defaults " + ", ".join(f"{k} {format_seconds(scene.default_dt(k))}"
@@ -244,7 +249,8 @@ def restart(args, scene, sim):
         raise UsageError(f"--restart: {path} was computed with dt = {state.dt!r} s and this run's dt is "
                          f"{sim.dt!r} s; time is counted in steps of dt, so pass --dt {state.dt!r}")
     try:
-        sim.set_state(state.positions, state.velocities, state.steps)
+        carried = state.carried if state.integrator == sim.integrator else None
+        sim.set_state(state.positions, state.velocities, state.steps, carried)
     except ValueError as exc:
         raise UsageError(f"--restart: {path}: {exc}") from None
     return state.steps
@@ -507,7 +513,7 @@ def finish_pictures(plan, scene, sim, end_step):
     start = time.perf_counter()
     renderer = render.FrameRenderer(sim.model, np.stack(rec.positions), plan.view, plan.size,
                                     label=f"{scene.name}  {sim.integrator}  dt = {format_seconds(sim.dt)}",
-                                    framing=plan.framing)
+                                    framing=plan.framing, times=rec.times)
     result = render.export(renderer, rec, gif=plan.gif, png=plan.png, fps=plan.fps)
     wall = time.perf_counter() - start
     for option, error in result.errors.items():

@@ -37,6 +37,7 @@ import taichi as ti
 from taichi.lang import impl
 
 from massspring.kernels.blocks import blocks_for
+from massspring.kernels.contact import collider_arrays, collider_groups
 from massspring.kernels.terms import active_terms
 
 REAL = {"f32": ti.f32, "f64": ti.f64}
@@ -118,7 +119,10 @@ class Config:
     real: ti.f32 or ti.f64; spring_terms, particle_terms: the active force terms
     (``kernels.terms``); fixed: whether any particle is pinned; fix: the
     definiteness fix (implicit); precond: a pointwise preconditioner class of
-    ``kernels.preconditioners`` or None.
+    ``kernels.preconditioners`` or None; colliders: (kind, count, first) of each
+    collider kind present (``kernels.contact.collider_groups``); moving_pins: whether
+    some pin has a velocity; contact_filter: whether contacts are constraints of the
+    implicit solve (``kernels/constraints.py``).
     """
 
     real: object
@@ -127,6 +131,9 @@ class Config:
     fixed: bool
     fix: bool = True
     precond: object = None
+    colliders: tuple = ()
+    moving_pins: bool = False
+    contact_filter: bool = False
 
     @property
     def has_springs(self):
@@ -147,11 +154,16 @@ class Config:
     def has_gravity(self):
         return any(term.name == "gravity" for term in self.particle_terms)
 
+    @property
+    def has_colliders(self):
+        return len(self.colliders) > 0
+
     @classmethod
     def of(cls, model, precision, **switches):
         terms = active_terms(model)
         return cls(REAL[precision], tuple(t for t in terms if t.kind == "spring"),
-                   tuple(t for t in terms if t.kind == "particle"), model.has_fixed, **switches)
+                   tuple(t for t in terms if t.kind == "particle"), model.has_fixed,
+                   colliders=collider_groups(model), moving_pins=model.has_moving_pins, **switches)
 
 
 @ti.data_oriented
@@ -355,8 +367,9 @@ POOL = Pool()
 
 
 def model_layout(model, precision) -> "Layout":
-    """Declarations of a Model's fields: the state, masses, pins, adjacency, the
-    force terms' arrays, the divergence check and block partial sums."""
+    """Declarations of a Model's fields: the state, masses, pins (and their velocities),
+    colliders, adjacency, the force terms' arrays, the divergence check and block
+    partial sums."""
     real = REAL[precision]
     n, m = model.n_particles, model.n_springs
     layout = Layout(n, m, real)
@@ -365,6 +378,12 @@ def model_layout(model, precision) -> "Layout":
     layout.add("mass", real, "particle", values=model.masses)
     if model.has_fixed:
         layout.add("free", ti.i32, "particle", values=model.free_mask())
+    if model.has_moving_pins:
+        pins = np.zeros((n, 3))
+        pins[model.fixed] = model.pin_velocity
+        layout.vectors("pin_velocity", real, values=pins)
+    for name, (count, element, values) in collider_arrays(model).items():
+        layout.add(name, real, count, element, values)
     if m:
         offsets, other, entry = adjacency(model)
         layout.vectors("ends", ti.i32, "spring", values=model.springs, k=2)

@@ -18,7 +18,8 @@ import numpy as np
 
 
 # The arrays that make up a model's physics (``Model.fingerprint``); ``triangles`` only draw it.
-PHYSICS = ("positions", "springs", "masses", "stiffness", "damping", "rest_lengths", "velocities", "gravity", "fixed")
+PHYSICS = ("positions", "springs", "masses", "stiffness", "damping", "rest_lengths", "velocities", "gravity", "fixed",
+           "pin_velocity", "drag", "wind")
 
 # Largest magnitude accepted for any input number (and 1 / smallest mass): squares
 # and products of a few inputs, which the kernels form (energies, momenta, b.b in
@@ -99,10 +100,21 @@ class Model:
     gravity : (3,) float, m/s^2
         Uniform gravitational acceleration ``g`` (Eq. 3).
     fixed : None, indices (k,) int, or a bool mask (n,)
-        Pinned particles: their velocity is exactly 0 at all times.
+        Pinned particles: their velocity is exactly their pin velocity (0 by default) at all times.
     triangles : None or (t, 3) int
         Surface triangles (particle indices) for drawing; the physics never reads
         them. Empty when None.
+    colliders : sequence of ``massspring.Plane``, ``Sphere``, ``Box``
+        Obstacles the particles cannot enter (at most 31); stored as a tuple.
+    drag : float, N s/m, >= 0
+        Linear air drag on every particle: f_i = -drag (v_i - wind).
+    wind : (3,) float, m/s
+        The air's velocity; non-zero only with drag > 0 (it acts through drag alone).
+    pin_velocity : None or (k, 3) float, m/s
+        Kinematic pins: the constant velocity of each pinned particle, one row per
+        entry of ``fixed`` in the order given (ascending indices for a mask); zero
+        if None. Stored in the order of the stored ``fixed`` (sorted); a pinned
+        particle's initial velocity is its pin velocity.
 
     All arrays are stored as read-only float64/int64 copies under the constructor's
     argument names; ``fixed`` is stored as sorted unique indices. Numbers must be
@@ -120,9 +132,14 @@ class Model:
     gravity: np.ndarray
     fixed: np.ndarray
     triangles: np.ndarray
+    colliders: tuple
+    drag: float
+    wind: np.ndarray
+    pin_velocity: np.ndarray
 
     def __init__(self, positions, springs, masses=1.0, stiffness=1e3, damping=0.0,
-                 rest_lengths=None, velocities=None, gravity=(0.0, 0.0, -9.81), fixed=None, triangles=None):
+                 rest_lengths=None, velocities=None, gravity=(0.0, 0.0, -9.81), fixed=None, triangles=None,
+                 colliders=(), drag=0.0, wind=(0.0, 0.0, 0.0), pin_velocity=None):
         x = real_array("positions", positions)
         if x.ndim != 2 or x.shape[1] != 3 or x.shape[0] < 1:
             raise ValueError(f"positions: expected shape (n, 3) with n >= 1, got shape {x.shape}")
@@ -172,13 +189,25 @@ class Model:
             raise ValueError(f"gravity: expected 3 components, got shape {g.shape}")
 
         fixed_idx = _fixed_indices(fixed, n)
-        v[fixed_idx] = 0.0
+        pins = _pin_velocities(pin_velocity, fixed, fixed_idx)
+        v[fixed_idx] = pins
         tris = _triangles(triangles, n)
+        air = real_array("drag", drag)
+        if air.shape != () or not air >= 0:
+            raise ValueError(f"drag: expected a number >= 0 (N s/m), got {_describe(drag)}")
+        wind_v = real_array("wind", wind)
+        if wind_v.shape != (3,):
+            raise ValueError(f"wind: expected 3 components, got shape {wind_v.shape}")
+        if np.any(wind_v != 0) and air == 0:
+            raise ValueError("wind: has no effect without drag (drag = 0): give drag > 0 or no wind")
 
         for name, value in (("positions", x), ("springs", s), ("masses", mass), ("stiffness", ks),
                             ("damping", kd), ("rest_lengths", l0), ("velocities", v),
-                            ("gravity", g), ("fixed", fixed_idx), ("triangles", tris)):
+                            ("gravity", g), ("fixed", fixed_idx), ("triangles", tris), ("wind", wind_v),
+                            ("pin_velocity", pins)):
             object.__setattr__(self, name, _readonly(np.ascontiguousarray(value)))
+        object.__setattr__(self, "drag", float(air))
+        object.__setattr__(self, "colliders", _colliders(colliders))
 
     @classmethod
     def from_mesh(cls, vertices, faces, **parameters) -> "Model":
@@ -196,9 +225,10 @@ class Model:
         bytes): two models with the same fingerprint step identically."""
         digest = hashlib.sha256()
         for name in PHYSICS:
-            arr = getattr(self, name)
+            arr = np.ascontiguousarray(getattr(self, name))
             digest.update(f"{name}:{arr.dtype.str}:{arr.shape}".encode())
             digest.update(arr.tobytes())
+        digest.update(repr(self.colliders).encode())  # frozen dataclasses of floats: repr is exact
         return digest.hexdigest()
 
     @property
@@ -221,6 +251,19 @@ class Model:
     @property
     def has_fixed(self) -> bool:
         return self.fixed.size > 0
+
+    @property
+    def has_moving_pins(self) -> bool:
+        """True if some pinned particle has a non-zero pin velocity."""
+        return bool(np.any(self.pin_velocity != 0))
+
+    @property
+    def has_colliders(self) -> bool:
+        return len(self.colliders) > 0
+
+    @property
+    def has_drag(self) -> bool:
+        return self.drag > 0
 
     def free_mask(self) -> np.ndarray:
         """(n,) bool: True for particles that move."""
@@ -267,6 +310,42 @@ def _fixed_indices(fixed, n):
         bad = int(arr[(arr < 0) | (arr >= n)][0])
         raise ValueError(f"fixed: index {bad} is outside 0..{n - 1}")
     return np.unique(arr.astype(np.int64))
+
+
+def _pin_velocities(pin_velocity, fixed, fixed_idx):
+    """(k, 3) pin velocities in the order of the sorted ``fixed_idx``, from rows given in the
+    order of ``fixed`` as passed (a pin listed twice must get the same velocity twice)."""
+    if pin_velocity is None:
+        return np.zeros((fixed_idx.size, 3))
+    fixed = np.asarray([] if fixed is None else fixed)
+    given = np.flatnonzero(fixed) if fixed.dtype == bool else fixed.reshape(-1).astype(np.int64)
+    rows = real_array("pin_velocity", pin_velocity)
+    if rows.shape != (given.size, 3):
+        raise ValueError(f"pin_velocity: expected shape ({given.size}, 3) (one row per entry of fixed), "
+                         f"got shape {rows.shape}")
+    out = np.zeros((fixed_idx.size, 3))
+    out[np.searchsorted(fixed_idx, given)] = rows
+    clash = np.flatnonzero(np.any(out[np.searchsorted(fixed_idx, given)] != rows, axis=1))
+    if clash.size:
+        raise ValueError(f"pin_velocity: particle {given[clash[0]]} is listed in fixed more than once "
+                         "with different velocities")
+    return out
+
+
+def _colliders(colliders):
+    from massspring.colliders import MAX_COLLIDERS, Collider  # colliders.py reads this module's checks
+
+    try:
+        items = tuple(colliders)
+    except TypeError:
+        raise ValueError(f"colliders: expected a sequence of Plane, Sphere or Box, got {_describe(colliders)}") \
+            from None
+    for k, item in enumerate(items):
+        if not isinstance(item, Collider):
+            raise ValueError(f"colliders: item {k} is not a Plane, Sphere or Box: {_describe(item)}")
+    if len(items) > MAX_COLLIDERS:
+        raise ValueError(f"colliders: at most {MAX_COLLIDERS}, got {len(items)}")
+    return items
 
 
 def _triangles(triangles, n):

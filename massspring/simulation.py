@@ -8,6 +8,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from massspring import validate
+from massspring.colliders import COLLIDERS
 from massspring.device import ARCHS, CPU_ARCHS, POOL, ensure_taichi, model_layout
 from massspring.errors import DivergenceError, SimulationClosedError
 from massspring.integrators import INTEGRATORS
@@ -42,6 +43,26 @@ class Settings:
     loops: str
 
 
+def _check_carried(carried, names, n):
+    """``carried`` (None or a dict) checked against an integrator's ``carried_names``."""
+    if carried is None:
+        return None
+    if not isinstance(carried, dict) or set(carried) != set(names):
+        got = sorted(carried) if isinstance(carried, dict) else type(carried).__name__
+        raise ValueError(f"carried: expected the keys {sorted(names)} (Simulation.carried_state() of this "
+                         f"integrator and model), got {got}")
+    out = {}
+    for name, (dtype, shape) in names.items():
+        arr = np.asarray(carried[name])
+        if arr.shape != (n, *shape) or arr.dtype.kind not in ("iu" if np.dtype(dtype).kind == "i" else "fiu"):
+            raise ValueError(f"carried[{name!r}]: expected shape {(n, *shape)} of {np.dtype(dtype).name}, "
+                             f"got shape {arr.shape} of {arr.dtype}")
+        if not np.all(np.isfinite(arr)):
+            raise ValueError(f"carried[{name!r}]: contains non-finite values")
+        out[name] = np.ascontiguousarray(arr.astype(dtype))
+    return out
+
+
 def divergence_check(model: Model, factor=DIVERGENCE_FACTOR):
     """The (base, gx0, factor) of the per-step divergence check (kernels/divergence.py).
 
@@ -50,16 +71,20 @@ def divergence_check(model: Model, factor=DIVERGENCE_FACTOR):
     since the start (sum m g . (x - x0)). ``base`` (J) is the initial kinetic plus
     spring energy plus a floor, the kinetic energy of the whole mass moving at one
     scene size per second (size: the diagonal of the initial bounding box, or the
-    longest rest length if larger; 1 m if both are 0). Physically kinetic energy
-    never exceeds base - floor + W (springs only store and dampers only dissipate),
-    so ``factor`` = 100 leaves room for the energy error of a stable integrator
+    longest rest length if larger; 1 m if both are 0) plus the fastest drive: the
+    wind speed, the fastest pin or twice the fastest collider (what the air, a moving
+    pin or a collider can give the particles). Physically kinetic energy never
+    exceeds base - floor + W (springs only store and dampers only dissipate), so
+    ``factor`` = 100 leaves room for the energy error of a stable integrator
     (symplectic Euler's oscillates by up to ~40x just below its limit) while an
     unstable mode, growing geometrically, crosses it within a few dozen steps.
     """
     energy = model.energy(model.positions, model.velocities)
     extent = float(np.linalg.norm(np.ptp(model.positions, axis=0)))
     size = max(extent, float(model.rest_lengths.max(initial=0.0))) or 1.0
-    floor = 0.5 * float(model.masses.sum()) * size ** 2
+    drive = max([float(np.linalg.norm(model.wind))] + [float(np.linalg.norm(v)) for v in model.pin_velocity]
+                + [2 * float(np.linalg.norm(c.velocity)) for c in model.colliders])
+    floor = 0.5 * float(model.masses.sum()) * (size + drive) ** 2
     return (energy["kinetic"] + energy["spring"] + floor, -energy["gravity"], float(factor))
 
 
@@ -99,7 +124,9 @@ class Simulation:
 
     Only what the run needs is allocated and compiled: no CG vectors for the
     explicit integrators, no damping term with kd = 0, no gravity term with g = 0,
-    no pin filter without pinned particles (see ``info()``). Settings are read-only.
+    no pin filter without pinned particles, no pin-velocity read without moving pins,
+    no collider code or array without colliders, no drag term without drag (see
+    ``info()``). Settings are read-only.
     ``close()`` hands the fields back for reuse; any later call raises
     ``SimulationClosedError``.
     """
@@ -214,15 +241,27 @@ class Simulation:
         """Implicit steps whose CG solve did not converge."""
         return self._cg_failures
 
-    def set_state(self, positions, velocities, steps=0):
+    def carried_state(self) -> dict:
+        """What the integrator carries from one step to the next besides positions and
+        velocities, as numpy arrays with a row per particle: for the implicit integrator
+        with colliders, its contact memory ("released": contacts that pulled, "stick":
+        sticking particles, "fric": kinetic friction impulses, N s); else empty. Give it
+        back to ``set_state`` for a restart that continues to the bit."""
+        return self._open().carried()
+
+    def set_state(self, positions, velocities, steps=0, carried=None):
         """Continue from a given state (a restart): ``positions`` (n, 3) in m,
-        ``velocities`` (n, 3) in m/s, ``steps`` taken so far (``time`` is steps x dt).
+        ``velocities`` (n, 3) in m/s, ``steps`` taken so far (``time`` is steps x dt:
+        where moving pins and colliders are), ``carried``: a ``carried_state()`` of the
+        same model and integrator (None: such memory starts afresh, e.g. no contact
+        sticks yet).
 
         The Model stays as it is (rest lengths, pins, the divergence check), so a run
-        of k steps, saved and set here, then continued for j steps equals an unbroken
-        run of k + j steps to the bit (in f64, with the same integrator and dt).
-        Values must be finite (and within an f32 run's range); a fixed particle's
-        velocity must be its prescribed velocity, 0. Raises ValueError naming the argument.
+        of k steps, saved and set here (with its ``carried_state()``), then continued
+        for j steps equals an unbroken run of k + j steps to the bit (in f64, with the
+        same integrator and dt). Values must be finite (and within an f32 run's range);
+        a pinned particle's velocity must be its pin velocity (``Model.pin_velocity``,
+        0 by default). Raises ValueError naming the argument.
         """
         integrator = self._open()
         n = self._model.n_particles
@@ -235,13 +274,16 @@ class Simulation:
                 raise ValueError(f"{name}: {np.abs(arr).max():g} is beyond what an f32 run holds "
                                  f"(|value| <= {F32_MAX_MAGNITUDE:g})")
             arrays[name] = np.ascontiguousarray(arr)
-        moving = self._model.fixed[np.any(arrays["velocities"][self._model.fixed] != 0.0, axis=1)]
-        if moving.size:
-            i = int(moving[0])
-            raise ValueError(f"velocities: particle {i} is fixed, so its velocity must be 0, "
-                             f"got {arrays['velocities'][i].tolist()}")
+        fixed, pinned = self._model.fixed, self._model.pin_velocity
+        wrong = np.flatnonzero(np.any(arrays["velocities"][fixed] != pinned, axis=1))
+        if wrong.size:
+            k = int(wrong[0])
+            raise ValueError(f"velocities: particle {int(fixed[k])} is pinned, so its velocity must be its pin "
+                             f"velocity {pinned[k].tolist()}, got {arrays['velocities'][fixed[k]].tolist()}")
         steps = validate.count("steps", steps, low=0, high=2**62)
-        integrator.load_state(arrays["positions"], arrays["velocities"])
+        carried = _check_carried(carried, integrator.carried_names(), n)
+        integrator.load_state(arrays["positions"], arrays["velocities"], carried)
+        integrator.steps = steps  # moving pins and colliders are where they are at steps x dt
         self._steps = steps
         return self
 
@@ -296,6 +338,11 @@ class Simulation:
         terms = [term.name for term in active_terms(self._model)]
         if self._model.has_fixed:
             terms.append("fixed-filter")
+        if self._model.has_moving_pins:
+            terms.append("moving-pins")
+        if self._model.has_colliders:
+            kinds = sorted({c.kind for c in self._model.colliders}, key=list(COLLIDERS).index)
+            terms.append("contact (" + ", ".join(kinds) + ")")
         out = {"integrator": self.integrator, "precision": self.precision, "dt": self.dt,
                "particles": self._model.n_particles, "springs": self._model.n_springs,
                "terms": terms, "arrays": list(self._layout_names), "loops": self.loops,
@@ -320,8 +367,9 @@ def _release(dev, integrator):
 
 
 def _check_f32_range(model):
-    for name in ("positions", "masses", "stiffness", "damping", "rest_lengths", "velocities", "gravity"):
-        values = np.abs(getattr(model, name))
+    for name in ("positions", "masses", "stiffness", "damping", "rest_lengths", "velocities", "gravity", "drag",
+                 "wind", "pin_velocity"):
+        values = np.abs(np.asarray(getattr(model, name)))
         if values.size and values.max() > F32_MAX_MAGNITUDE:
             raise ValueError(f"{name}: {values.max():g} is beyond what an f32 run holds "
                              f"(|value| <= {F32_MAX_MAGNITUDE:g}); use precision='f64'")

@@ -1,5 +1,6 @@
 """Shared helpers of the tests: independent numpy references (forces, the dense
-Jacobians and system of Eq. 15), random test systems, and the driver switch.
+Jacobians and system of Eq. 15 with prescribed velocities), random test systems, and
+the driver switch.
 
 Nothing here uses the package's kernels or its algebraic shortcuts (the dense
 right-hand side keeps the -dt D v term instead of cancelling it against the
@@ -36,10 +37,11 @@ def simulation(model, path, **kw):
     return sim
 
 
-def random_system(seed, n=None, rest=(0.6, 1.4), n_fixed=None, gravity=(0.0, 0.0, -9.81)):
+def random_system(seed, n=None, rest=(0.6, 1.4), n_fixed=None, gravity=(0.0, 0.0, -9.81), **extra):
     """A random 3D system: n in 6..12 particles, about 2n random distinct springs with
     rest lengths ``rest`` x their current length (< 1 stretched, > 1 compressed),
-    random ks, kd > 0, masses and velocities, 1-2 fixed particles."""
+    random ks, kd > 0, masses and velocities, 1-2 fixed particles; ``extra`` Model
+    arguments are passed on."""
     rng = np.random.default_rng(seed)
     n = int(rng.integers(6, 13)) if n is None else n
     x = rng.uniform(-1.0, 1.0, size=(n, 3))
@@ -58,6 +60,7 @@ def random_system(seed, n=None, rest=(0.6, 1.4), n_fixed=None, gravity=(0.0, 0.0
         velocities=rng.normal(size=(n, 3)),
         gravity=gravity,
         fixed=rng.choice(n, size=n_fixed, replace=False),
+        **extra,
     )
 
 
@@ -70,11 +73,12 @@ def spring_geometry(x, i, j):
 
 
 def numpy_forces(model, x, v, magnitude=False):
-    """Total force (n, 3) of Eq. 1-3: spring + damping + gravity. With ``magnitude``,
-    also the per-particle sum of the terms' absolute values (n,) (the scale of the
-    round-off in summing them)."""
-    f = model.masses[:, None] * model.gravity[None, :]
-    mag = model.masses * np.linalg.norm(model.gravity)
+    """Total force (n, 3) of Eq. 1-3: spring + damping + gravity, plus air drag
+    -drag (v - wind). With ``magnitude``, also the per-particle sum of the terms'
+    absolute values (n,) (the scale of the round-off in summing them)."""
+    air = -model.drag * (v - model.wind[None, :])
+    f = model.masses[:, None] * model.gravity[None, :] + air
+    mag = model.masses * np.linalg.norm(model.gravity) + np.linalg.norm(air, axis=1)
     for s, (i, j) in enumerate(model.springs):
         nvec, length = spring_geometry(x, i, j)
         if nvec is None:
@@ -90,7 +94,8 @@ def numpy_forces(model, x, v, magnitude=False):
 
 
 def dense_jacobians(model, x, definiteness_fix):
-    """K = df/dx (Eq. 13, damping's x-derivative ignored) and D = df/dv (Eq. 14), 3n x 3n.
+    """K = df/dx (Eq. 13, damping's x-derivative ignored) and D = df/dv (Eq. 14, plus
+    -drag I from air drag), 3n x 3n.
 
     K_ii = ks ((l0/l - 1) I - (l0/l) n n^T) = ks (c I - (1 + c) n n^T), c = l0/l - 1;
     the definiteness fix uses min(c, 0) for c, i.e. drops the transverse part
@@ -98,7 +103,7 @@ def dense_jacobians(model, x, definiteness_fix):
     """
     n = model.n_particles
     K = np.zeros((3 * n, 3 * n))
-    D = np.zeros((3 * n, 3 * n))
+    D = -model.drag * np.eye(3 * n)
     eye = np.eye(3)
     for s, (i, j) in enumerate(model.springs):
         nvec, length = spring_geometry(x, i, j)
@@ -123,14 +128,44 @@ def free_dofs(model):
     return np.repeat(model.free_mask(), 3)
 
 
-def dense_system(model, dt, definiteness_fix, x=None, v=None):
-    """(A, b) of Eq. 15 restricted to the free particles' degrees of freedom."""
+def prescribed_dofs(model, prescribed=None):
+    """(mask (3n,) of the degrees of freedom whose velocity is prescribed, those velocities
+    (3n,), 0 elsewhere): the pinned particles' (their pin velocities), and the entries
+    of ``prescribed`` ({degree of freedom 3 i + axis: velocity in m/s})."""
+    mask = ~free_dofs(model)
+    values = np.zeros(3 * model.n_particles)
+    values.reshape(-1, 3)[model.fixed] = model.pin_velocity
+    for dof, value in (prescribed or {}).items():
+        mask[dof] = True
+        values[dof] = value
+    return mask, values
+
+
+def dense_matrices(model, dt, definiteness_fix, x=None, v=None):
+    """The whole (A, b) of Eq. 15, 3n x 3n and 3n, at the state (x, v) (default: the model's)."""
     x = model.positions if x is None else x
     v = model.velocities if v is None else v
     K, D = dense_jacobians(model, x, definiteness_fix)
     M = np.diag(np.repeat(model.masses, 3))
-    A = M - dt * D - dt * dt * K
     vf = v.reshape(-1)
-    b = M @ vf + dt * numpy_forces(model, x, v).reshape(-1) - dt * D @ vf
-    keep = free_dofs(model)
-    return A[np.ix_(keep, keep)], b[keep]
+    return M - dt * D - dt * dt * K, M @ vf + dt * numpy_forces(model, x, v).reshape(-1) - dt * D @ vf
+
+
+def dense_system(model, dt, definiteness_fix, x=None, v=None, prescribed=None):
+    """(A, b) of Eq. 15 restricted to the degrees of freedom whose velocity is not
+    prescribed (``prescribed_dofs``), the prescribed velocities times their columns of
+    A moved to the right-hand side: (A_uu, b_u - A_uc v_c)."""
+    A, b = dense_matrices(model, dt, definiteness_fix, x, v)
+    fixed, values = prescribed_dofs(model, prescribed)
+    keep = ~fixed
+    return A[np.ix_(keep, keep)], b[keep] - A[np.ix_(keep, fixed)] @ values[fixed]
+
+
+def dense_step(model, dt, definiteness_fix, x=None, v=None, prescribed=None):
+    """v' (n, 3) of Eq. 15 by a direct solve of ``dense_system``, the prescribed velocities
+    in their degrees of freedom."""
+    A, b = dense_system(model, dt, definiteness_fix, x, v, prescribed)
+    fixed, values = prescribed_dofs(model, prescribed)
+    out = values.copy()
+    out[~fixed] = np.linalg.solve(A, b)
+    return out.reshape(-1, 3)

@@ -21,8 +21,10 @@ def run_cli(*args):
 @pytest.mark.parametrize("scene", sorted(builtin_scenes()))
 def test_run_every_scene(scene, integrator, tmp_path, capsys):
     out = tmp_path / "state.npz"
-    small = {"cloth": ["--set", "resolution=6"], "cube": ["--set", "resolution=3"],
-             "chain": ["--set", "count=5"]}.get(scene, [])
+    grid = ["--set", "resolution=6"]
+    small = {"cloth": grid, "drape": grid, "tablecloth": grid, "flag": grid, "swing": grid,
+             "cube": ["--set", "resolution=3"], "chain": ["--set", "count=5"],
+             "rope-drop": ["--set", "count=5"]}.get(scene, [])
     code = main(["run", scene, "--integrator", integrator, "--steps", "3", "--quiet", "--out", str(out), *small])
     assert code == 0
     text = capsys.readouterr().out
@@ -129,3 +131,22 @@ def test_preconditioner_option_and_scene_solver_table(tmp_path, capsys):
         assert f"preconditioner {expected}" in " ".join(capsys.readouterr().out.split())
     code, out, err = run_cli("run", "cloth", "--preconditioner", "amg", "--steps", "1")
     assert code == 2 and "--preconditioner" in err and "Traceback" not in err
+
+
+def test_bad_collider_exits_2_naming_it(tmp_path):
+    path = tmp_path / "bad.toml"
+    path.write_text('integrator = "implicit"\nduration = 1.0\n[model]\ngenerator = "chain"\ncount = 4\n'
+                    '[[collider]]\ntype = "sphere"\ncenter = [0, 0, -1]\nradius = 0.0\n')
+    code, out, err = run_cli("run", str(path), "--steps", "1")
+    assert code == 2 and "Traceback" not in err
+    assert "collider[0].radius" in err and str(path) in err
+
+
+def test_set_drag_and_info_of_a_contact_scene(capsys):
+    assert main(["info", "drape", "--set", "resolution=4", "--set", "drag=0.5"]) == 0
+    text = capsys.readouterr().out
+    terms = next(line for line in text.splitlines() if line.startswith("terms"))
+    assert "drag" in terms and "contact (plane, sphere)" in terms
+    assert "colliders   plane" in text and "drag 0.5" in text
+    assert main(["run", "chain", "--set", "count=4", "--set", "wind=[1, 0, 0]", "--steps", "1"]) == 2
+    assert "model.wind" in capsys.readouterr().err

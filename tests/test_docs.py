@@ -2,6 +2,7 @@
 default where it has one), in the section of its table, generator or form; the complete example
 there is the shipped examples/my_scene.toml."""
 
+import dataclasses
 import json
 import re
 from pathlib import Path
@@ -9,6 +10,7 @@ from pathlib import Path
 import pytest
 
 from massspring import mesh, solvers
+from massspring.colliders import COLLIDERS
 from massspring.integrators import INTEGRATORS
 from massspring.scene import generators, spec
 
@@ -33,13 +35,23 @@ def row(text, key):
 
 
 def shown(default):
+    """A default as the TOML of a scene file writes it."""
+    if isinstance(default, bool):
+        return "true" if default else "false"
     return json.dumps(default) if isinstance(default, str) else repr(default)
 
 
 def test_top_level_keys_are_listed():
     text = section("Top level")
     for key, kind in spec.TOP_KEYS.items():
-        row(text, f"[{key}]" if kind is dict else key)
+        row(text, f"[{key}]" if kind is dict else f"[[{key}]]" if kind is list else key)
+    for key in spec.COMMON_KEYS:
+        row(section("Keys of every"), key)
+    for key in spec.PIN_KEYS:
+        row(section("`[[pin]]`"), key)
+    for cls in COLLIDERS.values():
+        for key in ("type", *(f.name for f in dataclasses.fields(cls))):
+            row(section("`[[collider]]`"), key)
     for key in INTEGRATORS:
         row(section("`[dt]`"), key)
     for key in spec.VIEW_KEYS:

@@ -153,7 +153,13 @@ def test_f32_kernels_compile_without_precision_warnings(tmp_path):
               "    sim = scene.simulation(integrator=integrator, precision='f32', preconditioner=pre,"
               " dt=1e-4 if integrator == 'rk4' else 1 / 60)\n"
               "    sim.step(2)\n"
-              "    sim.close()\n")
+              "    sim.close()\n"
+              "for name in ('drape', 'flag'):\n"  # colliders and friction; drag and wind
+              "    for integrator in ('symplectic', 'implicit'):\n"
+              "        sim = ms.load_scene(name).with_params(resolution=6).simulation(integrator=integrator,"
+              " precision='f32', dt=1e-4 if integrator == 'symplectic' else 1 / 60)\n"
+              "        sim.step(2)\n"
+              "        sim.close()\n")
     env = dict(os.environ, TI_OFFLINE_CACHE="0")
     proc = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, env=env, cwd=tmp_path)
     assert proc.returncode == 0, proc.stderr[-2000:]

@@ -14,7 +14,8 @@ the -dt D v term instead of cancelling it against the damping force).
 import numpy as np
 import pytest
 
-from conftest import PATHS, dense_system, free_dofs, numpy_forces, random_system, simulation
+import massspring as ms
+from conftest import PATHS, dense_step, dense_system, free_dofs, numpy_forces, random_system, simulation
 
 DT = 2e-2
 CG_TOL = 1e-10
@@ -216,3 +217,70 @@ def test_multi_step_call_equals_single_steps(integrator, path):
         np.testing.assert_array_equal(a.positions, b.positions)
         np.testing.assert_array_equal(a.velocities, b.velocities)
     assert a.steps == b.steps == 8
+
+
+# ----------------------------------------------------------------------------- pins and air
+
+
+def moving_pins_system(seed, drag=0.0, wind=(0.0, 0.0, 0.0)):
+    """A random system whose 2 pins move with random velocities (and optional air drag)."""
+    rng = np.random.default_rng(1000 + seed)
+    return random_system(seed, n_fixed=2, pin_velocity=rng.normal(size=(2, 3)), drag=drag, wind=wind)
+
+
+@pytest.mark.parametrize("path", PATHS)
+@pytest.mark.parametrize("seed", range(3))
+def test_implicit_step_with_moving_pins_matches_dense_solve(seed, path):
+    """Kinematic pins: Eq. 15 on the free particles with the pins' velocities prescribed,
+    their columns of A moved to the right-hand side (A_ff v_f = b_f - A_fp v_p), solved
+    densely. The pins' velocity is their pin velocity and they move by dt times it."""
+    model = moving_pins_system(seed)
+    assert model.has_moving_pins and np.all(model.velocities[model.fixed] == model.pin_velocity)
+    v_ref = dense_step(model, DT, True)
+    A, b = dense_system(model, DT, True)
+    sim = simulation(model, path, integrator="implicit", dt=DT, cg_tol=CG_TOL)
+    sim.step()
+    assert sim.solver_stats.converged, sim.solver_stats
+    v = sim.velocities
+    bound = np.linalg.cond(A) * (CG_TOL + 1e-13) * np.linalg.norm(v_ref)
+    assert np.linalg.norm(v - v_ref) <= bound
+    np.testing.assert_array_equal(v[model.fixed], model.pin_velocity)
+    np.testing.assert_allclose(sim.positions[model.fixed], model.positions[model.fixed] + DT * model.pin_velocity,
+                               rtol=0, atol=4 * np.finfo(float).eps)
+    # the pins' velocities matter: the solve with fixed pins is far from this one
+    still = ms.Model(model.positions, model.springs, masses=model.masses, stiffness=model.stiffness,
+                     damping=model.damping, rest_lengths=model.rest_lengths, velocities=model.velocities,
+                     gravity=model.gravity, fixed=model.fixed)
+    assert np.linalg.norm(dense_step(still, DT, True) - v_ref) > 1e3 * bound
+
+
+@pytest.mark.parametrize("path", PATHS)
+@pytest.mark.parametrize("seed", range(2))
+def test_implicit_step_with_drag_and_wind_matches_dense_solve(seed, path):
+    """Air drag -drag (v - wind) enters D as -drag I and f - D v as drag * wind."""
+    model = moving_pins_system(seed, drag=3.0, wind=(2.0, -1.0, 0.5))
+    v_ref = dense_step(model, DT, True)
+    A, _ = dense_system(model, DT, True)
+    sim = simulation(model, path, integrator="implicit", dt=DT, cg_tol=CG_TOL)
+    sim.step()
+    assert sim.solver_stats.converged and "drag" in sim.info()["terms"]
+    bound = np.linalg.cond(A) * (CG_TOL + 1e-13) * np.linalg.norm(v_ref)
+    assert np.linalg.norm(sim.velocities - v_ref) <= bound
+    calm = moving_pins_system(seed)  # the same system without air: far away
+    assert np.linalg.norm(dense_step(calm, DT, True) - v_ref) > 1e3 * bound
+
+
+@pytest.mark.parametrize("integrator", ["explicit", "symplectic"])
+def test_euler_step_with_drag_and_moving_pins_matches_numpy(integrator):
+    """One explicit/symplectic step with drag, wind and moving pins, against numpy."""
+    model = moving_pins_system(5, drag=3.0, wind=(2.0, -1.0, 0.5))
+    x, v = model.positions, model.velocities
+    free = model.free_mask()
+    v_new = v + DT * numpy_forces(model, x, v) / model.masses[:, None]
+    v_new[~free] = v[~free]
+    x_new = x + DT * (v_new if integrator == "symplectic" else v)
+    x_new[~free] = x[~free] + DT * model.pin_velocity
+    sim = simulation(model, "serial", integrator=integrator, dt=DT)
+    sim.step()
+    np.testing.assert_allclose(sim.velocities, v_new, rtol=0, atol=1e-13)
+    np.testing.assert_allclose(sim.positions, x_new, rtol=0, atol=1e-14)

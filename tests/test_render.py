@@ -316,3 +316,32 @@ def test_painters_order_near_triangle_covers_far_one(flip):
     # A faces the camera (shade 1) at strain +100 %, the scale's limit: the extension end of the map
     pixel = image[int(centroid[1]), int(centroid[0])].astype(int)
     assert np.all(np.abs(pixel - render.DIVERGING[-1]) <= 2), pixel
+
+
+def test_ground_and_solids_are_drawn_where_they_are():
+    """A ground plane (checkers in the two GROUND colours, shaded), a sphere and a moving box
+    (shades of SOLID) appear where the camera puts them, the box where it is at the frame's time."""
+    plane = ms.Plane((0, 0, -1.0), (0, 0, 1))
+    sphere = ms.Sphere((-1.0, 0.0, 0.0), 0.5)
+    box = ms.Box((0.5, -0.25, -0.25), (1.0, 0.25, 0.25), velocity=(0.0, 0.0, 0.5))
+    model = ms.Model([[0.0, 0.0, 0.0], [0.2, 0.0, 0.0]], [[0, 1]], gravity=(0, 0, 0),
+                     colliders=[plane, sphere, box])
+    frames = np.stack([model.positions, model.positions])
+    renderer = render.FrameRenderer(model, frames, camera.View(azimuth=-90, elevation=20), (240, 240),
+                                    times=[0.0, 1.0])
+    image = renderer.render(model.positions, 1.0).astype(float)
+
+    def colour_at(point):
+        px, _ = renderer.framing.pixels(np.array(point, dtype=float))
+        return image[int(px[1]), int(px[0])]
+
+    def is_shade_of(rgb, base):
+        ratio = rgb / np.array(base, dtype=float)
+        return np.ptp(ratio) < 0.05 and 0.29 < ratio.mean() <= 1.0  # shading keeps at least 0.3 of it
+
+    assert is_shade_of(colour_at([-1.0, 0.0, 0.0]), render.SOLID)  # the sphere's centre
+    assert is_shade_of(colour_at([0.75, 0.0, 0.5]), render.SOLID)  # the box at t = 1 s: moved up 0.5 m
+    assert not is_shade_of(colour_at([0.75, 0.0, -0.1]), render.SOLID)  # not where it started
+    ground = colour_at([0.0, 0.8, -1.0])  # on the plane, behind the springs
+    assert any(is_shade_of(ground, c) for c in render.GROUND)
+    assert np.all(colour_at([0.0, 0.0, 1.4]) == render.BACKGROUND)  # above the horizon: sky

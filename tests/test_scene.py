@@ -153,3 +153,101 @@ def test_bad_solver_table_names_the_key(body, key, tmp_path):
     with pytest.raises(ms.SceneError) as info:
         ms.load_scene(path)
     assert key in str(info.value) and str(path) in str(info.value)
+
+
+# ----------------------------------------------------------------------------- contact, pins and air
+
+
+CONTACT_SCENES = {"drape": ("plane", "sphere"), "tablecloth": ("plane", "box"), "flag": (),
+                  "rope-drop": ("plane", "sphere"), "swing": ()}
+
+
+@pytest.mark.parametrize("name", sorted(CONTACT_SCENES))
+def test_contact_scenes_build_their_colliders_pins_and_air(name):
+    scene = ms.load_scene(name)
+    small = {"chain": {"count": 6}}.get(scene.generator, {"resolution": 5})
+    model = scene.with_params(**small).model()
+    assert tuple(c.kind for c in model.colliders) == CONTACT_SCENES[name]
+    if name == "flag":
+        assert model.has_drag and np.any(model.wind != 0)
+        assert np.allclose(model.positions[:, 1], 0.0)  # upright: in the y = 0 plane
+        assert np.allclose(model.positions[model.fixed, 0], 0.0) and model.fixed.size == 5  # the pole
+    if name == "swing":
+        last = model.n_particles - 1
+        np.testing.assert_array_equal(model.pin_velocity[list(model.fixed).index(last)], [-0.2, -0.8, 0.3])
+        np.testing.assert_array_equal(model.pin_velocity[0], [0.0, -0.8, 0.3])
+    if name == "rope-drop":
+        assert model.fixed.size == 0
+
+
+def scene_file(tmp_path, body, model='generator = "chain"\ncount = 4'):
+    path = tmp_path / "scene.toml"
+    path.write_text(f'integrator = "implicit"\nduration = 1.0\n[model]\n{model}\n{body}\n')
+    return path
+
+
+@pytest.mark.parametrize("body, key", [
+    ('[[collider]]\nradius = 1.0', "collider[0].type"),
+    ('[[collider]]\ntype = "cylinder"', "collider[0].type"),
+    ('[[collider]]\ntype = "sphere"\ncenter = [0, 0, 0]', "collider[0].radius"),
+    ('[[collider]]\ntype = "sphere"\ncenter = [0, 0, 0]\nradius = -1.0', "collider[0].radius"),
+    ('[[collider]]\ntype = "sphere"\ncenter = [0, 0]\nradius = 1.0', "collider[0].center"),
+    ('[[collider]]\ntype = "plane"\npoint = [0, 0, 0]\nnormal = [0, 0, 1]\n'
+     '[[collider]]\ntype = "plane"\npoint = [0, 0, 0]\nnormal = [0, 0, 0]', "collider[1].normal"),
+    ('[[collider]]\ntype = "box"\nlower = [0, 0, 0]\nupper = [1, 1, 1]\nfriction = -1', "collider[0].friction"),
+    ('[[collider]]\ntype = "box"\nlower = [0, 0, 0]\nupper = [1, 1, 1]\nrestitution = 2', "collider[0].restitution"),
+    ('[[collider]]\ntype = "box"\nlower = [0, 0, 0]\nupper = [1, 0, 1]', "collider[0].lower"),
+    ('[[collider]]\ntype = "box"\nlower = [0, 0, 0]\nupper = [1, 1, 1]\nheight = 2', "collider[0].height"),
+    ('[[pin]]\nvelocity = [0, 0, 1]', "pin[0].index"),
+    ('[[pin]]\nindex = 1\nvelocity = [0, 1]', "pin[0].velocity"),
+    ('[[pin]]\nindex = 1\nspeed = 2.0', "pin[0].speed"),
+])
+def test_bad_collider_and_pin_tables_name_the_key_and_file(tmp_path, body, key):
+    path = scene_file(tmp_path, body)
+    with pytest.raises(ms.SceneError) as info:
+        ms.load_scene(path).model()
+    assert key in str(info.value) and str(path) in str(info.value), info.value
+
+
+def test_pin_index_out_of_range_is_named(tmp_path):
+    scene = ms.load_scene(scene_file(tmp_path, "[[pin]]\nindex = -9"))
+    with pytest.raises(ms.SceneError, match=r"pin\[0\]\.index: -9 is outside"):
+        scene.model()
+
+
+def test_pins_and_pin_velocity_of_a_scene(tmp_path):
+    """[[pin]] pins its particle (negative: from the end) with its velocity; pin_velocity moves
+    the generator's pins."""
+    scene = ms.load_scene(scene_file(tmp_path, "[[pin]]\nindex = -1\nvelocity = [0, 0, 2]",
+                                     'generator = "chain"\ncount = 4\npin_velocity = [1, 0, 0]'))
+    model = scene.model()
+    assert model.fixed.tolist() == [0, 3]
+    np.testing.assert_array_equal(model.pin_velocity, [[1, 0, 0], [0, 0, 2]])
+
+
+def test_common_keys_work_with_every_generator_and_set():
+    """drag, wind and pin_velocity are model keys of any generator, in files and with --set."""
+    for name in ("spring", "chain", "cloth", "cube"):
+        scene = ms.load_scene(name).with_settings(["drag=0.5", "wind=[1, 0, 0]"])
+        assert scene.common["drag"] == 0.5 and scene.common["wind"] == [1.0, 0.0, 0.0]
+        assert "drag" not in scene.params
+    model = ms.load_scene("cloth").with_settings(["drag=0.5", "resolution=4"]).model()
+    assert model.drag == 0.5 and np.all(model.wind == 0)
+    with pytest.raises(ms.SceneError, match="model.wind"):
+        ms.load_scene("cloth").with_settings(["wind=[1, 0, 0]", "resolution=4"]).model()
+    for bad in (["drag=-1"], ["drag=fast"], ["wind=[1, 0]"], ["pin_velocity=[0, 0, inf]"]):
+        with pytest.raises(ms.SceneError, match=bad[0].split("=")[0]):
+            ms.load_scene("cloth").with_settings(bad)
+
+
+def test_grid_upright_side_pin_and_chain_without_pin():
+    from massspring.scene import generators
+
+    args = generators.grid(**dict(generators.PARAMETERS["grid"], resolution=3, pin="side", upright=True))
+    x = np.asarray(args["positions"])
+    assert np.allclose(x[:, 1], 0.0) and np.ptp(x[:, 2]) == pytest.approx(1.0)
+    assert np.allclose(x[args["fixed"], 0], 0.0) and len(args["fixed"]) == 3
+    chain = generators.chain(**dict(generators.PARAMETERS["chain"], pin="none"))
+    assert len(chain["fixed"]) == 0
+    with pytest.raises(ValueError, match="pin"):
+        generators.chain(**dict(generators.PARAMETERS["chain"], pin="middle"))

@@ -267,3 +267,28 @@ def test_implicit_runs_get_a_line_per_preconditioner(tmp_path):
     assert "(multigrid)" in report.report(result)
     with pytest.raises(ValueError, match="preconditioners"):
         study.run_study(tiny_chain(), preconditioners=["amg"])
+
+
+def test_rk4_cache_tells_air_pins_and_colliders_apart(tmp_path):
+    """A cached reference is only reused for the same physics: drag, moving pins or a
+    collider make another entry (and a different trajectory); the exact spring solution
+    does not apply to them."""
+    import massspring as ms
+
+    base = tiny_chain().model()
+    dt, times = 1e-4, np.array([0.01])
+    args = dict(masses=base.masses, stiffness=base.stiffness, damping=base.damping, gravity=base.gravity,
+                fixed=base.fixed, rest_lengths=base.rest_lengths)
+    variants = [base, ms.Model(base.positions, base.springs, drag=0.05, **args),
+                ms.Model(base.positions, base.springs, pin_velocity=[[0.0, 0.0, 0.5]], **args),
+                ms.Model(base.positions, base.springs, colliders=[ms.Plane((0, 0, -1e-4), (0, 0, 1))], **args)]
+    finals = [reference.rk4(model, times, dt, cache=tmp_path).positions[-1] for model in variants]
+    assert len(list(tmp_path.glob("rk4-*.npz"))) == len(variants)
+    for other in finals[1:]:
+        assert np.abs(other - finals[0]).max() > 1e-6
+    spring = ms.load_scene("spring").model()
+    assert reference.exact_spring(spring, [0.1]) is not None
+    dragged = ms.Model(spring.positions, spring.springs, masses=spring.masses, stiffness=spring.stiffness,
+                       damping=spring.damping, rest_lengths=spring.rest_lengths, gravity=spring.gravity,
+                       fixed=spring.fixed, drag=0.1)
+    assert reference.exact_spring(dragged, [0.1]) is None

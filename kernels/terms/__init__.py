@@ -24,10 +24,11 @@ under those names (``dev.<name>``); 0-D ones are read as ``dev.<name>[None]``.
 """
 
 from .damping import SpringDamping
+from .drag import Drag
 from .gravity import Gravity
 from .springs import Springs
 
-TERMS = (Springs, SpringDamping, Gravity)  # the order forces are summed in
+TERMS = (Springs, SpringDamping, Gravity, Drag)  # the order forces are summed in
 
 
 def active_terms(model) -> tuple:

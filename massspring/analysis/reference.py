@@ -26,7 +26,7 @@ from massspring.io.files import atomic_output
 from massspring.model import Model
 
 CACHE_ENV = "MASSSPRING_CACHE"
-CACHE_FORMAT = b"massspring-rk4-v2"
+CACHE_FORMAT = b"massspring-rk4-v3"
 
 
 @dataclass(frozen=True)
@@ -73,11 +73,13 @@ def steps_between(times, dt, name="times") -> np.ndarray:
 def exact_spring(model: Model, times) -> Trajectory | None:
     """The exact continuous motion of a one-spring model, or None if it has none here.
 
-    Applies when the model has 2 particles, 1 spring, exactly one of the two fixed,
-    the free particle's velocity and gravity along the spring's axis (so the motion
-    stays on the axis), and the spring keeps a positive length at every instant.
+    Applies when the model has 2 particles, 1 spring, exactly one of the two fixed
+    (and still), no air and no collider, the free particle's velocity and gravity
+    along the spring's axis (so the motion stays on the axis), and the spring keeps a
+    positive length at every instant.
     """
-    if model.n_particles != 2 or model.n_springs != 1 or model.fixed.size != 1:
+    if model.n_particles != 2 or model.n_springs != 1 or model.fixed.size != 1 or model.has_drag \
+            or model.has_colliders or model.has_moving_pins:
         return None
     pinned = int(model.fixed[0])
     moving = 1 - pinned

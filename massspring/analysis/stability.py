@@ -5,7 +5,7 @@
 Jacobian the explicit integrators see) at a state, by Lanczos on the symmetric
 M^-1/2 (-K) M^-1/2 over the free degrees of freedom. K and D are applied
 matrix-free by the implicit solver's own kernels (``massspring.operators``); the
-stiffest mode's damping rate is c = u^T M^-1/2 (-D) M^-1/2 u.
+stiffest mode's damping rate is c = u^T M^-1/2 (-D) M^-1/2 u (springs' damping and air drag).
 
 ``predict`` turns (omega, c) into limits for the stiffest mode, x'' + c x' + omega^2 x = 0:
 
@@ -54,8 +54,9 @@ def spectrum(model: Model, positions=None, iterations=40, seed=0) -> Spectrum:
         raise ValueError(f"iterations: expected a positive integer, got {iterations!r}")
     x = model.positions if positions is None else np.asarray(positions, dtype=np.float64)
     free = model.free_mask()
-    if model.n_springs == 0 or not free.any():
-        return Spectrum(0.0, 0.0, 0.0, 0, 0.0)
+    if model.n_springs == 0 or not free.any():  # no stiffness: the fastest decay is drag on the lightest particle
+        rate = model.drag / float(model.masses[free].min()) if free.any() else 0.0
+        return Spectrum(0.0, 0.0, rate, 0, 0.0)
     jacobians = Jacobians(model, x)
     scale = np.where(free, 1.0 / np.sqrt(model.masses), 0.0)[:, None]
 
@@ -83,6 +84,7 @@ def spectrum(model: Model, positions=None, iterations=40, seed=0) -> Spectrum:
     lam, y = float(values[-1]), vectors[:, -1]
     mode = sum(c * b for c, b in zip(y, basis[:k]))
     rate = float(np.vdot(mode, apply(jacobians.damping, mode))) if model.has_damping else 0.0
+    rate += model.drag * float(np.vdot(mode, scale ** 2 * mode))  # drag: D = -drag I on every particle
     jacobians.close()
     return Spectrum(lam, math.sqrt(max(lam, 0.0)), rate, k, abs(betas[k - 1] * y[-1]))
 

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import numpy as np
+
 from massspring.device import Config
 from massspring.kernels import state as state_kernels
 
@@ -27,6 +29,12 @@ class Integrator:
         self.serial = settings.loops == "serial"
         self.cfg = self.config(model, settings)
         self.state = dev.state
+        self.steps = 0  # good steps taken: the current state is at time steps * dt (moving colliders need it)
+
+    @property
+    def time(self) -> float:
+        """Simulated time (s) of the current state."""
+        return self.steps * self.settings.dt
 
     @classmethod
     def config(cls, model, settings) -> Config:
@@ -45,11 +53,27 @@ class Integrator:
         """
         raise NotImplementedError
 
-    def load_state(self, positions, velocities):
+    def carried(self) -> dict:
+        """The arrays of ``carried_names`` at the current state (numpy, a row per particle)."""
+        return {name: self.dev.read(name).astype(dtype) for name, (dtype, _) in self.carried_names().items()}
+
+    def carried_names(self) -> dict:
+        """What this run carries from step to step besides x and v: name -> (numpy dtype,
+        trailing shape) of arrays with a row per particle (none by default)."""
+        return {}
+
+    def load_state(self, positions, velocities, carried=None):
         """Make ``positions`` and ``velocities`` ((n, 3) float64 numpy, checked by the
-        caller) the current state, as if the last step had produced them."""
+        caller) the current state, as if the last step had produced them; ``carried``
+        (checked by the caller): the arrays of ``carried_names`` (None: start them afresh)."""
         state_kernels.load_vectors(self.state.x, positions)
         state_kernels.load_vectors(self.state.v, velocities)
+        for name, values in (carried or {}).items():
+            field = getattr(self.dev, name)
+            if values.ndim == 2:
+                state_kernels.load_vectors(field, values.astype(np.float64))
+            else:
+                state_kernels.load_integers(field, values.astype(np.int32))
 
     @property
     def stats(self):

@@ -33,18 +33,20 @@ class ExplicitEuler(Integrator):
     def advance(self, steps):
         dev, cfg, dt = self.dev, self.cfg, self.settings.dt
         if self.serial:
-            result = euler.euler_steps(dev, cfg, self.state, self.spare, dt, steps, self.symplectic)
+            result = euler.euler_steps(dev, cfg, self.state, self.spare, dt, self.time, steps, self.symplectic)
             done, code, kinetic = int(result[0]), int(result[1]), float(result[2])
             if done % 2:
                 self.state, self.spare = self.spare, self.state
+            self.steps += done
             return done, code, kinetic
         done, code, kinetic = 0, divergence.OK, 0.0
         while done < steps and code == divergence.OK:
-            result = euler.euler_step(dev, cfg, self.state, self.spare, dt, self.symplectic)
+            result = euler.euler_step(dev, cfg, self.state, self.spare, dt, self.time, self.symplectic)
             code, kinetic = int(result[0]), float(result[1])
             if code == divergence.OK:
                 self.state, self.spare = self.spare, self.state
                 done += 1
+                self.steps += 1
         return done, code, kinetic
 
     @staticmethod

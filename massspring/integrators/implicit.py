@@ -4,8 +4,11 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
+import taichi as ti
+
 from massspring.device import Config
-from massspring.kernels import cg, divergence
+from massspring.kernels import cg, divergence, friction
 from massspring.solvers import PRECONDITIONERS, solve
 
 from .base import Integrator
@@ -21,6 +24,11 @@ class ImplicitEuler(Integrator):
     in the loop that stores x', so keeping it costs one store per particle and no
     launch, and a rejected step is undone by copying it back into ``dev.v`` (x_n was
     never overwritten).
+
+    With colliders, contacts are constraints of the solve (``kernels/contact.py``):
+    detected in the refresh, friction and released contacts after it
+    (``kernels/friction.py``), and positions that would still end inside a collider
+    moved onto its surface when x' is committed.
     """
 
     name = "implicit"
@@ -37,7 +45,8 @@ class ImplicitEuler(Integrator):
     @classmethod
     def config(cls, model, settings):
         return Config.of(model, settings.precision, fix=settings.definiteness_fix,
-                         precond=PRECONDITIONERS[settings.preconditioner].kernel)
+                         precond=PRECONDITIONERS[settings.preconditioner].kernel,
+                         contact_filter=model.has_colliders)
 
     @classmethod
     def declare(cls, layout, model, settings):
@@ -49,29 +58,54 @@ class ImplicitEuler(Integrator):
         if model.n_springs:
             layout.vectors("coef", real, "entry", k=5)
             layout.vectors("spring_coef", real, "spring", k=5)
+        if model.has_colliders:
+            layout.add("contacts", ti.i32, "particle")
+            layout.add("released", ti.i32, "particle", values=np.zeros(model.n_particles))
+            layout.add("cfilter", real, "particle", (3, 3))
+            layout.vectors("cvel", real)
+            layout.vectors("impulse", real)
+            layout.add("stick", ti.i32, "particle", values=np.zeros(model.n_particles))
+            layout.vectors("fric", real, values=np.zeros((model.n_particles, 3)))
         PRECONDITIONERS[settings.preconditioner].declare(layout, model, settings)
 
     @property
     def stats(self):
         return self._stats
 
-    def load_state(self, positions, velocities):
-        """The base's load, and ``keep`` (the last accepted velocity) set to ``velocities``."""
-        super().load_state(positions, velocities)
+    def carried_names(self):
+        """With colliders, the contact memory (``kernels/friction.py``): released contacts,
+        sticking particles, kinetic friction impulses."""
+        if not self.cfg.has_colliders:
+            return {}
+        return {"released": (np.int32, ()), "stick": (np.int32, ()), "fric": (np.float64, (3,))}
+
+    def load_state(self, positions, velocities, carried=None):
+        """The base's load, and ``keep`` (the last accepted velocity) set to ``velocities``;
+        without ``carried``, the contact memory starts afresh (all contacts free to form,
+        none sticking)."""
+        super().load_state(positions, velocities, carried)
         self.dev.keep.copy_from(self.dev.v)
+        if carried is None and self.cfg.has_colliders:
+            for name in ("released", "stick"):
+                getattr(self.dev, name).fill(0)
+            self.dev.fric.fill(0)
 
     def advance(self, steps):
         """One implicit step (``steps`` must be 1: each step has its own solver stats)."""
         assert steps == 1
         s = self.settings
-        self._stats = solve(self.dev, self.cfg, self.preconditioner, s.dt, s.cg_tol, s.cg_max_iter, self.serial)
+        self._stats = solve(self.dev, self.cfg, self.preconditioner, s.dt, s.cg_tol, s.cg_max_iter, self.serial,
+                            self.time)
         if self._stats.reason == "non-finite":  # Eq. 15 overflowed: no velocity to step with
             self.dev.v.copy_from(self.dev.keep)
             return 0, divergence.NONFINITE, math.inf
-        code, kinetic = cg.advance_positions(self.dev, self.cfg, s.dt, self.serial)
+        if self.cfg.contact_filter:
+            friction.contact_friction(self.dev, self.cfg, self.time, self.serial)
+        code, kinetic = cg.advance_positions(self.dev, self.cfg, s.dt, (self.steps + 1) * s.dt, self.serial)
         code = int(code)
         if code != divergence.OK:
             self.dev.v.copy_from(self.dev.keep)
+        self.steps += code == divergence.OK
         return int(code == divergence.OK), code, float(kinetic)
 
     @staticmethod

@@ -13,7 +13,8 @@ RK4_IMAGINARY_LIMIT = 2.0 * math.sqrt(2.0)  # |dt omega| where RK4's stability r
 
 class RK4(Integrator):
     """Four force evaluations per step (``kernels/rk4.py``); fourth order. The study's
-    reference solutions are RK4 runs in f64."""
+    reference solutions are RK4 runs in f64. With colliders it gets the explicit
+    integrators' contact response after each step, which is first order in dt."""
 
     name = "rk4"
     order = 4
@@ -34,18 +35,20 @@ class RK4(Integrator):
     def advance(self, steps):
         dev, cfg, dt = self.dev, self.cfg, self.settings.dt
         if self.serial:
-            result = rk4.rk4_steps(dev, cfg, self.state, self.spare, self.stage, dt, steps)
+            result = rk4.rk4_steps(dev, cfg, self.state, self.spare, self.stage, dt, self.time, steps)
             done, code, kinetic = int(result[0]), int(result[1]), float(result[2])
             if done % 2:
                 self.state, self.spare = self.spare, self.state
+            self.steps += done
             return done, code, kinetic
         done, code, kinetic = 0, divergence.OK, 0.0
         while done < steps and code == divergence.OK:
-            result = rk4.rk4_step(dev, cfg, self.state, self.spare, self.stage, dt)
+            result = rk4.rk4_step(dev, cfg, self.state, self.spare, self.stage, dt, self.time)
             code, kinetic = int(result[0]), float(result[1])
             if code == divergence.OK:
                 self.state, self.spare = self.spare, self.state
                 done += 1
+                self.steps += 1
         return done, code, kinetic
 
     @staticmethod

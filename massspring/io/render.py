@@ -10,6 +10,10 @@ steps while the run goes; afterwards a :class:`FrameRenderer` frames the boundin
 of *all* recorded frames (so nothing leaves the picture), and :func:`export` draws
 each frame and writes the files. A run without a recording pays nothing.
 
+Colliders (``massspring.colliders``) are drawn where they are at each frame's time:
+planes first, as a shaded checkered square under everything else, spheres and boxes
+as shaded triangles (back faces culled) sorted by depth together with the surface.
+
 Memory: a recording holds frames x particles x 12 bytes (150 frames of a 32 x 32
 cloth: 1.8 MB); rendered frames are kept as 8-bit palette images (W x H bytes each).
 """
@@ -20,7 +24,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from massspring.io.camera import Framing, View
+from massspring.io.camera import PERSPECTIVE_DISTANCE, Framing, View
 from massspring.io.files import atomic_output
 
 MAX_DOTS = 200              # free particles are dots when a model without a surface has at most this many
@@ -34,6 +38,13 @@ BACKGROUND = (24, 26, 32)
 TEXT = (225, 225, 225)
 FIXED = (255, 190, 0)
 FREE = (250, 250, 250)
+SOLID = (118, 132, 156)                        # spheres and boxes, before shading
+GROUND = ((66, 72, 62), (84, 92, 78))           # the two colours of a plane's checkers
+GROUND_CELLS = 12                               # checkers along each side of a drawn plane
+GROUND_EXTENT = 1.6                             # half the side of a drawn plane, in framing radii
+SPHERE_BANDS = (12, 24)                         # latitude and longitude bands of a drawn sphere
+BOX_CELLS = 8                                   # cells along each edge of a drawn box face
+SOLID_OFFSET = 0.03                             # depth offset of spheres and boxes, in framing radii
 # Diverging map from compression (blue, -1) through neutral grey (0) to extension (red, +1).
 DIVERGING = np.array([(59, 76, 192), (141, 176, 254), (221, 221, 221), (244, 154, 123), (180, 4, 38)],
                      dtype=np.float64)
@@ -149,16 +160,24 @@ class FrameRenderer:
     their edge springs, with those springs as thin lines; without a surface every
     spring is a line coloured by its strain. Fixed particles are amber dots; free
     particles are white dots in a model without a surface and at most ``MAX_DOTS`` of them. ``label`` starts
-    each frame's caption (followed by the simulated time).
+    each frame's caption (followed by the simulated time). The model's colliders are
+    drawn too (see the module docstring); ``times`` (s, one per frame, default 0) says
+    where moving ones are when the framing is fitted.
     """
 
-    def __init__(self, model, frames, view=View(), size=(480, 480), label="", framing="run"):
+    def __init__(self, model, frames, view=View(), size=(480, 480), label="", framing="run", times=None):
         import taichi as ti  # the canvas; no ti.init needed, nothing is compiled
 
         self.model = model
         self.width, self.height = size
         self.label = label
         self.font, _, self.legend_h = layout(size)
+        frames = np.asarray(frames)
+        times = np.zeros(len(frames)) if times is None else np.asarray(times, dtype=np.float64)
+        solids = [c for c in model.colliders if c.kind != "plane"]
+        if solids:  # the picture holds the spheres and boxes too, where they are at each frame
+            corners = np.array([[_bounds(c.at(t)) for c in solids] for t in times]).reshape(len(frames), -1, 3)
+            frames = np.concatenate([frames, corners.astype(frames.dtype)], axis=1)
         self.framing = Framing.fit(view, frames, plot_box(size), framing)
         tris = model.triangles
         self.triangles = tris
@@ -201,8 +220,9 @@ class FrameRenderer:
         springs = self.model.springs[self.lines]
         line_rgb = diverging_colours(strain[self.lines])
         line_depth = (depth[springs[:, 0]] + depth[springs[:, 1]]) / 2
-        if len(self.triangles):
-            self._draw_surface(positions, uv, depth, strain, springs, line_rgb, line_depth)
+        solids = self._draw_colliders(framing, time)
+        if len(self.triangles) or solids is not None:
+            self._draw_surface(positions, uv, depth, strain, springs, line_rgb, line_depth, solids)
         else:
             order = np.argsort(line_depth, kind="stable")
             gui.lines(uv[springs[order, 0]], uv[springs[order, 1]], radius=self.line_width,
@@ -215,9 +235,12 @@ class FrameRenderer:
         image = gui.get_image()  # (W, H, 4) float in [0, 1], column-major with y up
         return np.ascontiguousarray(np.rint(image[:, ::-1, :3].transpose(1, 0, 2) * 255).astype(np.uint8))
 
-    def _draw_surface(self, positions, uv, depth, strain, springs, line_rgb, line_depth, buckets=16):
+    def _draw_surface(self, positions, uv, depth, strain, springs, line_rgb, line_depth, solids=None, buckets=16):
         """Triangles far to near, in ``buckets`` depth slices; each slice's edge lines are
-        drawn right after its triangles, so nearer surface covers farther lines."""
+        drawn right after its triangles, so nearer surface covers farther lines. ``solids``
+        (canvas corners (t, 3, 2), colours (t, 3), depths (t,)) are the colliders'
+        triangles, sorted in with the surface's. A model without a surface draws its
+        springs (darkened lines on a surface) at full colour."""
         tris = self.triangles
         x = np.asarray(positions, dtype=np.float64)
         normal = np.cross(x[tris[:, 1]] - x[tris[:, 0]], x[tris[:, 2]] - x[tris[:, 0]])
@@ -227,21 +250,60 @@ class FrameRenderer:
         edge_strain = np.where(has, strain[np.maximum(self.tri_springs, 0)], 0.0)
         tri_strain = edge_strain.sum(axis=1) / np.maximum(has.sum(axis=1), 1)
         tri_rgb = diverging_colours(tri_strain) * (0.35 + 0.65 * facing)[:, None]
+        tri_uv = uv[tris]
         tri_depth = depth[tris].mean(axis=1)
+        if solids is not None:
+            tri_uv = np.concatenate([tri_uv, solids[0]])
+            tri_rgb = np.concatenate([tri_rgb, solids[1]])
+            tri_depth = np.concatenate([tri_depth, solids[2]])
         order = np.argsort(tri_depth, kind="stable")
-        edges = np.quantile(tri_depth, np.linspace(0, 1, buckets + 1)[1:-1])
+        edges = np.quantile(tri_depth if len(tris) else np.concatenate([tri_depth, line_depth]),
+                            np.linspace(0, 1, buckets + 1)[1:-1])
         tri_bucket = np.searchsorted(edges, tri_depth[order])
-        line_bucket = np.searchsorted(edges, line_depth)
-        line_col = packed(line_rgb * 0.7)
+        line_order = np.arange(len(line_depth)) if len(tris) else np.argsort(line_depth, kind="stable")
+        line_bucket = np.searchsorted(edges, line_depth[line_order])
+        line_col = packed(line_rgb * (0.7 if len(tris) else 1.0))
         for k in range(buckets):
             sel = order[tri_bucket == k]
             if len(sel):
-                a, b, c = (uv[tris[sel, i]] for i in range(3))
-                self.gui.triangles(a, b, c, color=packed(tri_rgb[sel]))
-            lsel = np.flatnonzero(line_bucket == k)
+                self.gui.triangles(tri_uv[sel, 0], tri_uv[sel, 1], tri_uv[sel, 2], color=packed(tri_rgb[sel]))
+            lsel = line_order[line_bucket == k]
             if len(lsel):
                 self.gui.lines(uv[springs[lsel, 0]], uv[springs[lsel, 1]], radius=self.line_width,
                                color=line_col[lsel])
+
+    def _draw_colliders(self, framing, time):
+        """Draw the planes (checkered squares GROUND_EXTENT framing radii wide about the
+        framing centre, under everything) and return the spheres' and boxes' front-facing
+        triangles at ``time`` as (canvas corners, shaded colours, depths), or None."""
+        colliders = [c.at(time) for c in self.model.colliders]
+        right, up, toward = framing.view.basis()
+        light = _unit(toward + 0.6 * up - 0.3 * right)
+        for plane in (c for c in colliders if c.kind == "plane"):
+            corners, normals, colours = _plane_cells(plane, framing.centre, GROUND_EXTENT * framing.radius)
+            shade = 0.45 + 0.55 * np.abs(normals @ light)
+            px, _ = framing.pixels(corners)
+            uv = self._to_canvas(px)
+            rgb = packed(colours * shade[:, None])
+            self.gui.triangles(uv[:, 0], uv[:, 1], uv[:, 2], color=rgb)
+            self.gui.triangles(uv[:, 0], uv[:, 2], uv[:, 3], color=rgb)
+        parts = [_solid_triangles(c) for c in colliders if c.kind != "plane"]
+        if not parts:
+            return None
+        corners = np.concatenate([p[0] for p in parts])
+        normals = np.concatenate([p[1] for p in parts])
+        if framing.view.projection == "perspective":
+            eye = framing.centre + toward * PERSPECTIVE_DISTANCE * framing.radius
+            front = np.einsum("ij,ij->i", normals, eye - corners.mean(axis=1)) > 0
+        else:
+            front = normals @ toward > 0
+        corners, normals = corners[front], normals[front]
+        px, depth = framing.pixels(corners)
+        shade = 0.3 + 0.7 * np.clip(normals @ light, 0.0, 1.0)
+        # Particles stay outside, so what lies on a solid is in front of it: its triangles
+        # are sorted as if SOLID_OFFSET framing radii farther (a polygon offset).
+        depth = depth.mean(axis=1) - SOLID_OFFSET * framing.radius
+        return self._to_canvas(px), np.array(SOLID, dtype=np.float64) * shade[:, None], depth
 
     def _draw_text(self, time):
         """Caption (label, simulated time) at the top; strain colour bar and legend at the bottom."""
@@ -269,6 +331,69 @@ class FrameRenderer:
         if self.model.has_fixed:
             gui.circle((0.85, label_y - 0.4 * f / h), radius=self.dot * 1.5, color=packed(FIXED))
             gui.text("fixed", (0.87, label_y), font_size=f, color=packed(TEXT))
+
+
+def _unit(v):
+    return np.asarray(v, dtype=np.float64) / np.linalg.norm(v)
+
+
+def _bounds(collider):
+    """The 8 corners (8, 3) of a sphere's or box's bounding box."""
+    if collider.kind == "sphere":
+        lower = np.array(collider.center) - collider.radius
+        upper = np.array(collider.center) + collider.radius
+    else:
+        lower, upper = np.array(collider.lower), np.array(collider.upper)
+    return np.array([[(lower, upper)[i][0], (lower, upper)[j][1], (lower, upper)[k][2]]
+                     for i in (0, 1) for j in (0, 1) for k in (0, 1)])
+
+
+def _plane_cells(plane, centre, half):
+    """A square of the plane, 2 ``half`` wide about the point nearest ``centre``, in
+    GROUND_CELLS^2 checkers: corners (c, 4, 3), their normal (c, 3), colours (c, 3)."""
+    n = np.array(plane.normal)
+    middle = centre - ((centre - np.array(plane.point)) @ n) * n
+    t1 = _unit(np.cross(n, [1.0, 0.0, 0.0] if abs(n[0]) < 0.9 else [0.0, 1.0, 0.0]))
+    t2 = np.cross(n, t1)
+    edges = np.linspace(-half, half, GROUND_CELLS + 1)
+    i, j = np.meshgrid(np.arange(GROUND_CELLS), np.arange(GROUND_CELLS), indexing="ij")
+    i, j = i.ravel(), j.ravel()
+    corner = [middle + np.outer(edges[i + a], t1) + np.outer(edges[j + b], t2) for a, b in ((0, 0), (1, 0),
+                                                                                             (1, 1), (0, 1))]
+    colours = np.array(GROUND, dtype=np.float64)[(i + j) % 2]
+    return np.stack(corner, axis=1), np.tile(n, (len(i), 1)), colours
+
+
+def _solid_triangles(collider):
+    """A sphere or box as triangles: corners (t, 3, 3) and outward normals (t, 3)."""
+    if collider.kind == "sphere":
+        lat, lon = SPHERE_BANDS
+        theta = np.linspace(0.0, np.pi, lat + 1)
+        phi = np.linspace(0.0, 2 * np.pi, lon + 1)
+        points = np.stack(np.meshgrid(theta, phi, indexing="ij"), axis=-1)
+        unit = np.stack([np.sin(points[..., 0]) * np.cos(points[..., 1]),
+                         np.sin(points[..., 0]) * np.sin(points[..., 1]), np.cos(points[..., 0])], axis=-1)
+        quads = np.stack([unit[:-1, :-1], unit[1:, :-1], unit[1:, 1:], unit[:-1, 1:]], axis=2).reshape(-1, 4, 3)
+        tris = np.concatenate([quads[:, [0, 1, 2]], quads[:, [0, 2, 3]]])
+        normals = tris.mean(axis=1)
+        normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+        return np.array(collider.center) + collider.radius * tris, normals
+    lower, upper = np.array(collider.lower), np.array(collider.upper)
+    steps = np.linspace(0.0, 1.0, BOX_CELLS + 1)
+    tris, normals = [], []
+    for axis in range(3):
+        u, v = (axis + 1) % 3, (axis + 2) % 3
+        for side, level in ((-1.0, lower[axis]), (1.0, upper[axis])):
+            a, b = np.meshgrid(lower[u] + steps * (upper[u] - lower[u]), lower[v] + steps * (upper[v] - lower[v]),
+                               indexing="ij")
+            grid = np.zeros(a.shape + (3,))
+            grid[..., axis], grid[..., u], grid[..., v] = level, a, b
+            quads = np.stack([grid[:-1, :-1], grid[1:, :-1], grid[1:, 1:], grid[:-1, 1:]], axis=2).reshape(-1, 4, 3)
+            tris.append(np.concatenate([quads[:, [0, 1, 2]], quads[:, [0, 2, 3]]]))
+            normal = np.zeros(3)
+            normal[axis] = side
+            normals.append(np.tile(normal, (len(tris[-1]), 1)))
+    return np.concatenate(tris), np.concatenate(normals)
 
 
 def to_palette(image):

@@ -4,7 +4,9 @@ read back by ``run --restart``).
 Keys: ``positions``, ``velocities`` (n, 3) float64 (m, m/s); ``springs`` (m, 2) int;
 ``time`` (s), ``steps``, ``dt`` (s); and, to check a restart against its model:
 ``fingerprint`` (``Model.fingerprint()``, hex), ``scene`` (the scene's name, "" when
-none was given), ``integrator``, ``triangles`` (t, 3) int (the surface, possibly empty).
+none was given), ``integrator``, ``triangles`` (t, 3) int (the surface, possibly empty);
+``carried_<name>`` for each array of ``Simulation.carried_state()`` (the implicit
+step's contact memory), so that a restart continues to the bit.
 """
 
 from __future__ import annotations
@@ -20,14 +22,16 @@ from massspring.io.files import atomic_output
 KEYS = {"positions": ("f", ("n", 3)), "velocities": ("f", ("n", 3)), "springs": ("i", ("m", 2)),
         "time": ("f", ()), "steps": ("i", ()), "dt": ("f", ()), "fingerprint": ("U", ()),
         "scene": ("U", ()), "integrator": ("U", ())}
+CARRIED = "carried_"  # prefix of the keys of Simulation.carried_state()
 
 
 def write_state(sim, path, scene=""):
     """Write ``sim``'s current state to ``path`` (.npz), atomically; ``scene``: its name."""
     with atomic_output(path) as fh:
+        carried = {f"{CARRIED}{name}": values for name, values in sim.carried_state().items()}
         np.savez(fh, positions=sim.positions, velocities=sim.velocities, springs=sim.model.springs,
                  time=sim.time, steps=sim.steps, dt=sim.dt, fingerprint=sim.model.fingerprint(),
-                 scene=str(scene), integrator=sim.integrator, triangles=sim.model.triangles)
+                 scene=str(scene), integrator=sim.integrator, triangles=sim.model.triangles, **carried)
 
 
 @dataclass(frozen=True)
@@ -44,6 +48,7 @@ class State:
     fingerprint: str
     scene: str
     integrator: str
+    carried: dict | None = None  # Simulation.carried_state() at the save, if it had any
 
     @property
     def n_particles(self) -> int:
@@ -78,9 +83,15 @@ def read_state(path) -> State:
         raise ValueError(f"{path}: steps: must be >= 0, got {steps}")
     if not dt > 0:
         raise ValueError(f"{path}: dt: must be > 0, got {dt:g}")
+    carried = {key[len(CARRIED):]: arrays[key] for key in arrays if key.startswith(CARRIED)}
+    for name, arr in carried.items():
+        n = arrays["positions"].shape[0]
+        if arr.dtype.kind not in "iuf" or arr.shape[:1] != (n,) or not np.all(np.isfinite(arr)):
+            raise ValueError(f"{path}: {CARRIED}{name}: expected finite numbers, a row per particle ({n}), "
+                             f"got shape {arr.shape} of {arr.dtype}")
     return State(str(path), arrays["positions"].astype(np.float64), arrays["velocities"].astype(np.float64),
                  arrays["springs"], float(arrays["time"]), steps, dt, str(arrays["fingerprint"]),
-                 str(arrays["scene"]), str(arrays["integrator"]))
+                 str(arrays["scene"]), str(arrays["integrator"]), carried or None)
 
 
 _KINDS = {"f": "real numbers", "i": "integers", "U": "a string"}

@@ -25,15 +25,16 @@ PARAMETERS = {
     "spring": {"length": 1.0, "displacement": 0.1, "mass": 1.0, "stiffness": 100.0,
                "damping": 0.5, "gravity": [0.0, 0.0, 0.0]},
     "chain": {"count": 20, "length": 1.0, "mass": 0.1, "stiffness": 1000.0, "damping": 0.0,
-              "gravity": [0.0, 0.0, -9.81], "mass_ratio": 1.0, "rest_scale": 1.0, "spread": 1.0},
+              "gravity": [0.0, 0.0, -9.81], "mass_ratio": 1.0, "rest_scale": 1.0, "spread": 1.0, "pin": "end"},
     "grid": {"resolution": 32, "size": 1.0, "mass": 1.0, "stiffness": 1e4, "damping": 0.0,
              "shear": 1.0, "bend": 0.1, "pin": "corners", "gravity": [0.0, 0.0, -9.81],
-             "compress": 1.0, "crumple": 0.0, "seed": 0},
+             "compress": 1.0, "crumple": 0.0, "seed": 0, "upright": False},
     "lattice": {"resolution": 6, "size": 0.5, "mass": 1.0, "stiffness": 2e4, "damping": 0.0,
                 "squash": 0.8, "spin": 2.0, "gravity": [0.0, 0.0, -9.81]},
 }
 
-PIN_CHOICES = ("none", "corners", "edge")
+PIN_CHOICES = ("none", "corners", "edge", "side")
+CHAIN_PINS = ("end", "none")
 
 
 def spring(length, displacement, mass, stiffness, damping, gravity):
@@ -47,9 +48,10 @@ def spring(length, displacement, mass, stiffness, damping, gravity):
                 gravity=gravity, fixed=[0])
 
 
-def chain(count, length, mass, stiffness, damping, gravity, mass_ratio=1.0, rest_scale=1.0, spread=1.0):
-    """A rope of ``count`` particles, initially straight along x, its first particle
-    fixed: it swings down under gravity. ``stiffness`` in N (EA), ``damping`` in N s.
+def chain(count, length, mass, stiffness, damping, gravity, mass_ratio=1.0, rest_scale=1.0, spread=1.0, pin="end"):
+    """A rope of ``count`` particles, initially straight along x from the origin, its first
+    particle fixed (``pin`` "end"; "none": nothing fixed, it falls): it swings down under
+    gravity. ``stiffness`` in N (EA), ``damping`` in N s.
 
     Extreme variants: ``mass_ratio`` is the last (free end) particle's mass over
     each other particle's (a heavy weight on a light rope; ``mass`` stays the
@@ -62,6 +64,8 @@ def chain(count, length, mass, stiffness, damping, gravity, mass_ratio=1.0, rest
     _positive("mass_ratio", mass_ratio)
     _at_least("rest_scale", rest_scale, 0.0)
     _at_least("spread", spread, 0.0)
+    if pin not in CHAIN_PINS:
+        raise ValueError(f"pin: expected one of {', '.join(CHAIN_PINS)}, got {pin!r}")
     h = length / (count - 1)
     x = np.zeros((count, 3))
     x[:, 0] = np.arange(count) * h * spread
@@ -69,16 +73,17 @@ def chain(count, length, mass, stiffness, damping, gravity, mass_ratio=1.0, rest
     masses = np.ones(count)
     masses[-1] = mass_ratio
     return dict(positions=x, springs=springs, masses=mass * masses / masses.sum(), stiffness=stiffness / h,
-                damping=damping / h, rest_lengths=h * rest_scale, gravity=gravity, fixed=[0])
+                damping=damping / h, rest_lengths=h * rest_scale, gravity=gravity, fixed=[0] if pin == "end" else [])
 
 
 def grid(resolution, size, mass, stiffness, damping, shear, bend, pin, gravity,
-         compress=1.0, crumple=0.0, seed=0):
-    """A square cloth of resolution x resolution particles in the z = 0 plane, with
-    structural, shear (diagonal) and bend (skip-one) springs. ``shear`` and ``bend``
-    scale their stiffness and damping relative to the structural springs.
-    ``pin``: "corners" (the two corners at y = size), "edge" (the whole y = size
-    edge) or "none". ``stiffness`` in N/m, ``damping`` in N s/m.
+         compress=1.0, crumple=0.0, seed=0, upright=False):
+    """A square cloth of resolution x resolution particles in the z = 0 plane (``upright``:
+    in the y = 0 plane, its y running up as z, like a flag), with structural, shear (diagonal)
+    and bend (skip-one) springs. ``shear`` and ``bend`` scale their stiffness and
+    damping relative to the structural springs. ``pin``: "corners" (the two corners at
+    y = size), "edge" (the whole y = size edge), "side" (the whole x = 0 edge: a flag's
+    pole when upright) or "none". ``stiffness`` in N/m, ``damping`` in N s/m.
 
     Extreme initial states (rest lengths stay those of the flat square of side
     ``size``): ``compress`` scales the initial positions about the pinned edge's
@@ -115,9 +120,12 @@ def grid(resolution, size, mass, stiffness, damping, shear, bend, pin, gravity,
             factors.append(np.full(a.size, float(factor)))
     springs = np.concatenate(pairs)
     factor = np.concatenate(factors)
-    fixed = {"none": [], "corners": [idx[-1, 0], idx[-1, -1]], "edge": list(idx[-1, :])}[pin]
+    fixed = {"none": [], "corners": [idx[-1, 0], idx[-1, -1]], "edge": list(idx[-1, :]),
+             "side": list(idx[:, 0])}[pin]
     x[fixed] = flat[fixed]  # pins are not crumpled
     rest_lengths = np.linalg.norm(rest[springs[:, 1]] - rest[springs[:, 0]], axis=1)
+    if upright:
+        x = x[:, [0, 2, 1]]  # (x, y, z) -> (x, z, y): the cloth stands in the y = 0 plane
     return dict(positions=x, springs=springs, masses=mass / (r * r), stiffness=stiffness * factor,
                 damping=damping * factor, rest_lengths=rest_lengths, gravity=gravity,
                 fixed=np.array(fixed, dtype=np.int64), triangles=_cell_triangles(idx))

@@ -29,6 +29,23 @@ lists every key. A generator scene file looks like::
     projection = "orthographic"      # or "perspective"
     framing = "run"                  # or "follow" (each frame centred), "last" (fit the last frame)
 
+Contact, pins and air (optional; ``COMMON_KEYS`` work with every generator and ``--set``)::
+
+    [model]
+    drag = 0.05                      # N s/m per particle: f = -drag (v - wind)
+    wind = [2.0, 0.0, 0.0]           # m/s; only with drag > 0
+    pin_velocity = [0.0, 0.0, 0.5]   # m/s: every pin of the generator moves so
+
+    [[pin]]                          # a pinned particle with its own velocity (repeatable)
+    index = -1                       # particle index; negative counts from the end
+    velocity = [0.5, 0.0, 0.0]       # m/s (default 0)
+
+    [[collider]]                     # repeatable; the fields of massspring.Plane/Sphere/Box
+    type = "sphere"                  # "plane" | "sphere" | "box"
+    center = [0.5, 0.5, -0.4]
+    radius = 0.3
+    friction = 0.5                   # optional: friction, restitution, velocity
+
 Unknown keys, wrong types and missing values raise ``SceneError`` (a
 ``ValueError``) naming the key and the file; an OBJ file that cannot be used is
 refused when the scene is loaded, naming the OBJ file and line.
@@ -43,7 +60,10 @@ from dataclasses import dataclass, field
 from importlib import resources
 from pathlib import Path
 
+import numpy as np
+
 from massspring import mesh
+from massspring.colliders import COLLIDERS
 from massspring.device import available_memory
 from massspring.integrators import INTEGRATORS
 from massspring.model import Model
@@ -61,7 +81,7 @@ BUILD_BYTES_PER_PARTICLE = 150
 BUILD_BYTES_PER_SPRING = 130
 SIZE_KEYS = {"chain": ("count",), "grid": ("resolution",), "lattice": ("resolution",)}
 TOP_KEYS = {"description": str, "integrator": str, "duration": float, "dt": dict, "model": dict,
-            "solver": dict, "view": dict, "particles": dict, "springs": dict}
+            "solver": dict, "view": dict, "particles": dict, "springs": dict, "collider": list, "pin": list}
 # [solver]: Simulation arguments of the implicit integrator a scene may set (the CLI's
 # options and the API's arguments override them).
 SOLVER_KEYS = {"preconditioner": str, "cg_tol": float, "cg_max_iter": int, "definiteness_fix": bool}
@@ -80,7 +100,11 @@ HANDMADE_ARGUMENTS = {"positions": "particles.positions", "masses": "particles.m
                       "velocities": "particles.velocities", "fixed": "particles.fixed", "springs": "springs.pairs",
                       "stiffness": "springs.stiffness", "damping": "springs.damping",
                       "rest_lengths": "springs.rest_lengths", "gravity": "model.gravity",
-                      "triangles": "model.triangles"}
+                      "triangles": "model.triangles", "drag": "model.drag", "wind": "model.wind",
+                      "pin_velocity": "model.pin_velocity"}
+# [model] keys of every form, applied to the Model arguments it makes: name -> default.
+COMMON_KEYS = {"drag": 0.0, "wind": [0.0, 0.0, 0.0], "pin_velocity": [0.0, 0.0, 0.0]}
+PIN_KEYS = {"index": int, "velocity": list}
 
 
 def builtin_scenes() -> dict:
@@ -98,7 +122,10 @@ class Scene:
     the file names; ``view``: its [view] table (checked when a picture is made: see
     ``io.camera.View``); ``obj_mesh``: the ``io.obj.ObjMesh`` read (mesh form);
     ``tables``: the [particles] and [springs] tables (hand-made form); ``solver``: its
-    [solver] table (checked Simulation arguments)."""
+    [solver] table (checked Simulation arguments); ``common``: the ``COMMON_KEYS``
+    (defaults filled in); ``colliders``: its [[collider]] tables as
+    ``massspring.Plane``/``Sphere``/``Box``; ``pins``: its [[pin]] tables as
+    (index, velocity) pairs."""
 
     name: str
     source: str
@@ -113,21 +140,27 @@ class Scene:
     form: str = "generator"
     obj_mesh: object = field(default=None, repr=False, compare=False)
     tables: dict = field(default_factory=dict, repr=False)
+    common: dict = field(default_factory=lambda: dict(COMMON_KEYS))
+    colliders: tuple = ()
+    pins: tuple = ()
     _suggested: dict = field(default_factory=dict, repr=False, compare=False)
 
     def with_params(self, **overrides) -> "Scene":
-        """A copy with some [model] parameters replaced (checked like the file's). In a mesh
-        scene, ``density`` replaces ``mass`` and the other way round, and a new ``mesh``
-        path (relative to the working directory) is read at once."""
-        params = dict(self.params)
+        """A copy with some [model] parameters or ``COMMON_KEYS`` replaced (checked like the
+        file's). In a mesh scene, ``density`` replaces ``mass`` and the other way round,
+        and a new ``mesh`` path (relative to the working directory) is read at once."""
+        params, common = dict(self.params), dict(self.common)
         surface = self.obj_mesh
         for key, value in overrides.items():
+            if key in COMMON_KEYS:
+                common[key] = _check_common(key, value, f"{self.source}: model.{key}")
+                continue
             params[key] = _check_param(self._parameters(), key, value, self.source)
             if self.form == "mesh" and key in ("density", "mass"):
                 params["mass" if key == "density" else "density"] = None
             if self.form == "mesh" and key == "mesh":
                 surface = _read_mesh(params["mesh"], f"{self.source}: model.mesh")
-        return dataclasses.replace(self, params=params, obj_mesh=surface, _suggested={})
+        return dataclasses.replace(self, params=params, common=common, obj_mesh=surface, _suggested={})
 
     def _parameters(self):
         """(defaults, types, what) of this scene's [model] parameters (see ``_check_param``)."""
@@ -152,38 +185,70 @@ class Scene:
                 value = tomllib.loads(f"v = {text.strip()}")["v"]
             except tomllib.TOMLDecodeError:
                 value = text.strip()
-            overrides[key] = _check_param(self._parameters(), key, value, f"--set {key}")
+            if key in COMMON_KEYS:
+                overrides[key] = _check_common(key, value, f"--set {key}")
+            else:
+                overrides[key] = _check_param(self._parameters(), key, value, f"--set {key}")
         return self.with_params(**overrides)
 
     def model(self) -> Model:
         """Build the Model (raises SceneError naming the parameter if a value is out of range,
         or if the model would not fit in the memory available)."""
-        if self.form == "particles":
-            arguments = {name: value for table in self.tables.values() for name, value in table.items()}
-            arguments["springs"] = arguments.pop("pairs")
-            try:
-                return Model(**arguments, **self.params)
-            except ValueError as exc:
-                name, _, reason = str(exc).partition(": ")
-                raise SceneError(f"{self.source}: {HANDMADE_ARGUMENTS.get(name, name)}: {reason}") from None
-        if self.form == "mesh":
-            particles, springs = len(self.obj_mesh.vertices), 3 * sum(len(f) - 2 for f in self.obj_mesh.faces)
-            size = f"{self.params['mesh']} has {particles:,} vertices; it"
-        else:
-            particles, springs = generators.counts(self.generator, self.params)
-            size = ", ".join(f"{k} = {self.params[k]}" for k in SIZE_KEYS.get(self.generator, ()))
-        need = particles * BUILD_BYTES_PER_PARTICLE + springs * BUILD_BYTES_PER_SPRING
-        available = available_memory()
-        if available is not None and need > available:
-            raise SceneError(f"{self.source}: model: {size} gives {particles:,} particles and {springs:,} springs, "
-                             f"about {need / 1e9:.3g} GB to build; {available / 1e9:.3g} GB of memory is available")
-        try:
+        if self.form != "particles":  # a hand-made scene's arrays are in memory already
             if self.form == "mesh":
-                params = {key: value for key, value in self.params.items() if key != "mesh"}
-                return mesh.model_from_mesh(self.obj_mesh.vertices, self.obj_mesh.faces, **params)
-            return Model(**generators.GENERATORS[self.generator](**self.params))
+                particles, springs = len(self.obj_mesh.vertices), 3 * sum(len(f) - 2 for f in self.obj_mesh.faces)
+                size = f"{self.params['mesh']} has {particles:,} vertices; it"
+            else:
+                particles, springs = generators.counts(self.generator, self.params)
+                size = ", ".join(f"{k} = {self.params[k]}" for k in SIZE_KEYS.get(self.generator, ()))
+            need = particles * BUILD_BYTES_PER_PARTICLE + springs * BUILD_BYTES_PER_SPRING
+            available = available_memory()
+            if available is not None and need > available:
+                raise SceneError(f"{self.source}: model: {size} gives {particles:,} particles and {springs:,} "
+                                 f"springs, about {need / 1e9:.3g} GB to build; {available / 1e9:.3g} GB of memory "
+                                 "is available")
+        try:
+            args = self._arguments()
+            args.update(self._contact_and_air(args))
+            return Model(**args)
         except ValueError as exc:
-            raise SceneError(f"{self.source}: model.{exc}") from None
+            message = str(exc)
+            if message.startswith("pin["):
+                raise SceneError(f"{self.source}: {message}") from None
+            if self.form == "particles":
+                name, _, reason = message.partition(": ")
+                raise SceneError(f"{self.source}: {HANDMADE_ARGUMENTS.get(name, name)}: {reason}") from None
+            raise SceneError(f"{self.source}: model.{message}") from None
+
+    def _arguments(self) -> dict:
+        """The Model arguments of the scene's form (before ``_contact_and_air``)."""
+        if self.form == "particles":
+            args = {name: value for table in self.tables.values() for name, value in table.items()}
+            args["springs"] = args.pop("pairs")
+            return {**args, **self.params}
+        if self.form == "mesh":
+            params = {key: value for key, value in self.params.items() if key != "mesh"}
+            return mesh.mesh_arguments(self.obj_mesh.vertices, self.obj_mesh.faces, **params)
+        return generators.GENERATORS[self.generator](**self.params)
+
+    def _contact_and_air(self, args) -> dict:
+        """The Model arguments of ``common``, ``pins`` and ``colliders`` for a form's ``args``:
+        its pins move with ``pin_velocity``; each [[pin]] pins its particle (one already
+        pinned too) with its own velocity."""
+        air = {"drag": self.common["drag"], "wind": self.common["wind"], "colliders": self.colliders}
+        if not self.pins and not any(self.common["pin_velocity"]):
+            return air  # the form's own pins, left to the Model to check
+        n = len(np.asarray(args["positions"]))
+        fixed = np.asarray([] if args.get("fixed") is None else args["fixed"])
+        if fixed.size and fixed.dtype.kind not in "iu":
+            raise ValueError(f"fixed: expected integer particle indices, got {fixed.tolist()!r}")
+        pins = dict.fromkeys(fixed.astype(np.int64).ravel().tolist(), self.common["pin_velocity"])
+        for k, (index, velocity) in enumerate(self.pins):
+            if not -n <= index < n:
+                raise ValueError(f"pin[{k}].index: {index} is outside -{n}..{n - 1} ({n} particles)")
+            pins[index % n] = velocity
+        return {"fixed": np.array(list(pins), dtype=np.int64),
+                "pin_velocity": np.array(list(pins.values())).reshape(-1, 3), **air}
 
     def default_dt(self, integrator=None) -> float:
         """The scene's dt (s) for ``integrator`` (default: the scene's): the [dt] entry, else
@@ -256,9 +321,11 @@ def parse_scene(data: dict, name: str, source: str) -> Scene:
         if key not in VIEW_KEYS:
             raise SceneError(f"{source}: view.{key}: unknown key (expected {', '.join(VIEW_KEYS)})")
         _check_type(f"view.{key}", value, VIEW_KEYS[key], source)
+    colliders = tuple(_collider(k, table, source) for k, table in enumerate(data.get("collider", [])))
+    pins = tuple(_pin(k, table, source) for k, table in enumerate(data.get("pin", [])))
     scene = Scene(name=name, source=source, description=data.get("description", ""), integrator=integrator,
                   duration=duration, dt=dt, generator=None, view=view, solver=_solver(data, source),
-                  form=_form(data, source))
+                  form=_form(data, source), colliders=colliders, pins=pins)
     model = dict(data.get("model", {}))
     if scene.form == "generator":
         generator = model.pop("generator")
@@ -276,10 +343,80 @@ def parse_scene(data: dict, name: str, source: str) -> Scene:
     else:
         scene = dataclasses.replace(scene, tables=_handmade_tables(data, source))
     defaults = scene._parameters()
-    params = dict(defaults[0])
+    params, common = dict(defaults[0]), dict(COMMON_KEYS)
     for key, value in model.items():
-        params[key] = _check_param(defaults, key, value, source)
-    return dataclasses.replace(scene, params=params)
+        if key in COMMON_KEYS:
+            common[key] = _check_common(key, value, f"{source}: model.{key}")
+        else:
+            params[key] = _check_param(defaults, key, value, source)
+    return dataclasses.replace(scene, params=params, common=common)
+
+
+def _tables(name, table, k, source):
+    where = f"{source}: {name}[{k}]"
+    if not isinstance(table, dict):
+        raise SceneError(f"{where}: expected a table ([[{name}]]), got {type(table).__name__} {table!r}")
+    return where
+
+
+def _collider(k, table, source):
+    """A [[collider]] table as a massspring collider; errors name collider[k].<field> and the file."""
+    where = _tables("collider", table, k, source)
+    fields = dict(table)
+    kind = fields.pop("type", None)
+    if kind not in COLLIDERS:
+        raise SceneError(f"{where}.type: expected one of {', '.join(map(repr, COLLIDERS))}, got {kind!r}")
+    cls = COLLIDERS[kind]
+    names = [f.name for f in dataclasses.fields(cls)]
+    for key in fields:
+        if key not in names:
+            raise SceneError(f"{where}.{key}: unknown key of a {kind} (expected type, {', '.join(names)})")
+    required = [f.name for f in dataclasses.fields(cls) if f.default is dataclasses.MISSING]
+    missing = [key for key in required if key not in fields]
+    if missing:
+        raise SceneError(f"{where}.{missing[0]}: missing (a {kind} needs {', '.join(required)})")
+    try:
+        return cls(**fields)
+    except ValueError as exc:
+        raise SceneError(f"{where}.{exc}") from None
+
+
+def _pin(k, table, source):
+    """A [[pin]] table as (index, velocity)."""
+    where = _tables("pin", table, k, source)
+    for key in table:
+        if key not in PIN_KEYS:
+            raise SceneError(f"{where}.{key}: unknown key (expected {', '.join(PIN_KEYS)})")
+    if "index" not in table:
+        raise SceneError(f"{where}.index: missing (the pinned particle's index)")
+    _check_type(f"{where}.index", table["index"], int, None)
+    return table["index"], _check_common("pin_velocity", table.get("velocity", [0.0, 0.0, 0.0]),
+                                         f"{where}.velocity")
+
+
+def _check_common(key, value, prefix):
+    """A ``COMMON_KEYS`` value: a finite number >= 0 (drag) or 3 finite numbers."""
+    default = COMMON_KEYS[key]
+    if isinstance(default, list):
+        out = _numbers(prefix, value, len(default))
+    else:
+        _check_type(prefix, value, float, None)
+        out = float(value)
+        if not out >= 0:
+            raise SceneError(f"{prefix}: must be >= 0, got {value!r}")
+    if not np.all(np.isfinite(out)):
+        raise SceneError(f"{prefix}: must be finite, got {value!r}")
+    return out
+
+
+def _numbers(prefix, value, count):
+    """A list of ``count`` numbers, as floats."""
+    _check_type(prefix, value, list, None)
+    if len(value) != count:
+        raise SceneError(f"{prefix}: expected {count} numbers, got {value!r}")
+    for item in value:
+        _check_type(prefix, item, float, None)
+    return [float(item) for item in value]
 
 
 def _solver(data, source):
@@ -355,12 +492,7 @@ def _check_param(parameters, key, value, source):
     if kind is not None and not isinstance(kind, type):
         return _check_kind(prefix, value, kind)
     if isinstance(default, list):
-        _check_type(prefix, value, list, None)
-        if len(value) != len(default):
-            raise SceneError(f"{prefix}: expected {len(default)} numbers, got {value!r}")
-        for item in value:
-            _check_type(prefix, item, float, None)
-        return [float(item) for item in value]
+        return _numbers(prefix, value, len(default))
     kind = kind or type(default)
     _check_type(prefix, value, kind, None)
     if kind is float and not math.isfinite(value):

@@ -1,7 +1,8 @@
 """The CG driver of Eq. 15: preconditioned conjugate gradient from the warm start v_n.
 
 Contract (as ``scipy.sparse.linalg.cg``, stated for this solver): solve
-A v = b with relative tolerance ``tol`` on the *true* residual ||b - A v|| / ||b||,
+A v = b with relative tolerance ``tol`` on the *true* residual ||b - A v|| / ||b||
+(on the free directions; relative to the first residual if b is 0 there),
 recomputed at exit (the recursively updated residual drifts, in f32 especially);
 if the true residual misses the tolerance, CG restarts from it, and stops as
 "stalled" when a restart no longer halves it. At most ``max_iter`` iterations in
@@ -41,14 +42,15 @@ class SolverStats:
     setup_s: float = 0.0
 
 
-def solve(dev, cfg, preconditioner, dt, tol, max_iter, serial) -> SolverStats:
-    """Refresh the operator at the bundle's state, then solve A v = b in ``dev.v``."""
+def solve(dev, cfg, preconditioner, dt, tol, max_iter, serial, t=0.0) -> SolverStats:
+    """Refresh the operator at the bundle's state (at simulated time ``t``, s: where moving
+    colliders are), then solve A v = b in ``dev.v``."""
     setup_s = 0.0
     if serial and preconditioner.kernel is not None:
-        iterations, residual, reason = cg.cg_solve(dev, cfg, dt, tol, max_iter)
+        iterations, residual, reason = cg.cg_solve(dev, cfg, dt, t, tol, max_iter)
         iterations, residual, reason = int(iterations), float(residual), int(reason)
     else:
-        cg.cg_refresh(dev, cfg, dt)
+        cg.cg_refresh(dev, cfg, dt, t)
         start = time.perf_counter()
         preconditioner.setup(dt)
         setup_s = time.perf_counter() - start
@@ -71,8 +73,9 @@ def _parallel(dev, cfg, preconditioner, tol, max_iter):
     rz, rr, bb = _restart(dev, cfg, preconditioner)
     if not math.isfinite(bb):
         return 0, math.inf, cg.NONFINITE
-    if bb == 0.0:
-        dev.v.fill(0)  # b = 0, so v = 0 (zero padding too: the bundle's fields hold 0 past n)
+    if bb == 0.0:  # b vanishes on the free directions: prescribed velocities drive the solve
+        bb = rr
+    if bb == 0.0:  # the iterate solves the system exactly
         return 0, 0.0, cg.CONVERGED
     target = tol * tol * bb
     iterations, reason, best, done = 0, cg.CONVERGED, 1e308, False

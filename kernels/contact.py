@@ -1,0 +1,346 @@
+"""Contact with colliders (``massspring.colliders``): their geometry, the response of the
+explicit integrators after a step, and the contact constraints of the implicit step.
+
+Geometry. Each collider kind is a class of ``ti.func``s with its arrays
+``dev.<kind>_<field>`` (one item per collider of that kind: ``plane_point``,
+``plane_normal``, ``sphere_center``, ``sphere_radius``, ``box_lower``, ``box_upper``,
+and for every kind ``_velocity`` (m/s), ``_friction``, ``_restitution``).
+``cfg.colliders`` lists the kinds a model has as (kind, count, first), ``first``
+numbering its colliders among all of the model's (their bits in the implicit step's
+per-particle masks); the kernels unroll both loops (``ti.static``), so a model without
+colliders compiles none of this. ``distance(dev, cfg, k, x, t)`` is the signed
+distance d (m, negative inside) of point x from collider k at time t (s), whose
+geometry has moved by velocity * t, and the outward unit normal n at the nearest
+surface point.
+
+Explicit, symplectic and RK4 (``respond``, fused into the per-particle update after
+the free step x0 -> (x, v) ending at time t): for each collider in turn, if the
+particle touches it (d <= 0, to within ``forces.tiny_length``) and moves into it relative to it (normal relative
+velocity vn < 0), the normal relative velocity becomes -e vn (restitution e) and the
+tangential relative velocity u is reduced by mu times the normal velocity change
+(1 + e)|vn| (Coulomb friction with the normal velocity change as the impulse per
+unit mass: u = 0 if |u| <= mu (1 + e)|vn|, sticking); the position is then
+recomputed from the corrected velocity, x0 + dt v (a symplectic Euler step at
+contact, so a sticking particle does not creep), and moved along the normal onto the
+surface (the particle has landed: neither hovering where the step began nor inside).
+A particle inside but moving out is only projected onto the surface; with several
+colliders, a particle whose position was recomputed for one is projected out of the
+ones before it (``project``). The response is first order in dt whatever the
+integrator.
+
+Implicit (``detect``, fused into ``operator.refresh_row``): at the start of the step
+(x_n, v_n, time t_n) a particle is in contact with a collider if the predicted
+position x_n + dt (v_n + dt g) (collider moved by its velocity) is inside it. Its
+velocity along n is then prescribed through the filter of ``constraints``: the
+collider's normal velocity plus e times the normal speed it arrives with
+(restitution). Contacts with several colliders constrain several independent
+directions (Gram-Schmidt on the normals). Friction enters the solve as forces
+(``friction_terms``); ``kernels/friction.py`` decides sticking and sliding (Coulomb,
+from the contact impulses of the solve) and releases pulling contacts after it. When x' is committed, a particle that
+was still d > 0 away from the surface it lands on is moved back by (1 + e) d along n
+(``landing``: it met the surface within the step), and ``project`` moves what would
+still end inside a collider onto its surface.
+"""
+
+import taichi as ti
+
+from .constraints import is_pinned
+from .forces import tiny_length
+
+# A contact normal whose part outside the directions constrained already is shorter
+# than this (|S n|, n a unit vector) adds nothing independent: it is left out.
+INDEPENDENT = 0.1
+# The implicit step holds a sticking particle to its collider with a damper c = STICK m / dt
+# (kernels/friction.py): its tangential velocity is 1 / (1 + STICK) of what it would be free.
+STICK = 100
+
+
+class PlaneKind:
+    """``plane_point`` (m) and unit ``plane_normal``: d = (x - p) . n."""
+
+    name = "plane"
+
+    @staticmethod
+    def arrays(colliders):
+        return {"point": [c.point for c in colliders], "normal": [c.normal for c in colliders]}
+
+    @staticmethod
+    @ti.func
+    def distance(dev, cfg: ti.template(), k, x, t):
+        n = dev.plane_normal[k]
+        return (x - dev.plane_point[k] - t * dev.plane_velocity[k]).dot(n), n
+
+
+class SphereKind:
+    """``sphere_center`` (m) and ``sphere_radius`` (m): d = |x - c| - r, n = (x - c)/|x - c|
+    (+z at the centre itself)."""
+
+    name = "sphere"
+
+    @staticmethod
+    def arrays(colliders):
+        return {"center": [c.center for c in colliders], "radius": [c.radius for c in colliders]}
+
+    @staticmethod
+    @ti.func
+    def distance(dev, cfg: ti.template(), k, x, t):
+        q = x - dev.sphere_center[k] - t * dev.sphere_velocity[k]
+        length = ti.sqrt(q.dot(q))
+        n = ti.Vector([0.0, 0.0, 1.0], cfg.real)
+        if length > tiny_length(cfg.real):
+            n = q * (ti.cast(1, cfg.real) / length)
+        return length - dev.sphere_radius[k], n
+
+
+class BoxKind:
+    """``box_lower`` and ``box_upper`` corners (m), ``box_radius`` (m) of the rounded edges:
+    the points within the radius of the inner box shrunk by it on every side. Outside the
+    inner box: the distance to its nearest point (n from it to x: a face, edge or corner
+    normal) less the radius; inside: minus the depth below its nearest face and the
+    radius, n that face's normal. A point on an edge or a corner (several faces equally
+    near, to ``forces.tiny_length``) gets the normalised sum of their normals, so that a
+    particle resting on a sharp edge may go round it either way."""
+
+    name = "box"
+
+    @staticmethod
+    def arrays(colliders):
+        return {"lower": [c.lower for c in colliders], "upper": [c.upper for c in colliders],
+                "radius": [c.radius for c in colliders]}
+
+    @staticmethod
+    @ti.func
+    def distance(dev, cfg: ti.template(), k, x, t):
+        shift = t * dev.box_velocity[k]
+        lower = dev.box_lower[k] + shift
+        upper = dev.box_upper[k] + shift
+        radius = dev.box_radius[k]
+        q = x - ti.cast(0.5, cfg.real) * (lower + upper)
+        side = ti.Vector([1.0 if q[c] >= 0 else -1.0 for c in ti.static(range(3))], cfg.real)
+        a = ti.abs(q) - (ti.cast(0.5, cfg.real) * (upper - lower) - radius)  # > 0: outside that slab
+        out = ti.max(a, 0)
+        length = ti.sqrt(out.dot(out))
+        d = length - radius
+        n = ti.Vector.zero(cfg.real, 3)
+        if length > 0:
+            n = side * out * (ti.cast(1, cfg.real) / length)
+        else:  # on or in the inner box: the nearest faces, all of them on an edge or a corner
+            top = ti.max(a[0], a[1], a[2])
+            d = top - radius
+            for c in ti.static(range(3)):
+                if a[c] >= top - tiny_length(cfg.real):
+                    n[c] = side[c]
+            n = n * (ti.cast(1, cfg.real) / ti.sqrt(n.dot(n)))
+        return d, n
+
+
+KINDS = (PlaneKind, SphereKind, BoxKind)  # the order of massspring.colliders.COLLIDERS
+
+
+def total(cfg):
+    """The number of colliders (Python side)."""
+    return sum(count for _, count, _ in cfg.colliders)
+
+
+def collider_groups(model) -> tuple:
+    """``cfg.colliders`` of a model: (kind, count, first) for each kind it has."""
+    groups, first = [], 0
+    for kind in KINDS:
+        count = sum(c.kind == kind.name for c in model.colliders)
+        if count:
+            groups.append((kind, count, first))
+            first += count
+    return tuple(groups)
+
+
+def collider_arrays(model) -> dict:
+    """Device arrays of a model's colliders: name -> (count, element shape, values)."""
+    out = {}
+    for kind, count, _ in collider_groups(model):
+        group = [c for c in model.colliders if c.kind == kind.name]
+        fields = dict(kind.arrays(group), velocity=[c.velocity for c in group],
+                      friction=[c.friction for c in group], restitution=[c.restitution for c in group])
+        for field, values in fields.items():
+            element = (3,) if isinstance(values[0], tuple) else ()
+            out[f"{kind.name}_{field}"] = (count, element, values)
+    return out
+
+
+@ti.func
+def velocity(dev, kind: ti.template(), k):
+    """Collider k's velocity (m/s)."""
+    return ti.static(getattr(dev, kind.name + "_velocity"))[k]
+
+
+@ti.func
+def mu(dev, kind: ti.template(), k):
+    """Collider k's friction coefficient."""
+    return ti.static(getattr(dev, kind.name + "_friction"))[k]
+
+
+@ti.func
+def restitution(dev, kind: ti.template(), k):
+    """Collider k's restitution coefficient."""
+    return ti.static(getattr(dev, kind.name + "_restitution"))[k]
+
+
+@ti.func
+def respond(dev, cfg: ti.template(), x0, x, v, h, t):
+    """The explicit integrators' contact response (see the module docstring) to the free
+    step x0 -> (x, v) of a free particle ending at time t: returns the new (x, v)."""
+    xr = x
+    vr = v
+    shift = ti.Vector.zero(cfg.real, 3)  # the moves onto surfaces so far: kept when the position is recomputed
+    for kind, count, first in ti.static(cfg.colliders):
+        for k in ti.static(range(count)):
+            d, n = kind.distance(dev, cfg, k, xr, t)
+            if d <= tiny_length(cfg.real):  # touching, to round-off
+                vc = velocity(dev, kind, k)
+                rel = vr - vc
+                vn = rel.dot(n)
+                if vn < 0:
+                    e = restitution(dev, kind, k)
+                    tangent = rel - vn * n
+                    speed = ti.sqrt(tangent.dot(tangent))
+                    limit = -mu(dev, kind, k) * (1 + e) * vn
+                    kept = ti.cast(0, cfg.real)
+                    if speed > limit:
+                        kept = 1 - limit / speed
+                    vr = vc + kept * tangent - e * vn * n
+                    moved = x0 + shift + h * vr
+                    gap, normal = kind.distance(dev, cfg, k, moved, t)
+                    shift -= gap * normal
+                    xr = x0 + shift + h * vr
+                    if ti.static(first + k > 0):  # the new velocity may carry it back into an earlier one
+                        out = project(dev, cfg, xr, t, first + k)
+                        xr = out
+                elif d < 0:
+                    xr = xr - d * n
+    return xr, vr
+
+
+@ti.func
+def project(dev, cfg: ti.template(), x, t, upto: ti.template()):
+    """x moved onto the surface of each of the first ``upto`` colliders it is inside at time t,
+    in turn."""
+    xr = x
+    for kind, count, first in ti.static(cfg.colliders):
+        for k in ti.static(range(count)):
+            if ti.static(first + k < upto):
+                d, n = kind.distance(dev, cfg, k, xr, t)
+                if d < 0:
+                    xr = xr - d * n
+    return xr
+
+
+@ti.func
+def landing(i, dev, cfg: ti.template(), x, t):
+    """The implicit step's landing correction (m) of particle i, in contact with the
+    colliders of its bits ``dev.contacts[i]``, from x_n = ``x`` at the step's start t:
+    sum over them of (1 + e) max(d, 0) n. A particle a distance d > 0 away arriving at
+    normal speed s meets the surface d / s into the step and leaves at e s, so it ends
+    e (s dt - d) above it, (1 + e) d below x_n + dt v' (v' having normal speed e s)."""
+    out = ti.Vector.zero(cfg.real, 3)
+    mask = dev.contacts[i]
+    for kind, count, first in ti.static(cfg.colliders):
+        for k in ti.static(range(count)):
+            if mask & ti.static(1 << (first + k)) != 0:
+                d, n = kind.distance(dev, cfg, k, x, t)
+                out += (1 + restitution(dev, kind, k)) * ti.max(d, 0) * n
+    return out
+
+
+@ti.func
+def add_direction(S, w, n, u):
+    """Prescribe the velocity component along unit n to be u (m/s), on top of the filter S
+    and prescribed velocity w of the constraints made so far: the new direction is
+    e = S n / |S n|, and w gains the multiple of e that gives n . w = u. Returns
+    (S - e e^T, w', e, whether n was independent of the constrained directions)."""
+    m = S @ n
+    length = ti.sqrt(m.dot(m))
+    ok = length > INDEPENDENT
+    e = m
+    s_new = S
+    w_new = w
+    if ok:
+        e = m / length
+        w_new = w + (u - n.dot(w)) / length * e
+        s_new = S - e.outer_product(e)
+    return s_new, w_new, e, ok
+
+
+@ti.func
+def predicted_velocity(i, dev, cfg: ti.template(), v, h):
+    """v_n + dt g: the velocity a free fall would reach, used to see contacts coming."""
+    out = v[i]
+    if ti.static(cfg.has_gravity):
+        out = v[i] + h * dev.gravity[None]
+    return out
+
+
+@ti.func
+def detect(i, dev, cfg: ti.template(), x, v, h, t):
+    """Particle i's contact constraints for the implicit step from (x_n, v_n) at time t
+    (see the module docstring): ``dev.cfilter[i]`` = S_i, ``dev.cvel[i]`` the prescribed
+    velocity in the constrained directions, ``dev.contacts[i]`` the bits of the
+    colliders it touches (0: free). Contacts released after the last step (bits of
+    ``dev.released[i]``) are skipped. Pinned particles get none; a particle out of
+    contact loses its friction state (``kernels/friction.py``). Returns the velocity
+    of the collider it touches first (m/s; 0 without contact)."""
+    S = ti.Matrix.identity(cfg.real, 3)
+    w = ti.Vector.zero(cfg.real, 3)
+    carrier = ti.Vector.zero(cfg.real, 3)
+    mask = 0
+    if not is_pinned(i, dev, cfg):
+        xi = x[i]
+        vi = v[i]
+        ahead = predicted_velocity(i, dev, cfg, v, h)
+        released = dev.released[i]
+        for kind, count, first in ti.static(cfg.colliders):
+            for k in ti.static(range(count)):
+                bit = ti.static(1 << (first + k))
+                if released & bit == 0:
+                    d, n = kind.distance(dev, cfg, k, xi, t)
+                    vc = velocity(dev, kind, k)
+                    if d + h * (ahead - vc).dot(n) < 0:
+                        arriving = ti.min((vi - vc).dot(n), 0)
+                        u = vc.dot(n) - restitution(dev, kind, k) * arriving
+                        s_new, w_new, _, ok = add_direction(S, w, n, u)
+                        if ok:
+                            if mask == 0:
+                                carrier = vc
+                            S = s_new
+                            w = w_new
+                            mask |= bit
+    if mask == 0:
+        dev.stick[i] = 0
+        dev.fric[i] = ti.Vector.zero(cfg.real, 3)
+    dev.cfilter[i] = S
+    dev.cvel[i] = w
+    dev.contacts[i] = mask
+    return carrier
+
+
+@ti.func
+def friction_diagonal(i, dev, cfg: ti.template()):
+    """Particle i's friction share of A's diagonal (kg; ``kernels/friction.py``): dt c for
+    a sticking particle, held to its collider by a damper c = STICK m_i / dt (the normal
+    direction is filtered out)."""
+    out = ti.cast(0, cfg.real)
+    if dev.contacts[i] != 0 and dev.stick[i] != 0:
+        out = STICK * dev.mass[i]
+    return out
+
+
+@ti.func
+def friction_impulse(i, dev, cfg: ti.template(), carrier):
+    """Particle i's friction share of b (N s): dt c v_c for a sticking particle (v_c the
+    velocity ``carrier`` of its collider), the kinetic friction impulse ``dev.fric[i]``
+    for a sliding one."""
+    out = ti.Vector.zero(cfg.real, 3)
+    if dev.contacts[i] != 0:
+        if dev.stick[i] != 0:
+            out = STICK * dev.mass[i] * carrier
+        else:
+            out = dev.fric[i]
+    return out

@@ -1,0 +1,134 @@
+"""After the implicit step's solve: contact impulses, Coulomb friction, release of pulling contacts.
+
+The filtered CG (``constraints``, ``contact.detect``) solves Eq. 15 with the contact
+velocities prescribed, so at a particle in contact the residual J_i = (A v' - b)_i
+(kg m/s) is the impulse its contacts applied during the step. Along each contact
+direction e_k (the orthonormalised normals, rebuilt here from the contact bits
+``dev.contacts`` as ``detect`` built them) lambda_k = e_k . J_i is the normal impulse
+(> 0 when the collider pushes); the Coulomb bound is B = sum_k mu_k max(lambda_k, 0).
+
+Friction is static or kinetic per particle (``dev.stick``), and enters the solve as a
+force, so that the cloth shares the load among its particles (friction applied to
+each particle's velocity alone, or sticking particles held by constraints, lock a
+stiff cloth: each particle that stops anchors its neighbours):
+
+* a sticking particle is held to its collider by a damper c = STICK m_i / dt
+  (``contact.friction_diagonal``, ``friction_impulse``); after the solve its
+  tangential velocity u relative to the collider is set to 0 (it does not creep) if
+  the damper's impulse STICK m_i |u| is within B, and otherwise it slides from the
+  next step against u;
+* a sliding particle's kinetic friction impulse ``dev.fric`` (from the last step's
+  B, against its tangential velocity u relative to the collider) is part of b. If u
+  turns to the side friction pushes (or stops), friction has overshot: u is set to
+  0 and the particle sticks;
+* in the first step of a contact (no friction in the solve yet), the particle's own
+  velocity takes the Coulomb impulse: u is reduced by B / m_i, or set to 0 (then
+  the particle sticks) if that stops it.
+
+With a single particle all three are exact Coulomb friction; on a cloth the static
+threshold is met to within 1 / (1 + STICK).
+
+A contact with lambda_k < 0 pulls the particle towards the collider (it would have
+left by itself): its bit goes to ``dev.released`` and ``detect`` skips it in the
+next step. Errors (all O(dt)): friction uses the previous step's normal impulse,
+switches between sticking and sliding act from the next step, and a pulling
+contact holds for one step.
+
+Arrays: ``dev.impulse`` (n,) vec3 (J_i at particles in contact), ``dev.released``
+(n,) int32 bits, ``dev.stick`` (n,) int32, ``dev.fric`` (n,) vec3 N s.
+"""
+
+import taichi as ti
+
+from .contact import STICK, add_direction, mu, velocity
+from .operator import apply_row
+
+
+@ti.func
+def impulses(dev, cfg: ti.template()):
+    """``dev.impulse[i]`` = (A v' - b)_i at every particle in contact."""
+    for i in range(dev.size[0]):
+        if dev.contacts[i] != 0:
+            dev.impulse[i] = apply_row(i, dev, cfg, dev.v) - dev.b[i]
+
+
+@ti.func
+def friction_row(i, dev, cfg: ti.template(), t):
+    """Particle i's friction state, velocity correction and released contacts (time t, s)."""
+    mask = dev.contacts[i]
+    released = 0
+    if mask != 0:
+        x = dev.x[i]
+        jump = dev.impulse[i]
+        S = ti.Matrix.identity(cfg.real, 3)
+        w = ti.Vector.zero(cfg.real, 3)
+        bound = ti.cast(0, cfg.real)
+        carrier = ti.Vector.zero(cfg.real, 3)
+        found = False
+        for kind, count, first in ti.static(cfg.colliders):
+            for k in ti.static(range(count)):
+                bit = ti.static(1 << (first + k))
+                if mask & bit != 0:
+                    _, n = kind.distance(dev, cfg, k, x, t)
+                    s_new, w_new, e, ok = add_direction(S, w, n, ti.cast(0, cfg.real))
+                    if ok:
+                        S = s_new
+                        normal = e.dot(jump)
+                        if normal < 0:
+                            released |= bit
+                        else:
+                            bound += mu(dev, kind, k) * normal
+                        if not found:
+                            carrier = velocity(dev, kind, k)
+                            found = True
+        v = dev.v[i]
+        rel = S @ (v - carrier)
+        speed = ti.sqrt(rel.dot(rel))
+        fric = ti.Vector.zero(cfg.real, 3)
+        stick = 0
+        if released == 0 and bound > 0:
+            if dev.stick[i] != 0:
+                if STICK * dev.mass[i] * speed <= bound:
+                    stick = 1
+                    v = v - rel
+                else:
+                    fric = -bound / speed * rel
+            else:
+                applied = dev.fric[i]
+                if applied.dot(applied) > 0:
+                    if rel.dot(applied) >= 0:  # moving the way friction pushes: it overshot
+                        stick = 1
+                        v = v - rel
+                    else:
+                        fric = -bound / speed * rel
+                else:
+                    limit = bound / dev.mass[i]
+                    if speed <= limit:
+                        stick = 1
+                        v = v - rel
+                    else:
+                        v = v - limit / speed * rel
+                        fric = -bound / speed * rel
+        dev.v[i] = v
+        dev.stick[i] = stick
+        dev.fric[i] = fric
+    dev.released[i] = released
+
+
+@ti.func
+def settle(dev, cfg: ti.template(), t):
+    impulses(dev, cfg)
+    for i in range(dev.size[0]):
+        friction_row(i, dev, cfg, t)
+
+
+@ti.kernel
+def contact_friction(dev: ti.template(), cfg: ti.template(), t: ti.f64, serial: ti.template()):
+    """Friction and released contacts after the solve of the step from time t (s); two
+    loops (``serial``: serialised)."""
+    if ti.static(serial):
+        ti.loop_config(serialize=True)
+        for _ in range(1):
+            settle(dev, cfg, ti.cast(t, cfg.real))
+    else:
+        settle(dev, cfg, ti.cast(t, cfg.real))

@@ -1,0 +1,40 @@
+"""Linear air drag: a force against each particle's velocity relative to the wind."""
+
+import taichi as ti
+
+from .base import ParticleTerm
+
+
+class Drag(ParticleTerm):
+    """f_i = -drag (v_i - wind): ``dev.drag`` (N s/m, one scalar), ``dev.wind`` (m/s, one vector).
+
+    Its Jacobian is D_ii = -drag I (Eq. 14's counterpart), so A gets dt drag on the
+    diagonal, and its share of Eq. 15's f - D v is -drag (v - wind) + drag v = drag wind.
+    A single particle under gravity reaches the terminal velocity m g / drag + wind.
+    Active when drag > 0.
+    """
+
+    name = "drag"
+
+    @staticmethod
+    def active(model):
+        return model.has_drag
+
+    @staticmethod
+    def arrays(model):
+        return {"drag": ("scalar", model.drag), "wind": ("vector", model.wind)}
+
+    @staticmethod
+    @ti.func
+    def force(i, dev, x, v):
+        return -dev.drag[None] * (v[i] - dev.wind[None])
+
+    @staticmethod
+    @ti.func
+    def rhs(i, dev, x, v):
+        return dev.drag[None] * dev.wind[None]
+
+    @staticmethod
+    @ti.func
+    def diagonal(i, dev, h):
+        return h * dev.drag[None]
