@@ -11,8 +11,9 @@
 The numpy formulas here are written independently of kernels/ (same equations).
 """
 
-
 import numpy as np
+
+from massspring.device import adjacency
 
 TINY = 1e-12
 
@@ -124,7 +125,8 @@ class TaichiMatrixFreeCG:
         real = real or ti.f64
         self.model = model
         nparticles, m = model.n_particles, model.n_springs
-        offsets, other, spring = model.adjacency()
+        offsets, other, entry = adjacency(model)
+        spring = np.where(entry >= 0, entry, -1 - entry)
         self.offsets = ti.field(ti.i32, shape=nparticles + 1)
         self.other = ti.field(ti.i32, shape=max(2 * m, 1))
         self.spring = ti.field(ti.i32, shape=max(2 * m, 1))

@@ -50,24 +50,38 @@ def implicit_table(data):
 
 
 def scaling_table(data):
-    lines = ["| mesh | size | ks | springs | solver | CG it mean / max | ms/step | setup share |",
-             "|---|---|---|---|---|---|---|---|"]
+    """One row per mesh, size and stiffness; per solver "mean CG iterations (max) / ms per step"."""
+    solvers = [name for name in SOLVER_STYLES if any(r["solver"] == name for r in data["rows"])]
+    cases = {}
     for r in data["rows"]:
-        size = f"{r['size']}^2" if r["mesh"] == "cloth" else f"{r['size']} points"
-        lines.append(f"| {r['mesh']} | {size} | {r['stiffness']:.0e} | {r['springs']} | {r['solver']} | "
-                     f"{r['iterations_mean']:.1f} / {r['iterations_max']} | {r['ms_per_step']:.1f} | "
-                     f"{r['setup_share']:.0%} |" + ("" if r["converged"] else " (not converged)"))
+        cases.setdefault((r["mesh"], r["size"], r["stiffness"], r["springs"]), {})[r["solver"]] = r
+    lines = ["| mesh | size | ks | springs | " + " | ".join(f"{name}: its (max), ms/step" for name in solvers) + " |",
+             "|---|---|---|---|" + "---|" * len(solvers)]
+    for (mesh, size, ks, springs), by_solver in cases.items():
+        cells = []
+        for name in solvers:
+            r = by_solver.get(name)
+            if r is None:
+                cells.append("-")
+                continue
+            setup = f", setup {r['setup_share']:.0%}" if name == "multigrid" else ""
+            cells.append(f"{r['iterations_mean']:.1f} ({r['iterations_max']}), {r['ms_per_step']:.1f}{setup}"
+                         + ("" if r["converged"] else " (not converged)"))
+        label = f"{size}^2" if mesh == "cloth" else f"{size:,} points"
+        lines.append(f"| {mesh} | {label} | {ks:.0e} | {springs:,} | " + " | ".join(cells) + " |")
     return "\n".join(lines)
 
 
 def explicit_table(data):
-    lines = ["| res | integrator | massspring steps/s | NumPy steps/s (ratio) | Warp CPU steps/s (ratio) |",
-             "|---|---|---|---|---|"]
+    lines = ["| res | precision | integrator | massspring steps/s | NumPy steps/s (ratio) | Warp kernels steps/s (ratio) | "
+             "warp.sim steps/s (ratio) |",
+             "|---|---|---|---|---|---|---|"]
     for row in data["rows"]:
         peers = row["peers"]
-        cells = [f"{peers[name]['steps_per_s']:.0f} ({peers[name]['ratio']:.1f}x)" if name in peers else "-"
-                 for name in ("numpy", "warp")]
-        lines.append(f"| {row['resolution']} | {row['integrator']} | {row['steps_per_s']:.0f} | {cells[0]} | {cells[1]} |")
+        cells = [f"{peers[name]['steps_per_s']:.0f} ({peers[name]['ratio']:.2f}x)" if name in peers else "-"
+                 for name in ("numpy", "warp", "warp.sim")]
+        lines.append(f"| {row['resolution']} | {row.get('precision', 'f64')} | {row['integrator']} | "
+                     f"{row['steps_per_s']:.0f} | " + " | ".join(cells) + " |")
     return "\n".join(lines)
 
 
@@ -100,31 +114,34 @@ def plot(implicit, explicit, scaling, png):
         ax.legend(fontsize=7)
     if scaling:
         cloth = [r for r in scaling["rows"] if r["mesh"] == "cloth"]
-        for ax, key, ylabel, title, log in ((axes[0, 1], "iterations_mean", "CG iterations per step (mean)",
-                                              "CG iterations against size (ks 1e4 solid, 1e6 dashed)", False),
-                                             (axes[1, 0], "ms_per_step", "ms per implicit step",
-                                              "Step time against size (ks 1e4 solid, 1e6 dashed)", True)):
+        for ax, key, ylabel, title in ((axes[0, 1], "iterations_mean", "CG iterations per step (mean)",
+                                        "CG iterations against size (ks 1e4 solid, 1e6 dashed)"),
+                                       (axes[1, 0], "ms_per_step", "ms per implicit step",
+                                        "Step time against size (ks 1e4 solid, 1e6 dashed)")):
             for solver, marker in SOLVER_STYLES.items():
                 for ks, line in ((1e4, "-"), (1e6, "--")):
                     pts = [(r["springs"], r[key]) for r in cloth if r["solver"] == solver and r["stiffness"] == ks]
                     if pts:
                         ax.plot(*zip(*pts), marker + line, label=f"{solver}, ks {ks:.0e}")
             ax.set_xscale("log")
-            if log:
-                ax.set_yscale("log")
+            ax.set_yscale("log")
             ax.set(xlabel="springs", ylabel=ylabel, title=title)
             ax.legend(fontsize=7, ncol=2)
     if explicit:
         ax = axes[1, 1]
+        precision = "f32" if any(r.get("precision") == "f32" for r in explicit["rows"]) else "f64"
         for integrator, style in (("explicit", "o-"), ("symplectic", "^-")):
-            rows = [r for r in explicit["rows"] if r["integrator"] == integrator]
+            rows = [r for r in explicit["rows"]
+                    if r["integrator"] == integrator and r.get("precision", "f64") == precision]
+            if not rows:
+                continue
             springs = [r["springs"] for r in rows]
             ax.loglog(springs, [r["steps_per_s"] for r in rows], style, label=f"massspring {integrator}")
-            for name in ("numpy", "warp"):
+            for name in ("numpy", "warp", "warp.sim"):
                 pts = [(r["springs"], r["peers"][name]["steps_per_s"]) for r in rows if name in r["peers"]]
                 if pts:
                     ax.loglog(*zip(*pts), style.replace("-", ":"), label=f"{name} {integrator}", alpha=0.7)
-        ax.set(xlabel="springs", ylabel="steps per second", title="Explicit steps, cloth")
+        ax.set(xlabel="springs", ylabel="steps per second", title=f"Explicit steps, cloth, {precision}")
         ax.legend(fontsize=7)
     fig.tight_layout()
     Path(png).parent.mkdir(parents=True, exist_ok=True)

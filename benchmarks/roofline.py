@@ -88,7 +88,7 @@ def bytes_per_iteration(n, m, real_bytes, fixed, per_entry=False):
 def cg_seconds_per_iteration(scene, loops, k, repeats, precision):
     def timed_step(limit):
         sim = scene.simulation(integrator="implicit", dt=1 / 60, cg_max_iter=limit, loops=loops,
-                               precision=precision)
+                               precision=precision, preconditioner="block-jacobi")
         sim.step(1)  # compile, and leave the flat start behind
         times = []
         for _ in range(repeats):

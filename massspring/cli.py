@@ -19,6 +19,8 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from massspring.text import format_seconds
+
 EXIT_OK, EXIT_OUTPUT, EXIT_USAGE, EXIT_DIVERGED, EXIT_INTERRUPTED = 0, 1, 2, 3, 130
 MAX_STEPS = 2**62
 
@@ -56,7 +58,8 @@ def build_parser():
     add_export_arguments(run)
     add_frame_arguments(run)
 
-    verbs["scenes"] = sub.add_parser("scenes", help="list the built-in scenes")
+    scenes = verbs["scenes"] = sub.add_parser("scenes", help="list the built-in scenes")
+    scenes.add_argument("--markdown", action="store_true", help="as a Markdown table (the README's)")
 
     info = verbs["info"] = sub.add_parser("info", help="show a scene's size, defaults, and what a run compiles")
     add_scene_arguments(info, INTEGRATORS)
@@ -118,8 +121,17 @@ def solver_options(args):
 def cmd_scenes(args):
     from massspring.scene import builtin_scenes, load_scene
 
-    for name in sorted(builtin_scenes()):
-        print(f"{name:12s} {load_scene(name).description}")
+    names = sorted(builtin_scenes())
+    if not args.markdown:
+        for name in names:
+            print(f"{name:12s} {load_scene(name).description}")
+        return EXIT_OK
+    print("| scene | what | particles | springs | integrator, dt |\n|---|---|---|---|---|")
+    for name in names:
+        scene = load_scene(name)
+        model = scene.model()
+        print(f"| {name} | {scene.description} | {model.n_particles:,} | {model.n_springs:,} | "
+              f"{scene.integrator}, {format_seconds(scene.default_dt())} |")
     return EXIT_OK
 
 
@@ -174,7 +186,7 @@ def run_steps(args, scene, sim):
         raise UsageError(f"--duration: must be a finite number > 0, got {duration:g}")
     steps = round(duration / sim.dt)
     if steps > MAX_STEPS:
-        raise UsageError(f"--duration: {duration:g} s at dt = {sim.dt:g} s is {steps:.3g} steps, "
+        raise UsageError(f"--duration: {duration:g} s at dt = {format_seconds(sim.dt)} is {steps:.3g} steps, "
                          f"more than {MAX_STEPS:.3g}")
     return max(1, int(steps))
 
@@ -306,16 +318,19 @@ def divergence_hint(sim, exc):
     if sim.integrator == "implicit":
         tips = ["a smaller --dt"]
         if not sim.definiteness_fix:
-            tips.insert(0, "drop --no-definiteness-fix")
+            tips.insert(0, "dropping --no-definiteness-fix")
         return "try " + " or ".join(tips)
     try:
-        prediction = predict(sim.model, sim.positions)
+        prediction = predict(sim.model, sim.model.positions)
     except (ValueError, ArithmeticError):
         return "try a smaller --dt or --integrator implicit"
     from massspring.integrators import INTEGRATORS
 
     suggested = INTEGRATORS[sim.integrator].suggest_dt(prediction)
-    return (f"the stability estimate suggests --dt {suggested:.3g} for {sim.integrator} at this state; "
+    if sim.integrator == "explicit" and not prediction.explicit_stable_dt > 0:
+        return (f"explicit Euler grows at every dt on this scene's undamped stiffest mode; --dt {suggested:.3g} "
+                "keeps that growth under 2x per simulated second, or try --integrator symplectic or implicit")
+    return (f"try --dt {suggested:.3g} (the stability estimate for {sim.integrator} at the initial state) "
             "or --integrator implicit (no stability limit)")
 
 
@@ -491,14 +506,6 @@ def _number(text):
         raise ValueError(f"expected a number, got {text.strip()!r}") from None
 
 
-def format_seconds(dt):
-    """A time step for people: '1/60 s' when 1/dt is a whole number (to 1e-6), else '2e-05 s'."""
-    inverse = 1.0 / dt
-    if inverse >= 2 and abs(inverse - round(inverse)) <= 1e-6 * inverse:
-        return f"1/{round(inverse)} s"
-    return f"{dt:.4g} s"
-
-
 def finish_pictures(plan, scene, sim, end_step):
     """Render what was recorded, write the GIF/PNG and say what was written (on stderr
     if the run or the rendering stopped early). Returns the options whose file failed."""
@@ -558,8 +565,8 @@ def print_summary(scene, sim, wall, energy0, out, start_steps=0):
         print(f"CG          {its.mean():.1f} iterations/step mean, {its.max()} max, "
               f"{sim.cg_failures} step(s) not converged (tol {sim.cg_tol:g}, {sim.preconditioner})")
         if sim.cg_failures and sim.precision == "f32":
-            print("note        f32 CG stalls near a relative residual of 1e-5 (round-off): "
-                  "use --cg-tol 1e-4 or --precision f64")
+            print("note        f32 CG stalls where round-off stops the residual, 1e-5 to 1e-4 relative "
+                  "on a cloth at rest: use --cg-tol 1e-3 or --precision f64")
         if sim.cg_failures and not sim.definiteness_fix:
             print("note        CG stops when A is indefinite, as compressed springs make it without the "
                   "definiteness fix: drop --no-definiteness-fix")

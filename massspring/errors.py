@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from massspring.text import format_seconds
+
 
 class DivergenceError(RuntimeError):
     """A step produced a non-finite or runaway state; the simulation kept the last good one.
@@ -22,7 +24,8 @@ class DivergenceError(RuntimeError):
             what = "non-finite position or velocity (NaN or Inf)"
         else:
             what = f"runaway growth: kinetic energy {self.kinetic:.3g} J above the bound {self.bound:.3g} J"
-        super().__init__(f"{integrator} diverged at step {self.step} (t = {self.time:.6g} s, dt = {self.dt:g} s): "
+        super().__init__(f"{integrator} diverged at step {self.step} "
+                         f"(t = {self.time:.6g} s, dt = {format_seconds(self.dt)}): "
                          f"{what}; the state of step {self.step - 1} is kept")
 
 

@@ -142,7 +142,7 @@ def test_friction_drags_a_particle_along_a_moving_plane(integrator):
 def test_particle_held_in_a_corner_by_wind(integrator):
     """Gravity and wind push a particle into the corner between the ground and a box's side
     (two contact normals at once): it stays in the corner, entering neither."""
-    box = ms.Box((0.0, -1.0, -1.0), (1.0, 1.0, 1.0))  # standing in the ground, not on it: see the README
+    box = ms.Box((0.0, -1.0, -1.0), (1.0, 1.0, 1.0))  # standing in the ground, not on it: see docs/contact.md, Limits
     model = particle([-0.1, 0.0, 0.1], [ms.Plane((0, 0, 0), (0, 0, 1)), box], drag=2.0, wind=(5.0, 0.0, 0.0))
     sim = ms.Simulation(model, integrator=integrator, dt=2e-3)
     sim.step(1500)

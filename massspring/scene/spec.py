@@ -528,7 +528,7 @@ def _check_type(key, value, expected, source):
     elif expected is dict:
         ok, what = isinstance(value, dict), "a table"
     elif expected is list:
-        ok, what = isinstance(value, list), "a list"
+        ok, what = isinstance(value, list), "a list (a vector is written [0, 0, -9.81])"
     elif expected is bool:
         ok, what = isinstance(value, bool), "true or false"
     else:

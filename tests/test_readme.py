@@ -1,0 +1,104 @@
+"""The README's checkable claims: the scene table, the example commands and their exit
+codes, the Python version, the compressed cloth without the definiteness fix, and
+that it points at nothing outside the project."""
+
+import re
+import shlex
+import subprocess
+import sys
+import tomllib
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import massspring as ms
+from massspring import cli
+
+ROOT = Path(__file__).resolve().parents[1]
+README = (ROOT / "README.md").read_text()
+
+
+def block(name):
+    match = re.search(rf"<!-- {name}:begin -->\n(.*?)<!-- {name}:end -->", README, re.S)
+    assert match, f"README has no {name} block"
+    return match.group(1)
+
+
+def code_lines(text):
+    """The `massspring ...` lines of the bash (or untagged) fenced blocks in ``text``:
+    (argv, comment)."""
+    lines, language = [], None
+    for line in text.splitlines():
+        if line.startswith("```"):
+            language = line[3:].strip() if language is None else None
+            continue
+        command, _, comment = line.partition("#")
+        if language in ("", "bash") and command.strip().startswith("massspring "):
+            lines.append((shlex.split(command)[1:], comment.strip()))
+    return lines
+
+
+def test_scene_table_is_what_massspring_scenes_prints(capsys):
+    assert cli.main(["scenes", "--markdown"]) == 0
+    assert block("scenes") == capsys.readouterr().out
+
+
+def test_every_built_in_scene_is_in_the_table():
+    from massspring.scene import builtin_scenes
+
+    listed = re.findall(r"^\| (\S+) \|", block("scenes"), re.M)[1:]
+    assert listed == sorted(builtin_scenes())
+
+
+@pytest.mark.parametrize("argv, comment", code_lines(block("exit-codes")),
+                         ids=lambda value: " ".join(value) if isinstance(value, list) else "")
+def test_example_commands_exit_with_the_code_the_readme_gives(argv, comment, tmp_path):
+    expected = int(re.match(r"\d+", comment).group())
+    proc = subprocess.run([sys.executable, "-m", "massspring", *argv], cwd=tmp_path, capture_output=True,
+                          text=True, timeout=600)
+    assert proc.returncode == expected, proc.stderr[-2000:]
+    if expected:
+        assert "Traceback" not in proc.stderr
+        assert proc.stderr.strip().splitlines()[-1].startswith(("massspring", "usage"))
+
+
+def test_every_command_in_the_readme_parses():
+    """Each `massspring ...` line of the README's code blocks names a verb and flags that
+    exist (parsed, not run)."""
+    parser, _ = cli.build_parser()
+    lines = code_lines(README)
+    assert len(lines) >= 10
+    for argv, comment in lines:
+        if "--stpes" in argv or not argv or argv[0] in ("--version",):
+            continue
+        if any(token in ("SCENE", "[options]") or token.startswith("[") for token in argv):
+            continue  # a usage line, not a command
+        parser.parse_args(argv)
+
+
+def test_python_version_is_stated_and_required():
+    required = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["requires-python"]
+    assert required == ">=3.11"
+    assert "Python 3.11 or later" in README
+    assert "if sys.version_info < (3, 11)" in (ROOT / "massspring" / "__init__.py").read_text()
+
+
+def test_readme_points_at_nothing_outside_the_project():
+    assert "../" not in README and "shared/" not in README
+    for link in re.findall(r"\]\(([^)#]+)\)", README):
+        if not link.startswith("http"):
+            assert (ROOT / link).exists(), link
+
+
+def test_compressed_without_the_fix_fails_as_the_readme_says():
+    fails, first, step = map(int, re.search(
+        r'"indefinite" in\s+(\d+) of the first (\d+) steps and the run diverges at step (\d+)', README).groups())
+    sim = ms.load_scene("compressed").simulation("implicit", definiteness_fix=False)
+    unconverged = 0
+    with pytest.raises(ms.DivergenceError) as info:
+        for _ in range(100):
+            sim.step()
+            unconverged += sim.solver_stats.reason == "indefinite"
+    assert (unconverged, sim.steps, info.value.step) == (fails, first, step)
+    assert np.all(np.isfinite(sim.positions))
