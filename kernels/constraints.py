@@ -57,6 +57,20 @@ def constrain(i, dev, cfg: ti.template(), vec):
 
 
 @ti.func
+def projector(i, dev, cfg: ti.template()):
+    """S_i as a 3x3 matrix: the orthogonal projector onto particle i's free directions
+    (I if free, 0 if pinned)."""
+    out = ti.Matrix.identity(cfg.real, 3)
+    if ti.static(cfg.fixed):
+        if dev.free[i] == 0:
+            out = ti.Matrix.zero(cfg.real, 3, 3)
+    if ti.static(cfg.contact_filter):
+        if dev.contacts[i] != 0:
+            out = dev.cfilter[i]
+    return out
+
+
+@ti.func
 def prescribed(i, dev, cfg: ti.template()):
     """The velocity (m/s) prescribed for particle i's constrained directions: the pin
     velocity of a pinned particle (0 for fixed pins), the contact velocity of a particle

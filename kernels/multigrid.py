@@ -37,7 +37,7 @@ that made parallel setup up to 18x slower than serial.
 import taichi as ti
 
 from .blocks import BLOCK
-from .constraints import constrain, is_free
+from .constraints import constrain, is_free, is_pinned, projector
 from .operator import apply_row, diagonal_block
 
 BS = 6  # unknowns per coarse node
@@ -47,29 +47,51 @@ BS = 6  # unknowns per coarse node
 
 
 @ti.func
+def idle_pivot(scale, real: ti.template()):
+    """The largest Cholesky pivot still taken for zero, relative to ``scale``, the largest
+    diagonal entry of the unknown's 6x6 node block: a mode the block hardly resists
+    (round-off of a dependent column, or a rigid mode the constraints filtered out)."""
+    eps = ti.cast(1e-4, real) if ti.static(real == ti.f32) else ti.cast(1e-8, real)
+    return eps * scale
+
+
+@ti.func
+def block_scale(a: ti.template(), k, real: ti.template()):
+    """The largest diagonal entry of the 6x6 block a[k]."""
+    out = ti.cast(0, real)
+    for j in range(BS):
+        out = ti.max(out, ti.abs(a[k][j, j]))
+    return out
+
+
+@ti.func
 def invert6(src: ti.template(), dst: ti.template(), k, real: ti.template()):
     """dst[k] = src[k]^-1 for a symmetric positive definite 6x6 block, by Cholesky with
     loops at run time (unrolled 6x6 algebra compiles for seconds); zero if it is not SPD.
-    Returns whether it was. An exactly zero pivot is an idle unknown (a dropped
-    candidate: its row and column are zero) and gets 1."""
+    Returns whether it was. A pivot below ``idle_pivot`` of the block's scale is an idle
+    unknown and is decoupled (pivot 1, column 0): a dropped candidate, or a rigid mode
+    of an aggregate that the constraints filtered out of P (a cloth lying on a plane
+    loses its aggregates' normal translation and tilts); kept, its near-zero pivot made
+    the inverse huge and, by round-off, indefinite."""
     lower = ti.Matrix.zero(real, BS, BS)
     ok = True
+    tiny = idle_pivot(block_scale(src, k, real), real)
     for j in range(BS):
         s = src[k][j, j]
         for m in range(j):
             s -= lower[j, m] * lower[j, m]
-        if s == 0:
-            s = ti.cast(1, real)
-        elif not s > 0:
-            ok = False
-            s = ti.cast(1, real)
-        d = ti.sqrt(s)
-        lower[j, j] = d
-        for i in range(j + 1, BS):
-            t = src[k][i, j]
-            for m in range(j):
-                t -= lower[i, m] * lower[j, m]
-            lower[i, j] = t / d
+        if not s > tiny:
+            if s < -tiny:
+                ok = False
+            lower[j, j] = ti.cast(1, real)  # idle: unknown j is decoupled
+        else:
+            d = ti.sqrt(s)
+            lower[j, j] = d
+            for i in range(j + 1, BS):
+                t = src[k][i, j]
+                for m in range(j):
+                    t -= lower[i, m] * lower[j, m]
+                lower[i, j] = t / d
     for col in range(BS):  # column col of the inverse: L L^T y = e_col
         y = ti.Vector.zero(real, BS)
         for r in range(BS):
@@ -229,15 +251,24 @@ def tentativec(cfg: ti.template(), g: ti.template(), begin: ti.i32, end: ti.i32,
 
 @ti.kernel
 def fine_inverse(dev: ti.template(), cfg: ti.template(), serial: ti.template()) -> ti.f64:
-    """``dev.minv`` = A_ii^-1 on free particles, zero on constrained ones. Returns a bound on
-    rho(D^-1 A): the largest row sum of the infinity norms of D_i^-1 A_ij."""
+    """``dev.minv`` = D_i^+: A_ii^-1 on free particles, zero on pinned ones, and on a
+    particle in contact (S_i its projector onto the free directions) the inverse of
+    S_i A_ii S_i on those directions, S_i (S_i A_ii S_i + I - S_i)^-1 S_i, so the
+    smoother is block-Jacobi of the filtered operator S A S (whose spectrum relative to
+    it keeps the bound below). Returns a bound on rho(D^+ A): the largest row sum of
+    the infinity norms of D_i^+ A_ij."""
     bound = 0.0
     loops(serial)
     for i in range(dev.size[0]):
         inverse = ti.Matrix.zero(cfg.real, 3, 3)
-        if is_free(i, dev, cfg):
+        if not is_pinned(i, dev, cfg):
             block = diagonal_block(i, dev, cfg)
-            inverse = ti.cast(block.inverse(), cfg.real)
+            if is_free(i, dev, cfg):
+                inverse = ti.cast(block.inverse(), cfg.real)
+            else:
+                proj = projector(i, dev, cfg)
+                filtered = proj @ block @ proj + ti.Matrix.identity(cfg.real, 3) - proj
+                inverse = proj @ ti.cast(filtered.inverse(), cfg.real) @ proj
             row = ti.cast(_inf_norm(inverse @ block), ti.f64)
             if ti.static(cfg.has_springs):
                 for e in range(dev.offsets[i], dev.offsets[i + 1]):
@@ -252,7 +283,9 @@ def fine_inverse(dev: ti.template(), cfg: ti.template(), serial: ti.template()) 
 
 @ti.kernel
 def smooth_p0(dev: ti.template(), cfg: ti.template(), g: ti.template(), scale: ti.f64, serial: ti.template()):
-    """Level 0's P = T - scale D^-1 A T (scale = omega / rho), row by row."""
+    """Level 0's P = S (T - scale D^+ A T) (scale = omega / rho), row by row: S filters
+    the constrained directions (pins, contact normals) out of P's rows, so that the
+    Galerkin operators P^T A P are those of the filtered operator S A S that CG solves."""
     s = ti.cast(scale, cfg.real)
     loops(serial)
     for i in range(dev.size[0]):
@@ -271,6 +304,10 @@ def smooth_p0(dev: ti.template(), cfg: ti.template(), g: ti.template(), scale: t
             g.p0[k] = -s * (dev.minv[i] @ g.p0[k])
         if slot >= 0:
             g.p0[slot] = g.p0[slot] + g.t0[i]
+        if not is_free(i, dev, cfg):  # P's rows filtered: the coarse levels see S A S, not A
+            projection = projector(i, dev, cfg)
+            for k in range(g.p0_rows[i], g.p0_rows[i + 1]):
+                g.p0[k] = projection @ g.p0[k]
 
 
 @ti.func
@@ -505,10 +542,13 @@ def factor_coarsest(cfg: ti.template(), g: ti.template(), base: ti.i32, nodes: t
                 s = g.chol[j * size + j]
                 for k in range(j):
                     s -= g.chol[j * size + k] * g.chol[j * size + k]
-                if s == 0:  # an idle unknown (see invert6)
-                    g.chol[j * size + j] = ti.cast(1, cfg.real)
-                elif not s > 0:
+                tiny = idle_pivot(block_scale(g.c_diag, base + j // BS, cfg.real), cfg.real)
+                if s < -tiny:
                     failed = j + 1
+                elif not s > tiny:  # an idle unknown (see invert6): decoupled
+                    g.chol[j * size + j] = ti.cast(1, cfg.real)
+                    for i in range(j + 1, size):
+                        g.chol[i * size + j] = ti.cast(0, cfg.real)
                 else:
                     d = ti.sqrt(s)
                     g.chol[j * size + j] = d
