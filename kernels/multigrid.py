@@ -194,6 +194,15 @@ def orthonormalize(t: ti.template(), members: ti.template(), lo, hi, cand: ti.te
             cand[a][i, j] = ti.cast(0, real)
 
 
+@ti.func
+def mean_point(points: ti.template(), members: ti.template(), lo, hi, real: ti.template()):
+    """The mean of points[members[k]] for k in [lo, hi): an aggregate's centre (m)."""
+    centre = ti.Vector.zero(real, 3)
+    for k in range(lo, hi):
+        centre += points[members[k]]
+    return centre / ti.cast(ti.max(hi - lo, 1), real)
+
+
 @ti.kernel
 def tentative0(dev: ti.template(), cfg: ti.template(), g: ti.template(), count: ti.i32, drop: ti.f64,
                serial: ti.template()):
@@ -205,10 +214,7 @@ def tentative0(dev: ti.template(), cfg: ti.template(), g: ti.template(), count: 
     loops(serial)
     for a in range(count):
         lo, hi = g.agg0_rows[a], g.agg0_rows[a + 1]
-        centre = ti.Vector.zero(cfg.real, 3)
-        for k in range(lo, hi):
-            centre += dev.x[g.agg0_members[k]]
-        centre /= ti.cast(ti.max(hi - lo, 1), cfg.real)
+        centre = mean_point(dev.x, g.agg0_members, lo, hi, cfg.real)
         for k in range(lo, hi):
             m = g.agg0_members[k]
             r = dev.x[m] - centre
@@ -231,10 +237,7 @@ def tentativec(cfg: ti.template(), g: ti.template(), begin: ti.i32, end: ti.i32,
     loops(serial)
     for a in range(begin, end):
         lo, hi = g.aggc_rows[a], g.aggc_rows[a + 1]
-        centre = ti.Vector.zero(cfg.real, 3)
-        for k in range(lo, hi):
-            centre += g.c_centre[g.aggc_members[k]]
-        centre /= ti.cast(ti.max(hi - lo, 1), cfg.real)
+        centre = mean_point(g.c_centre, g.aggc_members, lo, hi, cfg.real)
         for k in range(lo, hi):
             m = g.aggc_members[k]
             d = g.c_centre[m] - centre
