@@ -36,6 +36,7 @@ import numpy as np
 import taichi as ti
 from taichi.lang import impl
 
+from massspring import memory
 from massspring.kernels.blocks import blocks_for
 from massspring.kernels.contact import collider_arrays, collider_groups
 from massspring.kernels.terms import active_terms
@@ -89,19 +90,6 @@ def _probe(arch):
     if started.group(1) in ("x64", "arm64"):
         raise ValueError(f"arch: {arch!r} is not available here (Taichi would fall back to the CPU): "
                          f"{'; '.join(warnings) or 'no such device'}")
-
-
-def available_memory():
-    """Bytes of memory available to a new allocation (Linux: MemAvailable), or None
-    where the system does not say."""
-    try:
-        with open("/proc/meminfo") as fh:
-            for line in fh:
-                if line.startswith("MemAvailable:"):
-                    return int(line.split()[1]) * 1024
-    except OSError:
-        pass
-    return None
 
 
 def capacity(count, floor):
@@ -240,10 +228,7 @@ class Layout:
         bundle = POOL.take(signature)
         reused = bundle is not None
         if not reused:
-            need, available = self.nbytes(), available_memory()
-            if available is not None and need > available:
-                raise ValueError(f"model: {self.n:,} particles and {self.m:,} springs need {need / 1e9:.3g} GB of "
-                                 f"fields for this run; {available / 1e9:.3g} GB of memory is available")
+            memory.check(self.nbytes(), f"model: {self.n:,} particles and {self.m:,} springs; the fields of this run")
             builder = ti.FieldsBuilder()
             fields = {name: _place(builder, dtype, shape, element)
                       for name, (dtype, shape, element, _) in self.decls.items()}

@@ -7,7 +7,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from massspring import validate
+from massspring import memory, validate
 from massspring.colliders import COLLIDERS
 from massspring.device import ARCHS, CPU_ARCHS, POOL, ensure_taichi, model_layout
 from massspring.errors import DivergenceError, SimulationClosedError
@@ -159,6 +159,9 @@ class Simulation:
         self._cg_failures = 0
 
         cls = INTEGRATORS[integrator]
+        memory.check(memory.run_bytes(model.n_particles, model.n_springs, preconditioner if cls.linear_solver else None,
+                                      model_built=True),
+                     f"model: {model.n_particles:,} particles and {model.n_springs:,} springs; a run of it ({integrator})")
         layout = model_layout(model, precision)
         cls.declare(layout, model, self._settings)
         self._layout_names = [name for name in layout.decls if name not in ("size", "check", "partial")]

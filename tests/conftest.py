@@ -7,10 +7,13 @@ right-hand side keeps the -dt D v term instead of cancelling it against the
 damping force).
 """
 
+import resource
+
 import numpy as np
 
 import massspring as ms
 
+PEAK_RSS_LIMIT = 4e9  # bytes: the whole suite, in pytest's process and in any one child process
 ZERO_LENGTH = 1e-12  # f64 zero-length rule: such a spring has no direction, force or stiffness
 
 # Each integrator has two drivers running the same algorithm: serial kernels (one
@@ -169,3 +172,22 @@ def dense_step(model, dt, definiteness_fix, x=None, v=None, prescribed=None):
     out = values.copy()
     out[~fixed] = np.linalg.solve(A, b)
     return out.reshape(-1, 3)
+
+
+def peak_rss():
+    """(peak resident bytes of this process, of its largest child process so far)."""
+    return tuple(resource.getrusage(who).ru_maxrss * 1024 for who in (resource.RUSAGE_SELF, resource.RUSAGE_CHILDREN))
+
+
+def pytest_sessionfinish(session, exitstatus):
+    """A suite whose peak memory passed ``PEAK_RSS_LIMIT`` fails, whatever its tests said."""
+    if max(peak_rss()) > PEAK_RSS_LIMIT and session.exitstatus == 0:
+        session.exitstatus = 1
+
+
+def pytest_terminal_summary(terminalreporter):
+    own, child = peak_rss()
+    over = max(own, child) > PEAK_RSS_LIMIT
+    terminalreporter.write_line(f"peak RSS: {own / 1e9:.2f} GB in pytest, {child / 1e9:.2f} GB in its largest child "
+                                f"process (limit {PEAK_RSS_LIMIT / 1e9:g} GB){': OVER THE LIMIT' if over else ''}",
+                                red=over)

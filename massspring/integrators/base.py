@@ -13,7 +13,8 @@ class Integrator:
 
     Class attributes: ``name`` (the registry key), ``order`` (of accuracy),
     ``description`` (one line for the CLI), ``has_stats`` (steps one at a time,
-    each with solver statistics). ``serial`` (from ``settings.loops``):
+    each with solver statistics), ``linear_solver`` (solves a linear system each step
+    with CG and a preconditioner). ``serial`` (from ``settings.loops``):
     run whole steps or solves in one launch with serial loops (small systems), else
     one parallel launch per phase.
     """
@@ -22,6 +23,7 @@ class Integrator:
     order = 1
     description = ""
     has_stats = False
+    linear_solver = False
 
     def __init__(self, dev, model, settings):
         self.dev = dev

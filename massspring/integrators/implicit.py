@@ -35,6 +35,7 @@ class ImplicitEuler(Integrator):
     order = 1
     description = "linearised implicit Euler (Eq. 15), matrix-free preconditioned CG"
     has_stats = True
+    linear_solver = True
 
     def __init__(self, dev, model, settings):
         super().__init__(dev, model, settings)

@@ -62,9 +62,9 @@ from pathlib import Path
 
 import numpy as np
 
-from massspring import mesh
+from massspring import memory, mesh
+from massspring import solvers as preconditioners
 from massspring.colliders import COLLIDERS
-from massspring.device import available_memory
 from massspring.integrators import INTEGRATORS
 from massspring.model import Model
 from massspring.scene import generators
@@ -74,11 +74,6 @@ class SceneError(ValueError):
     """A scene file or override is invalid; the message names the key and the file."""
 
 
-# Peak numpy bytes while a generator builds a Model, per particle and per spring,
-# about 1.2x the measured peak (775 MB for the 1000 x 1000 cloth: 1e6 particles, 6e6
-# springs). The Simulation then checks its own fields (device.Layout.allocate).
-BUILD_BYTES_PER_PARTICLE = 150
-BUILD_BYTES_PER_SPRING = 130
 SIZE_KEYS = {"chain": ("count",), "grid": ("resolution",), "lattice": ("resolution",)}
 TOP_KEYS = {"description": str, "integrator": str, "duration": float, "dt": dict, "model": dict,
             "solver": dict, "view": dict, "particles": dict, "springs": dict, "collider": list, "pin": list}
@@ -191,22 +186,37 @@ class Scene:
                 overrides[key] = _check_param(self._parameters(), key, value, f"--set {key}")
         return self.with_params(**overrides)
 
+    def counts(self) -> tuple[int, int]:
+        """(particles, springs) of the scene's model, known without building it (for a
+        mesh, an upper bound on the springs: one per face edge)."""
+        if self.form == "mesh":
+            return len(self.obj_mesh.vertices), 3 * sum(len(f) - 2 for f in self.obj_mesh.faces)
+        if self.form == "particles":
+            return len(self.tables["particles"]["positions"]), len(self.tables["springs"]["pairs"])
+        return generators.counts(self.generator, self.params)
+
+    def check_memory(self, need, particles, springs, what):
+        """Refuse (SceneError naming the size keys) a model of ``particles`` and ``springs``
+        for which ``what`` (e.g. "building it") would need ``need`` bytes more than this
+        process may take (``memory.check``)."""
+        if self.form == "mesh":
+            size = f"{self.params['mesh']} has {particles:,} vertices"
+        elif self.form == "particles":
+            size = f"{particles:,} particles and {springs:,} springs"
+        else:
+            size = ", ".join(f"{k} = {self.params[k]}" for k in SIZE_KEYS.get(self.generator, ()))
+            size = f"{size} gives {particles:,} particles and {springs:,} springs"
+        try:
+            memory.check(need, f"model: {size}; {what}")
+        except memory.MemoryNeedError as exc:
+            raise SceneError(f"{self.source}: {exc}") from None
+
     def model(self) -> Model:
         """Build the Model (raises SceneError naming the parameter if a value is out of range,
-        or if the model would not fit in the memory available)."""
+        or if building the model would not fit in the memory available)."""
         if self.form != "particles":  # a hand-made scene's arrays are in memory already
-            if self.form == "mesh":
-                particles, springs = len(self.obj_mesh.vertices), 3 * sum(len(f) - 2 for f in self.obj_mesh.faces)
-                size = f"{self.params['mesh']} has {particles:,} vertices; it"
-            else:
-                particles, springs = generators.counts(self.generator, self.params)
-                size = ", ".join(f"{k} = {self.params[k]}" for k in SIZE_KEYS.get(self.generator, ()))
-            need = particles * BUILD_BYTES_PER_PARTICLE + springs * BUILD_BYTES_PER_SPRING
-            available = available_memory()
-            if available is not None and need > available:
-                raise SceneError(f"{self.source}: model: {size} gives {particles:,} particles and {springs:,} "
-                                 f"springs, about {need / 1e9:.3g} GB to build; {available / 1e9:.3g} GB of memory "
-                                 "is available")
+            particles, springs = self.counts()
+            self.check_memory(memory.build_bytes(particles, springs), particles, springs, "building it")
         try:
             args = self._arguments()
             args.update(self._contact_and_air(args))
@@ -270,8 +280,15 @@ class Scene:
         from massspring.simulation import Simulation
 
         integrator = integrator or self.integrator
+        options = {**self.solver, **kwargs}
+        particles, springs = self.counts()
+        solver = None
+        if INTEGRATORS.get(integrator) is not None and INTEGRATORS[integrator].linear_solver:
+            solver = preconditioners.resolve_for_count(options.get("preconditioner", "auto"), particles)
+        self.check_memory(memory.run_bytes(particles, springs, solver), particles, springs,
+                          f"a run of it ({integrator}{f', {solver}' if solver else ''})")
         dt = self.default_dt(integrator) if dt is None else dt
-        return Simulation(self.model(), integrator=integrator, dt=dt, **{**self.solver, **kwargs})
+        return Simulation(self.model(), integrator=integrator, dt=dt, **options)
 
 
 def load_scene(name_or_path) -> Scene:

@@ -25,9 +25,14 @@ MULTIGRID_FROM = 10_000
 def resolve(name, model) -> str:
     """The preconditioner ``name`` stands for on ``model``: itself, or for "auto"
     multigrid from ``MULTIGRID_FROM`` free particles on, else block-Jacobi."""
+    return resolve_for_count(name, int(model.free_mask().sum()))
+
+
+def resolve_for_count(name, free_particles) -> str:
+    """``resolve`` for a model of ``free_particles`` not yet built."""
     if name != "auto":
         return name
-    return "multigrid" if int(model.free_mask().sum()) >= MULTIGRID_FROM else "block-jacobi"
+    return "multigrid" if free_particles >= MULTIGRID_FROM else "block-jacobi"
 
 
-__all__ = ["CHOICES", "MULTIGRID_FROM", "PRECONDITIONERS", "Preconditioner", "SolverStats", "resolve", "solve"]
+__all__ = ["CHOICES", "MULTIGRID_FROM", "PRECONDITIONERS", "Preconditioner", "SolverStats", "resolve", "resolve_for_count", "solve"]
