@@ -3,7 +3,7 @@ too large for the machine is refused.
 
 Table 1: for each scene, size and solver, a fresh process builds the model, makes
 the Simulation and takes one step; the peak resident memory it adds over a warm
-Taichi runtime (``ru_maxrss``) is set beside ``memory.run_bytes`` (margin included)
+Taichi runtime (``VmHWM``) is set beside ``memory.run_bytes`` (margin included)
 and the per-particle/per-spring figures the estimate is fitted to.
 
 Table 2: ``massspring run cloth --set resolution=R --steps 1`` for large R, with and
@@ -40,6 +40,12 @@ def parse_args(argv=None):
     return p.parse_args(argv)
 
 
+def own_peak():
+    """This process's peak RSS in bytes (VmHWM; ru_maxrss of a child starts from its parent's)."""
+    with open("/proc/self/status") as fh:
+        return next(int(line.split()[1]) * 1024 for line in fh if line.startswith("VmHWM:"))
+
+
 def worker(spec):
     """Run one case in this (fresh) process and print its figures as JSON."""
     import massspring as ms
@@ -51,7 +57,7 @@ def worker(spec):
     warm = ms.load_scene("spring").simulation(integrator=integrator)
     warm.step()
     warm.close()
-    base = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
+    base = own_peak()
     model = ms.load_scene(scene_name).with_params(**{key: int(value)}).model()
     options = {"preconditioner": preconditioner} if preconditioner != "-" else {}
     sim = ms.Simulation(model, integrator=integrator, **options)
@@ -59,7 +65,7 @@ def worker(spec):
         sim.step()
     except ms.DivergenceError:  # the step ran (and allocated) all the same
         pass
-    added = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024 - base
+    added = own_peak() - base
     solver = None if preconditioner == "-" else preconditioner
     print(json.dumps({"case": case, "integrator": integrator, "preconditioner": solver,
                       "particles": model.n_particles, "springs": model.n_springs, "added_bytes": added,

@@ -8,7 +8,6 @@ import os
 import resource
 import subprocess
 import sys
-import threading
 import time
 from pathlib import Path
 
@@ -26,24 +25,30 @@ GB = 1e9
 CHILD_AS_KB = 4_000_000
 
 
-def run_limited(*args, as_kb=CHILD_AS_KB, timeout=120):
-    """``python -m massspring ARGS`` under ``ulimit -v as_kb``: (exit code, stderr, wall s,
-    the child's peak RSS in bytes)."""
-    def limit():
-        resource.setrlimit(resource.RLIMIT_AS, (as_kb * 1024, as_kb * 1024))
+# Runs the CLI in a child under an address-space limit and prints the child's own peak
+# RSS (VmHWM, kB) on the last line of stdout: ru_maxrss of a forked child starts from
+# the parent's, so it cannot tell what the child itself took.
+LIMITED = """
+import resource, sys
+limit = int(sys.argv[1]) * 1024
+resource.setrlimit(resource.RLIMIT_AS, (limit, limit))
+from massspring.cli import main
+try:
+    code = main(sys.argv[2:])
+finally:
+    print([line.split()[1] for line in open("/proc/self/status") if line.startswith("VmHWM:")][0], flush=True)
+sys.exit(code)
+"""
 
+
+def run_limited(*args, as_kb=CHILD_AS_KB, timeout=120):
+    """``massspring ARGS`` under ``ulimit -v as_kb``: (exit code, stderr, wall s, the
+    child's peak RSS in bytes)."""
     start = time.perf_counter()
-    proc = subprocess.Popen([sys.executable, "-m", "massspring", *args], stdout=subprocess.DEVNULL,
-                            stderr=subprocess.PIPE, preexec_fn=limit)
-    timer = threading.Timer(timeout, proc.kill)
-    timer.start()
-    try:
-        stderr = proc.stderr.read().decode()
-        _, status, usage = os.wait4(proc.pid, 0)
-    finally:
-        timer.cancel()
-        proc.stderr.close()
-    return os.waitstatus_to_exitcode(status), stderr, time.perf_counter() - start, usage.ru_maxrss * 1024
+    proc = subprocess.run([sys.executable, "-c", LIMITED, str(as_kb), *args], capture_output=True, text=True,
+                          timeout=timeout)
+    peak = int(proc.stdout.strip().splitlines()[-1]) * 1024
+    return proc.returncode, proc.stderr, time.perf_counter() - start, peak
 
 
 @pytest.mark.parametrize("resolution", [1000, 3000, 5000])
@@ -111,15 +116,19 @@ def test_hand_made_and_mesh_scenes_know_their_counts():
 
 
 MEASURE = """
-import json, resource, sys
+import json, sys
 import massspring as ms
+
+def peak():  # this process's own peak RSS in bytes (ru_maxrss would start from the parent's)
+    return [int(line.split()[1]) * 1024 for line in open("/proc/self/status") if line.startswith("VmHWM:")][0]
+
 integrator, preconditioner = sys.argv[1], sys.argv[2]
 warm = ms.load_scene("spring").simulation(integrator=integrator); warm.step(); warm.close()
-base = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
+base = peak()
 scene = ms.load_scene("cloth").with_params(resolution=110)
 options = {} if preconditioner == "-" else {"preconditioner": preconditioner}
 sim = scene.simulation(integrator, **options); sim.step()
-print(json.dumps(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024 - base))
+print(json.dumps(peak() - base))
 """
 
 
