@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 
 import massspring as ms
+from conftest import dense_system
 from massspring import cli
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -92,13 +93,28 @@ def test_readme_points_at_nothing_outside_the_project():
 
 
 def test_compressed_without_the_fix_fails_as_the_readme_says():
-    fails, first, step = map(int, re.search(
-        r'"indefinite" in\s+(\d+) of the first (\d+) steps and the run diverges at step (\d+)', README).groups())
-    sim = ms.load_scene("compressed").simulation("implicit", definiteness_fix=False)
-    unconverged = 0
+    """What holds on any CPU: the compressed cloth's Eq. 15 is indefinite without the fix
+    and definite with it (a dense numpy eigenvalue check, independent of the kernels);
+    without the fix CG meets negative curvature and the run diverges within the bound
+    the README states, keeping a finite last good state; with it, the whole scene runs
+    with every solve converged. Which steps fail, and when it diverges, depend on the
+    CPU's round-off (an indefinite solve amplifies it), so they are not asserted."""
+    first, bound = map(int, re.search(r'"indefinite" in\s+at least one of the first (\d+) steps and the run '
+                                      r'diverges within (\d+) steps', README).groups())
+    scene = ms.load_scene("compressed")
+    model, dt = scene.model(), scene.default_dt("implicit")
+    for fix, definite in ((False, False), (True, True)):
+        A, _ = dense_system(model, dt, definiteness_fix=fix)
+        assert (np.linalg.eigvalsh(A).min() > 0) == definite
+    sim = scene.simulation("implicit", definiteness_fix=False)
+    reasons = []
     with pytest.raises(ms.DivergenceError) as info:
-        for _ in range(100):
+        for _ in range(bound):
             sim.step()
-            unconverged += sim.solver_stats.reason == "indefinite"
-    assert (unconverged, sim.steps, info.value.step) == (fails, first, step)
-    assert np.all(np.isfinite(sim.positions))
+            reasons.append(sim.solver_stats.reason)
+    assert "indefinite" in reasons[:first]
+    assert info.value.step <= bound and np.all(np.isfinite(sim.positions))
+    fixed = scene.simulation("implicit")
+    for _ in range(round(scene.duration / dt)):
+        fixed.step()
+        assert fixed.solver_stats.reason == "converged"
