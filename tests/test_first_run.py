@@ -14,6 +14,7 @@ import pytest
 from conftest import one_line_error
 from massspring import __version__
 from massspring.cli import main
+from massspring.io.files import atomic_output
 
 
 def run_cli(*args, timeout=300):
@@ -88,15 +89,20 @@ def test_failed_picture_keeps_the_state_file(tmp_path, capsys, monkeypatch):
 
 def test_stale_temporary_file_of_a_killed_run_is_cleaned(tmp_path, capsys):
     # a process killed during the final write (SIGKILL) leaves its temporary file
-    proc = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"])
-    stale = tmp_path / f".run.gif.{proc.pid}.abc123.tmp"
-    stale.write_bytes(b"half a GIF")
+    gif = tmp_path / "run.gif"
+    writer = (f"import time\nfrom massspring.io.files import atomic_output\n"
+              f"with atomic_output({str(gif)!r}) as fh:\n    fh.write(b'half a GIF'); fh.flush(); time.sleep(60)\n")
+    proc = subprocess.Popen([sys.executable, "-c", writer])
+    deadline = time.monotonic() + 60
+    while not list(tmp_path.glob(".run.gif.*.tmp")) and time.monotonic() < deadline:
+        time.sleep(0.05)
     proc.kill()
     proc.wait()
-    mine = tmp_path / f".run.gif.{os.getpid()}.live.tmp"  # a write in progress (this process): kept
-    mine.write_bytes(b"")
-    assert main(["run", "spring", "--steps", "3", "--quiet", "--gif", str(tmp_path / "run.gif")]) == 0
-    assert not stale.exists() and mine.exists() and (tmp_path / "run.gif").is_file()
+    [stale] = tmp_path.glob(".run.gif.*.tmp")
+    with atomic_output(tmp_path / "run.png"):  # a write in progress (this process): kept
+        [mine] = tmp_path.glob(".run.png.*.tmp")
+        assert main(["run", "spring", "--steps", "3", "--quiet", "--gif", str(gif)]) == 0
+        assert not stale.exists() and mine.exists() and gif.is_file()
 
 
 def test_sigterm_is_handled_like_ctrl_c(tmp_path):

@@ -1,9 +1,11 @@
 """Output files written atomically: a reader never sees a half-written file.
 
-A file is written under a temporary name ``.NAME.PID.XXXX.tmp`` in the same
-directory and renamed when complete. A process killed mid-write (SIGKILL) leaves
-its temporary file behind; the next write to that directory removes temporary
-files of ours whose process is gone.
+A file is written under a temporary name ``.NAME.massspring-PID-XXXXXXXX.tmp`` in the
+same directory (PID: the writing process, X: random) and renamed when complete. A
+process killed mid-write (SIGKILL) leaves its temporary file behind; the next write to
+that directory removes temporary files of this form whose process is gone. No other
+file is ever removed: only regular files (not links or directories) whose whole name
+has this form, which only this module writes.
 """
 
 from __future__ import annotations
@@ -12,27 +14,32 @@ import contextlib
 import json
 import os
 import re
+import stat
 import tempfile
 from pathlib import Path
 
-_TEMP = re.compile(r"^\..+\.(\d+)\.[^.]+\.tmp$")
+TAG = "massspring"
+_TEMP = re.compile(rf"^\..+\.{TAG}-([0-9]+)-[a-z0-9_]{{8}}\.tmp$")
 
 
 def _temp_name(path):
-    return dict(prefix=f".{path.name}.{os.getpid()}.", suffix=".tmp", dir=path.parent)
+    """mkstemp's arguments for a temporary file of ``path`` (its random part is 8 of a-z0-9_)."""
+    return dict(prefix=f".{path.name}.{TAG}-{os.getpid()}-", suffix=".tmp", dir=path.parent)
 
 
 def remove_stale_temporaries(directory):
-    """Delete our temporary files in ``directory`` whose writing process has ended."""
+    """Delete the temporary files of this module in ``directory`` whose writing process
+    has ended (see the module's docstring for which files those are)."""
     try:
         entries = list(Path(directory).iterdir())
     except OSError:
         return
     for entry in entries:
         match = _TEMP.match(entry.name)
-        if match and not _alive(int(match.group(1))):
+        if match and 0 < int(match.group(1)) < 2 ** 31 and not _alive(int(match.group(1))):
             with contextlib.suppress(OSError):
-                entry.unlink()
+                if stat.S_ISREG(entry.lstat().st_mode):
+                    entry.unlink()
 
 
 def _alive(pid):
