@@ -246,13 +246,10 @@ def restart(args, scene, sim):
     if args.restart is None:
         return 0
     try:
-        state = read_state(args.restart)
+        state = read_state(args.restart, sim.model, f"the model of scene {scene.name!r}")
     except ValueError as exc:
         raise UsageError(f"--restart: {exc}") from None
     model, path = sim.model, args.restart
-    if state.n_particles != model.n_particles:
-        raise UsageError(f"--restart: {path} holds {state.n_particles} particles; the model of scene "
-                         f"{scene.name!r} has {model.n_particles}")
     if state.fingerprint != model.fingerprint():
         raise UsageError(f"--restart: {path} was saved from another model (scene {state.scene!r}, fingerprint "
                          f"{state.fingerprint[:12]}) than this run's (scene {scene.name!r}, {model.fingerprint()[:12]}):"
