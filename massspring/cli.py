@@ -19,6 +19,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from massspring import progress
 from massspring.text import format_seconds
 
 EXIT_OK, EXIT_OUTPUT, EXIT_USAGE, EXIT_DIVERGED, EXIT_INTERRUPTED = 0, 1, 2, 3, 130
@@ -54,7 +55,8 @@ def build_parser():
     run.add_argument("--out", help="write the final state to this .npz file")
     run.add_argument("--restart", metavar="FILE", help="continue from a state written by --out (or an npz "
                      "frame of --export) of the same scene and dt; --steps/--duration then count the steps to add")
-    run.add_argument("--quiet", action="store_true", help="no progress bar")
+    run.add_argument("--quiet", action="store_true",
+                     help="no progress (a bar on a terminal, else a line every 5 s of a long run)")
     add_export_arguments(run)
     add_frame_arguments(run)
 
@@ -103,8 +105,10 @@ def make_simulation(args):
     scene = load_scene(args.scene).with_settings(args.set)
     if args.dt is not None and not (math.isfinite(args.dt) and args.dt > 0):
         raise UsageError(f"--dt: must be a finite number > 0, got {args.dt:g}")
-    sim = scene.simulation(integrator=args.integrator, dt=args.dt, precision=args.precision, arch=args.arch,
-                           **solver_options(args))
+    with progress.phase(f"{args.command} {scene.name}: building the model and the simulation",
+                        show=not getattr(args, "quiet", False)):
+        sim = scene.simulation(integrator=args.integrator, dt=args.dt, precision=args.precision, arch=args.arch,
+                               **solver_options(args))
     return scene, sim
 
 
@@ -214,9 +218,10 @@ def cmd_run(args):
     start = time.perf_counter()
     stopped, diverged = None, None
     try:
-        with progress_bar(sim, steps, show=not args.quiet and steps > 1) as progress:
+        label = f"run {scene.name} ({sim.integrator}, dt {format_seconds(sim.dt)})"
+        with progress.steps(label, steps, sim.dt, show=not args.quiet and steps > 1) as on_progress:
             run(sim, steps, frames=frames if callbacks else (), on_frame=on_frame if callbacks else None,
-                progress=progress)
+                progress=on_progress)
     except KeyboardInterrupt as exc:  # Ctrl-C or SIGTERM: the simulation holds the state reached
         stopped = exc
     except DivergenceError as exc:  # the simulation holds the last good state
@@ -263,31 +268,6 @@ def restart(args, scene, sim):
     except ValueError as exc:
         raise UsageError(f"--restart: {path}: {exc}") from None
     return state.steps
-
-
-class progress_bar:
-    """A rich progress bar on stderr (transient) as ``run``'s progress callback."""
-
-    def __init__(self, sim, steps, show):
-        self.sim, self.steps, self.show = sim, steps, show
-
-    def __enter__(self):
-        if not self.show:
-            return None
-        from rich.console import Console
-        from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
-
-        self.bar = Progress(TextColumn("[progress.description]{task.description}"), BarColumn(),
-                            TextColumn("{task.completed}/{task.total} steps"), TimeElapsedColumn(),
-                            TimeRemainingColumn(), transient=True, console=Console(stderr=True))
-        self.bar.__enter__()
-        task = self.bar.add_task(f"{self.sim.integrator} dt={format_seconds(self.sim.dt)}", total=self.steps)
-        return lambda done, total: self.bar.update(task, completed=done)
-
-    def __exit__(self, *exc):
-        if self.show:
-            self.bar.__exit__(*exc)
-        return False
 
 
 def write_outputs(args, scene, sim, end_step, pictures):
@@ -678,9 +658,18 @@ def cmd_stability(args):
         return EXIT_OK
     print(f"ladder: each run min({args.run_duration:g} s, {args.max_steps} steps); implicit with the "
           "definiteness fix on and off; the scene's default dt last in each group")
+    if progress.interactive(sys.stderr):
+        def on_row(row):
+            print(".", end="", file=sys.stderr, flush=True)
+    else:
+        def on_row(row):
+            fix = "" if row["definiteness_fix"] in (None, True) else " without the definiteness fix"
+            print(f"stability {scene.name}: {row['integrator']}{fix} dt {row['dt']:.4g}: {row['outcome']}",
+                  file=sys.stderr, flush=True)
     rows = stability.ladder(scene, prediction, duration=args.run_duration, max_steps=args.max_steps,
-                            progress=lambda row: print(".", end="", file=sys.stderr, flush=True), **options)
-    print(file=sys.stderr)
+                            progress=on_row, **options)
+    if progress.interactive(sys.stderr):
+        print(file=sys.stderr)
     print(stability.format_table(rows))
     written = stability.write_outputs(rows, prediction, scene.name, prefix)
     try:
