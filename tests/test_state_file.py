@@ -1,11 +1,13 @@
 """State files (``--out``, ``--restart``) are checked before their data is read: no file
-can make a restart allocate more than its model's arrays, block, or show a traceback."""
+can make ``read_state`` allocate more than its model's arrays, block, or end in a
+traceback, and no message suggests loading pickles."""
 
 import io
 import os
+import struct
 import subprocess
 import sys
-import tracemalloc
+import time
 import zipfile
 
 import numpy as np
@@ -14,9 +16,30 @@ from numpy.lib import format as npformat
 
 import massspring as ms
 from massspring.cli import main
-from massspring.io.state import read_state, write_state
+from massspring.io.state import MAX_CARRIED, read_state, write_state
 
 CHAIN = ["chain", "--set", "count=5", "--quiet"]
+BOMB_ELEMENTS = 400_000_000  # float64 zeros: 3.2 GB uncompressed, about 14 MB deflated
+
+# read_state(argv[1]) in a child, with the chain's model if argv[2] is "model"; prints the
+# message, the seconds read_state took and the bytes its peak RSS (VmHWM) grew by.
+CHILD = """
+import sys, time
+import massspring as ms
+from massspring.io.state import read_state
+
+def peak():
+    return [int(line.split()[1]) * 1024 for line in open("/proc/self/status") if line.startswith("VmHWM:")][0]
+
+model = ms.load_scene("chain").with_params(count=5).model() if sys.argv[2] == "model" else None
+base, start = peak(), time.perf_counter()
+try:
+    read_state(sys.argv[1], model) if model is not None else read_state(sys.argv[1])
+    message = "accepted"
+except ValueError as exc:
+    message = str(exc)
+print(message, time.perf_counter() - start, peak() - base, sep="\\n")
+"""
 
 
 @pytest.fixture(scope="module")
@@ -24,10 +47,19 @@ def good(tmp_path_factory):
     """A real state file of the 5-particle chain after 3 implicit steps, and its Simulation."""
     path = tmp_path_factory.mktemp("state") / "good.npz"
     sim = ms.load_scene("chain").with_params(count=5).simulation("implicit")
-    for _ in range(3):
-        sim.step()
+    sim.step(3)
     write_state(sim, path, scene="chain")
     return path, sim
+
+
+@pytest.fixture(scope="module")
+def bombs(good, tmp_path_factory):
+    """{name: path}: the good file with an extra member of 400M float64 zeros ("extra"),
+    and with its positions replaced by 16.7M rows of zeros, 400 MB ("positions")."""
+    folder = tmp_path_factory.mktemp("bombs")
+    base = members(good[0])
+    return {"extra": zero_bomb(folder / "extra.npz", "extra", (BOMB_ELEMENTS,), base),
+            "positions": zero_bomb(folder / "positions.npz", "positions", (16_666_667, 3), base)}
 
 
 def members(path):
@@ -35,40 +67,54 @@ def members(path):
         return {key: data[key] for key in data.files}
 
 
+def npy(arr):
+    buffer = io.BytesIO()
+    npformat.write_array(buffer, np.asanyarray(arr), allow_pickle=True)
+    return buffer.getvalue()
+
+
 def write_members(path, arrays, compression=zipfile.ZIP_DEFLATED, extra=()):
     """An npz of ``arrays`` (name -> array) plus ``extra`` raw (name, bytes) members."""
     with zipfile.ZipFile(path, "w", compression) as archive:
         for name, arr in arrays.items():
-            buffer = io.BytesIO()
-            npformat.write_array(buffer, np.asanyarray(arr), allow_pickle=True)
-            archive.writestr(f"{name}.npy", buffer.getvalue())
+            archive.writestr(f"{name}.npy", npy(arr))
         for name, data in extra:
             archive.writestr(name, data)
     return path
 
 
-def zero_bomb(path, name, shape, base=None):
-    """``base``'s members and a member ``name`` of ``shape`` float64 zeros, streamed and
-    deflated (a few MB on disk, never whole in this process)."""
+def zero_bomb(path, name, shape, base):
+    """``base``'s members with member ``name`` replaced by float64 zeros of ``shape``,
+    streamed into a deflated member (never whole in this process)."""
     with zipfile.ZipFile(path, "w", zipfile.ZIP_DEFLATED, compresslevel=1) as archive:
-        for key, arr in (base or {}).items():
+        for key, arr in base.items():
             if key != name:
-                buffer = io.BytesIO()
-                npformat.write_array(buffer, arr)
-                archive.writestr(f"{key}.npy", buffer.getvalue())
+                archive.writestr(f"{key}.npy", npy(arr))
         with archive.open(f"{name}.npy", "w", force_zip64=True) as fh:
             npformat.write_array_header_1_0(fh, {"descr": "<f8", "fortran_order": False, "shape": shape})
-            chunk, left = bytes(1 << 22), int(np.prod(shape)) * 8
+            chunk, left = memoryview(bytes(1 << 24)), int(np.prod(shape)) * 8
             while left:
                 fh.write(chunk[:min(left, len(chunk))])
                 left -= min(left, len(chunk))
     return path
 
 
+def patch_directory(path, member, offset, value):
+    """Set the 2-byte field at ``offset`` of ``member``'s central directory entry."""
+    data = bytearray(path.read_bytes())
+    at = data.find(b"PK\x01\x02")
+    while data[at + 46:at + 46 + struct.unpack_from("<H", data, at + 28)[0]] != member.encode():
+        at = data.find(b"PK\x01\x02", at + 1)
+    struct.pack_into("<H", data, at + offset, value)
+    path.write_bytes(bytes(data))
+    return path
+
+
 def refused(path, *words, model=None):
-    """read_state's message for ``path``, checked to name the file and each of ``words``."""
+    """read_state's message for ``path``, checked to name the file and each of ``words``
+    and not to mention loading pickles."""
     with pytest.raises(ValueError) as info:
-        read_state(path, model)
+        read_state(path, model) if model is not None else read_state(path)
     message = str(info.value)
     assert str(path) in message and "allow_pickle" not in message and "unsafe" not in message, message
     for word in words:
@@ -76,55 +122,56 @@ def refused(path, *words, model=None):
     return message
 
 
-def test_round_trip_is_bitwise(good):
-    path, sim = good
+@pytest.mark.parametrize("scene, params", [("chain", {"count": 5}), ("drape", {"resolution": 4})])
+def test_round_trip_is_bitwise(scene, params, tmp_path):
+    sim = ms.load_scene(scene).with_params(**params).simulation("implicit")
+    sim.step(3)
+    path = tmp_path / "state.npz"
+    write_state(sim, path, scene=scene)
     state = read_state(path, sim.model)
-    assert state.positions.tobytes() == sim.positions.tobytes()
-    assert state.velocities.tobytes() == sim.velocities.tobytes()
-    assert (state.steps, state.dt, state.integrator, state.scene) == (3, sim.dt, "implicit", "chain")
-    assert state.fingerprint == sim.model.fingerprint()
+    for got, want in ((state.positions, sim.positions), (state.velocities, sim.velocities),
+                      (state.springs, sim.model.springs)):
+        assert got.dtype == want.dtype and got.tobytes() == want.tobytes()
+    assert (state.time, state.steps, state.dt) == (sim.time, 3, sim.dt)
+    assert (state.fingerprint, state.scene, state.integrator) == (sim.model.fingerprint(), scene, "implicit")
+    carried = sim.carried_state()
+    assert sorted(state.carried or {}) == sorted(carried) and (scene == "chain") == (not carried)
+    for name, values in carried.items():
+        assert state.carried[name].dtype == values.dtype and state.carried[name].tobytes() == values.tobytes()
 
 
-def test_a_deflated_bomb_is_refused_without_reading_it(good, tmp_path):
-    path, sim = good
-    base = members(path)
-    extra = zero_bomb(tmp_path / "extra.npz", "extra", (50_000_000,), base)
-    positions = zero_bomb(tmp_path / "positions.npz", "positions", (16_666_667, 3), base)
-    assert os.path.getsize(extra) < 5e6 and os.path.getsize(positions) < 5e6
-    tracemalloc.start()
-    try:
-        refused(extra, "extra", "not a member")
-        refused(positions, "holds 16666667 particles", model=sim.model)
-        peak = tracemalloc.get_traced_memory()[1]
-    finally:
-        tracemalloc.stop()
-    assert peak < 20e6  # the 400 MB arrays were never decompressed
+@pytest.mark.parametrize("name, model, words", [("extra", "-", ("'extra.npy'", "not a key")),
+                                                ("positions", "-", ("velocities", "expected shape")),
+                                                ("positions", "model", ("bytes, more than a state file",))])
+def test_a_deflated_bomb_is_refused_without_reading_it(bombs, name, model, words):
+    path = bombs[name]
+    assert os.path.getsize(path) < 20e6
+    proc = subprocess.run([sys.executable, "-c", CHILD, str(path), model], capture_output=True, text=True,
+                          timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    message, seconds, grown = proc.stdout.splitlines()[-3:]
+    assert str(path) in message and all(word in message for word in words), message
+    assert float(seconds) < 5 and int(grown) < 50e6, (seconds, grown)
 
 
-def test_header_shapes_that_disagree_with_the_stored_size(good, tmp_path):
-    path, _ = good
-    data = members(path)
-    buffer = io.BytesIO()
-    npformat.write_array_header_1_0(buffer, {"descr": "<f8", "fortran_order": False, "shape": (10 ** 18,)})
-    huge = buffer.getvalue() + bytes(64)
-    with zipfile.ZipFile(tmp_path / "huge.npz", "w") as archive:
-        for key, arr in data.items():
-            if key != "velocities":
-                out = io.BytesIO()
-                npformat.write_array(out, arr)
-                archive.writestr(f"{key}.npy", out.getvalue())
-        archive.writestr("velocities.npy", huge)
-    refused(tmp_path / "huge.npz", "velocities", "header declares shape")
+@pytest.mark.parametrize("shape", [(10 ** 18,), (10 ** 18, 3)])
+def test_a_header_declaring_more_than_the_member_holds(good, tmp_path, shape):
+    data = members(good[0])
+    header = io.BytesIO()
+    npformat.write_array_header_1_0(header, {"descr": "<f8", "fortran_order": False, "shape": shape})
+    path = write_members(tmp_path / "huge.npz", {k: v for k, v in data.items() if k != "velocities"},
+                         extra=[("velocities.npy", header.getvalue() + bytes(120))])
+    refused(path, "velocities: header declares shape", "but the member holds 120 bytes")
 
 
 @pytest.mark.parametrize("change, words", [
-    (lambda d: d.update(extra=np.zeros(3)), ("'extra.npy'", "not a member")),
-    (lambda d: d.pop("dt"), ("dt", "missing")),
-    (lambda d: d.update(positions=np.array([object()] * 15, dtype=object).reshape(5, 3)), ("positions", "dtype")),
-    (lambda d: d.update(positions=np.zeros((5, 2))), ("positions", "expected shape")),
-    (lambda d: d.update(carried_x=np.zeros((7, 3))), ("carried_x", "a row per particle")),
-    (lambda d: d.update(triangles=np.zeros((2, 4), dtype=np.int64)), ("triangles", "expected shape")),
-    (lambda d: d.update(velocities=np.full((5, 3), np.nan)), ("velocities", "non-finite")),
+    (lambda d: d.update(extra=np.zeros(3)), ("'extra.npy'", "not a key of a massspring state file")),
+    (lambda d: d.update(positions=np.array([object()] * 15).reshape(5, 3)), ("positions", "Python objects")),
+    (lambda d: d.update(dt=np.array(0.01, dtype=np.longdouble)), ("dt", "wider than a state file's")),
+    (lambda d: d.update(scene=np.array("x" * 5000)), ("scene", "wider than a state file's")),
+    (lambda d: d.update({f"carried_k{i}": np.zeros(5) for i in range(MAX_CARRIED + 1)}),
+     (f"carried_k{MAX_CARRIED}", f"more than {MAX_CARRIED}")),
+    (lambda d: d.update({"carried_../x": np.zeros(5)}), ("'carried_../x.npy'", "not a key")),
 ])
 def test_members_that_do_not_belong(good, tmp_path, change, words):
     data = members(good[0])
@@ -132,30 +179,76 @@ def test_members_that_do_not_belong(good, tmp_path, change, words):
     refused(write_members(tmp_path / "bad.npz", data), *words)
 
 
-@pytest.mark.parametrize("method", [zipfile.ZIP_BZIP2, zipfile.ZIP_LZMA])
-def test_other_compression_methods_are_refused(good, tmp_path, method):
+def test_a_member_that_is_not_an_array_or_is_stored_twice(good, tmp_path):
+    data = members(good[0])
+    path = write_members(tmp_path / "text.npz", data, extra=[("notes.txt", b"hello")])
+    refused(path, "'notes.txt'", "not a key")
+    with pytest.warns(UserWarning, match="Duplicate name"):
+        path = write_members(tmp_path / "twice.npz", data, extra=[("steps.npy", npy(np.int64(10 ** 9)))])
+    refused(path, "steps: stored twice")
+
+
+def test_a_zip_directory_larger_than_a_state_file_has(good, tmp_path):
+    path = write_members(tmp_path / "many.npz", members(good[0]), compression=zipfile.ZIP_STORED,
+                         extra=[(f"m{i}.npy", b"") for i in range(5000)])
+    refused(path, "zip directory takes", "bytes")
+
+
+@pytest.mark.parametrize("method, name", [(zipfile.ZIP_BZIP2, "BZIP2"), (zipfile.ZIP_LZMA, "LZMA")])
+def test_compression_methods_other_than_deflate_are_refused(good, tmp_path, method, name):
     path = write_members(tmp_path / "bad.npz", members(good[0]), compression=method)
-    refused(path, "compression method", str(method))
+    refused(path, f"compression method {method} ({name}) is not supported")
 
 
-def test_junk_truncated_and_special_files(good, tmp_path):
-    junk = tmp_path / "junk.npz"
-    junk.write_bytes(b"PK\x03\x04" + bytes(100))
-    refused(junk, "not a state file")
-    truncated = tmp_path / "truncated.npz"
-    truncated.write_bytes(good[0].read_bytes()[:-200])
-    refused(truncated, "not a state file")
-    refused(tmp_path, "not a regular file")
+@pytest.mark.parametrize("offset, value, words", [
+    (10, 99, ("positions: compression method 99", "not supported")),  # the method field
+    (8, 1, ("positions: encrypted",)),  # the flag bits: encrypted
+    (6, 99, ("zip feature", "version 9.9")),  # the version needed to extract: 9.9
+])
+def test_zip_features_that_state_files_never_use(good, tmp_path, offset, value, words):
+    path = write_members(tmp_path / "bad.npz", members(good[0]), compression=zipfile.ZIP_STORED)
+    refused(patch_directory(path, "positions.npy", offset, value), *words)
+
+
+def test_junk_and_truncated_files(good, tmp_path):
+    content = good[0].read_bytes()
+    cases = {"junk.npz": b"junk, not a zip", "pickle.npz": b"\x80\x04K\x07.", "empty.npz": b"",
+             "three.npz": content[:3], "half.npz": content[:len(content) // 2], "end.npz": content[:-200]}
+    for name, data in cases.items():
+        (tmp_path / name).write_bytes(data)
+        refused(tmp_path / name, "not a state file")
+    data = bytearray(content)
+    at = content.find(b"\x93NUMPY", content.find(b"positions.npy"))
+    data[at + 200:at + 208] = b"\xff" * 8  # inside the positions data: its CRC no longer holds
+    (tmp_path / "crc.npz").write_bytes(bytes(data))
+    refused(tmp_path / "crc.npz", "positions: cannot be read", "CRC")
+
+
+def test_special_files_are_never_opened(tmp_path):
+    refused(tmp_path, "not a regular file but a directory")
+    refused("/dev/zero", "not a regular file but a device")
     refused(tmp_path / "missing.npz", "cannot be read")
     fifo = tmp_path / "fifo.npz"
     os.mkfifo(fifo)
-    script = f"from massspring.io.state import read_state\nread_state({str(fifo)!r})\n"
-    proc = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=60)
-    assert proc.returncode == 1 and "not a regular file" in proc.stderr  # raised at once: no reader blocked
+    try:
+        proc = subprocess.run([sys.executable, "-c", CHILD, str(fifo), "-"], capture_output=True, text=True,
+                              timeout=30)
+    except subprocess.TimeoutExpired:
+        pytest.fail("read_state blocked on a FIFO")
+    message = proc.stdout.splitlines()[-3]
+    assert str(fifo) in message and "not a regular file but a named pipe (FIFO)" in message, proc.stdout
 
 
-def test_the_cli_refuses_a_bomb_with_exit_2(good, tmp_path, capsys):
-    bomb = zero_bomb(tmp_path / "bomb.npz", "extra", (50_000_000,), members(good[0]))
-    assert main(["run", *CHAIN, "--steps", "2", "--restart", str(bomb)]) == 2
-    err = capsys.readouterr().err
-    assert err.count("\n") == 1 and "--restart" in err and "extra" in err and "Traceback" not in err
+def test_the_cli_refuses_a_bomb_with_exit_2(bombs, good, tmp_path, capsys):
+    header = io.BytesIO()
+    npformat.write_array_header_1_0(header, {"descr": "<f8", "fortran_order": False, "shape": (10 ** 18, 3)})
+    huge = write_members(tmp_path / "huge.npz", {k: v for k, v in members(good[0]).items() if k != "velocities"},
+                         extra=[("velocities.npy", header.getvalue())])
+    for path, words in ((bombs["extra"], "bytes, more than a state file of the model of scene 'chain'"),
+                        (huge, "velocities: header declares shape (1000000000000000000, 3)")):
+        start = time.perf_counter()
+        assert main(["run", *CHAIN, "--steps", "2", "--restart", str(path)]) == 2
+        assert time.perf_counter() - start < 30
+        err = capsys.readouterr().err
+        assert err.count("\n") == 1 and f"--restart: {path}: " in err and words in err, err
+        assert "Traceback" not in err and "allow_pickle" not in err

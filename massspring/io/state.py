@@ -15,6 +15,8 @@ import math
 import os
 import stat
 import zipfile
+import zlib
+from contextlib import contextmanager
 from dataclasses import dataclass
 
 import numpy as np
@@ -29,7 +31,15 @@ KEYS = {"positions": ("f", ("n", 3)), "velocities": ("f", ("n", 3)), "springs": 
         "scene": ("U", ()), "integrator": ("U", ())}
 CARRIED = "carried_"  # prefix of the keys of Simulation.carried_state()
 TRIANGLES = "triangles"  # the surface, for drawing; (t, 3) integers
+MAX_CARRIED = 8  # carried_<name> members; the implicit integrator's contact memory has 3
+MAX_MEMBERS = len(KEYS) + 1 + MAX_CARRIED
 HEADER_LIMIT = 10_000  # bytes of a member's .npy header
+ITEM_LIMIT = 8  # bytes of a number
+STRING_LIMIT = 4096  # characters of fingerprint, scene and integrator
+DIRECTORY_LIMIT = MAX_MEMBERS * 1_000  # bytes of the zip's central directory
+MEMBER_OVERHEAD = HEADER_LIMIT + 1_000  # bytes of a member besides its data: zip headers, .npy header
+COMPRESSION_NAMES = {1: "Shrink", 6: "Implode", 9: "Deflate64", 12: "BZIP2", 14: "LZMA", 93: "Zstandard",
+                     98: "PPMd", 99: "AES encryption"}
 
 
 def write_state(sim, path, scene=""):
@@ -63,97 +73,159 @@ class State:
 
 
 def read_state(path, model=None, model_name="this run's model") -> State:
-    """Read and check a state file. Raises ValueError naming the file and the key.
+    """Read and check a state file. Raises ValueError naming the file, the key where
+    there is one, and what is wrong.
 
-    Nothing is read before it is checked, so no file can make this allocate more than
-    its arrays' declared size, and that size is bounded:
-    1. ``path`` is a regular file (never a FIFO or device, which could block or never end);
-    2. the zip directory: every member a key of ``KEYS``, ``triangles`` or
-       ``carried_<name>``, each once, stored or deflated, not encrypted;
-    3. each member's .npy header: a plain dtype of the key's kind (no pickled objects),
-       the key's shape (``n``, ``m`` the same across keys, and with ``model`` its particle,
-       spring and triangle counts), and a data size equal to the member's stored size;
-       the sum of the declared sizes within the memory available (with ``model``, it is
-       the model's own arrays' size; ``model_name`` names it in messages);
-    4. the data: numbers finite, ``steps`` >= 0, ``dt`` > 0.
+    Each step is checked before the next reads anything, so no file can block, show a
+    traceback, or make this allocate more than the arrays it declares, a size bounded
+    by ``model`` when given (``model_name`` names it in messages) and else by the
+    memory available:
+
+    1. ``path`` is a regular file (never opened if it is a FIFO or device, which could
+       block or never end); with ``model``, no larger than a state of ``model`` stored
+       uncompressed (``_file_limit``);
+    2. the zip's end record: a central directory of at most ``DIRECTORY_LIMIT`` bytes;
+    3. the zip directory: every member ``<key>.npy`` with a key of ``KEYS``,
+       ``triangles`` or ``carried_<name>`` (at most ``MAX_CARRIED``), each once,
+       stored or deflated, not encrypted; every key of ``KEYS`` present;
+    4. each member's .npy header (format 1.0 or 2.0): a plain dtype of the key's kind
+       (numbers of at most 8 bytes, strings of at most ``STRING_LIMIT`` characters; no
+       Python objects, so no pickles), a data size equal to the member's uncompressed
+       size less its header;
+    5. the shapes: each key's (``n``, ``m`` the same across keys; ``carried_<name>``
+       a row per particle, one number or 3 each); with ``model``, its particle, spring
+       and triangle counts; the sum of the declared sizes, twice over, within the
+       memory available;
+    6. the data, each member read by itself as its header declared: numbers finite,
+       ``steps`` >= 0, ``dt`` > 0.
     """
     try:
-        mode = os.stat(path).st_mode
-    except OSError as exc:
-        raise ValueError(f"{path}: cannot be read: {exc.strerror or exc}") from None
-    if not stat.S_ISREG(mode):
-        raise ValueError(f"{path}: not a regular file (a state file written by --out or --export)")
-    try:
-        with zipfile.ZipFile(path) as archive:
-            members = _check_directory(path, archive)
-            headers = {key: _check_header(path, archive, info, key) for key, info in members.items()}
-            _check_sizes(path, headers, model, model_name)
-            arrays = {key: _read_member(path, archive, members[key], key) for key in members}
-    except (zipfile.BadZipFile, EOFError) as exc:
-        raise ValueError(f"{path}: not a state file (.npz) of massspring: {exc or 'truncated'}") from None
+        with _open_regular_file(path, model, model_name) as fh:
+            _check_end_record(path, fh)
+            with zipfile.ZipFile(fh) as archive:
+                members = _check_directory(path, archive)
+                headers = {key: _check_header(path, archive, info, key) for key, info in members.items()}
+                _check_shapes(path, headers, model, model_name)
+                arrays = {key: _read_member(path, archive, members[key], key, headers[key]) for key in members}
+    except (zipfile.BadZipFile, EOFError, zlib.error, UnicodeDecodeError) as exc:
+        raise ValueError(f"{path}: not a state file (.npz) of massspring: {_brief(exc) or 'truncated'}") from None
+    except NotImplementedError as exc:
+        raise ValueError(f"{path}: not a state file (.npz) of massspring: it uses a zip feature that state "
+                         f"files never do ({_brief(exc)})") from None
     except OSError as exc:
         raise ValueError(f"{path}: cannot be read: {exc.strerror or exc}") from None
     return _check_values(path, arrays)
 
 
-def _allowed(key):
-    return key in KEYS or key == TRIANGLES or (key.startswith(CARRIED) and len(key) > len(CARRIED))
+def _open_regular_file(path, model, model_name):
+    """``path`` opened for reading once ``os.stat`` shows a regular file no larger than
+    a state of ``model`` (step 1); the opened file is checked to be that same file."""
+    try:
+        before = os.stat(path)
+    except OSError as exc:
+        raise ValueError(f"{path}: cannot be read: {exc.strerror or exc}") from None
+    if not stat.S_ISREG(before.st_mode):
+        raise ValueError(f"{path}: not a regular file but {_file_kind(before.st_mode)}; a state file is "
+                         "one written by --out or --export")
+    if model is not None and before.st_size > _file_limit(model):
+        raise ValueError(f"{path}: {before.st_size:,} bytes, more than a state file of {model_name} takes "
+                         f"(at most {_file_limit(model):,} bytes)")
+    fd = os.open(path, os.O_RDONLY | getattr(os, "O_NONBLOCK", 0))
+    after = os.fstat(fd)
+    if (after.st_dev, after.st_ino) != (before.st_dev, before.st_ino) or after.st_size != before.st_size:
+        os.close(fd)
+        raise ValueError(f"{path}: changed while being opened")
+    return os.fdopen(fd, "rb")
+
+
+def _check_end_record(path, fh):
+    """The central directory's size from the zip's end record, which ``zipfile.ZipFile``
+    reads whole before anything else (step 2)."""
+    end = zipfile._EndRecData(fh)
+    if end is None:
+        raise zipfile.BadZipFile("no zip directory at its end")
+    if end[zipfile._ECD_SIZE] > DIRECTORY_LIMIT:
+        raise ValueError(f"{path}: its zip directory takes {end[zipfile._ECD_SIZE]:,} bytes; a state file's "
+                         f"{MAX_MEMBERS} members at most take {DIRECTORY_LIMIT:,}")
 
 
 def _check_directory(path, archive):
-    """{key: ZipInfo} of the archive's members, each checked (step 2 of ``read_state``)."""
+    """{key: ZipInfo} of the archive's members, each checked (step 3)."""
     members = {}
     for info in archive.infolist():
-        key = info.filename[:-4] if info.filename.endswith(".npy") else info.filename
-        if not _allowed(key) or not info.filename.endswith(".npy"):
-            raise ValueError(f"{path}: {info.filename[:80]!r}: not a member of a massspring state file "
-                             f"(expected {', '.join(KEYS)}, {TRIANGLES} and {CARRIED}<name>, as .npy)")
+        key = info.filename[:-4] if info.filename.endswith(".npy") else None
+        if key is None or not _allowed(key):
+            raise ValueError(f"{path}: {info.filename[:80]!r}: not a key of a massspring state file (keys: "
+                             f"{', '.join(KEYS)}, {TRIANGLES} and {CARRIED}<name>, each a .npy member)")
         if key in members:
             raise ValueError(f"{path}: {key}: stored twice")
         if info.compress_type not in (zipfile.ZIP_STORED, zipfile.ZIP_DEFLATED):
-            raise ValueError(f"{path}: {key}: compression method {info.compress_type} is not supported "
-                             "(a state file is stored or deflated)")
-        if info.flag_bits & 0x1:
-            raise ValueError(f"{path}: {key}: encrypted")
+            name = COMPRESSION_NAMES.get(info.compress_type, "unknown")
+            raise ValueError(f"{path}: {key}: compression method {info.compress_type} ({name}) is not supported; "
+                             "a state file's members are stored or deflated")
+        if info.flag_bits & 0x61:
+            raise ValueError(f"{path}: {key}: encrypted or patched, which a state file never is")
         members[key] = info
+    carried = [key for key in members if key.startswith(CARRIED)]
+    if len(carried) > MAX_CARRIED:
+        raise ValueError(f"{path}: {carried[MAX_CARRIED]}: more than {MAX_CARRIED} {CARRIED}<name> members")
     for key in KEYS:
         if key not in members:
             raise ValueError(f"{path}: {key}: missing (not a state file written by this version of massspring)")
     return members
 
 
-def _check_header(path, archive, info, key):
-    """(dtype, shape) of a member from its .npy header, checked against its key and its
-    stored size (step 3 of ``read_state``), without reading its data."""
+def _allowed(key):
+    name = key[len(CARRIED):]
+    return key in KEYS or key == TRIANGLES or (key.startswith(CARRIED) and name.isidentifier() and len(name) <= 64)
+
+
+@contextmanager
+def _reading(path, key):
+    """Errors of zipfile and numpy while reading member ``key`` as ValueError naming it."""
     try:
-        with archive.open(info) as fh:
-            version = npformat.read_magic(fh)
-            read_header = npformat.read_array_header_1_0 if version == (1, 0) else npformat.read_array_header_2_0
-            shape, fortran, dtype = read_header(fh, max_header_size=HEADER_LIMIT)
-            data_offset = fh.tell()
+        yield
+    except (zipfile.BadZipFile, EOFError, zlib.error, NotImplementedError, OSError) as exc:
+        raise ValueError(f"{path}: {key}: cannot be read ({_brief(exc) or 'truncated'})") from None
     except (ValueError, TypeError, SyntaxError) as exc:
-        raise ValueError(f"{path}: {key}: not a valid array ({_brief(exc)})") from None
-    if dtype.hasobject or dtype.kind not in "iuf" + "U":
-        raise ValueError(f"{path}: {key}: dtype {dtype} is not one a state file holds")
+        raise ValueError(f"{path}: {key}: not a valid .npy array ({_brief(exc)})") from None
+
+
+def _check_header(path, archive, info, key):
+    """(dtype, shape, bytes) of member ``key`` from its .npy header, checked against its
+    key's kind and its uncompressed size (step 4), without reading its data."""
+    with _reading(path, key), archive.open(info) as fh:
+        version = npformat.read_magic(fh)
+        read_header = {(1, 0): npformat.read_array_header_1_0, (2, 0): npformat.read_array_header_2_0}.get(version)
+        if read_header is not None:
+            shape, _, dtype = read_header(fh, max_header_size=HEADER_LIMIT)
+            data_size = info.file_size - fh.tell()
+    if read_header is None:
+        raise ValueError(f"{path}: {key}: .npy format version {version[0]}.{version[1]}; a state file's are 1.0 or 2.0")
+    if dtype.hasobject:
+        raise ValueError(f"{path}: {key}: holds Python objects (dtype {dtype}), which a state file never does")
     kind = KEYS[key][0] if key in KEYS else ("i" if key == TRIANGLES else "n")
-    allowed = {"f": "f", "i": "iu", "U": "U", "n": "iuf"}[kind]
-    if dtype.kind not in allowed:
+    if dtype.kind not in {"f": "f", "i": "iu", "U": "U", "n": "iuf"}[kind]:
         raise ValueError(f"{path}: {key}: expected {_KINDS[kind]}, got dtype {dtype}")
+    if dtype.itemsize > (4 * STRING_LIMIT if kind == "U" else ITEM_LIMIT):
+        raise ValueError(f"{path}: {key}: dtype {dtype} is wider than a state file's")
     if any(d < 0 for d in shape):
         raise ValueError(f"{path}: {key}: header declares shape {shape}")
     nbytes = math.prod(shape) * dtype.itemsize
-    if nbytes != info.file_size - data_offset:
+    if nbytes != data_size:
         raise ValueError(f"{path}: {key}: header declares shape {shape} of {dtype} ({nbytes:,} bytes) but the "
-                         f"member holds {max(info.file_size - data_offset, 0):,} bytes")
+                         f"member holds {max(data_size, 0):,} bytes")
     return dtype, shape, nbytes
 
 
-def _check_sizes(path, headers, model, model_name):
-    """Shapes consistent across keys and with ``model``; the total size bounded (step 3)."""
+def _check_shapes(path, headers, model, model_name):
+    """Shapes consistent across keys and with ``model``; the total size within the memory
+    available (step 5)."""
     counts = {} if model is None else {"n": model.n_particles, "m": model.n_springs}
-    rows = headers["positions"][1][:1]
-    if model is not None and rows != (model.n_particles,):
-        raise ValueError(f"{path} holds {rows[0] if rows else 0} particles; {model_name} has {model.n_particles}")
+    if model is not None and headers["positions"][1][:1] != (model.n_particles,):
+        rows = headers["positions"][1][:1]
+        raise ValueError(f"{path}: positions: holds {rows[0] if rows else 0} particles; {model_name} has "
+                         f"{model.n_particles}")
     for key, (kind, shape) in KEYS.items():
         if not _shape_fits(headers[key][1], shape, counts):
             raise ValueError(f"{path}: {key}: expected shape {_shape(shape, counts)}, got {headers[key][1]}")
@@ -170,19 +242,21 @@ def _check_sizes(path, headers, model, model_name):
     total = sum(nbytes for _, _, nbytes in headers.values())
     room, name = memory.available()
     if room is not None and 2 * total > room:
-        raise ValueError(f"{path}: its arrays declare {total / 1e9:.3g} GB; {room / 1e9:.3g} GB {name}")
+        raise ValueError(f"{path}: its arrays declare {total / 1e9:.3g} GB; {max(room, 0) / 1e9:.3g} GB {name}")
 
 
-def _read_member(path, archive, info, key):
-    try:
-        with archive.open(info) as fh:
-            return npformat.read_array(fh, allow_pickle=False, max_header_size=HEADER_LIMIT)
-    except (ValueError, TypeError) as exc:
-        raise ValueError(f"{path}: {key}: not a valid array ({_brief(exc)})") from None
+def _read_member(path, archive, info, key, header):
+    """Member ``key``'s array, read as its checked header declares (step 6)."""
+    dtype, shape, _ = header
+    with _reading(path, key), archive.open(info) as fh:
+        arr = npformat.read_array(fh, allow_pickle=False, max_header_size=HEADER_LIMIT)
+    if arr.dtype != dtype or arr.shape != shape:
+        raise ValueError(f"{path}: {key}: changed while being read")
+    return arr
 
 
 def _check_values(path, arrays) -> State:
-    """The State of checked arrays: numbers finite, ``steps`` >= 0, ``dt`` > 0 (step 4)."""
+    """The State of checked arrays: numbers finite, ``steps`` >= 0, ``dt`` > 0 (step 6)."""
     for key, arr in arrays.items():
         if arr.dtype.kind == "f" and not np.all(np.isfinite(arr)):
             raise ValueError(f"{path}: {key}: holds a non-finite value (NaN or Inf)")
@@ -194,9 +268,23 @@ def _check_values(path, arrays) -> State:
     if not dt > 0:
         raise ValueError(f"{path}: dt: must be > 0, got {dt:g}")
     carried = {key[len(CARRIED):]: arr for key, arr in arrays.items() if key.startswith(CARRIED)}
-    return State(str(path), arrays["positions"].astype(np.float64), arrays["velocities"].astype(np.float64),
-                 arrays["springs"], float(arrays["time"]), steps, dt, str(arrays["fingerprint"]),
-                 str(arrays["scene"]), str(arrays["integrator"]), carried or None)
+    return State(str(path), arrays["positions"].astype(np.float64, copy=False),
+                 arrays["velocities"].astype(np.float64, copy=False), arrays["springs"], float(arrays["time"]),
+                 steps, dt, str(arrays["fingerprint"]), str(arrays["scene"]), str(arrays["integrator"]),
+                 carried or None)
+
+
+def _file_limit(model):
+    """Bytes of the largest state file of ``model``: every array at its largest, stored."""
+    n, m, t = model.n_particles, model.n_springs, len(model.triangles)
+    data = ITEM_LIMIT * (2 * 3 * n + 2 * m + 3 * t + MAX_CARRIED * 3 * n + 3) + 3 * 4 * STRING_LIMIT
+    return int(1.01 * data) + MAX_MEMBERS * MEMBER_OVERHEAD + DIRECTORY_LIMIT
+
+
+def _file_kind(mode):
+    kinds = [(stat.S_ISDIR, "a directory"), (stat.S_ISFIFO, "a named pipe (FIFO)"), (stat.S_ISCHR, "a device"),
+             (stat.S_ISBLK, "a device"), (stat.S_ISSOCK, "a socket")]
+    return next((name for test, name in kinds if test(mode)), "another kind of file")
 
 
 def _brief(exc):
