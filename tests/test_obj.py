@@ -125,3 +125,45 @@ def test_writer_writes_springs_as_lines(tmp_path):
     path = tmp_path / "chain.obj"
     write_obj(path, [[0.0, 0, 0], [1.0, 0, 0], [2.0, 0, 0]], lines=[[0, 1], [1, 2]])
     assert path.read_text().splitlines() == ["v 0.0 0.0 0.0", "v 1.0 0.0 0.0", "v 2.0 0.0 0.0", "l 1 2", "l 2 3"]
+
+
+def test_byte_order_mark_is_skipped(tmp_path):
+    path = tmp_path / "bom.obj"
+    path.write_bytes(b"\xef\xbb\xbf" + (TRIANGLE + "f 1 2 3\n").encode())
+    mesh = read_obj(path)
+    assert len(mesh.vertices) == 3 and mesh.faces == [[0, 1, 2]]
+
+
+def test_special_files_are_refused_without_reading(tmp_path):
+    import os
+    import subprocess
+    import sys
+
+    for path in (tmp_path, "/dev/zero"):
+        with pytest.raises(ObjError, match="not a regular file"):
+            read_obj(path)
+    fifo = tmp_path / "fifo.obj"
+    os.mkfifo(fifo)
+    script = f"from massspring.io.obj import read_obj\nread_obj({str(fifo)!r})\n"
+    proc = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 1 and "not a regular file" in proc.stderr  # at once: no writer awaited
+
+
+def test_a_line_without_end_is_refused(tmp_path, monkeypatch):
+    from massspring.io import obj
+
+    monkeypatch.setattr(obj, "MAX_LINE", 1000)
+    path = tmp_path / "long.obj"
+    path.write_text(TRIANGLE + "f 1 2 3\n# " + "0" * 5000)
+    with pytest.raises(ObjError, match=r"long.obj:5: a line longer than 1,000 characters"):
+        read_obj(path)
+
+
+def test_a_file_too_large_to_read_is_refused(tmp_path, monkeypatch):
+    from massspring import memory
+
+    monkeypatch.setattr(memory, "available", lambda: (1000.0, "of memory available"))
+    path = tmp_path / "mesh.obj"
+    path.write_text(TRIANGLE + "f 1 2 3\n")
+    with pytest.raises(ObjError, match=r"mesh.obj: reading its .* GB needs about .* GB; 1e-06 GB of memory available"):
+        read_obj(path)

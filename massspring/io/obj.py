@@ -20,12 +20,17 @@ the whole file).
 from __future__ import annotations
 
 import math
+import os
+import stat
 from dataclasses import dataclass
 
 import numpy as np
 
-from massspring import mesh
+from massspring import memory, mesh
 from massspring.io.files import atomic_output
+
+READ_BYTES_PER_FILE_BYTE = 22  # peak memory of read_obj per byte of the file (a 300 x 300 grid mesh)
+MAX_LINE = 1 << 20  # characters of one logical line
 
 
 class ObjError(ValueError):
@@ -50,13 +55,16 @@ class ObjMesh:
     vertex_lines: np.ndarray
 
 
-def _logical_lines(fh):
-    """(first physical line number, text) of each line, ``\\`` continuations joined."""
+def _logical_lines(path, fh):
+    """(first physical line number, text) of each line, ``\\`` continuations joined; a
+    line longer than ``MAX_LINE`` characters raises ObjError."""
     pending, start = "", None
     for number, raw in enumerate(fh, 1):
         text = raw.rstrip("\r\n")
         if start is None:
             start = number
+        if len(pending) + len(text) > MAX_LINE:
+            raise ObjError(path, start, f"a line longer than {MAX_LINE:,} characters: not an OBJ mesh")
         if text.endswith("\\"):
             pending += text[:-1] + " "
             continue
@@ -66,17 +74,35 @@ def _logical_lines(fh):
         yield start, pending
 
 
+def _open(path):
+    """``path`` opened as UTF-8 text (a byte-order mark skipped) once it shows a regular
+    file (never a FIFO or device, which could block or never end) whose reading fits in
+    the memory available (``memory.available``)."""
+    try:
+        info = os.stat(path)
+    except (OSError, ValueError) as exc:
+        raise ObjError(path, None, f"cannot be read: {getattr(exc, 'strerror', None) or exc}") from None
+    if not stat.S_ISREG(info.st_mode):
+        raise ObjError(path, None, "not a regular file (an OBJ mesh is a text file)")
+    try:
+        memory.check(memory.MARGIN * READ_BYTES_PER_FILE_BYTE * info.st_size,
+                     f"reading its {info.st_size / 1e9:.3g} GB")
+    except memory.MemoryNeedError as exc:
+        raise ObjError(path, None, str(exc)) from None
+    try:
+        return open(path, encoding="utf-8-sig", errors="replace")
+    except OSError as exc:
+        raise ObjError(path, None, f"cannot be read: {exc.strerror}") from None
+
+
 def read_obj(path) -> ObjMesh:
     """Read a polygon mesh from an OBJ file, checked for what a Model needs: at least
     one vertex and one face, valid indices, no vertex twice in a face, no triangle of
     zero area (``mesh.degenerate_triangles``), no vertex outside every face."""
-    try:
-        fh = open(path, encoding="utf-8", errors="replace")
-    except OSError as exc:
-        raise ObjError(path, None, f"cannot be read: {exc.strerror}") from None
+    fh = _open(path)
     vertices, vertex_lines, faces, face_lines = [], [], [], []
     with fh:
-        for number, text in _logical_lines(fh):
+        for number, text in _logical_lines(path, fh):
             if text.startswith(("vt", "vn", "#")):  # the most common lines this reader ignores
                 continue
             if "#" in text:
