@@ -19,7 +19,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from massspring import progress
+from massspring import progress, validate
 from massspring.text import format_seconds
 
 EXIT_OK, EXIT_OUTPUT, EXIT_USAGE, EXIT_DIVERGED, EXIT_INTERRUPTED = 0, 1, 2, 3, 130
@@ -103,8 +103,11 @@ def make_simulation(args):
     from massspring.scene import load_scene
 
     scene = load_scene(args.scene).with_settings(args.set)
-    if args.dt is not None and not (math.isfinite(args.dt) and args.dt > 0):
-        raise UsageError(f"--dt: must be a finite number > 0, got {args.dt:g}")
+    if args.dt is not None:
+        try:
+            validate.positive_float("--dt", args.dt)
+        except ValueError as exc:
+            raise UsageError(str(exc)) from None
     with progress.phase(f"{args.command} {scene.name}: building the model and the simulation",
                         show=not getattr(args, "quiet", False)):
         sim = scene.simulation(integrator=args.integrator, dt=args.dt, precision=args.precision, arch=args.arch,
@@ -188,11 +191,11 @@ def run_steps(args, scene, sim):
     duration = scene.duration if args.duration is None else args.duration
     if not (math.isfinite(duration) and duration > 0):
         raise UsageError(f"--duration: must be a finite number > 0, got {duration:g}")
-    steps = round(duration / sim.dt)
-    if steps > MAX_STEPS:
+    steps = duration / sim.dt
+    if not steps <= MAX_STEPS:  # also an infinite quotient
         raise UsageError(f"--duration: {duration:g} s at dt = {format_seconds(sim.dt)} is {steps:.3g} steps, "
                          f"more than {MAX_STEPS:.3g}")
-    return max(1, int(steps))
+    return max(1, round(steps))
 
 
 def cmd_run(args):
@@ -368,8 +371,9 @@ def plan_frames(args, sim, steps):
                 raise UsageError(f"--{name}: only with --gif, --png or --export")
         return None
     fps = render.DEFAULT_FPS if args.fps is None else args.fps
-    if not (math.isfinite(fps) and 0 < fps <= render.MAX_FPS):
-        raise UsageError(f"--fps: must be > 0 and <= {render.MAX_FPS}, got {fps:g}")
+    if not (math.isfinite(fps) and render.MIN_FPS <= fps <= render.MAX_FPS):
+        raise UsageError(f"--fps: must be within {render.MIN_FPS:.4g}..{render.MAX_FPS} (a GIF frame lasts "
+                         f"at most 655.35 s), got {fps:g}")
     try:
         return render.frame_steps(steps, frames=args.frames, every=args.every, duration=steps * sim.dt, fps=fps)
     except ValueError as exc:

@@ -7,17 +7,26 @@ from __future__ import annotations
 
 import math
 import numbers
+import sys
+
+from massspring.text import brief
 
 MAX_INT32 = 2**31 - 1  # kernels count in int32
 
 
 def positive_float(name, value) -> float:
-    """A finite number > 0 (not a bool or string)."""
+    """A finite number > 0 (not a bool or string), no smaller than the smallest normal
+    float (a subnormal one loses its digits and its inverse overflows)."""
     if isinstance(value, (bool, str)) or not isinstance(value, numbers.Real):
         raise ValueError(f"{name}: expected a number, got {value!r}")
-    out = float(value)
+    try:
+        out = float(value)
+    except OverflowError:
+        raise ValueError(f"{name}: {brief(value)} is beyond the range of a number") from None
     if not math.isfinite(out) or out <= 0:
-        raise ValueError(f"{name}: must be a finite number > 0, got {value!r}")
+        raise ValueError(f"{name}: must be a finite number > 0, got {brief(value)}")
+    if out < sys.float_info.min:
+        raise ValueError(f"{name}: {value!r} is below the smallest normal number ({sys.float_info.min:.3g})")
     return out
 
 

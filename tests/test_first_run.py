@@ -37,6 +37,10 @@ def run_cli(*args, timeout=300):
     (["--gif", "run.png"], "--gif"),
     (["--out", "state.txt"], "--out"),
     (["--precision", "f32", "--set", "stiffness=1e30"], "stiffness"),
+    (["--set", "stiffness=" + "9" * 400], "stiffness"),   # an integer beyond any float
+    (["--set", "gravity=[0, 0, -" + "9" * 400 + "]"], "gravity"),
+    (["--fps", "0.001", "--gif", "x.gif"], "--fps"),     # a GIF delay beyond its 16 bits
+    (["--export", "x" * 300], "--export"),               # a directory name too long
 ])
 def test_bad_values_exit_2_before_the_run(args, word, tmp_path, capsys, monkeypatch):
     monkeypatch.chdir(tmp_path)
@@ -169,3 +173,29 @@ def test_f32_kernels_compile_without_precision_warnings(tmp_path):
     proc = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, env=env, cwd=tmp_path)
     assert proc.returncode == 0, proc.stderr[-2000:]
     assert "lose precision" not in proc.stderr and "TaichiWarning" not in proc.stderr, proc.stderr[-2000:]
+
+
+@pytest.mark.parametrize("text, words", [
+    ("duration = " + "9" * 400, ("duration", "beyond the range of a number", "(400 characters)")),
+    ('duration = 1.0\n[[collider]]\ntype = ["plane"]', ("collider[0].type", "['plane']")),
+])
+def test_bad_numbers_and_types_in_scene_files(text, words, tmp_path, capsys):
+    scene = tmp_path / "s.toml"
+    scene.write_text('description = "x"\nintegrator = "implicit"\n' + text.replace("[[collider]]", "[model]\n"
+                     'generator = "chain"\n[[collider]]') + ("" if "[model]" in text or "collider" in text
+                                                             else '\n[model]\ngenerator = "chain"\n'))
+    assert main(["run", str(scene), "--steps", "1", "--quiet"]) == 2
+    err = one_line_error(capsys, *words)
+    assert len(err) < 400  # a long bad value is cut, not echoed whole
+
+
+def test_derived_counts_that_overflow_are_refused(tmp_path, capsys):
+    # subnormal: 1/dt overflows (read as 0 where an earlier library set flush-to-zero)
+    assert main(["run", "spring", "--dt", "1e-320", "--steps", "2", "--quiet"]) == 2
+    one_line_error(capsys, "--dt")
+    assert main(["info", "spring", "--dt", "1e-300"]) == 0  # normal, tiny: prints
+    assert "1e-300 s" in capsys.readouterr().out
+    assert main(["study", "spring", "--duration", "1e308", "--out", str(tmp_path / "st")]) == 2
+    one_line_error(capsys, "duration", "steps")
+    assert main(["stability", "spring", "--run-duration", "1e308", "--max-steps", "3", "--predict-only",
+                 "--out", str(tmp_path / "stab")]) == 0

@@ -235,7 +235,7 @@ def run_case(scene, integrator, dt, definiteness_fix=True, duration=1.0, max_ste
     """
     sim = scene.simulation(integrator=integrator, dt=dt, definiteness_fix=definiteness_fix, **sim_kwargs)
     model = sim.model
-    steps = max(1, min(int(math.ceil(duration / dt - 1e-9)), int(max_steps)))
+    steps = max(1, int(math.ceil(min(duration / dt - 1e-9, int(max_steps)))))
     chunk = max(1, steps // samples)
     strain = max_strain(model, model.positions)
     outcome = "stable"

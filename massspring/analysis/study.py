@@ -46,6 +46,7 @@ from massspring.simulation import Simulation
 DEFAULT_CG_TOLS = (1e-2, 1e-4, 1e-6)
 DEFAULT_RUNGS = 7            # dt values per line: 2^6 = 64, about 2 decades
 DEFAULT_DURATION_FRACTION = 0.1  # of the scene's duration (see default_duration)
+MAX_REFERENCE_STEPS = 1e9  # steps of the RK4 reference at its starting dt
 MAX_SAVES = 100
 DEFAULT_REPEATS = 3
 DEFAULT_TIME_BUDGET = 2.0    # s of timed runs per configuration before repeats stop
@@ -140,7 +141,7 @@ def default_duration(scene) -> float:
 
 def save_instants(duration, top_dts, max_saves=MAX_SAVES) -> np.ndarray:
     """Equally spaced instants (s) ending at ``duration``, no closer than the largest dt."""
-    count = max(1, min(max_saves, int(math.floor(duration / max(top_dts) + 1e-9))))
+    count = max(1, int(math.floor(min(max_saves, duration / max(top_dts) + 1e-9))))
     return duration * np.arange(1, count + 1) / count
 
 
@@ -197,6 +198,11 @@ def run_study(scene, *, integrators=DEFAULT_INTEGRATORS, duration=None, rungs=DE
     """
     integrators = _check_integrators(integrators)
     duration = default_duration(scene) if duration is None else validate.positive_float("duration", duration)
+    start_dt = scene.default_dt("explicit") if reference_dt is None else validate.positive_float("reference_dt",
+                                                                                                  reference_dt)
+    if not duration / start_dt <= MAX_REFERENCE_STEPS:
+        raise ValueError(f"duration: {duration:g} s is {duration / start_dt:.3g} steps of the reference's dt "
+                         f"({start_dt:.3g} s), more than {MAX_REFERENCE_STEPS:.3g}")
     rungs = validate.count("rungs", rungs)
     repeats = validate.count("repeats", repeats)
     cg_tols = [validate.fraction("cg_tols", t) for t in cg_tols] or list(DEFAULT_CG_TOLS)
@@ -229,7 +235,7 @@ def run_study(scene, *, integrators=DEFAULT_INTEGRATORS, duration=None, rungs=DE
                     runs.append(run)
                     if progress:
                         progress(run)
-    ref, check = _reference(model, times, scene.default_dt("explicit") if reference_dt is None else reference_dt,
+    ref, check = _reference(model, times, start_dt,
                             runs, size, cache, use_cache, reference_ratio)
     for run in runs:
         _score(run, ref, model, size)

@@ -134,9 +134,9 @@ class FrameExport:
         missing, try the files a frame and the manifest would be written as, and write a
         manifest saying "running". Raises ValueError starting with ``name``."""
         check_format(self.fmt, "--format")
-        if self.directory.exists() and not self.directory.is_dir():
-            raise ValueError(f"{self.name}: {str(self.directory)!r} exists and is not a directory")
         try:
+            if self.directory.exists() and not self.directory.is_dir():
+                raise ValueError(f"{self.name}: {str(self.directory)!r} exists and is not a directory")
             self.directory.mkdir(parents=True, exist_ok=True)
         except OSError as exc:
             raise ValueError(f"{self.name}: cannot create the directory {str(self.directory)!r}: "

@@ -28,9 +28,11 @@ import numpy as np
 
 from massspring import memory, mesh
 from massspring.io.files import atomic_output
+from massspring.text import brief
 
 READ_BYTES_PER_FILE_BYTE = 22  # peak memory of read_obj per byte of the file (a 300 x 300 grid mesh)
 MAX_LINE = 1 << 20  # characters of one logical line
+MAX_INDEX = 2**31 - 1  # vertex indices (kernels count particles in int32)
 
 
 class ObjError(ValueError):
@@ -164,6 +166,8 @@ def _face(path, number, args, count):
             i = int(arg if "/" not in arg else arg[:arg.index("/")])
         except ValueError:
             raise ObjError(path, number, f"malformed vertex index {arg!r}") from None
+        if i > MAX_INDEX:  # positive indices may point forward, so the count is checked at the end
+            raise ObjError(path, number, f"vertex index {brief(i, 40)} is beyond any mesh (at most {MAX_INDEX:,})")
         if i > 0:
             face.append(i - 1)
         elif i < 0:

@@ -29,6 +29,7 @@ from massspring.io.files import atomic_output
 
 MAX_DOTS = 200              # free particles are dots when a model without a surface has at most this many
 MAX_FPS = 50                # GIF delays are in 1/100 s; viewers slow down delays below 2/100 s
+MIN_FPS = 100 / 65535       # the longest GIF delay: 65535/100 s (a 16-bit field)
 DEFAULT_FPS = 25            # a whole number of 1/100 s per frame (4): plays at exactly this rate
 DEFAULT_MAX_FRAMES = 150    # cap of the default frame count
 STRAIN_FLOOR = 1e-3         # smallest colour-scale limit: strains below 0.1% stay near neutral

@@ -55,6 +55,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import sys
 import tomllib
 from dataclasses import dataclass, field
 from importlib import resources
@@ -68,12 +69,14 @@ from massspring.colliders import COLLIDERS
 from massspring.integrators import INTEGRATORS
 from massspring.model import Model
 from massspring.scene import generators
+from massspring.text import brief
 
 
 class SceneError(ValueError):
     """A scene file or override is invalid; the message names the key and the file."""
 
 
+MAX_FLOAT = sys.float_info.max
 SIZE_KEYS = {"chain": ("count",), "grid": ("resolution",), "lattice": ("resolution",)}
 TOP_KEYS = {"description": str, "integrator": str, "duration": float, "dt": dict, "model": dict,
             "solver": dict, "view": dict, "particles": dict, "springs": dict, "collider": list, "pin": list}
@@ -381,8 +384,8 @@ def _collider(k, table, source):
     where = _tables("collider", table, k, source)
     fields = dict(table)
     kind = fields.pop("type", None)
-    if kind not in COLLIDERS:
-        raise SceneError(f"{where}.type: expected one of {', '.join(map(repr, COLLIDERS))}, got {kind!r}")
+    if not isinstance(kind, str) or kind not in COLLIDERS:
+        raise SceneError(f"{where}.type: expected one of {', '.join(map(repr, COLLIDERS))}, got {brief(kind)}")
     cls = COLLIDERS[kind]
     names = [f.name for f in dataclasses.fields(cls)]
     for key in fields:
@@ -550,6 +553,8 @@ def _check_type(key, value, expected, source):
         ok, what = isinstance(value, bool), "true or false"
     else:
         ok, what = isinstance(value, expected), "a string"
+    where = f"{source}: {key}" if source else key
     if not ok:
-        where = f"{source}: {key}" if source else key
-        raise SceneError(f"{where}: expected {what}, got {type(value).__name__} {value!r}")
+        raise SceneError(f"{where}: expected {what}, got {type(value).__name__} {brief(value)}")
+    if expected is float and isinstance(value, int) and not -MAX_FLOAT <= value <= MAX_FLOAT:
+        raise SceneError(f"{where}: {brief(value)} is beyond the range of a number (|value| <= {MAX_FLOAT:.4g})")
