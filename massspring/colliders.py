@@ -90,6 +90,9 @@ class Plane(Collider):
     def __post_init__(self):
         object.__setattr__(self, "point", _vector("point", self.point))
         normal = np.array(_vector("normal", self.normal))
+        scale = float(np.abs(normal).max())
+        if scale > 0:  # scaled first: the norm of (1e-200, 0, 0) underflows, that of (1e200, 1e200, 0) overflows
+            normal = normal / scale
         length = float(np.linalg.norm(normal))
         if not length > 0 or not math.isfinite(length):
             raise ValueError(f"normal: must be a non-zero vector, got {list(self.normal)}")

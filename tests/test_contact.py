@@ -405,3 +405,10 @@ def test_a_model_without_colliders_has_no_contact_arrays():
     assert "contact (sphere)" in info["terms"]
     explicit = ms.Simulation(cloth(resolution=3, colliders=[ms.Sphere((0, 0, 0), 0.2)]), integrator="explicit")
     assert "cfilter" not in explicit.info()["arrays"]  # the filter is the implicit step's
+
+
+def test_plane_normals_of_any_scale_are_normalised():
+    assert ms.Plane((0, 0, 0), (1e-200, 0, 0)).normal == (1.0, 0.0, 0.0)  # its plain norm underflows to 0
+    assert ms.Plane((0, 0, 0), (3e90, 0, 4e90)).normal == pytest.approx((0.6, 0.0, 0.8), rel=1e-15)
+    with pytest.raises(ValueError, match="normal: must be a non-zero vector"):
+        ms.Plane((0, 0, 0), (0.0, -0.0, 0.0))

@@ -41,6 +41,7 @@ def run_cli(*args, timeout=300):
     (["--set", "gravity=[0, 0, -" + "9" * 400 + "]"], "gravity"),
     (["--fps", "0.001", "--gif", "x.gif"], "--fps"),     # a GIF delay beyond its 16 bits
     (["--export", "x" * 300], "--export"),               # a directory name too long
+    (["--set", "stiffness=5\ndamping=3"], "one value on one line"),  # the second line was ignored
 ])
 def test_bad_values_exit_2_before_the_run(args, word, tmp_path, capsys, monkeypatch):
     monkeypatch.chdir(tmp_path)

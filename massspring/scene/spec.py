@@ -179,6 +179,8 @@ class Scene:
                 raise SceneError(f"--set: expected key=value, got {item!r}")
             if key in overrides:
                 raise SceneError(f"--set {key}: given twice")
+            if any(c in text for c in "\n\r\x00"):
+                raise SceneError(f"--set {key}: one value on one line, got {brief(text)}")
             try:
                 value = tomllib.loads(f"v = {text.strip()}")["v"]
             except tomllib.TOMLDecodeError:
