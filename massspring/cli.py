@@ -383,7 +383,6 @@ def plan_frames(args, sim, steps):
 def plan_pictures(args, scene, sim, steps, steps_at):
     """Check the picture options before the run: None without --gif/--png."""
     from massspring.io import render
-    from massspring.io.camera import Framing, View
     from massspring.io.files import check_writable
 
     if not (args.gif or args.png):
@@ -399,25 +398,17 @@ def plan_pictures(args, scene, sim, steps, steps_at):
             check_writable(path, option, (suffix,))
     fps = render.DEFAULT_FPS if args.fps is None else args.fps
     size = parse_size(args.size or "480x480")
-    settings = dict(scene.view)
-    framing = args.framing or settings.pop("framing", "run")
-    try:
-        view = View(**settings)
-        Framing.fit(view, np.zeros((1, 1, 3)), (0, 0, 1, 1), framing)
-    except ValueError as exc:
-        raise UsageError(f"{scene.source}: view.{exc}" if not str(exc).startswith("view.") else
-                         f"{scene.source}: {exc}") from None
-    try:
-        if args.view is not None:
-            parts = args.view.split(",")
+    view, framing = scene.view, args.framing or scene.framing
+    if args.view is not None:
+        parts = args.view.split(",")
+        try:
             if len(parts) != 2:
                 raise ValueError(f"expected AZ,EL in degrees, got {args.view!r}")
             view = replace(view, azimuth=_number(parts[0]), elevation=_number(parts[1]))
-            view.__post_init__()
-        if args.projection is not None:
-            view = replace(view, projection=args.projection)
-    except ValueError as exc:
-        raise UsageError(f"--view: {exc}") from None
+        except ValueError as exc:
+            raise UsageError(f"--view: {exc}") from None
+    if args.projection is not None:
+        view = replace(view, projection=args.projection)
     need = len(steps_at) * sim.model.n_particles * 12
     if need > 2e9:
         raise UsageError(f"--frames: {len(steps_at)} frames of {sim.model.n_particles} particles would keep "
@@ -692,9 +683,21 @@ def _terminate(signum, frame):
     raise Terminated(signum)
 
 
+def joined_values(argv):
+    """``argv`` with ``--view AZ,EL`` written as ``--view=AZ,EL`` when AZ is negative:
+    argparse takes a value starting with "-" that is not a plain number for an option."""
+    out = []
+    for arg in argv:
+        if out and out[-1] == "--view" and arg.startswith("-") and "," in arg:
+            out[-1] = f"--view={arg}"
+        else:
+            out.append(arg)
+    return out
+
+
 def main(argv=None):
     parser, verbs = build_parser()
-    args, unknown = parser.parse_known_args(argv)
+    args, unknown = parser.parse_known_args(joined_values(sys.argv[1:] if argv is None else argv))
     if unknown:  # a misspelt option after a verb: that verb's usage, not the top-level one
         verbs[args.command].error(f"unrecognized arguments: {' '.join(unknown)}")
     previous = signal.signal(signal.SIGTERM, _terminate) if _main_thread() else None

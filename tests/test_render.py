@@ -255,29 +255,54 @@ def test_diverging_run_keeps_the_frames_before(tmp_path, capsys):
 def test_scene_view_table(tmp_path):
     base = builtin_scenes()["chain"].read_text().split("\n[view]")[0] + "\n[view]\n"
     path = tmp_path / "ok.toml"
-    path.write_text(base + 'azimuth = 10\nelevation = -30.5\nprojection = "perspective"\n')
-    assert camera.View(**load_scene(path).view) == camera.View(10.0, -30.5, "perspective")
+    path.write_text(base + 'azimuth = 10\nelevation = -30.5\nprojection = "perspective"\nframing = "last"\n')
+    scene = load_scene(path)
+    assert scene.view == camera.View(10.0, -30.5, "perspective") and scene.framing == "last"
     for body, key in (('zoom = 2.0\n', "view.zoom"), ('azimuth = "north"\n', "view.azimuth")):
         path = tmp_path / "bad.toml"
         path.write_text(base + body)
         with pytest.raises(SceneError, match=re.escape(key)) as err:
             load_scene(path)
         assert str(path) in str(err.value)
-    assert load_scene("cube").view["projection"] == "perspective"
+    assert load_scene("cube").view.projection == "perspective"
 
 
 @pytest.mark.parametrize("body, key", [('projection = "fisheye"\n', "view.projection"),
-                                       ("elevation = 120\n", "view.elevation")])
-def test_scene_view_out_of_range_refused_before_a_pictured_run(body, key, tmp_path, capsys):
-    # the [view] table's values are checked by the camera, when a picture is asked for
+                                       ("elevation = 120\n", "view.elevation"),
+                                       ('framing = "zoom"\n', "view.framing")])
+@pytest.mark.parametrize("pictures", [True, False])
+def test_scene_view_out_of_range_refused_up_front(body, key, pictures, tmp_path, capsys):
+    # a [view] table out of range is refused when the scene is loaded, picture or not
     base = builtin_scenes()["chain"].read_text().split("\n[view]")[0] + "\n[view]\n"
     path = tmp_path / "bad.toml"
     path.write_text(base + body)
     gif = tmp_path / "x.gif"
-    assert main(["run", str(path), "--steps", "3", "--quiet", "--gif", str(gif)]) == 2
+    assert main(["run", str(path), "--steps", "3", "--quiet"] + (["--gif", str(gif)] if pictures else [])) == 2
     err = capsys.readouterr().err
     assert key in err and str(path) in err and err.count("\n") == 1
     assert not gif.exists()
+
+
+@pytest.mark.parametrize("framing", ["run", "follow", "last"])
+def test_scene_framing_with_framing_option(framing, tmp_path, capsys):
+    # a scene whose [view] names a framing (cube: follow), with --framing given too
+    gif = tmp_path / "cube.gif"
+    assert main(["run", "cube", "--steps", "4", "--frames", "5", "--quiet", "--gif", str(gif),
+                 "--framing", framing]) == 0
+    assert len(gif_frames(gif)[0]) == 5
+
+
+def test_view_option_takes_a_negative_azimuth(tmp_path, capsys):
+    png = tmp_path / "a.png"
+    assert main(["run", "chain", "--steps", "2", "--quiet", "--png", str(png), "--view", "-30,40"]) == 0
+    capsys.readouterr()
+    # the same picture as the = form, and another than the scene's own view (-80, 10)
+    other = tmp_path / "b.png"
+    assert main(["run", "chain", "--steps", "2", "--quiet", "--png", str(other), "--view=-30,40"]) == 0
+    assert png.read_bytes() == other.read_bytes()
+    default = tmp_path / "c.png"
+    assert main(["run", "chain", "--steps", "2", "--quiet", "--png", str(default)]) == 0
+    assert png.read_bytes() != default.read_bytes()
 
 
 @pytest.mark.parametrize("args, option", [

@@ -12,6 +12,7 @@ import numpy as np
 
 PROJECTIONS = ("orthographic", "perspective")
 FRAMINGS = ("run", "follow", "last")
+DEFAULT_FRAMING = "run"
 PERSPECTIVE_DISTANCE = 3.0  # perspective camera distance from the run's centre, in bounding radii
 MARGIN = 0.05               # fraction of the plot area's width and height kept free on each side
 
@@ -84,7 +85,7 @@ class Framing:
     follow: bool = False
 
     @classmethod
-    def fit(cls, view, frames, plot, mode="run"):
+    def fit(cls, view, frames, plot, mode=DEFAULT_FRAMING):
         """The framing of ``frames`` (k, n, 3) for ``mode`` (see the class)."""
         if mode not in FRAMINGS:
             raise ValueError(f"framing: unknown value {mode!r}, expected one of {', '.join(FRAMINGS)}")

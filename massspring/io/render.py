@@ -24,7 +24,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from massspring.io.camera import PERSPECTIVE_DISTANCE, Framing, View
+from massspring.io.camera import DEFAULT_FRAMING, PERSPECTIVE_DISTANCE, Framing, View
 from massspring.io.files import atomic_output
 
 MAX_DOTS = 200              # free particles are dots when a model without a surface has at most this many
@@ -166,7 +166,7 @@ class FrameRenderer:
     where moving ones are when the framing is fitted.
     """
 
-    def __init__(self, model, frames, view=View(), size=(480, 480), label="", framing="run", times=None):
+    def __init__(self, model, frames, view=View(), size=(480, 480), label="", framing=DEFAULT_FRAMING, times=None):
         import taichi as ti  # the canvas; no ti.init needed, nothing is compiled
 
         self.model = model

@@ -63,10 +63,11 @@ from pathlib import Path
 
 import numpy as np
 
-from massspring import memory, mesh
+from massspring import memory, mesh, validate
 from massspring import solvers as preconditioners
 from massspring.colliders import COLLIDERS
 from massspring.integrators import INTEGRATORS
+from massspring.io.camera import DEFAULT_FRAMING, FRAMINGS, View
 from massspring.model import Model
 from massspring.scene import generators
 from massspring.text import brief
@@ -117,8 +118,8 @@ class Scene:
     ``generator``: the generator's name (None for the other forms); ``params``: the
     [model] parameters with defaults filled in (a mesh scene's ``mesh`` is the OBJ
     path, resolved against the scene file's folder); ``dt``: the default time steps
-    the file names; ``view``: its [view] table (checked when a picture is made: see
-    ``io.camera.View``); ``obj_mesh``: the ``io.obj.ObjMesh`` read (mesh form);
+    the file names; ``view``: the camera of its [view] table (``io.camera.View``, checked
+    when the file is loaded); ``framing``: that table's ``framing`` (``io.camera.FRAMINGS``); ``obj_mesh``: the ``io.obj.ObjMesh`` read (mesh form);
     ``tables``: the [particles] and [springs] tables (hand-made form); ``solver``: its
     [solver] table (checked Simulation arguments); ``common``: the ``COMMON_KEYS``
     (defaults filled in); ``colliders``: its [[collider]] tables as
@@ -133,7 +134,8 @@ class Scene:
     dt: dict
     generator: str | None
     params: dict = field(default_factory=dict)
-    view: dict = field(default_factory=dict)
+    view: View = field(default_factory=View)
+    framing: str = DEFAULT_FRAMING
     solver: dict = field(default_factory=dict)
     form: str = "generator"
     obj_mesh: object = field(default=None, repr=False, compare=False)
@@ -338,15 +340,11 @@ def parse_scene(data: dict, name: str, source: str) -> Scene:
         if not (math.isfinite(value) and value > 0):
             raise SceneError(f"{source}: dt.{key}: must be a finite number > 0, got {value}")
         dt[key] = float(value)
-    view = dict(data.get("view", {}))
-    for key, value in view.items():
-        if key not in VIEW_KEYS:
-            raise SceneError(f"{source}: view.{key}: unknown key (expected {', '.join(VIEW_KEYS)})")
-        _check_type(f"view.{key}", value, VIEW_KEYS[key], source)
+    view, framing = _view(data.get("view", {}), source)
     colliders = tuple(_collider(k, table, source) for k, table in enumerate(data.get("collider", [])))
     pins = tuple(_pin(k, table, source) for k, table in enumerate(data.get("pin", [])))
     scene = Scene(name=name, source=source, description=data.get("description", ""), integrator=integrator,
-                  duration=duration, dt=dt, generator=None, view=view, solver=_solver(data, source),
+                  duration=duration, dt=dt, generator=None, view=view, framing=framing, solver=_solver(data, source),
                   form=_form(data, source), colliders=colliders, pins=pins)
     model = dict(data.get("model", {}))
     if scene.form == "generator":
@@ -499,6 +497,20 @@ def _handmade_tables(data, source):
         if name not in tables[table]:
             raise SceneError(f"{source}: missing key {key!r}")
     return tables
+
+
+def _view(table, source):
+    """(``View``, framing) of a [view] table, checked: SceneError naming the key and the file."""
+    for key, value in table.items():
+        if key not in VIEW_KEYS:
+            raise SceneError(f"{source}: view.{key}: unknown key (expected {', '.join(VIEW_KEYS)})")
+        _check_type(f"view.{key}", value, VIEW_KEYS[key], source)
+    settings = dict(table)
+    framing = settings.pop("framing", DEFAULT_FRAMING)
+    try:
+        return View(**settings), validate.choice("view.framing", framing, FRAMINGS)
+    except ValueError as exc:
+        raise SceneError(f"{source}: {exc}") from None
 
 
 def _check_param(parameters, key, value, source):
