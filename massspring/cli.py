@@ -54,7 +54,8 @@ def build_parser():
     length.add_argument("--duration", type=float, help="simulated seconds (default: the scene's)")
     run.add_argument("--out", help="write the final state to this .npz file")
     run.add_argument("--restart", metavar="FILE", help="continue from a state written by --out (or an npz "
-                     "frame of --export) of the same scene and dt; --steps/--duration then count the steps to add")
+                     "frame of --export) of the same scene and dt; --steps/--duration then count the steps to "
+                     "add, and without them the run finishes the scene's duration")
     run.add_argument("--quiet", action="store_true",
                      help="no progress (a bar on a terminal, else a line every 5 s of a long run)")
     add_export_arguments(run)
@@ -77,13 +78,15 @@ def build_parser():
 
 
 def add_scene_arguments(p, integrators):
+    from massspring.device import ARCHS
     from massspring.solvers import CHOICES, MULTIGRID_FROM
 
     p.add_argument("scene", help="a built-in scene name (see `massspring scenes`) or a TOML file")
     p.add_argument("--integrator", choices=tuple(integrators), help="time integrator (default: the scene's)")
     p.add_argument("--dt", type=float, help="time step in s (default: the scene's for the integrator)")
     p.add_argument("--precision", choices=("f64", "f32"), default="f64")
-    p.add_argument("--arch", default="cpu", help="Taichi arch: cpu (default), cuda, vulkan, metal, gpu ...")
+    p.add_argument("--arch", default="cpu", help=f"Taichi arch: {', '.join(ARCHS)} (default cpu); another "
+                   "than the CPU is tried before the run and refused if this machine lacks it")
     p.add_argument("--cg-tol", type=float, help="implicit: relative CG tolerance (default: the scene's [solver], "
                    "else 1e-6)")
     p.add_argument("--cg-max-iter", type=int, help="implicit: CG iteration limit per step "
@@ -100,26 +103,51 @@ def add_scene_arguments(p, integrators):
 
 def make_simulation(args):
     """Scene + options -> (scene, Simulation); raises ValueError on bad input before any kernel runs."""
+    from massspring.device import ensure_taichi
+    from massspring.integrators import INTEGRATORS
     from massspring.scene import load_scene
 
     scene = load_scene(args.scene).with_settings(args.set)
-    if args.dt is not None:
-        try:
+    options = solver_options(args)
+    try:
+        if args.dt is not None:
             validate.positive_float("--dt", args.dt)
-        except ValueError as exc:
-            raise UsageError(str(exc)) from None
+        ensure_taichi(args.arch, "--arch")
+    except ValueError as exc:
+        raise UsageError(str(exc)) from None
+    integrator = args.integrator or scene.integrator
+    if not INTEGRATORS[integrator].linear_solver:
+        given = [option for option, key in SOLVER_OPTIONS.items() if key in options]
+        if given:
+            raise UsageError(f"{'/'.join(given)}: {integrator} solves no linear system; "
+                             f"{'these options are' if len(given) > 1 else 'this option is'} for "
+                             + " and ".join(k for k, cls in INTEGRATORS.items() if cls.linear_solver))
     with progress.phase(f"{args.command} {scene.name}: building the model and the simulation",
                         show=not getattr(args, "quiet", False)):
         sim = scene.simulation(integrator=args.integrator, dt=args.dt, precision=args.precision, arch=args.arch,
-                               **solver_options(args))
+                               **options)
     return scene, sim
 
 
+# The implicit solver's command-line options -> Simulation arguments.
+SOLVER_OPTIONS = {"--cg-tol": "cg_tol", "--cg-max-iter": "cg_max_iter", "--preconditioner": "preconditioner",
+                  "--no-definiteness-fix": "definiteness_fix"}
+
+
 def solver_options(args):
-    """The implicit solver's options given on the command line; the scene's [solver]
-    table (``Scene.simulation``) supplies the others."""
-    given = {"cg_tol": args.cg_tol, "cg_max_iter": args.cg_max_iter, "preconditioner": args.preconditioner}
-    options = {key: value for key, value in given.items() if value is not None}
+    """The implicit solver's options given on the command line, checked (UsageError
+    naming the option); the scene's [solver] table (``Scene.simulation``) supplies the
+    others."""
+    options = {}
+    try:
+        if args.cg_tol is not None:
+            options["cg_tol"] = validate.fraction("--cg-tol", args.cg_tol)
+        if args.cg_max_iter is not None:
+            options["cg_max_iter"] = validate.count("--cg-max-iter", args.cg_max_iter)
+    except ValueError as exc:
+        raise UsageError(str(exc)) from None
+    if args.preconditioner is not None:
+        options["preconditioner"] = args.preconditioner
     if getattr(args, "no_definiteness_fix", False):
         options["definiteness_fix"] = False
     return options
@@ -182,8 +210,9 @@ def _integrator_names():
     return tuple(INTEGRATORS)
 
 
-def run_steps(args, scene, sim):
-    """The number of steps of ``run``, checked."""
+def run_steps(args, scene, sim, start_steps=0):
+    """The number of steps of ``run``, checked: --steps, or --duration / dt; neither:
+    what is left of the scene's duration after ``start_steps`` (a restart's)."""
     if args.steps is not None:
         if not 0 <= args.steps <= MAX_STEPS:
             raise UsageError(f"--steps: must be within 0..{MAX_STEPS}, got {args.steps}")
@@ -195,7 +224,12 @@ def run_steps(args, scene, sim):
     if not steps <= MAX_STEPS:  # also an infinite quotient
         raise UsageError(f"--duration: {duration:g} s at dt = {format_seconds(sim.dt)} is {steps:.3g} steps, "
                          f"more than {MAX_STEPS:.3g}")
-    return max(1, round(steps))
+    if args.duration is None:
+        return max(0, max(1, round(steps)) - start_steps)
+    if steps < 1:
+        raise UsageError(f"--duration: {duration:g} s is shorter than one step (dt = {format_seconds(sim.dt)}); "
+                         "give a longer --duration, a smaller --dt or --steps")
+    return round(steps)
 
 
 def cmd_run(args):
@@ -205,7 +239,7 @@ def cmd_run(args):
 
     scene, sim = make_simulation(args)
     start_steps = restart(args, scene, sim)
-    steps = run_steps(args, scene, sim)
+    steps = run_steps(args, scene, sim, start_steps)
     if args.out is not None:
         check_writable(args.out, "--out", (".npz",))
     frames = plan_frames(args, sim, steps)
@@ -230,6 +264,8 @@ def cmd_run(args):
     except DivergenceError as exc:  # the simulation holds the last good state
         diverged = exc
     wall = time.perf_counter() - start
+    if pictures is not None and (diverged or stopped):
+        pictures.recording.record_last(sim)  # the picture ends on the last good state
     failed = write_outputs(args, scene, sim, start_steps + steps, pictures)
     if export is not None:
         failed += finish_export(export, sim, start_steps + steps, diverged, stopped)
@@ -588,10 +624,12 @@ def cmd_study(args):
     out = Path(args.out) if args.out else report.new_out_dir(scene.name)
     if out.exists() and not out.is_dir():
         raise UsageError(f"--out: {str(out)!r} exists and is not a directory")
-    try:
-        tols = [float(t) for t in args.cg_tols.split(",") if t.strip()]
-    except ValueError:
-        raise UsageError(f"--cg-tols: expected comma-separated numbers, got {args.cg_tols!r}") from None
+    tols = []
+    for text in filter(str.strip, args.cg_tols.split(",")):
+        try:
+            tols.append(validate.fraction("--cg-tols", _number(text)))
+        except ValueError as exc:
+            raise UsageError(f"--cg-tols: {exc}" if not str(exc).startswith("--") else str(exc)) from None
     result = study.run_study(scene, integrators=[s.strip() for s in args.integrators.split(",") if s.strip()],
                              duration=args.duration, rungs=args.rungs, cg_tols=tols,
                              preconditioners=[s.strip() for s in args.preconditioners.split(",") if s.strip()],

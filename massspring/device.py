@@ -50,18 +50,19 @@ SPRING_FLOOR = 16384    # smallest spring capacity
 POOL_BUDGET = 1 << 30   # bytes of idle bundles kept for reuse
 
 
-def ensure_taichi(arch="cpu"):
+def ensure_taichi(arch="cpu", name="arch"):
     """Start Taichi once per process on ``arch``; later calls must name the same arch.
 
     An arch other than the CPU is first tried in a child process: Taichi falls back
     to the CPU when a device is missing, and crashes outright for some (OpenGL
-    without a display). Either way this raises ValueError naming what is missing.
+    without a display). Either way this raises ValueError starting with ``name`` and
+    saying what is missing.
     """
     if arch not in ARCHS:
-        raise ValueError(f"arch: unknown value {arch!r}, expected one of {', '.join(ARCHS)}")
+        raise ValueError(f"{name}: unknown value {arch!r}, expected one of {', '.join(ARCHS)}")
     if impl.get_runtime().prog is None:
         if arch not in CPU_ARCHS:
-            _probe(arch)
+            _probe(arch, name)
         with contextlib.redirect_stdout(io.StringIO()):  # "[Taichi] Starting on arch=..."
             ti.init(arch=getattr(ti, "cpu" if arch == "cpu" else arch), default_fp=ti.f64,
                     log_level=ti.ERROR if arch not in CPU_ARCHS else ti.WARN)
@@ -71,25 +72,27 @@ def ensure_taichi(arch="cpu"):
     else:
         accepted = tuple(ti.gpu) if arch == "gpu" else (getattr(ti, arch),)
     if current not in accepted:
-        raise ValueError(f"arch: Taichi already runs on {current.name} in this process; cannot switch to {arch!r}")
+        raise ValueError(f"{name}: Taichi already runs on {current.name} in this process; cannot switch to {arch!r}")
 
 
-def _probe(arch):
+def _probe(arch, name):
     script = ("import taichi as ti\nfrom taichi.lang import impl\n"
               f"ti.init(arch=ti.{arch})\nprint('STARTED', impl.current_cfg().arch.name)\n")
     try:
         proc = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=120)
     except subprocess.TimeoutExpired:
-        raise ValueError(f"arch: {arch!r} did not start within 120 s") from None
+        raise ValueError(f"{name}: {arch!r} did not start within 120 s") from None
     started = re.search(r"STARTED (\w+)", proc.stdout)
-    warnings = [line.split("] ", 2)[-1].strip() for line in proc.stderr.splitlines() if line.startswith("[W")]
+    # Taichi's warnings, less its own "Arch=[...] is not supported, falling back to CPU"
+    warnings = [line.split("] ", 2)[-1].strip().rstrip(".") for line in proc.stderr.splitlines()
+                if line.startswith("[W") and "falling back" not in line]
+    reason = "; ".join(warnings)
     if proc.returncode < 0 or not started:
-        reason = f"Taichi crashed while starting it (exit {proc.returncode})"
-        raise ValueError(f"arch: {arch!r} is not available here: {reason}; "
-                         f"{'; '.join(warnings) or 'no usable driver or display'}")
+        raise ValueError(f"{name}: {arch!r} is not available here: Taichi crashed while starting it (exit "
+                         f"{proc.returncode}); {reason or 'no usable driver or display'}")
     if started.group(1) in ("x64", "arm64"):
-        raise ValueError(f"arch: {arch!r} is not available here (Taichi would fall back to the CPU): "
-                         f"{'; '.join(warnings) or 'no such device'}")
+        raise ValueError(f"{name}: {arch!r} is not available here ({reason or 'no such device'}); "
+                         f"use {name} cpu")
 
 
 def capacity(count, floor):

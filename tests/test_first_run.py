@@ -24,7 +24,7 @@ def run_cli(*args, timeout=300):
 
 
 @pytest.mark.parametrize("args, word", [
-    (["--cg-max-iter", "4294967297"], "cg_max_iter"),
+    (["--cg-max-iter", "4294967297"], "--cg-max-iter"),
     (["--duration", "inf"], "--duration"),
     (["--duration", "nan"], "--duration"),
     (["--duration", "1e300"], "--duration"),
@@ -48,6 +48,25 @@ def test_bad_values_exit_2_before_the_run(args, word, tmp_path, capsys, monkeypa
     assert main(["run", "spring", "--quiet", *args]) == 2
     one_line_error(capsys, word)
     assert not list(tmp_path.iterdir())  # nothing written, no temporary file
+
+
+@pytest.mark.parametrize("args, message", [
+    (["run", "cloth", "--cg-tol", "2"], "--cg-tol: must be < 1"),
+    (["study", "cloth", "--cg-tols", "1e-3,2"], "--cg-tols: must be < 1"),
+    (["run", "cloth", "--set", "resolution=0"], "--set resolution: must be >= 2, got 0"),
+    (["run", "cloth", "--set", "stiffness=-1"], "--set stiffness: must be >= 0, got -1"),
+    (["run", "cube", "--set", "damping=-1"], "--set damping: must be >= 0, got -1"),
+    (["run", "chain", "--set", "drag=0.1", "--set", "wind=[1, 0]"], "--set wind: expected 3"),
+    (["run", "cloth", "--integrator", "explicit", "--preconditioner", "multigrid"],
+     "--preconditioner: explicit solves no linear system"),
+    (["info", "chain", "--integrator", "symplectic", "--cg-tol", "1e-3", "--no-definiteness-fix"],
+     "--cg-tol/--no-definiteness-fix: symplectic solves no linear system"),
+    (["run", "cloth", "--duration", "0.001"], "--duration: 0.001 s is shorter than one step (dt = 1/60 s)"),
+])
+def test_errors_name_the_option_given_not_internal_names(args, message, capsys):
+    assert main(args) == 2
+    err = one_line_error(capsys, message)
+    assert ".toml" not in err  # the scene file is not to blame
 
 
 @pytest.mark.parametrize("settings, word", [(["seed=-5"], "seed"), (["resolution=4", "resolution=5"], "resolution")])

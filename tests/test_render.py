@@ -252,6 +252,20 @@ def test_diverging_run_keeps_the_frames_before(tmp_path, capsys):
     assert len(frames) == stopped + 1
 
 
+def test_diverging_run_ends_its_gif_on_the_last_good_state(tmp_path, capsys):
+    # frames planned at steps 0, 30, 60 only; the run diverges before step 30
+    gif = tmp_path / "boom.gif"
+    code = main(["run", "spring", "--integrator", "explicit", "--dt", "0.5", "--set", "damping=0",
+                 "--steps", "60", "--frames", "3", "--size", "96x96", "--gif", str(gif), "--quiet"])
+    captured = capsys.readouterr()
+    assert code == cli.EXIT_DIVERGED
+    stopped = int(re.search(r"stopped at step (\d+) of 60", captured.err).group(1))
+    assert 0 < stopped < 30
+    frames, _ = gif_frames(gif)
+    assert len(frames) == 2 and not np.array_equal(frames[0], frames[1])  # step 0 and the last good step
+    assert f"t = 0 to {stopped * 0.5:g} s" in captured.err
+
+
 def test_scene_view_table(tmp_path):
     base = builtin_scenes()["chain"].read_text().split("\n[view]")[0] + "\n[view]\n"
     path = tmp_path / "ok.toml"

@@ -147,3 +147,18 @@ def test_broken_state_files_are_refused(tmp_path, capsys):
         one_line_error(capsys, "--restart", str(path), words[name])
     assert main(["run", *CLOTH, "--steps", "2", "--restart", str(tmp_path / "none.npz")]) == 2
     one_line_error(capsys, "--restart", "cannot be read")
+
+
+def test_restart_without_a_length_finishes_the_scene(tmp_path, capsys):
+    # spring: 5 s at dt = 1/100 s, 500 steps; a restart at step 120 adds the 380 left
+    first, second, whole = (tmp_path / f"{name}.npz" for name in ("first", "second", "whole"))
+    assert main(["run", "spring", "--quiet", "--steps", "120", "--out", str(first)]) == 0
+    assert main(["run", "spring", "--quiet", "--restart", str(first), "--out", str(second)]) == 0
+    assert "380 from the restart at step 120 to step 500" in capsys.readouterr().out
+    assert main(["run", "spring", "--quiet", "--out", str(whole)]) == 0
+    a, b = np.load(second), np.load(whole)
+    assert int(a["steps"]) == int(b["steps"]) == 500
+    assert np.array_equal(a["positions"], b["positions"]) and np.array_equal(a["velocities"], b["velocities"])
+    # a state already at (or past) the scene's end: nothing is left to run
+    assert main(["run", "spring", "--quiet", "--restart", str(whole), "--out", str(first)]) == 0
+    assert int(np.load(first)["steps"]) == 500

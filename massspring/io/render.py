@@ -135,6 +135,12 @@ class Recording:
         self.positions.append(x.astype(np.float32))
         self.times.append(sim.time)
 
+    def record_last(self, sim):
+        """Record ``sim``'s state unless it is the last frame kept: a run that stopped
+        between frames (diverged, interrupted) then ends on the state it reached."""
+        if not self.times or self.times[-1] != sim.time:
+            self.record(sim)
+
     def __len__(self):
         return len(self.positions)
 

@@ -43,6 +43,7 @@ def spring(length, displacement, mass, stiffness, damping, gravity):
     (N/m) and ``damping`` (N s/m) are the spring's own ks and kd."""
     _positive("length", length)
     _positive("mass", mass)
+    _not_negative(stiffness=stiffness, damping=damping)
     return dict(positions=[[0.0, 0.0, 0.0], [length + displacement, 0.0, 0.0]], springs=[[0, 1]],
                 masses=[mass, mass], stiffness=stiffness, damping=damping, rest_lengths=length,
                 gravity=gravity, fixed=[0])
@@ -64,6 +65,7 @@ def chain(count, length, mass, stiffness, damping, gravity, mass_ratio=1.0, rest
     _positive("mass_ratio", mass_ratio)
     _at_least("rest_scale", rest_scale, 0.0)
     _at_least("spread", spread, 0.0)
+    _not_negative(stiffness=stiffness, damping=damping)
     if pin not in CHAIN_PINS:
         raise ValueError(f"pin: expected one of {', '.join(CHAIN_PINS)}, got {pin!r}")
     h = length / (count - 1)
@@ -96,6 +98,7 @@ def grid(resolution, size, mass, stiffness, damping, shear, bend, pin, gravity,
     _positive("mass", mass)
     _positive("compress", compress)
     _at_least("seed", seed, 0)
+    _not_negative(stiffness=stiffness, damping=damping, shear=shear, bend=bend)
     if not 0.0 <= crumple <= 1.0:
         raise ValueError(f"crumple: must be in [0, 1], got {crumple!r}")
     if pin not in PIN_CHOICES:
@@ -140,6 +143,7 @@ def lattice(resolution, size, mass, stiffness, damping, squash, spin, gravity):
     _positive("size", size)
     _positive("mass", mass)
     _positive("squash", squash)
+    _not_negative(stiffness=stiffness, damping=damping)
     r = resolution
     h = size / (r - 1)
     idx = np.arange(r ** 3).reshape(r, r, r)
@@ -221,3 +225,11 @@ def _positive(name, value):
 def _at_least(name, value, low):
     if not value >= low:
         raise ValueError(f"{name}: must be >= {low}, got {value!r}")
+
+
+def _not_negative(**moduli):
+    """The moduli (stiffness, damping) and factors a generator scales its springs by are >= 0
+    (checked here, by their names, rather than per spring by the Model)."""
+    for name, value in moduli.items():
+        if not value >= 0:
+            raise ValueError(f"{name}: must be >= 0, got {value:g}")

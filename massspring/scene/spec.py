@@ -124,7 +124,8 @@ class Scene:
     [solver] table (checked Simulation arguments); ``common``: the ``COMMON_KEYS``
     (defaults filled in); ``colliders``: its [[collider]] tables as
     ``massspring.Plane``/``Sphere``/``Box``; ``pins``: its [[pin]] tables as
-    (index, velocity) pairs."""
+    (index, velocity) pairs; ``set_keys``: the [model] keys changed by ``with_settings``
+    (``--set``), which errors found when the model is built then name instead of the file."""
 
     name: str
     source: str
@@ -143,6 +144,7 @@ class Scene:
     common: dict = field(default_factory=lambda: dict(COMMON_KEYS))
     colliders: tuple = ()
     pins: tuple = ()
+    set_keys: tuple = ()
     _suggested: dict = field(default_factory=dict, repr=False, compare=False)
 
     def with_params(self, **overrides) -> "Scene":
@@ -191,7 +193,7 @@ class Scene:
                 overrides[key] = _check_common(key, value, f"--set {key}")
             else:
                 overrides[key] = _check_param(self._parameters(), key, value, f"--set {key}")
-        return self.with_params(**overrides)
+        return dataclasses.replace(self.with_params(**overrides), set_keys=self.set_keys + tuple(overrides))
 
     def counts(self) -> tuple[int, int]:
         """(particles, springs) of the scene's model, known without building it (for a
@@ -230,10 +232,12 @@ class Scene:
             return Model(**args)
         except ValueError as exc:
             message = str(exc)
+            name, _, reason = message.partition(": ")
+            if name in self.set_keys:
+                raise SceneError(f"--set {name}: {reason}") from None
             if message.startswith("pin["):
                 raise SceneError(f"{self.source}: {message}") from None
             if self.form == "particles":
-                name, _, reason = message.partition(": ")
                 raise SceneError(f"{self.source}: {HANDMADE_ARGUMENTS.get(name, name)}: {reason}") from None
             raise SceneError(f"{self.source}: model.{message}") from None
 
