@@ -233,7 +233,7 @@ def test_common_keys_work_with_every_generator_and_set():
         assert "drag" not in scene.params
     model = ms.load_scene("cloth").with_settings(["drag=0.5", "resolution=4"]).model()
     assert model.drag == 0.5 and np.all(model.wind == 0)
-    with pytest.raises(ms.SceneError, match="model.wind"):
+    with pytest.raises(ms.SceneError, match="--set wind"):
         ms.load_scene("cloth").with_settings(["wind=[1, 0, 0]", "resolution=4"]).model()
     for bad in (["drag=-1"], ["drag=fast"], ["wind=[1, 0]"], ["pin_velocity=[0, 0, inf]"]):
         with pytest.raises(ms.SceneError, match=bad[0].split("=")[0]):
