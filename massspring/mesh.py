@@ -21,13 +21,18 @@ the grid generator's cloth (d = 2: ks does not change with the mesh resolution),
 ``shear``/``bend`` scale it like the grid's ``shear``/``bend``. A factor of 0 leaves
 that family out.
 
-Masses are lumped: each triangle gives a third of its area to each of its vertices,
-times ``density`` (kg/m^2), or scaled so that they sum to ``mass`` (kg). Every vertex
+Masses are lumped from the faces, not from the fan: each face gives each of its
+corners the part of its area nearer to it, the quadrilateral of the corner, the
+midpoints of its two edges and the face's centroid (a third of a triangle, a quarter
+of a parallelogram, whatever the triangulation), times ``density`` (kg/m^2), or
+scaled so that they sum to ``mass`` (kg). Every vertex
 must belong to a face (else it would have no mass) and no triangle may be degenerate
 (a repeated vertex or zero area).
 """
 
 from __future__ import annotations
+
+import inspect
 
 import numpy as np
 
@@ -125,14 +130,32 @@ def triangle_areas(vertices, triangles):
     return 0.5 * np.linalg.norm(np.cross(b - a, c - a), axis=1)
 
 
-def lumped_masses(vertices, triangles, density=None, mass=None):
-    """(n,) particle masses (kg): a third of each triangle's area to each of its vertices,
-    times ``density`` (kg/m^2) or scaled to sum to ``mass`` (kg); give at most one
-    (neither: ``DEFAULT_MASS``)."""
+def corner_areas(vertices, indices, sizes):
+    """(sum of sizes,) area (m^2) of each face corner's cell: the quadrilateral of the
+    corner, the midpoints of its two edges and the face's centroid (the mean of its
+    vertices), as two triangles. A convex planar face is the union of its cells.
+    Faces as ``faces_array`` returns them."""
+    x = np.asarray(vertices, dtype=np.float64)
+    starts = np.repeat(np.cumsum(sizes) - sizes, sizes)
+    size = np.repeat(sizes, sizes)
+    k = np.arange(len(indices)) - starts                   # each corner's place in its face
+    corner = x[indices]
+    after = x[indices[starts + (k + 1) % size]]
+    before = x[indices[starts + (k - 1) % size]]
+    centroid = np.repeat(np.add.reduceat(corner, np.cumsum(sizes) - sizes) / sizes[:, None], sizes, axis=0)
+    half = (after - corner) / 2, (centroid - corner), (before - corner) / 2
+    return 0.5 * (np.linalg.norm(np.cross(half[0], half[1]), axis=1) + np.linalg.norm(np.cross(half[1], half[2]),
+                                                                                          axis=1))
+
+
+def lumped_masses(vertices, indices, sizes, density=None, mass=None):
+    """(n,) particle masses (kg): each vertex gets its corners' cells (``corner_areas``)
+    of the faces (as ``faces_array`` returns them) times ``density`` (kg/m^2), or a
+    share of ``mass`` (kg) in proportion to them; give at most one (neither:
+    ``DEFAULT_MASS``)."""
     if density is not None and mass is not None:
         raise ValueError("density, mass: give one of them, not both")
-    share = np.zeros(len(vertices))
-    np.add.at(share, np.asarray(triangles).reshape(-1), np.repeat(triangle_areas(vertices, triangles) / 3.0, 3))
+    share = np.bincount(indices, weights=corner_areas(vertices, indices, sizes), minlength=len(vertices))
     if density is not None:
         return _positive("density", density) * share
     total = DEFAULT_MASS if mass is None else _positive("mass", mass)
@@ -215,12 +238,14 @@ def pins_in_box(vertices, pin_box):
 
 
 def mesh_arguments(vertices, faces, *, density=None, mass=None, stiffness=1e4, damping=0.0, bend=0.1, shear=1.0,
-                   fixed=None, pin_box=None, gravity=(0.0, 0.0, -9.81), velocities=None):
+                   fixed=None, pin_box=None, gravity=(0.0, 0.0, -9.81), velocities=None, colliders=(), drag=0.0,
+                   wind=(0.0, 0.0, 0.0), pin_velocity=None):
     """The keyword arguments of :class:`Model` for a mesh (see ``model_from_mesh``)."""
     x = real_array("vertices", vertices)
     if x.ndim != 2 or x.shape[1] != 3 or x.shape[0] < 3:
         raise ValueError(f"vertices: expected shape (n, 3) with n >= 3, got shape {x.shape}")
-    triangles, _, inner = triangulate(*faces_array(faces, len(x)))
+    indices, sizes = faces_array(faces, len(x))
+    triangles, _, inner = triangulate(indices, sizes)
     bad = degenerate_triangles(x, triangles)
     if bad.size:
         raise ValueError(f"faces: triangle {bad[0]} = {triangles[bad[0]].tolist()} has zero area")
@@ -235,11 +260,15 @@ def mesh_arguments(vertices, faces, *, density=None, mass=None, stiffness=1e4, d
     pins = [np.asarray(fixed).reshape(-1)] if fixed is not None and np.size(fixed) else []
     if pin_box is not None:
         pins.append(pins_in_box(x, pin_box))
+    pins = np.concatenate(pins) if pins else None
+    if pin_velocity is not None and np.shape(pin_velocity) == (3,):  # one velocity for every pin
+        pin_velocity = np.tile(real_array("pin_velocity", pin_velocity), (0 if pins is None else len(pins), 1))
     return dict(positions=x, springs=np.concatenate([families[name] for name in kept]),
-                masses=lumped_masses(x, triangles, density, mass),
+                masses=lumped_masses(x, indices, sizes, density, mass),
                 stiffness=_number("stiffness", stiffness, 0.0, ">=") * factor,
                 damping=_number("damping", damping, 0.0, ">=") * factor, gravity=gravity,
-                fixed=np.concatenate(pins) if pins else None, triangles=triangles, velocities=velocities)
+                fixed=pins, triangles=triangles, velocities=velocities, colliders=colliders, drag=drag, wind=wind,
+                pin_velocity=pin_velocity)
 
 
 def model_from_mesh(vertices, faces, **parameters) -> Model:
@@ -270,7 +299,14 @@ def model_from_mesh(vertices, faces, **parameters) -> Model:
         Also pin every vertex inside this axis-aligned box (bounds included; it must hold one).
     gravity : (3,) float, m/s^2 (default (0, 0, -9.81))
     velocities : None or (n, 3) float, m/s
+    colliders, drag, wind : as for :class:`Model`
+    pin_velocity : None, (3,) or (k, 3) float, m/s
+        The pins' velocity: one for every pin, or a row per pin (``fixed``, then the
+        vertices in ``pin_box`` in ascending order).
 
     Bad input raises ValueError naming the argument (and the face or vertex).
     """
+    unknown = sorted(set(parameters) - set(inspect.signature(mesh_arguments).parameters))
+    if unknown:
+        raise TypeError(f"Model.from_mesh() got an unexpected keyword argument {unknown[0]!r}")
     return Model(**mesh_arguments(vertices, faces, **parameters))

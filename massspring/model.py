@@ -213,7 +213,7 @@ class Model:
     def from_mesh(cls, vertices, faces, **parameters) -> "Model":
         """A cloth or shell from a polygon mesh: structural springs on its edges, shear
         springs on the diagonals of its quads and larger faces, bending springs across
-        its interior edges, masses lumped from the triangle areas, pins by index or by a
+        its interior edges, masses lumped from the face areas, pins by index or by a
         box; the (fan-triangulated) faces become ``triangles``. Parameters and units:
         ``massspring.mesh.model_from_mesh``."""
         from massspring.mesh import model_from_mesh

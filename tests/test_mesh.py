@@ -87,11 +87,34 @@ def test_lumped_masses_by_hand():
     v = np.array([[0.0, 0, 0], [3, 0, 0], [0, 4, 0], [1.5, 2, 4.8]])
     area2 = 0.5 * np.linalg.norm(np.cross(v[1] - v[3], v[2] - v[3]))
     assert area2 == pytest.approx(12.0)
-    masses = mesh.lumped_masses(v, np.array([[0, 1, 2], [1, 3, 2]]), density=0.5)
+    masses = mesh.lumped_masses(v, np.array([0, 1, 2, 1, 3, 2]), np.array([3, 3]), density=0.5)
     assert masses == pytest.approx([1.0, 1.0 + 2.0, 1.0 + 2.0, 2.0], rel=1e-14)
     total = ms.Model.from_mesh(v, [[0, 1, 2], [1, 3, 2]], mass=3.6).masses
     assert total.sum() == pytest.approx(3.6, rel=1e-14) and total == pytest.approx(np.array([1, 3, 3, 2]) * 0.4)
     assert ms.Model.from_mesh(v, [[0, 1, 2], [1, 3, 2]]).masses.sum() == pytest.approx(mesh.DEFAULT_MASS)
+
+
+@pytest.mark.parametrize("start", range(4))
+def test_a_quad_lumps_its_area_evenly_whatever_its_fan(start):
+    # a 2 x 1 rectangle: each corner a quarter of its 2 m^2; the fan from any corner alike
+    v = np.array([[0.0, 0, 0], [2, 0, 0], [2, 1, 0], [0, 1, 0]])
+    face = np.roll(np.arange(4), -start)
+    masses = ms.Model.from_mesh(v, [face], density=0.5).masses
+    assert masses == pytest.approx([0.25] * 4, rel=1e-14)
+
+
+def test_a_polygon_lumps_the_cells_of_its_corners_by_hand():
+    # a regular hexagon of side 1 (area 3 sqrt(3) / 2): six equal cells; a trapezoid
+    # (0,0)-(4,0)-(3,1)-(1,1): centroid (2, 0.5), cells worked out by hand
+    hexagon = np.array([[np.cos(a), np.sin(a), 0.0] for a in np.arange(6) * np.pi / 3])
+    masses = ms.Model.from_mesh(hexagon, [list(range(6))], density=2.0).masses
+    assert masses == pytest.approx([np.sqrt(3) / 2] * 6, rel=1e-14)
+    trapezoid = np.array([[0.0, 0, 0], [4, 0, 0], [3, 1, 0], [1, 1, 0]])
+    # corner 0: triangles (0,0)-(2,0)-(2,0.5) and (0,0)-(2,0.5)-(0.5,0.5): 0.5 + 0.375
+    # corner 2: (3,1)-(2,1)-(2,0.5) and (3,1)-(2,0.5)-(3.5,0.5): 0.25 + 0.375
+    masses = ms.Model.from_mesh(trapezoid, [[0, 1, 2, 3]], density=1.0).masses
+    assert masses == pytest.approx([0.875, 0.875, 0.625, 0.625], rel=1e-14)
+    assert masses.sum() == pytest.approx(3.0, rel=1e-14)  # the trapezoid's area
 
 
 def test_icosahedron_masses_are_equal_and_sum_to_the_total():
@@ -143,3 +166,28 @@ def test_bad_meshes_are_refused_naming_the_face(faces, kwargs, words):
         ms.Model.from_mesh(v, faces, **kwargs)
     for word in words:
         assert word in str(info.value), (word, str(info.value))
+
+
+def test_from_mesh_takes_colliders_air_and_moving_pins():
+    v, f = icosahedron()
+    sphere = ms.Sphere((0.0, 0.0, -3.0), 1.0, friction=0.3)
+    plain = ms.Model.from_mesh(v, f, fixed=[3], pin_box=[[-9, 1.0, -9], [9, 9, 9]])
+    model = ms.Model.from_mesh(v, f, fixed=[3], pin_box=[[-9, 1.0, -9], [9, 9, 9]], colliders=[sphere], drag=0.2,
+                               wind=(1.0, 0.0, 0.0), pin_velocity=(0.0, 0.0, 0.5))
+    assert model.colliders == (sphere,) and model.drag == 0.2 and model.wind.tolist() == [1.0, 0.0, 0.0]
+    assert model.fixed.tolist() == plain.fixed.tolist() and len(plain.fixed) > 1
+    assert np.array_equal(model.pin_velocity, np.tile([0.0, 0.0, 0.5], (len(plain.fixed), 1)))
+    # the same model as one made by hand from the plain mesh's arrays with those additions
+    by_hand = ms.Model(plain.positions, plain.springs, plain.masses, plain.stiffness, plain.damping,
+                       plain.rest_lengths, gravity=plain.gravity, fixed=plain.fixed, triangles=plain.triangles,
+                       colliders=[sphere], drag=0.2, wind=(1.0, 0.0, 0.0),
+                       pin_velocity=np.tile([0.0, 0.0, 0.5], (len(plain.fixed), 1)))
+    assert model.fingerprint() == by_hand.fingerprint()
+    # a row per pin: fixed first, then the box's vertices in ascending order
+    box = np.flatnonzero(v[:, 1] >= 1.0)
+    rows = np.arange(3 * (1 + len(box)), dtype=float).reshape(-1, 3)
+    model = ms.Model.from_mesh(v, f, fixed=[3], pin_box=[[-9, 1.0, -9], [9, 9, 9]], pin_velocity=rows)
+    order = np.argsort(np.concatenate([[3], box]))
+    assert np.array_equal(model.pin_velocity, rows[order])
+    with pytest.raises(TypeError, match=r"Model\.from_mesh\(\) got an unexpected keyword argument 'colour'"):
+        ms.Model.from_mesh(v, f, colour="red")

@@ -134,3 +134,11 @@ def test_python_blocks_of_the_readme_run(tmp_path):
                               timeout=600)
         assert proc.returncode == 0, f"{code}\n{proc.stderr[-2000:]}"
     assert (tmp_path / "now.png").stat().st_size > 0  # the rendering block wrote its picture
+
+
+def test_scene_files_the_readme_runs_exist():
+    """`massspring VERB FILE.toml` lines name files of the clone (run from its root)."""
+    files = [argv[1] for argv, _ in code_lines(README) if len(argv) > 1 and argv[1].endswith(".toml")]
+    assert "examples/my_scene.toml" in files
+    for name in files:
+        assert (ROOT / name).is_file(), name
