@@ -11,7 +11,7 @@ import massspring as ms
 from massspring import cli
 from massspring.cli import main
 from massspring.io import camera, render
-from massspring.scene import SceneError, builtin_scenes, load_scene
+from massspring.scene import SceneError, builtin_scenes, generators, load_scene
 from massspring.simulation import run
 
 SMALL = {"grid": ["--set", "resolution=6"], "lattice": ["--set", "resolution=3"], "chain": ["--set", "count=5"]}
@@ -384,3 +384,42 @@ def test_ground_and_solids_are_drawn_where_they_are():
     ground = colour_at([0.0, 0.8, -1.0])  # on the plane, behind the springs
     assert any(is_shade_of(ground, c) for c in render.GROUND)
     assert np.all(colour_at([0.0, 0.0, 1.4]) == render.BACKGROUND)  # above the horizon: sky
+
+
+@pytest.mark.parametrize("projection", ["orthographic", "perspective"])
+def test_cloth_lying_on_a_box_is_never_covered_by_it(projection):
+    # a flat cloth 1 mm above a table's top; every triangle's middle shows the cloth
+    # (neutral grey shaded by its facing, sin(elevation); its edge lines, a lighter grey,
+    # may blend in), never the table (a shade of the bluish SOLID)
+    box = ms.Box((-0.5, -0.2, -0.9), (0.6, 1.2, -0.1), radius=0.06)
+    cloth = generators.grid(**dict(generators.PARAMETERS["grid"], resolution=16, size=0.8, pin="none"))
+    x = cloth["positions"] + [-0.3, 0.0, -0.1 + 1e-3]
+    model = ms.Model(**dict(cloth, positions=x, gravity=(0, 0, 0)), colliders=[box])
+    view = camera.View(-35, 25, projection)
+    renderer = render.FrameRenderer(model, x[None], view, (480, 480))
+    image = renderer.render(x, 0.0).astype(int)
+    grey = render.DIVERGING[2] * (0.35 + 0.65 * np.sin(np.radians(25)))
+    centres, _ = renderer.framing.pixels(x[model.triangles].mean(axis=1))
+    pixels = image[centres[:, 1].astype(int), centres[:, 0].astype(int)]
+    lines = render.DIVERGING[2] * 0.7
+    assert np.all(np.ptp(pixels, axis=1) <= 1), pixels
+    assert np.all((pixels >= grey[0] - 1) & (pixels <= lines[0] + 1)), pixels
+
+
+def test_what_lies_behind_a_solid_is_found_by_the_ray_to_the_camera():
+    sphere = ms.Sphere((0.0, 0.0, 0.0), 1.0)
+    box = ms.Box((2.0, -1.0, -1.0), (4.0, 1.0, 1.0), radius=0.5)
+    for projection in ("orthographic", "perspective"):
+        # the camera on +x: the box (x 2..4) is in front of the sphere, the sphere (x -1..1) behind the box
+        framing = camera.Framing.fit(camera.View(0, 0, projection), np.array([[[-6.0, -6, -6], [6, 6, 6]]]),
+                                     (0, 0, 100, 100))
+        points = np.array([[-1.5, 0, 0],      # behind the sphere (on the axis)
+                           [-1.5, 0, 0.9],    # behind the sphere, off the axis
+                           [-1.5, 0, 1.5],    # beside the sphere's shadow
+                           [1.0, 0, 0],       # on the sphere's surface, facing the camera (behind the box)
+                           [1.5, 0, 1.5],     # between the sphere and the box, clear of both
+                           [4.0, 0, 0],       # on the box's near face
+                           [3.9, 0.95, 0.95],  # inside the drawn box, by a rounded corner
+                           [5.0, 0, 0]])      # in front of everything
+        hidden = render.behind_solids([sphere, box], framing, points)
+        assert hidden.tolist() == [True, True, False, True, False, False, False, False], projection

@@ -158,20 +158,27 @@ def test_bad_solver_table_names_the_key(body, key, tmp_path):
 # ----------------------------------------------------------------------------- contact, pins and air
 
 
-CONTACT_SCENES = {"drape": ("plane", "sphere"), "tablecloth": ("plane", "box"), "flag": (),
-                  "rope-drop": ("plane", "sphere"), "swing": ()}
+CONTACT_SCENES = {"drape": ("plane", "sphere"), "tablecloth": ("plane", "box"), "flag": ("box", "plane"),
+                  "rope-drop": ("plane", "sphere"), "swing": (), "cube": ("plane",)}
 
 
 @pytest.mark.parametrize("name", sorted(CONTACT_SCENES))
 def test_contact_scenes_build_their_colliders_pins_and_air(name):
     scene = ms.load_scene(name)
-    small = {"chain": {"count": 6}}.get(scene.generator, {"resolution": 5})
+    small = {"chain": {"count": 6}, "lattice": {"resolution": 3}}.get(scene.generator, {"resolution": 5})
     model = scene.with_params(**small).model()
     assert tuple(c.kind for c in model.colliders) == CONTACT_SCENES[name]
     if name == "flag":
         assert model.has_drag and np.any(model.wind != 0)
         assert np.allclose(model.positions[:, 1], 0.0)  # upright: in the y = 0 plane
-        assert np.allclose(model.positions[model.fixed, 0], 0.0) and model.fixed.size == 5  # the pole
+        assert np.allclose(model.positions[model.fixed, 0], 0.0) and model.fixed.size == 5  # along the pole
+        pole = model.colliders[0]  # beside the pinned edge, clear of the cloth, standing on the ground
+        assert pole.upper[0] < 0 and pole.lower[2] == model.colliders[1].point[2]
+        assert pole.lower[2] < model.positions[:, 2].min() and pole.upper[2] > model.positions[:, 2].max()
+    if name == "cube":  # the ground is below the cube, which reaches it (duration) after 100 steps
+        gap = model.positions[:, 2].min() - model.colliders[0].point[2]
+        fall = np.sqrt(2 * gap / 9.81)
+        assert 100 * scene.default_dt() < fall < scene.duration
     if name == "swing":
         last = model.n_particles - 1
         np.testing.assert_array_equal(model.pin_velocity[list(model.fixed).index(last)], [-0.2, -0.8, 0.3])
@@ -251,3 +258,20 @@ def test_grid_upright_side_pin_and_chain_without_pin():
     assert len(chain["fixed"]) == 0
     with pytest.raises(ValueError, match="pin"):
         generators.chain(**dict(generators.PARAMETERS["chain"], pin="middle"))
+
+
+def test_rope_drop_lands_on_the_ball_and_slides_off():
+    """What rope-drop's description says, at its defaults: particles rest on the ball
+    after the fall (0.6 s), none from 1.5 s on."""
+    scene = ms.load_scene("rope-drop")
+    ball = next(c for c in scene.colliders if c.kind == "sphere")
+    sim = scene.simulation()
+
+    def on_ball():
+        return int((np.linalg.norm(sim.positions - ball.center, axis=1) < ball.radius + 0.01).sum())
+
+    sim.step(round(0.6 / sim.dt))
+    assert on_ball() >= 5
+    sim.step(round(1.5 / sim.dt) - sim.steps)
+    assert on_ball() == 0
+    sim.close()

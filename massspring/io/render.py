@@ -12,7 +12,8 @@ each frame and writes the files. A run without a recording pays nothing.
 
 Colliders (``massspring.colliders``) are drawn where they are at each frame's time:
 planes first, as a shaded checkered square under everything else, spheres and boxes
-as shaded triangles (back faces culled) sorted by depth together with the surface.
+as shaded triangles (back faces culled) after the parts of the surface behind them
+(``behind_solids``) and before the rest.
 
 Memory: a recording holds frames x particles x 12 bytes (150 frames of a 32 x 32
 cloth: 1.8 MB); rendered frames are kept as 8-bit palette images (W x H bytes each).
@@ -45,7 +46,6 @@ GROUND_CELLS = 12                               # checkers along each side of a 
 GROUND_EXTENT = 1.6                             # half the side of a drawn plane, in framing radii
 SPHERE_BANDS = (12, 24)                         # latitude and longitude bands of a drawn sphere
 BOX_CELLS = 8                                   # cells along each edge of a drawn box face
-SOLID_OFFSET = 0.03                             # depth offset of spheres and boxes, in framing radii
 # Diverging map from compression (blue, -1) through neutral grey (0) to extension (red, +1).
 DIVERGING = np.array([(59, 76, 192), (141, 176, 254), (221, 221, 221), (244, 154, 123), (180, 4, 38)],
                      dtype=np.float64)
@@ -228,12 +228,7 @@ class FrameRenderer:
         line_rgb = diverging_colours(strain[self.lines])
         line_depth = (depth[springs[:, 0]] + depth[springs[:, 1]]) / 2
         solids = self._draw_colliders(framing, time)
-        if len(self.triangles) or solids is not None:
-            self._draw_surface(positions, uv, depth, strain, springs, line_rgb, line_depth, solids)
-        else:
-            order = np.argsort(line_depth, kind="stable")
-            gui.lines(uv[springs[order, 0]], uv[springs[order, 1]], radius=self.line_width,
-                      color=packed(line_rgb[order]))
+        self._draw_surface(positions, uv, depth, strain, springs, line_rgb, line_depth, framing, solids)
         if len(self.free):
             gui.circles(uv[self.free], radius=self.dot, color=packed(FREE))
         if self.model.has_fixed:
@@ -242,47 +237,65 @@ class FrameRenderer:
         image = gui.get_image()  # (W, H, 4) float in [0, 1], column-major with y up
         return np.ascontiguousarray(np.rint(image[:, ::-1, :3].transpose(1, 0, 2) * 255).astype(np.uint8))
 
-    def _draw_surface(self, positions, uv, depth, strain, springs, line_rgb, line_depth, solids=None, buckets=16):
-        """Triangles far to near, in ``buckets`` depth slices; each slice's edge lines are
-        drawn right after its triangles, so nearer surface covers farther lines. ``solids``
-        (canvas corners (t, 3, 2), colours (t, 3), depths (t,)) are the colliders'
-        triangles, sorted in with the surface's. A model without a surface draws its
-        springs (darkened lines on a surface) at full colour."""
+    def _draw_surface(self, positions, uv, depth, strain, springs, line_rgb, line_depth, framing, solids):
+        """The surface's triangles (shaded, coloured by the mean strain of their edge
+        springs) with their springs as darkened lines, or without a surface the springs
+        at full colour, far to near; ``solids`` (``_draw_colliders``), if any, in between:
+        what lies behind a solid as seen from the camera is drawn before it, the rest
+        after it, so a cloth resting on a solid is never covered by it."""
         tris = self.triangles
         x = np.asarray(positions, dtype=np.float64)
         normal = np.cross(x[tris[:, 1]] - x[tris[:, 0]], x[tris[:, 2]] - x[tris[:, 0]])
         norm = np.linalg.norm(normal, axis=1)
-        facing = np.abs(normal @ self.framing.view.basis()[2]) / np.where(norm > 0, norm, 1.0)
+        facing = np.abs(normal @ framing.view.basis()[2]) / np.where(norm > 0, norm, 1.0)
         has = self.tri_springs >= 0
         edge_strain = np.where(has, strain[np.maximum(self.tri_springs, 0)], 0.0)
         tri_strain = edge_strain.sum(axis=1) / np.maximum(has.sum(axis=1), 1)
         tri_rgb = diverging_colours(tri_strain) * (0.35 + 0.65 * facing)[:, None]
-        tri_uv = uv[tris]
-        tri_depth = depth[tris].mean(axis=1)
-        if solids is not None:
-            tri_uv = np.concatenate([tri_uv, solids[0]])
-            tri_rgb = np.concatenate([tri_rgb, solids[1]])
-            tri_depth = np.concatenate([tri_depth, solids[2]])
+        surface = (uv[tris], tri_rgb, depth[tris].mean(axis=1))
+        lines = (springs, packed(line_rgb * (0.7 if len(tris) else 1.0)), line_depth)
+        if solids is None:
+            self._draw_layer(uv, surface, lines)
+            return
+        corners, colours, solid_depth, colliders = solids
+        tri_hidden = behind_solids(colliders, framing, x[tris].mean(axis=1))
+        line_hidden = behind_solids(colliders, framing, (x[springs[:, 0]] + x[springs[:, 1]]) / 2)
+        self._draw_layer(uv, [a[tri_hidden] for a in surface], [a[line_hidden] for a in lines])
+        order = np.argsort(solid_depth, kind="stable")
+        self.gui.triangles(corners[order, 0], corners[order, 1], corners[order, 2], color=packed(colours[order]))
+        self._draw_layer(uv, [a[~tri_hidden] for a in surface], [a[~line_hidden] for a in lines])
+
+    def _draw_layer(self, uv, triangles, lines, buckets=16):
+        """``triangles`` (canvas corners (t, 3, 2), RGB (t, 3), depths (t,)) far to near
+        in ``buckets`` depth slices, each slice's ``lines`` (springs (k, 2), packed
+        colours (k,), depths (k,)) right after its triangles, so that nearer surface covers
+        farther lines; without triangles, the lines alone far to near."""
+        tri_uv, tri_rgb, tri_depth = triangles
+        springs, colours, line_depth = lines
+        if not len(tri_depth):
+            order = np.argsort(line_depth, kind="stable")
+            if len(order):
+                self.gui.lines(uv[springs[order, 0]], uv[springs[order, 1]], radius=self.line_width,
+                               color=colours[order])
+            return
         order = np.argsort(tri_depth, kind="stable")
-        edges = np.quantile(tri_depth if len(tris) else np.concatenate([tri_depth, line_depth]),
-                            np.linspace(0, 1, buckets + 1)[1:-1])
+        edges = np.quantile(tri_depth, np.linspace(0, 1, buckets + 1)[1:-1])
         tri_bucket = np.searchsorted(edges, tri_depth[order])
-        line_order = np.arange(len(line_depth)) if len(tris) else np.argsort(line_depth, kind="stable")
-        line_bucket = np.searchsorted(edges, line_depth[line_order])
-        line_col = packed(line_rgb * (0.7 if len(tris) else 1.0))
+        line_bucket = np.searchsorted(edges, line_depth)
         for k in range(buckets):
             sel = order[tri_bucket == k]
             if len(sel):
                 self.gui.triangles(tri_uv[sel, 0], tri_uv[sel, 1], tri_uv[sel, 2], color=packed(tri_rgb[sel]))
-            lsel = line_order[line_bucket == k]
+            lsel = np.flatnonzero(line_bucket == k)
             if len(lsel):
                 self.gui.lines(uv[springs[lsel, 0]], uv[springs[lsel, 1]], radius=self.line_width,
-                               color=line_col[lsel])
+                               color=colours[lsel])
 
     def _draw_colliders(self, framing, time):
         """Draw the planes (checkered squares GROUND_EXTENT framing radii wide about the
         framing centre, under everything) and return the spheres' and boxes' front-facing
-        triangles at ``time`` as (canvas corners, shaded colours, depths), or None."""
+        triangles at ``time`` as (canvas corners (t, 3, 2), shaded colours (t, 3), depths
+        (t,), the colliders), or None without spheres and boxes."""
         colliders = [c.at(time) for c in self.model.colliders]
         right, up, toward = framing.view.basis()
         light = _unit(toward + 0.6 * up - 0.3 * right)
@@ -294,23 +307,20 @@ class FrameRenderer:
             rgb = packed(colours * shade[:, None])
             self.gui.triangles(uv[:, 0], uv[:, 1], uv[:, 2], color=rgb)
             self.gui.triangles(uv[:, 0], uv[:, 2], uv[:, 3], color=rgb)
-        parts = [_solid_triangles(c) for c in colliders if c.kind != "plane"]
-        if not parts:
+        solids = [c for c in colliders if c.kind != "plane"]
+        if not solids:
             return None
+        parts = [_solid_triangles(c) for c in solids]
         corners = np.concatenate([p[0] for p in parts])
         normals = np.concatenate([p[1] for p in parts])
         if framing.view.projection == "perspective":
-            eye = framing.centre + toward * PERSPECTIVE_DISTANCE * framing.radius
-            front = np.einsum("ij,ij->i", normals, eye - corners.mean(axis=1)) > 0
+            front = np.einsum("ij,ij->i", normals, _eye(framing) - corners.mean(axis=1)) > 0
         else:
             front = normals @ toward > 0
         corners, normals = corners[front], normals[front]
         px, depth = framing.pixels(corners)
         shade = 0.3 + 0.7 * np.clip(normals @ light, 0.0, 1.0)
-        # Particles stay outside, so what lies on a solid is in front of it: its triangles
-        # are sorted as if SOLID_OFFSET framing radii farther (a polygon offset).
-        depth = depth.mean(axis=1) - SOLID_OFFSET * framing.radius
-        return self._to_canvas(px), np.array(SOLID, dtype=np.float64) * shade[:, None], depth
+        return self._to_canvas(px), np.array(SOLID, dtype=np.float64) * shade[:, None], depth.mean(axis=1), solids
 
     def _draw_text(self, time):
         """Caption (label, simulated time) at the top; strain colour bar and legend at the bottom."""
@@ -342,6 +352,39 @@ class FrameRenderer:
 
 def _unit(v):
     return np.asarray(v, dtype=np.float64) / np.linalg.norm(v)
+
+
+def _eye(framing):
+    """The perspective camera's position (m)."""
+    return framing.centre + framing.view.basis()[2] * PERSPECTIVE_DISTANCE * framing.radius
+
+
+def behind_solids(solids, framing, points):
+    """(k,) bool: whether the ray from each of ``points`` (k, 3) towards the camera
+    enters one of the spheres and boxes ``solids`` (as drawn: a box's sharp corners)
+    ahead of the point. A point on a solid's surface, or inside its drawn shape (by a
+    rounded edge), is not behind it."""
+    p = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    if framing.view.projection == "perspective":
+        d = _eye(framing) - p
+        d /= np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-300)
+    else:
+        d = np.broadcast_to(framing.view.basis()[2], p.shape)
+    hidden = np.zeros(len(p), dtype=bool)
+    tiny = 1e-9 * framing.radius
+    for solid in solids:
+        if solid.kind == "sphere":
+            offset = p - solid.center
+            b = np.einsum("ij,ij->i", offset, d)
+            c = np.einsum("ij,ij->i", offset, offset) - solid.radius ** 2
+            # outside (c > 0), the sphere ahead (b < 0) and the ray meets it (b^2 > c)
+            hidden |= (c > tiny * solid.radius) & (b < 0) & (b * b > c)
+        else:
+            safe = np.where(np.abs(d) > 1e-12, d, 1e-12)
+            t1, t2 = (np.array(solid.lower) - p) / safe, (np.array(solid.upper) - p) / safe
+            near, far = np.minimum(t1, t2).max(axis=1), np.maximum(t1, t2).min(axis=1)
+            hidden |= (near > tiny) & (near <= far)
+    return hidden
 
 
 def _bounds(collider):
