@@ -29,6 +29,7 @@ import sys
 import sysconfig
 import tempfile
 from pathlib import Path
+import output
 
 HERE = Path(__file__).resolve().parent
 ROOT = HERE.parent
@@ -44,7 +45,7 @@ def parse_args(argv=None):
     p.add_argument("--repeats", type=int, default=5, help="processes per case and revision (median reported)")
     p.add_argument("--cache", default=str(Path(tempfile.gettempdir()) / "massspring-revisions"),
                    help="where the base revision's worktree and install go")
-    p.add_argument("--json", default="benchmarks/results/compare_revisions.json")
+    output.add_json(p, "compare_revisions")
     return p.parse_args(argv)
 
 

@@ -36,6 +36,7 @@ import numpy as np
 
 import massspring as ms
 from massspring.io.files import write_json
+import output
 
 
 def parse_args(argv=None):
@@ -44,7 +45,7 @@ def parse_args(argv=None):
     p.add_argument("--repeats", type=int, default=7, help="timed chunks per case (median reported)")
     p.add_argument("--preconditioner", default="block-jacobi", choices=["block-jacobi", "multigrid", "none"],
                    help="the implicit step's (default block-jacobi)")
-    p.add_argument("--json", default="benchmarks/results/contact.json")
+    output.add_json(p, "contact")
     return p.parse_args(argv)
 
 

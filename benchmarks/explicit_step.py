@@ -57,6 +57,7 @@ import peers  # noqa: E402
 
 import massspring as ms  # noqa: E402
 from massspring.io.files import write_json  # noqa: E402
+import output  # noqa: E402
 
 TOLERANCE = {"f64": 1e-9, "f32": 1e-5}  # largest displacement difference / largest displacement
 TARGET_RATIO = 2.0  # issue 10: warp.sim time per step / massspring's, symplectic f32
@@ -78,7 +79,7 @@ def parse_args(argv=None):
     p.add_argument("--steps", type=int, default=200, help="steps per timed run")
     p.add_argument("--repeats", type=int, default=3, help="timed runs per case (median reported)")
     p.add_argument("--no-warp", action="store_true", help="skip both Warp peers (warp and warp.sim)")
-    p.add_argument("--json", default="benchmarks/results/explicit_step.json")
+    output.add_json(p, "explicit_step")
     return p.parse_args(argv)
 
 

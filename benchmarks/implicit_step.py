@@ -38,6 +38,7 @@ import peers  # noqa: E402
 
 import massspring as ms  # noqa: E402
 from massspring.io.files import write_json  # noqa: E402
+import output  # noqa: E402
 
 PEERS = ("scipy", "pyamg", "taichi-cg", "direct")
 
@@ -59,7 +60,7 @@ def parse_args(argv=None):
     p.add_argument("--max-pyamg", type=int, default=512, help="largest resolution for SciPy + pyamg")
     p.add_argument("--max-taichi-cg", type=int, default=128, help="largest resolution for ti.linalg.MatrixFreeCG")
     p.add_argument("--max-direct", type=int, default=256, help="largest resolution for the direct solve")
-    p.add_argument("--json", default="benchmarks/results/implicit_step.json")
+    output.add_json(p, "implicit_step")
     return p.parse_args(argv)
 
 

@@ -22,6 +22,7 @@ import sys
 import time
 
 from massspring.io.files import write_json
+import output
 
 CASES = [("cloth", "resolution", 150), ("cloth", "resolution", 300), ("chain", "count", 40000),
          ("chain", "count", 160000), ("cube", "resolution", 25), ("cube", "resolution", 40)]
@@ -35,7 +36,7 @@ def parse_args(argv=None):
     p.add_argument("--refusals", nargs="*", type=int, default=[3000, 4000, 5000, 6000],
                    help="cloth resolutions run to check the refusal")
     p.add_argument("--ulimit-kb", type=int, default=12_000_000, help="address-space limit of the second pass")
-    p.add_argument("--json", default="benchmarks/results/memory.json")
+    output.add_json(p, "memory")
     p.add_argument("--worker", help=argparse.SUPPRESS)
     return p.parse_args(argv)
 

@@ -22,6 +22,7 @@ import massspring as ms
 from massspring.io.files import write_json
 from massspring.io.frames import FORMATS, FrameExport
 from massspring.io.obj import read_obj
+import output
 
 
 def parse_args(argv=None):
@@ -29,7 +30,7 @@ def parse_args(argv=None):
     p.add_argument("--read", type=int, nargs="*", default=[300, 1000], help="OBJ grid sizes (vertices per side)")
     p.add_argument("--write", type=int, nargs="*", default=[32, 128], help="cloth resolutions of the frames")
     p.add_argument("--repeats", type=int, default=3)
-    p.add_argument("--json", default="benchmarks/results/mesh_io.json")
+    output.add_json(p, "mesh_io")
     return p.parse_args(argv)
 
 

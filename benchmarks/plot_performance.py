@@ -2,7 +2,9 @@
 
 Reads benchmarks/results/{implicit_step,explicit_step,scaling,roofline}.json
 (written by the scripts of the same names), prints the README's markdown tables
-and draws docs/performance.png (needs matplotlib: pip install "massspring[plot]").
+and draws the figure, by default into benchmarks/out/ (docs/performance.png is the
+README's: pass --png docs/performance.png to replace it; needs matplotlib: pip install
+"massspring[plot]").
 
     python benchmarks/plot_performance.py --help
     python benchmarks/plot_performance.py --results benchmarks/results --png docs/performance.png
@@ -13,11 +15,14 @@ import json
 import sys
 from pathlib import Path
 
+import output
+
 
 def parse_args(argv=None):
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--results", default="benchmarks/results", help="folder of the benchmarks' JSON files")
-    p.add_argument("--png", default="docs/performance.png")
+    p.add_argument("--png", default=str(output.OUT / "performance.png"),
+                   help="the figure (default benchmarks/out/performance.png; the README shows docs/performance.png)")
     return p.parse_args(argv)
 
 

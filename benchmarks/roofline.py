@@ -33,6 +33,7 @@ import taichi as ti
 import massspring as ms
 from massspring.device import ensure_taichi
 from massspring.io.files import write_json
+import output
 
 VARIANTS = ["serial", "parallel"]
 
@@ -44,7 +45,7 @@ def parse_args(argv=None):
     p.add_argument("--iterations", type=int, default=40, help="k: CG iterations per timed step")
     p.add_argument("--repeats", type=int, default=5, help="timed runs of each measurement (best/median kept)")
     p.add_argument("--precision", default="f64", choices=["f64", "f32"])
-    p.add_argument("--json", default="benchmarks/results/roofline.json")
+    output.add_json(p, "roofline")
     return p.parse_args(argv)
 
 

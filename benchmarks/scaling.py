@@ -34,6 +34,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from massspring.io.files import write_json  # noqa: E402
+import output  # noqa: E402
 
 SOLVERS = ("none", "block-jacobi", "multigrid", "pyamg")
 
@@ -46,7 +47,7 @@ def parse_args(argv=None):
     p.add_argument("--solvers", nargs="+", default=list(SOLVERS), choices=SOLVERS)
     p.add_argument("--steps", type=int, default=4, help="timed steps per case, at most")
     p.add_argument("--budget", type=float, default=120.0, help="seconds of timed steps per case, about")
-    p.add_argument("--json", default="benchmarks/results/scaling.json")
+    output.add_json(p, "scaling")
     p.add_argument("--child", nargs=4, metavar=("MESH", "SIZE", "KS", "SOLVER"), help=argparse.SUPPRESS)
     return p.parse_args(argv)
 

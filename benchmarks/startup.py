@@ -19,6 +19,7 @@ import tempfile
 import time
 
 from massspring.io.files import write_json
+import output
 
 
 def parse_args(argv=None):
@@ -26,7 +27,7 @@ def parse_args(argv=None):
     p.add_argument("--scene", default="cloth")
     p.add_argument("--integrators", nargs="+", default=["implicit", "explicit", "symplectic"])
     p.add_argument("--warm-runs", type=int, default=3, help="warm-cache runs (median reported)")
-    p.add_argument("--json", default="benchmarks/results/startup.json")
+    output.add_json(p, "startup")
     return p.parse_args(argv)
 
 

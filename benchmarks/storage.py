@@ -23,13 +23,14 @@ import taichi as ti
 import massspring as ms
 from massspring.device import adjacency, ensure_taichi
 from massspring.io.files import write_json
+import output
 
 
 def parse_args(argv=None):
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--resolutions", type=int, nargs="+", default=[32, 128, 256, 512])
     p.add_argument("--repeats", type=int, default=30)
-    p.add_argument("--json", default="benchmarks/results/storage.json")
+    output.add_json(p, "storage")
     return p.parse_args(argv)
 
 

@@ -1,7 +1,8 @@
 """Regenerate the README's "Which integrator?" figures: the work-precision study of
 the cloth and chain scenes at their default sizes (``massspring study`` defaults).
 
-Writes docs/study_<scene>.png (work-precision plots) and each study's runs.csv,
+Writes study_<scene>.png (work-precision plots; into benchmarks/out/ unless --docs docs,
+which replaces the README's) and each study's runs.csv,
 runs.json and summary.json under --out, and prints the Markdown table the README
 shows: measured orders and, for target errors 1e-2 and 1e-4, the cheapest run.
 
@@ -17,13 +18,14 @@ from pathlib import Path
 import massspring as ms
 from massspring.analysis import fits, report, study
 
-ROOT = Path(__file__).resolve().parent.parent
+import output
 
 
 def parse_args(argv=None):
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--scenes", nargs="+", default=["cloth", "chain"])
-    p.add_argument("--docs", default=str(ROOT / "docs"), help="where the PNGs go (default docs/)")
+    p.add_argument("--docs", default=str(output.OUT), help="where the PNGs go (default benchmarks/out/; "
+                   "the README shows those in docs/)")
     p.add_argument("--out", default="study-figures", help="where the CSV/JSON of each study go")
     return p.parse_args(argv)
 

@@ -16,6 +16,7 @@ import time
 
 import massspring as ms
 from massspring.io.files import write_json
+import output
 
 COMBOS = ["serial", "parallel"]
 
@@ -25,7 +26,7 @@ def parse_args(argv=None):
     p.add_argument("--resolutions", type=int, nargs="+", default=[16, 32, 64, 128, 256])
     p.add_argument("--steps", type=int, default=3, help="timed implicit steps (after one warm-up step)")
     p.add_argument("--explicit-steps", type=int, default=200, help="timed symplectic steps per run")
-    p.add_argument("--json", default="benchmarks/results/switch_point.json")
+    output.add_json(p, "switch_point")
     return p.parse_args(argv)
 
 

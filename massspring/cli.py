@@ -1,4 +1,4 @@
-"""The ``massspring`` command line: run built-in or user scenes, list them, describe them.
+"""The massspring command line: run built-in or user scenes, list them, describe them.
 
 It parses, calls and prints: the physics is in ``Simulation`` and the run loop in
 ``simulation.run``. Exit codes: 0 success; 2 bad usage or bad input (one line on

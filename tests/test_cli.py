@@ -151,3 +151,12 @@ def test_set_drag_and_info_of_a_contact_scene(capsys):
     assert "colliders   plane" in text and "drag 0.5" in text
     assert main(["run", "chain", "--set", "count=4", "--set", "wind=[1, 0, 0]", "--steps", "1"]) == 2
     assert "--set wind: has no effect without drag" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("verb", [[], ["run"], ["info"], ["scenes"], ["stability"], ["study"]])
+def test_help_is_plain_text(verb, capsys):
+    with pytest.raises(SystemExit) as exit_:
+        main([*verb, "--help"])
+    assert exit_.value.code == 0
+    out = capsys.readouterr().out
+    assert out.startswith("usage: massspring") and "``" not in out  # no reStructuredText markup
