@@ -98,7 +98,7 @@ def add_scene_arguments(p, integrators):
                    help="implicit: use the stiffness of Eq. 13 as written (indefinite when springs are compressed)")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                    help="override a scene model parameter, e.g. --set resolution=64, "
-                   "--set gravity=[0,0,-1.62] or --set drag=0.5 (TOML values; repeatable)")
+                   "--set gravity=[0,0,-1.62] or --set drag=0.005 (TOML values; repeatable)")
 
 
 def make_simulation(args):
