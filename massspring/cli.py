@@ -373,14 +373,14 @@ def add_export_arguments(p):
 
 
 def add_frame_arguments(p):
-    from massspring.io.frames import FORMATS
+    from massspring.io.frames import DEFAULT_FORMAT, FORMATS
 
-    g = p.add_argument_group("frames as files (for Blender, ParaView, Houdini); sampled like the GIF")
-    g.add_argument("--export", metavar="DIR", help="write one file per frame into DIR (created if missing), "
+    g = p.add_argument_group("frames as files (for Blender, ParaView, Houdini, Omniverse); sampled like the GIF")
+    g.add_argument("--export", metavar="DIR", help="write the frames into DIR (created if missing), "
                    "with manifest.json")
-    g.add_argument("--format", choices=tuple(FORMATS), help="frame files: obj (default), ply, vtk (.vtu and a "
-                   "ParaView .pvd) or npz (states that --restart takes); ply and vtk need meshio "
-                   "(pip install 'massspring[mesh]')")
+    formats = "; ".join(f"{f.name}: {f.help}" + (f" (needs {f.module}: pip install 'massspring[{f.extra}]')"
+                                                 if f.module else "") for f in FORMATS.values())
+    g.add_argument("--format", choices=tuple(FORMATS), help=f"default {DEFAULT_FORMAT}; {formats}")
 
 
 @dataclass
@@ -445,16 +445,22 @@ def plan_pictures(args, scene, sim, steps, steps_at):
             raise UsageError(f"--view: {exc}") from None
     if args.projection is not None:
         view = replace(view, projection=args.projection)
-    need = len(steps_at) * sim.model.n_particles * 12
-    if need > 2e9:
-        raise UsageError(f"--frames: {len(steps_at)} frames of {sim.model.n_particles} particles would keep "
-                         f"{need / 1e9:.1f} GB of positions; ask for fewer with --frames or --every")
+    check_kept_frames(len(steps_at), sim.model.n_particles, 12, "positions")
     return PicturePlan(render.Recording(steps_at), view, framing, size, fps, args.gif, args.png)
+
+
+def check_kept_frames(frames, particles, size, what, limit=2e9):
+    """Refuse a run whose ``frames`` would keep more than ``limit`` bytes in memory at
+    ``size`` bytes per particle and frame (``what`` they are)."""
+    need = frames * particles * size
+    if need > limit:
+        raise UsageError(f"--frames: {frames} frames of {particles} particles would keep {need / 1e9:.1f} GB of "
+                         f"{what}; ask for fewer with --frames or --every")
 
 
 def plan_export(args, scene, sim, steps, steps_at):
     """Check --export/--format before the run and create the directory: None without --export."""
-    from massspring.io.frames import DEFAULT_FORMAT, FrameExport
+    from massspring.io.frames import DEFAULT_FORMAT, FORMATS, FrameExport
 
     if not args.export:
         if args.export == "":
@@ -467,7 +473,10 @@ def plan_export(args, scene, sim, steps, steps_at):
             "integrator": sim.integrator, "dt": sim.dt, "precision": sim.precision,
             "particles": sim.model.n_particles, "springs": sim.model.n_springs,
             "triangles": len(sim.model.triangles), "start_step": sim.steps, "end_step": sim.steps + steps}
-    export = FrameExport(args.export, args.format or DEFAULT_FORMAT, len(steps_at), scene.name, info)
+    fmt = args.format or DEFAULT_FORMAT
+    if FORMATS[fmt].single_file:  # its frames stay in memory until the run ends
+        check_kept_frames(len(steps_at), sim.model.n_particles, 24, "positions and velocities")
+    export = FrameExport(args.export, fmt, len(steps_at), scene.name, info)
     export.prepare()
     return export
 

@@ -1,6 +1,7 @@
-"""run --export DIR --format obj|ply|vtk|npz: one file per frame at the GIF's frame steps, read
-back by our OBJ reader, meshio and read_state; a manifest that always says how far the run got;
-output directories that cannot be written refused before the first step."""
+"""run --export DIR --format obj|ply|vtk|npz|usd: one file per frame at the GIF's frame steps
+(usd: one stage for the run), read back by our OBJ reader, meshio, read_state and pxr; a
+manifest that always says how far the run got; output directories that cannot be written
+refused before the first step."""
 
 import json
 import os
@@ -119,7 +120,7 @@ def test_interrupted_run_keeps_its_frames(tmp_path, capsys, monkeypatch):
 
 def test_a_frame_that_cannot_be_written_stops_the_export_not_the_run(tmp_path, capsys, monkeypatch):
     written = []
-    obj = frames_io.WRITERS["obj"]
+    obj = frames_io.write_obj_frame
 
     def full_disk_at_the_third_frame(path, sim, scene):
         if len(written) == 2:
@@ -127,7 +128,7 @@ def test_a_frame_that_cannot_be_written_stops_the_export_not_the_run(tmp_path, c
         written.append(path)
         obj(path, sim, scene)
 
-    monkeypatch.setitem(frames_io.WRITERS, "obj", full_disk_at_the_third_frame)
+    monkeypatch.setattr(frames_io, "write_obj_frame", full_disk_at_the_third_frame)
     out, state = tmp_path / "frames", tmp_path / "state.npz"
     assert main(["run", *CLOTH, "--steps", "10", "--every", "2", "--export", str(out), "--out", str(state)]) == 1
     err = capsys.readouterr().err
@@ -175,9 +176,120 @@ def test_export_alone_takes_frames_and_every(tmp_path):
     assert [f["step"] for f in manifest(out)["frames"]] == [0, 4, 8, 10]
 
 
-@pytest.mark.parametrize("fmt", ["ply", "vtk"])
-def test_formats_that_need_meshio_say_which_extra_to_install(fmt, tmp_path, capsys, monkeypatch):
-    monkeypatch.setitem(sys.modules, "meshio", None)  # as if it were not installed
+@pytest.mark.parametrize("fmt, module, extra", [("ply", "meshio", "mesh"), ("vtk", "meshio", "mesh"),
+                                               ("usd", "pxr", "usd")])
+def test_formats_that_need_a_module_say_which_extra_to_install(fmt, module, extra, tmp_path, capsys, monkeypatch):
+    monkeypatch.setitem(sys.modules, module, None)  # as if it were not installed
     assert main(["run", "spring", "--steps", "5", "--quiet", "--export", str(tmp_path / "x"), "--format", fmt]) == 2
-    one_line_error(capsys, f"--format {fmt}", "meshio", "massspring[mesh]")
+    one_line_error(capsys, f"--format {fmt}", module, f"massspring[{extra}]")
     assert not (tmp_path / "x").exists()
+
+
+def test_every_format_is_one_record_and_its_extra_installs_its_module():
+    import tomllib
+    from pathlib import Path
+
+    extras = tomllib.loads((Path(__file__).resolve().parents[1] / "pyproject.toml").read_text())
+    extras = extras["project"]["optional-dependencies"]
+    packages = {"meshio": "meshio", "pxr": "usd-core"}  # module -> the package that installs it
+    for name, record in frames_io.FORMATS.items():
+        assert record.name == name and record.extension.startswith(".")
+        assert callable(record.load())  # the writer exists
+        if record.module is not None:
+            assert any(r.startswith(packages[record.module]) for r in extras[record.extra]), name
+            assert any(r.startswith(packages[record.module]) for r in extras["test"]), name  # CI tests it
+    parser, _ = cli_parser()
+    help_text = " ".join(parser.format_help().split())
+    for record in frames_io.FORMATS.values():
+        assert f"{record.name}: {record.help}" in help_text
+
+
+def cli_parser():
+    from massspring import cli
+
+    parser, verbs = cli.build_parser()
+    return verbs["run"], verbs
+
+
+# ----------------------------------------------------------------------------- USD
+
+
+def usd_stage(path):
+    pytest.importorskip("pxr", reason="usd-core is not installed (pip install 'massspring[usd]')")
+    from pxr import Usd
+
+    stage = Usd.Stage.Open(str(path))
+    assert stage is not None
+    return stage
+
+
+def test_usd_stage_of_drape_has_the_npz_frames_points(tmp_path):
+    """drape at its default size, 60 frames: the stage's time-sampled points and
+    velocities equal the npz frames' to float32 round-off, and it holds the colliders."""
+    usd, npz = tmp_path / "usd", tmp_path / "npz"
+    for out, fmt in ((usd, "usd"), (npz, "npz")):
+        assert main(["run", "drape", "--quiet", "--steps", "59", "--every", "1", "--export", str(out),
+                     "--format", fmt]) == 0
+    stage = usd_stage(usd / "frames.usdc")
+    info = manifest(usd)
+    assert info["status"] == "complete" and info["series"] == "frames.usdc" and len(info["frames"]) == 60
+    assert [f["step"] for f in info["frames"]] == [f["step"] for f in manifest(npz)["frames"]] == list(range(60))
+    from pxr import UsdGeom
+
+    scene = ms.load_scene("drape")
+    model = scene.model()
+    assert UsdGeom.GetStageUpAxis(stage) == "Z" and UsdGeom.GetStageMetersPerUnit(stage) == 1.0
+    assert stage.GetTimeCodesPerSecond() == pytest.approx(1 / scene.default_dt(), rel=1e-12)
+    assert (stage.GetStartTimeCode(), stage.GetEndTimeCode()) == (0, 59)
+    body = UsdGeom.Mesh(stage.GetPrimAtPath("/World/Body"))
+    assert np.array_equal(np.array(body.GetFaceVertexIndicesAttr().Get()), model.triangles.ravel())
+    assert body.GetPointsAttr().GetTimeSamples() == list(range(60))
+    scale = np.abs(model.positions).max()
+    for frame in manifest(npz)["frames"]:
+        state = np.load(npz / frame["file"])
+        points = np.array(body.GetPointsAttr().Get(frame["step"]), dtype=np.float64)
+        velocities = np.array(body.GetVelocitiesAttr().Get(frame["step"]), dtype=np.float64)
+        np.testing.assert_allclose(points, state["positions"], rtol=0, atol=2 ** -23 * scale)
+        np.testing.assert_allclose(velocities, state["velocities"], rtol=2 ** -23,
+                                   atol=2 ** -23 * np.abs(state["velocities"]).max())
+    plane, sphere = model.colliders
+    ground = UsdGeom.Plane(stage.GetPrimAtPath("/World/Colliders/plane_0"))
+    ball = UsdGeom.Sphere(stage.GetPrimAtPath("/World/Colliders/sphere_1"))
+    assert ball.GetRadiusAttr().Get() == sphere.radius
+    world = ball.ComputeLocalToWorldTransform(0)
+    assert np.allclose(world.ExtractTranslation(), sphere.center)
+    transform = ground.ComputeLocalToWorldTransform(0)
+    assert np.allclose(transform.ExtractTranslation(), plane.point)
+    assert np.allclose(transform.TransformDir((0.0, 0.0, 1.0)), plane.normal, atol=1e-6)  # its +z is the normal
+
+
+def test_usd_stage_of_a_chain_with_a_moving_box(tmp_path):
+    """A model without a surface: its particles as Points, its springs as two-point
+    curves; a moving collider's translation sampled at every frame."""
+    path = tmp_path / "chain.toml"
+    path.write_text('integrator = "symplectic"\nduration = 0.1\n[dt]\nsymplectic = 1e-3\n'
+                    '[model]\ngenerator = "chain"\ncount = 4\n'
+                    '[[collider]]\ntype = "box"\nlower = [0, -1, -3]\nupper = [1, 1, -2]\nvelocity = [0, 0, 2]\n')
+    out, npz = tmp_path / "usd", tmp_path / "npz"
+    for directory, fmt in ((out, "usd"), (npz, "npz")):
+        assert main(["run", str(path), "--quiet", "--every", "20", "--export", str(directory), "--format", fmt]) == 0
+    stage = usd_stage(out / "frames.usdc")
+    from pxr import UsdGeom
+
+    model = ms.load_scene(path).model()
+    body = UsdGeom.Points(stage.GetPrimAtPath("/World/Body"))
+    curves = UsdGeom.BasisCurves(stage.GetPrimAtPath("/World/Springs"))
+    box = UsdGeom.Cube(stage.GetPrimAtPath("/World/Colliders/box_0"))
+    assert curves.GetCurveVertexCountsAttr().Get() == [2] * model.n_springs
+    steps = [f["step"] for f in manifest(npz)["frames"]]
+    assert steps == [0, 20, 40, 60, 80, 100] and body.GetPointsAttr().GetTimeSamples() == steps
+    for frame in manifest(npz)["frames"]:
+        x = np.load(npz / frame["file"])["positions"]
+        points = np.array(body.GetPointsAttr().Get(frame["step"]), dtype=np.float64)
+        np.testing.assert_allclose(points, x, rtol=0, atol=2 ** -23 * np.abs(x).max())
+        ends = np.array(curves.GetPointsAttr().Get(frame["step"]), dtype=np.float64).reshape(-1, 2, 3)
+        np.testing.assert_allclose(ends, x[model.springs], rtol=0, atol=2 ** -23 * np.abs(x).max())
+        moved = model.colliders[0].at(frame["time"])
+        world = box.ComputeLocalToWorldTransform(frame["step"])
+        assert np.allclose(world.ExtractTranslation(), (np.array(moved.lower) + np.array(moved.upper)) / 2)
+        assert np.allclose(world.TransformDir((1.0, 1.0, 1.0)), [1.0, 2.0, 1.0])  # scaled to its sides

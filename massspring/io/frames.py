@@ -1,6 +1,8 @@
-"""Per-frame export of a run (``run --export DIR --format FMT``): one file per frame, a
-JSON manifest, and for VTK a ParaView ``.pvd`` series.
+"""Export of a run's frames (``run --export DIR --format FMT``): one file per frame (or
+one file for the whole run), a JSON manifest, and for VTK a ParaView ``.pvd`` series.
 
+Each format is one record in ``FORMATS`` (``FrameFormat``: extension, writer, the
+optional module and extra it needs, its help); the CLI's choices and help come from it.
 Each frame holds the positions (m) at one step and, where the Model has a surface,
 its triangles; a model without one (a chain) gets its springs as line elements:
 
@@ -11,23 +13,30 @@ its triangles; a model without one (a chain) gets its springs as line elements:
   triangles or springs as lines, and the ``velocity`` (m/s) as point data, plus
   ``frames.pvd``: the series with each frame's simulated time, for ParaView;
 * ``npz``: a state file (``io.state``: positions, velocities, time, steps, the model's
-  fingerprint, triangles), so any frame can start a ``--restart``.
+  fingerprint, triangles), so any frame can start a ``--restart``;
+* ``usd``: one USD stage, ``frames.usdc``, by pxr (``io.usd``): the body's points and
+  velocities time-sampled (float32, as USD stores points), and the colliders.
 
 Frames are named ``frame_00000.EXT``, ``frame_00001.EXT``, ... in the order written
 (at least 5 digits, more for more frames); files of an earlier run in the directory
 are replaced where the names repeat, and otherwise left alone. Every file is written
 to a temporary name and renamed, and ``manifest.json`` is rewritten the same way after
 each frame, so whatever stops the run, the manifest lists exactly the frames of this
-run on disk and says how far the run got. Its keys: ``status`` ("running", "complete", "diverged", "interrupted",
-"terminated", or "failed" when a frame could not be written), ``message`` (why it
-stopped, or ""), ``format``, ``frames`` (a list of {``file``, ``step``, ``time``}),
-``last_step``/``last_time`` (the last good state reached), ``series`` (the .pvd, or
-null), ``massspring`` (version) and whatever the caller describes the run with
-(``info``: scene, integrator, dt, ...).
+run on disk and says how far the run got. A single-file format (usd) holds its frames
+in memory and writes its file when the run ends, however it ends (not if the process
+is killed outright); its manifest lists them from then on. Its keys: ``status``
+("running", "complete", "diverged", "interrupted", "terminated", or "failed" when a
+frame could not be written), ``message`` (why it stopped, or ""), ``format``,
+``frames`` (a list of {``file``, ``step``, ``time``}), ``last_step``/``last_time``
+(the last good state reached), ``series`` (the .pvd or the single file, else null),
+``massspring`` (version) and whatever the caller describes the run with (``info``:
+scene, integrator, dt, ...).
 """
 
 from __future__ import annotations
 
+import importlib
+from dataclasses import dataclass
 from pathlib import Path
 from xml.sax.saxutils import quoteattr
 
@@ -37,24 +46,67 @@ from massspring.io.files import atomic_output, atomic_path, check_writable, writ
 from massspring.io.obj import write_obj
 from massspring.io.state import write_state
 
-FORMATS = {"obj": ".obj", "ply": ".ply", "vtk": ".vtu", "npz": ".npz"}
-DEFAULT_FORMAT = "obj"
-NEEDS_MESHIO = ("ply", "vtk")
 MANIFEST = "manifest.json"
-SERIES = "frames.pvd"
-EXTRA = "pip install 'massspring[mesh]'"
+
+
+@dataclass(frozen=True)
+class FrameFormat:
+    """One format of ``run --export``: everything the export and the CLI know of it.
+
+    ``writer`` ("module:name", imported when first used): for a format of one file per
+    frame a function ``(path, sim, scene)`` writing ``sim``'s current state; for a
+    ``single_file`` format a class ``(path, sim, scene)`` whose ``add(sim)`` takes each
+    frame and ``save()`` writes them all to ``path``, atomically. ``module``: the
+    optional module the writer needs, installed by the extra ``extra`` of
+    pyproject.toml. ``index``: "module:name" of a function ``(path, frames)`` writing an
+    index of the frame files named ``index_name`` (e.g. ParaView's series)."""
+
+    name: str
+    extension: str
+    help: str
+    writer: str
+    module: str | None = None
+    extra: str | None = None
+    single_file: bool = False
+    index: str | None = None
+    index_name: str | None = None
+
+    def load(self, what="writer"):
+        """The object ``what`` ("writer" or "index") names."""
+        module, _, name = getattr(self, what).partition(":")
+        return getattr(importlib.import_module(module), name)
+
+    @property
+    def series(self):
+        """The file that holds or lists the whole run (the manifest's ``series``), or None."""
+        return f"frames{self.extension}" if self.single_file else self.index_name
+
+
+FORMATS = {f.name: f for f in (
+    FrameFormat("obj", ".obj", "Wavefront OBJ per frame, exact float64", "massspring.io.frames:write_obj_frame"),
+    FrameFormat("ply", ".ply", "binary PLY per frame", "massspring.io.frames:write_ply_frame", "meshio", "mesh"),
+    FrameFormat("vtk", ".vtu", "VTK XML per frame with velocities, and a ParaView frames.pvd",
+                "massspring.io.frames:write_vtu_frame", "meshio", "mesh", index="massspring.io.frames:write_series",
+                index_name="frames.pvd"),
+    FrameFormat("npz", ".npz", "states that --restart takes", "massspring.io.frames:write_npz_frame"),
+    FrameFormat("usd", ".usdc", "one USD stage, frames.usdc, time-sampled points and velocities, colliders",
+                "massspring.io.usd:StageWriter", "pxr", "usd", single_file=True),
+)}
+DEFAULT_FORMAT = "obj"
 
 
 def check_format(fmt, name="format"):
-    """Refuse an unknown format, or one whose writer (meshio) is not installed:
+    """Refuse an unknown format, or one whose writer's module is not installed:
     ValueError starting with ``name``."""
     if fmt not in FORMATS:
         raise ValueError(f"{name}: unknown format {fmt!r}, expected one of {', '.join(FORMATS)}")
-    if fmt in NEEDS_MESHIO:
+    record = FORMATS[fmt]
+    if record.module is not None:
         try:
-            import meshio  # noqa: F401
+            importlib.import_module(record.module)
         except ImportError:
-            raise ValueError(f"{name} {fmt}: needs meshio, which is not installed ({EXTRA})") from None
+            raise ValueError(f"{name} {fmt}: needs {record.module}, which is not installed "
+                             f"(pip install 'massspring[{record.extra}]')") from None
 
 
 def _elements(model):
@@ -93,9 +145,6 @@ def write_npz_frame(path, sim, scene):
     write_state(sim, path, scene)
 
 
-WRITERS = {"obj": write_obj_frame, "ply": write_ply_frame, "vtk": write_vtu_frame, "npz": write_npz_frame}
-
-
 def write_series(path, frames):
     """ParaView's collection file: each frame's file (relative) at its simulated time, atomically."""
     lines = ['<?xml version="1.0"?>', '<VTKFile type="Collection" version="0.1" byte_order="LittleEndian">',
@@ -122,12 +171,15 @@ class FrameExport:
         self.directory, self.fmt, self.scene, self.name = Path(directory), fmt, scene, name
         self.info = dict(info or {})
         self.digits = max(5, len(str(max(count - 1, 0))))
-        self.frames = []
+        self.frames = []   # the frames on disk
+        self.pending = []  # a single-file format's frames not yet saved
+        self.writer = None  # a single-file format's writer, made at the first frame
         self.error = None
         self.last = (None, None)  # (step, time) of the last state seen
 
     def file_name(self, k):
-        return f"frame_{k:0{self.digits}d}{FORMATS[self.fmt]}"
+        record = FORMATS[self.fmt]
+        return record.series if record.single_file else f"frame_{k:0{self.digits}d}{record.extension}"
 
     def prepare(self):
         """Before the run: check the format, create the directory (and its parents) if
@@ -150,23 +202,38 @@ class FrameExport:
                              f"{exc.strerror or exc}") from None
 
     def __call__(self, sim):
-        """Write ``sim``'s current state as the next frame, then the manifest (and series)."""
+        """Write ``sim``'s current state as the next frame, then the manifest (and the
+        index); a single-file format's writer takes the frame, to be saved by ``finish``."""
         self.last = (sim.steps, sim.time)
         if self.error is not None:
             return
+        record = FORMATS[self.fmt]
         file = self.file_name(len(self.frames))
         try:
-            WRITERS[self.fmt](self.directory / file, sim, self.scene)
+            if record.single_file:
+                if self.writer is None:
+                    self.writer = record.load()(self.directory / file, sim, self.scene)
+                self.writer.add(sim)
+                self.pending.append({"file": file, "step": sim.steps, "time": sim.time})
+                return
+            record.load()(self.directory / file, sim, self.scene)
             self.frames.append({"file": file, "step": sim.steps, "time": sim.time})
             self._write_manifest("running", "")
         except OSError as exc:
             self.error = f"could not write {str(self.directory / file)!r}: {exc.strerror or exc}"
 
     def finish(self, status, sim, message=""):
-        """Mark the manifest with ``status`` ("complete", "diverged", "interrupted",
-        "terminated"; "failed" if a frame could not be written) and the last good state
-        ``sim`` reached. Returns ``error`` (None if every file was written)."""
+        """Save a single-file format's frames, then mark the manifest with ``status``
+        ("complete", "diverged", "interrupted", "terminated"; "failed" if a frame could
+        not be written) and the last good state ``sim`` reached. Returns ``error`` (None
+        if every file was written)."""
         self.last = (sim.steps, sim.time)
+        if self.writer is not None and self.error is None:
+            try:
+                self.writer.save()
+                self.frames = self.pending
+            except OSError as exc:
+                self.error = f"could not write {str(self.directory / self.file_name(0))!r}: {exc.strerror or exc}"
         if self.error is not None:
             status, message = "failed", self.error
         try:
@@ -178,13 +245,13 @@ class FrameExport:
     def _write_manifest(self, status, message):
         from massspring import __version__
 
-        if self.fmt == "vtk" and self.frames:
-            write_series(self.directory / SERIES, self.frames)
+        record = FORMATS[self.fmt]
+        if record.index is not None and self.frames:
+            record.load("index")(self.directory / record.index_name, self.frames)
         step, time = self.last
         write_json(self.directory / MANIFEST, {
             "massspring": __version__, "status": status, "message": message, "format": self.fmt, **self.info,
-            "last_step": step, "last_time": time, "series": SERIES if self.fmt == "vtk" else None,
-            "frames": self.frames})
+            "last_step": step, "last_time": time, "series": record.series, "frames": self.frames})
 
     def __len__(self):
         return len(self.frames)
