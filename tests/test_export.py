@@ -293,3 +293,29 @@ def test_usd_stage_of_a_chain_with_a_moving_box(tmp_path):
         world = box.ComputeLocalToWorldTransform(frame["step"])
         assert np.allclose(world.ExtractTranslation(), (np.array(moved.lower) + np.array(moved.upper)) / 2)
         assert np.allclose(world.TransformDir((1.0, 1.0, 1.0)), [1.0, 2.0, 1.0])  # scaled to its sides
+
+
+def test_usd_stage_of_a_run_that_stops_early_or_cannot_be_saved(tmp_path, capsys, monkeypatch):
+    pytest.importorskip("pxr", reason="usd-core is not installed (pip install 'massspring[usd]')")
+    from massspring.io import usd
+
+    # diverges (explicit Euler on an undamped spring at dt = 0.5 s): the stage holds the frames up to then
+    out = tmp_path / "boom"
+    assert main(["run", "spring", "--integrator", "explicit", "--dt", "0.5", "--set", "damping=0", "--steps", "60",
+                 "--every", "1", "--quiet", "--export", str(out), "--format", "usd"]) == 3
+    info = manifest(out)
+    steps = [f["step"] for f in info["frames"]]
+    assert info["status"] == "diverged" and steps == list(range(info["last_step"] + 1))
+    stage = usd_stage(out / "frames.usdc")
+    assert stage.GetPrimAtPath("/World/Body").GetAttribute("points").GetTimeSamples() == steps
+    # a stage that cannot be written: the run's outputs fail (exit 1), the manifest says so, no file is left
+    def full_disk(self):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(usd.StageWriter, "save", full_disk)
+    out = tmp_path / "full"
+    assert main(["run", *CLOTH, "--steps", "4", "--export", str(out), "--format", "usd"]) == 1
+    assert "No space left" in capsys.readouterr().err
+    info = manifest(out)
+    assert info["status"] == "failed" and info["frames"] == [] and sorted(p.name for p in out.iterdir()) == [
+        "manifest.json"]

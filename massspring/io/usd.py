@@ -53,8 +53,8 @@ class StageWriter:
         model = self.model
         if len(model.triangles):
             self.body = UsdGeom.Mesh.Define(stage, "/World/Body")
-            self.body.CreateFaceVertexCountsAttr([3] * len(model.triangles))
-            self.body.CreateFaceVertexIndicesAttr(model.triangles.ravel().tolist())
+            self.body.CreateFaceVertexCountsAttr(_integers(np.full(len(model.triangles), 3)))
+            self.body.CreateFaceVertexIndicesAttr(_integers(model.triangles.ravel()))
             self.body.CreateSubdivisionSchemeAttr(UsdGeom.Tokens.none)
             self.body.CreateDoubleSidedAttr(True)
             self.springs = None
@@ -62,7 +62,7 @@ class StageWriter:
             self.body = UsdGeom.Points.Define(stage, "/World/Body")
             self.springs = UsdGeom.BasisCurves.Define(stage, "/World/Springs")
             self.springs.CreateTypeAttr(UsdGeom.Tokens.linear)
-            self.springs.CreateCurveVertexCountsAttr([2] * model.n_springs)
+            self.springs.CreateCurveVertexCountsAttr(_integers(np.full(model.n_springs, 2)))
         extent = np.ptp(model.positions, axis=0)
         size = PLANE_SIZE * max(float(np.linalg.norm(extent)), 1e-3)
         self.colliders = []  # (collider, its prim's translate op, where it is translated to)
@@ -112,6 +112,12 @@ def _vectors(array):
     from pxr import Vt
 
     return Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(array, dtype=np.float32))
+
+
+def _integers(array):
+    from pxr import Vt
+
+    return Vt.IntArray.FromNumpy(np.ascontiguousarray(array, dtype=np.int32))
 
 
 def _plane(stage, path, plane, size):
