@@ -623,6 +623,11 @@ def add_study_arguments(p):
                    "else $XDG_CACHE_HOME/massspring or ~/.cache/massspring)")
 
 
+# run_study's arguments -> the options of `massspring study` that give them
+STUDY_OPTIONS = {"integrators": "--integrators", "duration": "--duration", "rungs": "--rungs",
+                 "cg_tols": "--cg-tols", "preconditioners": "--preconditioners", "repeats": "--repeats"}
+
+
 def cmd_study(args):
     from pathlib import Path
 
@@ -633,17 +638,20 @@ def cmd_study(args):
     out = Path(args.out) if args.out else report.new_out_dir(scene.name)
     if out.exists() and not out.is_dir():
         raise UsageError(f"--out: {str(out)!r} exists and is not a directory")
-    tols = []
-    for text in filter(str.strip, args.cg_tols.split(",")):
-        try:
-            tols.append(validate.fraction("--cg-tols", _number(text)))
-        except ValueError as exc:
-            raise UsageError(f"--cg-tols: {exc}" if not str(exc).startswith("--") else str(exc)) from None
-    result = study.run_study(scene, integrators=[s.strip() for s in args.integrators.split(",") if s.strip()],
-                             duration=args.duration, rungs=args.rungs, cg_tols=tols,
-                             preconditioners=[s.strip() for s in args.preconditioners.split(",") if s.strip()],
-                             repeats=args.repeats,
-                             cache=args.cache_dir, progress=report.print_progress)
+    try:
+        tols = [_number(text) for text in filter(str.strip, args.cg_tols.split(","))]
+    except ValueError as exc:
+        raise UsageError(f"--cg-tols: {exc}") from None
+    try:
+        result = study.run_study(scene, integrators=[s.strip() for s in args.integrators.split(",") if s.strip()],
+                                 duration=args.duration, rungs=args.rungs, cg_tols=tols,
+                                 preconditioners=[s.strip() for s in args.preconditioners.split(",") if s.strip()],
+                                 repeats=args.repeats, cache=args.cache_dir, progress=report.print_progress)
+    except ValueError as exc:  # run_study checks its arguments first: name them as options
+        name, _, reason = str(exc).partition(": ")
+        if name in STUDY_OPTIONS:
+            raise UsageError(f"{STUDY_OPTIONS[name]}: {reason}") from None
+        raise
     print(report.report(result))
     written = report.write_outputs(result, out)
     try:

@@ -52,7 +52,6 @@ def test_bad_values_exit_2_before_the_run(args, word, tmp_path, capsys, monkeypa
 
 @pytest.mark.parametrize("args, message", [
     (["run", "cloth", "--cg-tol", "2"], "--cg-tol: must be < 1"),
-    (["study", "cloth", "--cg-tols", "1e-3,2"], "--cg-tols: must be < 1"),
     (["run", "cloth", "--set", "resolution=0"], "--set resolution: must be >= 2, got 0"),
     (["run", "cloth", "--set", "stiffness=-1"], "--set stiffness: must be >= 0, got -1"),
     (["run", "cube", "--set", "damping=-1"], "--set damping: must be >= 0, got -1"),

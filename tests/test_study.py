@@ -244,9 +244,13 @@ def test_cli_study(tmp_path, capsys):
     assert (out / "work_precision.png").read_bytes()[:4] == b"\x89PNG"
 
 
-@pytest.mark.parametrize("args, key", [(["--rungs", "0"], "rungs"), (["--cg-tols", "2"], "cg_tols"),
-                                       (["--integrators", "rk2"], "integrators"),
-                                       (["--duration", "-1"], "duration"), (["--cg-tols", "x"], "--cg-tols")])
+@pytest.mark.parametrize("args, key", [(["--rungs", "0"], "--rungs: expected an integer"),
+                                       (["--cg-tols", "2"], "--cg-tols: must be < 1"),
+                                       (["--integrators", "rk2"], "--integrators: unknown value 'rk2'"),
+                                       (["--duration", "-1"], "--duration: must be a finite number > 0"),
+                                       (["--repeats", "0"], "--repeats: expected an integer"),
+                                       (["--preconditioners", "amg"], "--preconditioners: unknown value 'amg'"),
+                                       (["--cg-tols", "x"], "--cg-tols: expected a number")])
 def test_cli_study_bad_input(args, key, tmp_path, capsys):
     assert main(["study", "spring", "--out", str(tmp_path / "o"), *args]) == 2
     err = capsys.readouterr().err.strip()
