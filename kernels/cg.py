@@ -3,8 +3,11 @@
 The solve runs on the unconstrained directions only (``constraints``): the iterate
 holds the prescribed velocity in the constrained directions (pins, contact normals),
 and every CG vector is filtered (zero there), so no penalty springs are needed. The
-tolerance is relative to ||S b||, or to the first residual when S b = 0 (only
-prescribed velocities drive the solve). The operator is applied spring by
+tolerance is relative to the first residual ||S (b - A v_n)|| of the warm start: the
+right-hand side of Eq. 15's velocity-change form, h S (f + h K v_n) without contacts,
+so a step is solved to the tolerance relative to the change it makes, however fast
+the cloth already moves; a residual at the round-off of b (``floor`` ||S b||) counts
+as solved. The operator is applied spring by
 spring (``operator.apply_row``); no matrix is formed.
 
 Each CG phase is a ``ti.func`` with its loops at its top level, reducing in fixed
@@ -39,7 +42,7 @@ from .blocks import BLOCK, block_count, block_end, ordered_sum
 from .divergence import OK, check_code, is_finite, state_sums
 from .constraints import constrain, is_free, is_pinned, prescribed
 from .contact import landing, project, total
-from .operator import apply_row, refresh
+from .operator import REFRESHED, apply_row, refresh
 
 CONVERGED, MAX_ITER, INDEFINITE, STALLED, NONFINITE = 0, 1, 2, 3, 4
 REASONS = ("converged", "max_iter", "indefinite", "stalled", "non-finite")
@@ -168,9 +171,11 @@ def cg_precondition(dev: ti.template(), cfg: ti.template()):
 
 
 @ti.kernel
-def cg_refresh(dev: ti.template(), cfg: ti.template(), dt: ti.f64, t: ti.f64):
-    """``operator.refresh`` at the current state (x, v_n) at time t (s): parallel loops."""
-    refresh(dev, cfg, dev.x, dev.v, ti.cast(dt, cfg.real), ti.cast(t, cfg.real))
+def cg_refresh(dev: ti.template(), cfg: ti.template(), x: ti.template(), dt: ti.f64, t: ti.f64,
+               mode: ti.template()):
+    """``operator.refresh`` at the state (``x``, ``dev.v``) at time t (s), in ``mode``
+    (``operator.LINEARISED``): parallel loops."""
+    refresh(dev, cfg, x, dev.v, ti.cast(dt, cfg.real), ti.cast(t, cfg.real), mode)
 
 
 @ti.kernel
@@ -199,21 +204,27 @@ def cg_direction(dev: ti.template(), cfg: ti.template(), beta: ti.f64):
 
 
 @ti.kernel
-def cg_solve(dev: ti.template(), cfg: ti.template(), dt: ti.f64, t: ti.f64, tol: ti.f64,
-             max_iter: ti.i32) -> ti.types.vector(3, ti.f64):
-    """``refresh`` at time t (s) and the whole PCG solve of A v = b from v = v_n in one
-    launch, serial loops.
+def cg_solve(dev: ti.template(), cfg: ti.template(), x: ti.template(), dt: ti.f64, t: ti.f64, tol: ti.f64,
+             floor: ti.f64, max_iter: ti.i32, mode: ti.template()) -> ti.types.vector(4, ti.f64):
+    """``refresh`` at (``x``, ``dev.v``) at time t (s) in ``mode`` (none if ``mode`` is
+    ``operator.REFRESHED``: a Newton iteration refreshed the operator itself) and the
+    whole PCG solve of A v = b from the iterate in ``dev.v`` (v_n) in one launch,
+    serial loops.
 
-    The loop of ``massspring.solvers.cg``, written with ``begin`` once (the first
-    residual and every restart share it: half the code to compile). Returns
-    (iterations, true relative residual, reason code; see ``REASONS``).
+    The loop of ``massspring.solvers.cg`` (``tol`` and ``floor`` as there), written
+    with ``begin`` once (the first residual and every restart share it: half the code
+    to compile). Returns
+    (iterations, true relative residual, reason code (see ``REASONS``), first residual).
     """
     iterations = 0
     reason = CONVERGED
     residual = 0.0
+    first = 0.0
+    goal = tol
     ti.loop_config(serialize=True)
     for _ in range(1):
-        refresh(dev, cfg, dev.x, dev.v, ti.cast(dt, cfg.real), ti.cast(t, cfg.real))
+        if ti.static(mode != REFRESHED):
+            refresh(dev, cfg, x, dev.v, ti.cast(dt, cfg.real), ti.cast(t, cfg.real), mode)
         bb = 0.0
         target = 0.0
         best = 1e308
@@ -224,11 +235,12 @@ def cg_solve(dev: ti.template(), cfg: ti.template(), dt: ti.f64, t: ti.f64, tol:
             rz = sums[0]
             rr = sums[1]
             if cycle < 0:
-                bb = sums[2]
-                if bb == 0.0:  # b vanishes on the free directions: prescribed velocities drive the solve
-                    bb = rr
-                target = tol * tol * bb
-                if not is_finite(bb):
+                bb = rr  # the tolerance is relative to the first residual
+                first = ti.sqrt(ti.max(bb, 0.0))
+                if bb > 0.0:
+                    goal = ti.max(tol, floor * ti.sqrt(ti.max(sums[2], 0.0) / bb))
+                target = goal * goal * bb
+                if not is_finite(bb) or not is_finite(sums[2]):  # b or the residual overflowed
                     reason = NONFINITE
                     residual = bb
                     done = True
@@ -236,7 +248,7 @@ def cg_solve(dev: ti.template(), cfg: ti.template(), dt: ti.f64, t: ti.f64, tol:
                     done = True
             else:
                 residual = ti.sqrt(ti.max(rr, 0.0) / bb)
-                done, reason, best = next_action(is_finite(residual), iterations, cycle, residual, tol, best,
+                done, reason, best = next_action(is_finite(residual), iterations, cycle, residual, goal, best,
                                                  reason, max_iter)
             if not done:
                 cycle = 0
@@ -253,27 +265,28 @@ def cg_solve(dev: ti.template(), cfg: ti.template(), dt: ti.f64, t: ti.f64, tol:
                     rr = s2[1]
                 if cycle == 0:  # nothing to restart from: decide on the residual at hand
                     residual = ti.sqrt(ti.max(rr, 0.0) / bb)
-                    done, reason, best = next_action(is_finite(residual), iterations, cycle, residual, tol,
+                    done, reason, best = next_action(is_finite(residual), iterations, cycle, residual, goal,
                                                      best, reason, max_iter)
-    return ti.Vector([iterations, residual, reason], ti.f64)
+    return ti.Vector([iterations, residual, reason, first], ti.f64)
 
 
 @ti.func
-def next_position(i, dev, cfg: ti.template(), h, t):
-    """x_n + dt v_{n+1} (seed Eq. 9) of particle i at the step's end time t; with colliders,
-    less the landing correction of a particle in contact (``contact.landing``), and moved
-    onto the surface of any collider it would end inside (``contact.project``)."""
-    x = dev.x[i] + h * dev.v[i]
+def next_position(i, dev, cfg: ti.template(), xb: ti.template(), h, dt, t):
+    """x^ + h v_{n+1} of particle i at the step's end time t (seed Eq. 9: x^ = x_n, h = dt;
+    BDF2: its base and 2 dt / 3); with colliders, less the landing correction of a
+    particle in contact (``contact.landing``, from x_n at t - dt), and moved onto the
+    surface of any collider it would end inside (``contact.project``)."""
+    x = xb[i] + h * dev.v[i]
     if ti.static(cfg.has_colliders):
         if not is_pinned(i, dev, cfg):
-            back = landing(i, dev, cfg, dev.x[i], t - h)
-            moved = project(dev, cfg, dev.x[i] + h * dev.v[i] - back, t, ti.static(total(cfg)))
+            back = landing(i, dev, cfg, dev.x[i], t - dt)
+            moved = project(dev, cfg, x - back, t, ti.static(total(cfg)))
             x = moved
     return x
 
 
 @ti.func
-def advance_sums(dev, cfg: ti.template(), h, t):
+def advance_sums(dev, cfg: ti.template(), xb: ti.template(), h, dt, t):
     """Summed ``state_sums`` of the candidate state (``next_position``, v), storing nothing."""
     n = dev.size[0]
     g = ti.Vector.zero(ti.f64, 3)
@@ -282,48 +295,54 @@ def advance_sums(dev, cfg: ti.template(), h, t):
     for blk in range(block_count(n)):
         acc = ti.Vector.zero(ti.f64, 3)
         for i in range(blk * BLOCK, block_end(blk, n)):
-            acc += state_sums(next_position(i, dev, cfg, h, t), dev.v[i], dev.mass[i], g, cfg.has_gravity)
+            acc += state_sums(next_position(i, dev, cfg, xb, h, dt, t), dev.v[i], dev.mass[i], g, cfg.has_gravity)
         dev.partial[blk] = acc
     return ordered_sum(dev.partial, block_count(n))
 
 
 @ti.func
-def commit(dev, cfg: ti.template(), h, t):
+def commit(dev, cfg: ti.template(), xb: ti.template(), h, dt, t, carry: ti.template()):
     """Check the candidate state (``next_position``, v); if it passes, store it (see
     ``advance_positions``). Returns (check code, kinetic energy) as a float64 2-vector."""
-    sums = advance_sums(dev, cfg, h, t)
+    sums = advance_sums(dev, cfg, xb, h, dt, t)
     code = check_code(sums, dev.check[None])
     for i in range(dev.size[0]):
         if code == OK:
-            dev.x[i] = next_position(i, dev, cfg, h, t)
+            x = next_position(i, dev, cfg, xb, h, dt, t)
+            if ti.static(carry):
+                dev.xo[i] = dev.x[i]
+                dev.vo[i] = dev.keep[i]
+            dev.x[i] = x
             dev.keep[i] = dev.v[i]
     return ti.Vector([code, sums[0]], ti.f64)
 
 
 @ti.kernel
-def advance_positions(dev: ti.template(), cfg: ti.template(), dt: ti.f64, t: ti.f64,
-                      serial: ti.template()) -> ti.types.vector(2, ti.f64):
-    """x_{n+1} = x_n + dt v_{n+1} (seed Eq. 9) at the step's end time t (s), committed only if
-    the new state passes the check.
+def advance_positions(dev: ti.template(), cfg: ti.template(), xb: ti.template(), h: ti.f64, dt: ti.f64,
+                      t: ti.f64, serial: ti.template(), carry: ti.template()) -> ti.types.vector(2, ti.f64):
+    """x_{n+1} = x^ + h v_{n+1} (seed Eq. 9: ``xb`` = ``dev.x``, h = dt) at the step's end
+    time t (s), committed only if the new state passes the check.
 
-    The first loops reduce ``divergence.state_sums`` of (x_n + dt v_{n+1}, v_{n+1})
-    without storing anything; if ``divergence.check_code`` accepts it, the last loop
-    stores x_{n+1} and copies v_{n+1} into ``dev.keep``, so ``keep`` always holds
-    the velocity of the last accepted state. If the check fails, x_n is untouched
-    and the caller restores v_n from ``keep``. ``serial`` serialises the loops.
-    Returns (check code, kinetic energy of the new state).
+    The first loops reduce ``divergence.state_sums`` of (x_{n+1}, v_{n+1}) without
+    storing anything; if ``divergence.check_code`` accepts it, the last loop stores
+    x_{n+1} and copies v_{n+1} into ``dev.keep``, so ``keep`` always holds the
+    velocity of the last accepted state (with ``carry``, the state it replaces goes
+    to ``dev.xo``, ``dev.vo``: BDF2's previous step). If the check fails, x_n is
+    untouched and the caller restores v_n from ``keep``. ``serial`` serialises the
+    loops. Returns (check code, kinetic energy of the new state).
     """
-    h = ti.cast(dt, cfg.real)
+    hh = ti.cast(h, cfg.real)
+    step = ti.cast(dt, cfg.real)
     end = ti.cast(t, cfg.real)
     out = ti.Vector.zero(ti.f64, 2)
     if ti.static(serial):
         ti.loop_config(serialize=True)
         for _ in range(1):
-            result = commit(dev, cfg, h, end)
+            result = commit(dev, cfg, xb, hh, step, end, carry)
             out[0] = result[0]
             out[1] = result[1]
     else:
-        result = commit(dev, cfg, h, end)
+        result = commit(dev, cfg, xb, hh, step, end, carry)
         out[0] = result[0]
         out[1] = result[1]
     return out

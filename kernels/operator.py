@@ -23,15 +23,16 @@ vec3 in kg m/s.
 
 import taichi as ti
 
-from .constraints import is_pinned
+from .constraints import constrain, is_pinned
 from .contact import detect, friction_diagonal, friction_impulse
 from .forces import particle_force, spring_direction, tiny_length
 
 
 @ti.func
-def spring_coefficients(dev, cfg: ti.template(), x, v, h):
+def spring_coefficients(dev, cfg: ti.template(), x, v, h, full: ti.template()):
     """Per spring: ``dev.spring_coef[s] = (n, a, b)`` and ``dev.fs[s]`` = its f - D v
-    on the first end. A spring of zero length gets n = 0, a = b = 0 and no force."""
+    on the first end (its whole force f with ``full``). A spring of zero length gets
+    n = 0, a = b = 0 and no force."""
     if ti.static(cfg.has_springs):
         for s in range(dev.size[1]):
             i = dev.ends[s][0]
@@ -45,7 +46,10 @@ def spring_coefficients(dev, cfg: ti.template(), x, v, h):
                     da, db = term.coefficients(s, dev, n, length, h, cfg.fix)
                     a += da
                     b += db
-                    t += term.rhs_tension(s, dev, i, j, x, v, n, length)
+                    if ti.static(full):
+                        t += term.tension(s, dev, i, j, x, v, n, length)
+                    else:
+                        t += term.rhs_tension(s, dev, i, j, x, v, n, length)
             dev.spring_coef[s] = ti.Vector([n[0], n[1], n[2], a, b], cfg.real)
             dev.fs[s] = t * n
 
@@ -81,40 +85,65 @@ def diagonal_block(i, dev, cfg: ti.template()):
     return block
 
 
+# refresh modes: Eq. 15; a Newton iteration; none (the caller refreshed)
+LINEARISED, NEWTON, REFRESHED = 0, 1, -1
+
+
 @ti.func
-def refresh_row(i, dev, cfg: ti.template(), x, v, h, t):
+def refresh_row(i, dev, cfg: ti.template(), x, v, h, t, mode: ti.template()):
     """Particle i's part of ``refresh`` (after ``spring_coefficients``): its contact
-    constraints at time t (``contact.detect``, with colliders), its entries of
-    ``coef``, ``diag``, the right-hand side b_i = m_i v_i + dt (f - D v)_i of Eq. 15
-    (0 at pinned particles), with a contact's friction (``contact.friction_diagonal``, ``friction_impulse``) in
-    both, and, for a preconditioner that needs it, its setup from A_ii."""
+    constraints at time t (``contact.detect``, with colliders; a ``NEWTON`` iteration
+    holds the contacts its step started with, ``kernels/newton.py``), its entries of
+    ``coef``, ``diag``, the right-hand side, with a contact's friction
+    (``contact.friction_diagonal``, ``friction_impulse``) in both, and, for a
+    preconditioner that needs it, its setup from A_ii.
+
+    The right-hand side (0 at pinned particles): b_i = m_i v_i + dt (f - D v)_i of
+    Eq. 15; in ``NEWTON`` mode, at the iterate v (positions ``x`` = x^ + h v,
+    ``dev.fs`` holding whole spring forces), b_i = (A v)_i - g_i with g the residual
+    of the implicit equations M (v - v^) = h f(x, v) + friction, stored filtered in
+    ``dev.res``: A v' = b is then Newton's linear system for the next iterate v'."""
     carrier = ti.Vector.zero(cfg.real, 3)
     if ti.static(cfg.has_springs):
         gather_coefficients(i, dev, cfg)
     dev.diag[i] = diagonal_scalar(i, dev, cfg, h)
     if ti.static(cfg.contact_filter):
-        found = detect(i, dev, cfg, x, v, h, t)
-        carrier = found
+        if ti.static(mode == NEWTON):
+            carrier = dev.carrier[i]
+        else:
+            found = detect(i, dev, cfg, x, v, h, t)
+            carrier = found
         dev.diag[i] += friction_diagonal(i, dev, cfg)
     if not is_pinned(i, dev, cfg):
-        f = particle_force(i, dev, cfg, x, v, True)
-        dev.b[i] = dev.mass[i] * v[i] + h * f
-        if ti.static(cfg.contact_filter):
-            dev.b[i] += friction_impulse(i, dev, cfg, carrier)
+        if ti.static(mode == NEWTON):
+            f = particle_force(i, dev, cfg, x, v, False)
+            g = dev.mass[i] * (v[i] - dev.vb[i]) - h * f
+            if ti.static(cfg.contact_filter):
+                g += friction_diagonal(i, dev, cfg) * v[i] - friction_impulse(i, dev, cfg, carrier)
+            dev.b[i] = apply_row(i, dev, cfg, v) - g
+            dev.res[i] = constrain(i, dev, cfg, g)
+        else:
+            f = particle_force(i, dev, cfg, x, v, True)
+            dev.b[i] = dev.mass[i] * v[i] + h * f
+            if ti.static(cfg.contact_filter):
+                dev.b[i] += friction_impulse(i, dev, cfg, carrier)
         if ti.static(cfg.needs_diagonal):
             block = diagonal_block(i, dev, cfg)
             cfg.precond.setup_row(i, dev, cfg, block)
     else:
         dev.b[i] = ti.Vector.zero(cfg.real, 3)
+        if ti.static(mode == NEWTON):
+            dev.res[i] = ti.Vector.zero(cfg.real, 3)
 
 
 @ti.func
-def refresh(dev, cfg: ti.template(), x, v, h, t):
+def refresh(dev, cfg: ti.template(), x, v, h, t, mode: ti.template()):
     """Operator coefficients, diagonal, right-hand side, contact constraints and pointwise
-    preconditioner for the state (x, v) at time t (s): two loops, over springs then particles."""
-    spring_coefficients(dev, cfg, x, v, h)
+    preconditioner for the state (x, v) at time t (s): two loops, over springs then
+    particles. ``mode``: see ``refresh_row``."""
+    spring_coefficients(dev, cfg, x, v, h, mode == NEWTON)
     for i in range(dev.size[0]):
-        refresh_row(i, dev, cfg, x, v, h, t)
+        refresh_row(i, dev, cfg, x, v, h, t, mode)
 
 
 @ti.func
@@ -136,7 +165,7 @@ def jacobian_refresh(dev: ti.template(), cfg: ti.template()):
     """Coefficients of one Jacobian alone at the state (dev.x, dev.v): with dt = 1 and a
     single spring term in ``cfg`` (springs or damping), each spring's S is -K_ii (Eq. 13)
     or -D_ii (Eq. 14); the diagonal d is set to 0 (no mass)."""
-    spring_coefficients(dev, cfg, dev.x, dev.v, ti.cast(1.0, cfg.real))
+    spring_coefficients(dev, cfg, dev.x, dev.v, ti.cast(1.0, cfg.real), False)
     for i in range(dev.size[0]):
         if ti.static(cfg.has_springs):
             gather_coefficients(i, dev, cfg)

@@ -79,6 +79,7 @@ def build_parser():
 
 def add_scene_arguments(p, integrators):
     from massspring.device import ARCHS
+    from massspring.integrators.newton import NEWTON_MAX_ITER, NEWTON_TOL
     from massspring.solvers import CHOICES, MULTIGRID_FROM
 
     p.add_argument("scene", help="a built-in scene name (see `massspring scenes`) or a TOML file")
@@ -87,15 +88,22 @@ def add_scene_arguments(p, integrators):
     p.add_argument("--precision", choices=("f64", "f32"), default="f64")
     p.add_argument("--arch", default="cpu", help=f"Taichi arch: {', '.join(ARCHS)} (default cpu); another "
                    "than the CPU is tried before the run and refused if this machine lacks it")
-    p.add_argument("--cg-tol", type=float, help="implicit: relative CG tolerance (default: the scene's [solver], "
-                   "else 1e-6)")
-    p.add_argument("--cg-max-iter", type=int, help="implicit: CG iteration limit per step "
+    p.add_argument("--cg-tol", type=float, help="implicit integrators: CG tolerance relative to the first "
+                   "residual of each solve (backward-euler, bdf2: the tightest) (default: the scene's "
+                   "[solver], else 1e-6)")
+    p.add_argument("--cg-max-iter", type=int, help="implicit integrators: CG iteration limit per solve "
                    "(default: the scene's [solver], else 3 x free particles, at least 100)")
+    p.add_argument("--newton-tol", type=float, help="backward-euler, bdf2: Newton stops when a full Newton "
+                   "step changes the velocities by at most this fraction of the step's velocity change "
+                   f"(default: the scene's [solver], else {NEWTON_TOL:g})")
+    p.add_argument("--newton-max-iter", type=int, help="backward-euler, bdf2: Newton iterations per step at "
+                   f"most (default: the scene's [solver], else {NEWTON_MAX_ITER})")
     p.add_argument("--preconditioner", choices=CHOICES,
-                   help="implicit: the CG's preconditioner (default: the scene's [solver], else auto: "
-                   f"multigrid from {MULTIGRID_FROM:,} free particles, block-jacobi below)")
+                   help="implicit integrators: the CG's preconditioner (default: the scene's [solver], else "
+                   f"auto: multigrid from {MULTIGRID_FROM:,} free particles, block-jacobi below)")
     p.add_argument("--no-definiteness-fix", action="store_true",
-                   help="implicit: use the stiffness of Eq. 13 as written (indefinite when springs are compressed)")
+                   help="implicit integrators: use the stiffness of Eq. 13 as written (indefinite when springs "
+                   "are compressed)")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                    help="override a scene model parameter, e.g. --set resolution=64, "
                    "--set gravity=[0,0,-1.62] or --set drag=0.005 (TOML values; repeatable)")
@@ -121,7 +129,13 @@ def make_simulation(args):
         if given:
             raise UsageError(f"{'/'.join(given)}: {integrator} solves no linear system; "
                              f"{'these options are' if len(given) > 1 else 'this option is'} for "
-                             + " and ".join(k for k, cls in INTEGRATORS.items() if cls.linear_solver))
+                             + ", ".join(k for k, cls in INTEGRATORS.items() if cls.linear_solver))
+    if not INTEGRATORS[integrator].newton:
+        given = [option for option, key in NEWTON_OPTIONS.items() if key in options]
+        if given:
+            raise UsageError(f"{'/'.join(given)}: {integrator} takes no Newton iterations; "
+                             f"{'these options are' if len(given) > 1 else 'this option is'} for "
+                             + ", ".join(k for k, cls in INTEGRATORS.items() if cls.newton))
     with progress.phase(f"{args.command} {scene.name}: building the model and the simulation",
                         show=not getattr(args, "quiet", False)):
         sim = scene.simulation(integrator=args.integrator, dt=args.dt, precision=args.precision, arch=args.arch,
@@ -132,6 +146,7 @@ def make_simulation(args):
 # The implicit solver's command-line options -> Simulation arguments.
 SOLVER_OPTIONS = {"--cg-tol": "cg_tol", "--cg-max-iter": "cg_max_iter", "--preconditioner": "preconditioner",
                   "--no-definiteness-fix": "definiteness_fix"}
+NEWTON_OPTIONS = {"--newton-tol": "newton_tol", "--newton-max-iter": "newton_max_iter"}
 
 
 def solver_options(args):
@@ -144,6 +159,10 @@ def solver_options(args):
             options["cg_tol"] = validate.fraction("--cg-tol", args.cg_tol)
         if args.cg_max_iter is not None:
             options["cg_max_iter"] = validate.count("--cg-max-iter", args.cg_max_iter)
+        if args.newton_tol is not None:
+            options["newton_tol"] = validate.fraction("--newton-tol", args.newton_tol)
+        if args.newton_max_iter is not None:
+            options["newton_max_iter"] = validate.count("--newton-max-iter", args.newton_max_iter)
     except ValueError as exc:
         raise UsageError(str(exc)) from None
     if args.preconditioner is not None:
@@ -193,9 +212,12 @@ def cmd_info(args):
     print("dt defaults " + ", ".join(f"{k} {format_seconds(scene.default_dt(k))}"
                                      + ("" if k in scene.dt else " (from the stability estimate)")
                                      for k in _integrator_names()))
-    if sim.integrator == "implicit":
+    if info["preconditioner"] is not None:
         levels = info.get("levels")
         hierarchy = f" ({len(levels)} levels: {', '.join(f'{n:,}' for n in levels)} unknowns)" if levels else ""
+        if info["newton"]:
+            print(f"newton      until a step changes v by {sim.newton_tol:g} of the step's change, at most "
+                  f"{sim.newton_max_iter} iterations, each a CG solve")
         print(f"solver      CG to {sim.cg_tol:g} (at most {sim.cg_max_iter:,} iterations), preconditioner "
               f"{sim.preconditioner}{hierarchy}, definiteness fix {'on' if sim.definiteness_fix else 'off'}")
     print(f"terms       {', '.join(info['terms'])}")
@@ -330,8 +352,9 @@ def write_outputs(args, scene, sim, end_step, pictures):
 def divergence_hint(sim, exc):
     """What to try after a divergence, from the integrator and the stability estimate."""
     from massspring.analysis.stability import predict
+    from massspring.integrators import INTEGRATORS
 
-    if sim.integrator == "implicit":
+    if INTEGRATORS[sim.integrator].linear_solver:
         tips = ["a smaller --dt"]
         if not sim.definiteness_fix:
             tips.insert(0, "dropping --no-definiteness-fix")
@@ -340,7 +363,6 @@ def divergence_hint(sim, exc):
         prediction = predict(sim.model, sim.model.positions)
     except (ValueError, ArithmeticError):
         return "try a smaller --dt or --integrator implicit"
-    from massspring.integrators import INTEGRATORS
 
     suggested = INTEGRATORS[sim.integrator].suggest_dt(prediction)
     if sim.integrator == "explicit" and not prediction.explicit_stable_dt > 0:
@@ -577,10 +599,15 @@ def print_summary(scene, sim, wall, energy0, out, start_steps=0):
               f"{start_steps * sim.dt:g} to {sim.time:g} s) in {wall:.2f} s wall, {rate:.1f} steps/s")
     else:
         print(f"steps       {sim.steps} ({sim.time:g} s simulated) in {wall:.2f} s wall, {rate:.1f} steps/s")
-    if sim.integrator == "implicit" and sim.cg_iterations:
+    if sim.newton_iterations:
+        newton = np.array(sim.newton_iterations)
+        print(f"Newton      {newton.mean():.2f} iterations/step mean, {newton.max()} max, {sim.line_search_cuts} "
+              f"line-search cut(s), {sim.cg_failures} step(s) not converged (tol {sim.newton_tol:g})")
+    if sim.cg_iterations:
         its = np.array(sim.cg_iterations)
-        print(f"CG          {its.mean():.1f} iterations/step mean, {its.max()} max, "
-              f"{sim.cg_failures} step(s) not converged (tol {sim.cg_tol:g}, {sim.preconditioner})")
+        failed = "" if sim.newton_iterations else f", {sim.cg_failures} step(s) not converged"
+        print(f"CG          {its.mean():.1f} iterations/step mean, {its.max()} max{failed} (tol {sim.cg_tol:g}, "
+              f"{sim.preconditioner})")
         if sim.cg_failures and sim.precision == "f32":
             print("note        f32 CG stalls where round-off stops the residual, 1e-5 to 1e-4 relative "
                   "on a cloth at rest: use --cg-tol 1e-3 or --precision f64")
@@ -615,6 +642,8 @@ def add_study_arguments(p):
     p.add_argument("--integrators", default="explicit,symplectic,implicit", help="comma-separated list")
     p.add_argument("--rungs", type=int, default=7, help="dt values per line, a factor of 2 apart (default 7)")
     p.add_argument("--cg-tols", default="1e-2,1e-4,1e-6", help="implicit: comma-separated CG tolerances")
+    p.add_argument("--newton-tols", default="1e-3,1e-6", help="backward-euler, bdf2: comma-separated Newton "
+                   "tolerances")
     p.add_argument("--preconditioners", default="auto",
                    help="implicit: comma-separated preconditioners, a line each (auto, block-jacobi, multigrid, "
                    "none; default auto)")
@@ -625,7 +654,8 @@ def add_study_arguments(p):
 
 # run_study's arguments -> the options of `massspring study` that give them
 STUDY_OPTIONS = {"integrators": "--integrators", "duration": "--duration", "rungs": "--rungs",
-                 "cg_tols": "--cg-tols", "preconditioners": "--preconditioners", "repeats": "--repeats"}
+                 "cg_tols": "--cg-tols", "newton_tols": "--newton-tols", "preconditioners": "--preconditioners",
+                 "repeats": "--repeats"}
 
 
 def cmd_study(args):
@@ -638,13 +668,15 @@ def cmd_study(args):
     out = Path(args.out) if args.out else report.new_out_dir(scene.name)
     if out.exists() and not out.is_dir():
         raise UsageError(f"--out: {str(out)!r} exists and is not a directory")
-    try:
-        tols = [_number(text) for text in filter(str.strip, args.cg_tols.split(","))]
-    except ValueError as exc:
-        raise UsageError(f"--cg-tols: {exc}") from None
+    tols = {}
+    for key in ("cg_tols", "newton_tols"):
+        try:
+            tols[key] = [_number(text) for text in filter(str.strip, getattr(args, key).split(","))]
+        except ValueError as exc:
+            raise UsageError(f"--{key.replace('_', '-')}: {exc}") from None
     try:
         result = study.run_study(scene, integrators=[s.strip() for s in args.integrators.split(",") if s.strip()],
-                                 duration=args.duration, rungs=args.rungs, cg_tols=tols,
+                                 duration=args.duration, rungs=args.rungs, **tols,
                                  preconditioners=[s.strip() for s in args.preconditioners.split(",") if s.strip()],
                                  repeats=args.repeats, cache=args.cache_dir, progress=report.print_progress)
     except ValueError as exc:  # run_study checks its arguments first: name them as options

@@ -35,13 +35,16 @@ class MemoryNeedError(ValueError):
     """A run would not fit in the memory this process may use."""
 
 
-def run_bytes(particles, springs, solver=None, model_built=False) -> float:
+def run_bytes(particles, springs, solver=None, model_built=False, extra=0) -> float:
     """Bytes a run of ``particles`` and ``springs`` may add at its peak, margin included.
 
     ``solver``: None for an integrator without a linear solve, else the preconditioner
     it resolves to ("none", "block-jacobi", "multigrid"). ``model_built``: the Model's
-    own arrays exist already (then building them is not counted again)."""
+    own arrays exist already (then building them is not counted again). ``extra``:
+    bytes per particle the integrator adds to the linearised step's (its
+    ``extra_bytes``: the Newton-solved ones' work vectors)."""
     per_particle, per_spring = RUN_BYTES[solver]
+    per_particle += extra
     if model_built:
         per_particle, per_spring = per_particle - BUILD_BYTES[0], per_spring - BUILD_BYTES[1]
     return MARGIN * (per_particle * particles + per_spring * springs) + FIXED

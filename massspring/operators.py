@@ -122,7 +122,7 @@ class SystemOperator:
         self._dtype = np.float32 if precision == "f32" else np.float64
         for field, values in ((self._dev.x, x), (self._dev.v, v)):
             field.from_numpy(_padded(values, field.shape[0]).astype(self._dtype))
-        cg.cg_refresh(self._dev, self._cfg, self.dt, 0.0)
+        cg.cg_refresh(self._dev, self._cfg, self._dev.x, self.dt, 0.0, operator.LINEARISED)
         self._preconditioner = PRECONDITIONERS[preconditioner](self._dev, model, settings)
         self._preconditioner.bind(self._cfg)
         self._preconditioner.setup(self.dt)

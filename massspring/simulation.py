@@ -12,6 +12,7 @@ from massspring.colliders import COLLIDERS
 from massspring.device import ARCHS, CPU_ARCHS, POOL, ensure_taichi, model_layout
 from massspring.errors import DivergenceError, SimulationClosedError
 from massspring.integrators import INTEGRATORS
+from massspring.integrators.newton import NEWTON_MAX_ITER, NEWTON_TOL
 from massspring.kernels import divergence
 from massspring.kernels.terms import active_terms
 from massspring.model import Model, real_array
@@ -41,6 +42,8 @@ class Settings:
     preconditioner: str
     arch: str
     loops: str
+    newton_tol: float
+    newton_max_iter: int
 
 
 def _check_carried(carried, names, n):
@@ -100,13 +103,24 @@ class Simulation:
     Parameters
     ----------
     model : Model
-    integrator : "explicit" | "symplectic" | "implicit" | "rk4" (``integrators.INTEGRATORS``)
+    integrator : "explicit" | "symplectic" | "implicit" | "backward-euler" | "bdf2" | "rk4"
+        (``integrators.INTEGRATORS``)
     dt : float, s, > 0
     precision : "f64" (default) | "f32"
     cg_tol : float in (0, 1)
-        Implicit only: relative tolerance on the true residual ||b - A v|| / ||b||.
+        Implicit integrators: CG's relative tolerance on the true residual
+        ||b - A v|| / ||b - A v_n||, relative to the first residual of its warm start
+        (for "implicit", the right-hand side of Eq. 15's velocity-change form), so
+        that a step is solved relative to the change it makes. For "backward-euler"
+        and "bdf2" it is the tightest tolerance of a Newton iteration's solve.
     cg_max_iter : int or None
-        Implicit only: iteration limit per step; None means ``default_cg_max_iter``.
+        Implicit integrators: iteration limit per solve; None means ``default_cg_max_iter``.
+    newton_tol : float in (0, 1)
+        "backward-euler", "bdf2": Newton stops when a full Newton step changes the
+        velocities by at most newton_tol times the step's own velocity change (in the
+        kinetic-energy norm; see ``integrators/newton.py``).
+    newton_max_iter : int
+        "backward-euler", "bdf2": Newton iterations (linear solves) per step at most.
     definiteness_fix : bool
         Implicit only: clamp the transverse stiffness of compressed springs so that
         the system stays positive definite (see kernels/terms/springs.py).
@@ -133,7 +147,7 @@ class Simulation:
 
     def __init__(self, model, integrator="implicit", dt=1e-2, precision="f64", cg_tol=1e-6,
                  cg_max_iter=None, definiteness_fix=True, preconditioner="auto", arch="cpu",
-                 loops="auto"):
+                 loops="auto", newton_tol=NEWTON_TOL, newton_max_iter=NEWTON_MAX_ITER):
         if not isinstance(model, Model):
             raise ValueError(f"model: expected a massspring.Model, got {type(model).__name__}")
         validate.choice("integrator", integrator, tuple(INTEGRATORS))
@@ -141,6 +155,8 @@ class Simulation:
         dt = validate.positive_float("dt", dt)
         cg_tol = validate.fraction("cg_tol", cg_tol)
         cg_max_iter = default_cg_max_iter(model) if cg_max_iter is None else validate.count("cg_max_iter", cg_max_iter)
+        newton_tol = validate.fraction("newton_tol", newton_tol)
+        newton_max_iter = validate.count("newton_max_iter", newton_max_iter)
         validate.choice("preconditioner", preconditioner, CHOICES)
         validate.choice("loops", loops, LOOPS)
         validate.choice("arch", arch, ARCHS)
@@ -152,15 +168,17 @@ class Simulation:
         preconditioner = resolve(preconditioner, model)
         self._model = model
         self._settings = Settings(integrator, dt, precision, cg_tol, cg_max_iter, bool(definiteness_fix),
-                                  preconditioner, arch, loops)
+                                  preconditioner, arch, loops, newton_tol, newton_max_iter)
         self._check = divergence_check(model)
         self._steps = 0
         self._cg_iterations = []
+        self._newton_iterations = []
+        self._cuts = 0
         self._cg_failures = 0
 
         cls = INTEGRATORS[integrator]
         memory.check(memory.run_bytes(model.n_particles, model.n_springs, preconditioner if cls.linear_solver else None,
-                                      model_built=True),
+                                      model_built=True, extra=cls.extra_bytes),
                      f"model: {model.n_particles:,} particles and {model.n_springs:,} springs; a run of it ({integrator})")
         layout = model_layout(model, precision)
         cls.declare(layout, model, self._settings)
@@ -187,6 +205,8 @@ class Simulation:
     cg_tol = property(lambda self: self._settings.cg_tol, doc="Implicit: relative CG tolerance.")
     cg_max_iter = property(lambda self: self._settings.cg_max_iter, doc="Implicit: CG iteration limit per step.")
     definiteness_fix = property(lambda self: self._settings.definiteness_fix, doc="Implicit: definiteness fix.")
+    newton_tol = property(lambda self: self._settings.newton_tol, doc="Newton-solved: relative Newton tolerance.")
+    newton_max_iter = property(lambda self: self._settings.newton_max_iter, doc="Newton-solved: iterations per step.")
     preconditioner = property(lambda self: self._settings.preconditioner, doc="Implicit: preconditioner name.")
     arch = property(lambda self: self._settings.arch, doc="Taichi arch.")
     loops = property(lambda self: self._settings.loops, doc='"serial" or "parallel" (resolved from "auto").')
@@ -236,13 +256,23 @@ class Simulation:
 
     @property
     def cg_iterations(self) -> list:
-        """CG iterations of every implicit step so far (a copy)."""
+        """CG iterations of every implicit step so far (all its Newton iterations' together; a copy)."""
         return list(self._cg_iterations)
 
     @property
     def cg_failures(self) -> int:
-        """Implicit steps whose CG solve did not converge."""
+        """Implicit steps that missed their tolerance (CG's; Newton's for a Newton-solved integrator)."""
         return self._cg_failures
+
+    @property
+    def newton_iterations(self) -> list:
+        """Newton iterations (linear solves) of every step so far (Newton-solved integrators; a copy)."""
+        return list(self._newton_iterations)
+
+    @property
+    def line_search_cuts(self) -> int:
+        """Line-search halvings of all steps so far (Newton-solved integrators)."""
+        return self._cuts
 
     def carried_state(self) -> dict:
         """What the integrator carries from one step to the next besides positions and
@@ -317,6 +347,9 @@ class Simulation:
                 self._steps += 1
                 self._cg_iterations.append(stats.iterations)
                 self._cg_failures += not stats.converged
+                if stats.newton_iterations is not None:
+                    self._newton_iterations.append(stats.newton_iterations)
+                    self._cuts += stats.cuts
             self._raise_if_diverged(code, kinetic)
         return self
 
@@ -349,9 +382,9 @@ class Simulation:
         out = {"integrator": self.integrator, "precision": self.precision, "dt": self.dt,
                "particles": self._model.n_particles, "springs": self._model.n_springs,
                "terms": terms, "arrays": list(self._layout_names), "loops": self.loops,
-               "preconditioner": self.preconditioner if self.integrator == "implicit" else None,
-               "bytes": self._bytes}
-        if self.integrator == "implicit":
+               "preconditioner": self.preconditioner if integrator.linear_solver else None,
+               "newton": integrator.newton, "bytes": self._bytes}
+        if integrator.linear_solver:
             extra = integrator.preconditioner.describe()
             out["bytes"] += extra.pop("bytes")
             out.update(extra)

@@ -17,7 +17,7 @@ import massspring as ms
 from conftest import PATHS, dense_matrices, simulation
 from massspring.scene import generators
 
-INTEGRATORS = ("explicit", "symplectic", "implicit", "rk4")
+INTEGRATORS = ("explicit", "symplectic", "implicit", "backward-euler", "bdf2", "rk4")
 G = 9.81
 EPS = np.finfo(float).eps
 NO_SPRINGS = np.zeros((0, 2), dtype=int)
@@ -164,7 +164,7 @@ def cloth(resolution=8, height=0.5, colliders=(), size=1.0, **kw):
     return ms.Model(**args, colliders=list(colliders), drag=0.05)
 
 
-DT = {"explicit": 5e-4, "symplectic": 5e-4, "rk4": 5e-4, "implicit": 1e-2}
+DT = {"explicit": 5e-4, "symplectic": 5e-4, "rk4": 5e-4, "implicit": 1e-2, "backward-euler": 1e-2, "bdf2": 1e-2}
 
 
 @pytest.mark.parametrize("integrator", INTEGRATORS)

@@ -292,12 +292,13 @@ def test_cycle_is_symmetric_and_positive_definite(resolution):
     ("chain", {"count": 600}), ("drape", {"resolution": 24}), ("flag", {"resolution": 24}),
 ])
 def test_multigrid_solves_eq15_as_block_jacobi_does(scene_name, params):
-    """Same steps, tolerance 1e-10: the two preconditioners give the same velocities to
-    what the tolerance allows (cond(A) x 1e-10 relative, cond < 1e6 here)."""
+    """Same steps, tolerance 1e-12: the two preconditioners give the same velocities to
+    what the tolerance allows (cond(A) x 1e-12 relative to the first residual, which the
+    stiff compressed cloth's h^2 K v_n makes up to 11 ||b|| in these steps; cond < 1e6 here)."""
     scene = ms.load_scene(scene_name).with_params(**params)
     out = []
     for preconditioner in ("multigrid", "block-jacobi"):
-        sim = scene.simulation(integrator="implicit", preconditioner=preconditioner, cg_tol=1e-10)
+        sim = scene.simulation(integrator="implicit", preconditioner=preconditioner, cg_tol=1e-12)
         sim.step(5)
         assert sim.cg_failures == 0, (preconditioner, sim.solver_stats)
         out.append((sim.positions, sim.velocities, sim.cg_iterations))

@@ -177,14 +177,17 @@ EXTREME = {  # scene -> test-size overrides
 LINEARISATION_GAIN = pytest.mark.xfail(strict=True, reason=(
     "known limitation: the seed's linearised implicit step (one Newton step of backward Euler) "
     "stretches the springs of the stiff chain as it swings down, adding up to ~5x (count 10) / "
-    "~40x (count 20) the energy gravity supplied in the first 0.3 s, dissipated later"))
+    "~40x (count 20) the energy gravity supplied in the first 0.3 s, dissipated later; "
+    "backward-euler (solved by Newton) passes"))
 
 
-@pytest.mark.parametrize("name", [pytest.param(n, marks=LINEARISATION_GAIN) if n == "stiffchain" else n
-                                  for n in sorted(EXTREME)])
-def test_extreme_scene_implicit_bounded(name):
+@pytest.mark.parametrize("integrator", ["implicit", "backward-euler"])
+@pytest.mark.parametrize("name", sorted(EXTREME))
+def test_extreme_scene_implicit_bounded(name, integrator, request):
+    if (name, integrator) == ("stiffchain", "implicit"):
+        request.applymarker(LINEARISATION_GAIN)
     scene = load_scene(name).with_params(**EXTREME[name])
-    sim = scene.simulation("implicit")
+    sim = scene.simulation(integrator)
     model = sim.model
     gravity0 = float(np.sum(model.masses * (model.positions @ model.gravity)))
     e0 = model.energy(model.positions, model.velocities)
@@ -195,7 +198,10 @@ def test_extreme_scene_implicit_bounded(name):
         work = float(np.sum(model.masses * (x @ model.gravity))) - gravity0
         e = model.energy(x, v)
         assert e["kinetic"] + e["spring"] <= (e0["kinetic"] + e0["spring"] + work) * (1 + 1e-9) + 1e-12
-    assert sim.cg_failures == 0
+    # Newton from the crushed starts of compressed and crumpled converges linearly (ratio ~0.9: the
+    # definiteness fix holds nearly every spring's stiffness), so their first step or two reach
+    # newton_max_iter; every other step converges
+    assert sim.cg_failures <= (2 if integrator == "backward-euler" and name in ("compressed", "crumpled") else 0)
 
 
 @pytest.mark.parametrize("name", sorted(set(EXTREME) - {"zerolength"}))
@@ -254,3 +260,15 @@ def test_cli_stability_writes_table(tmp_path, capsys):
 def test_cli_stability_rejects_bad_options(capsys):
     assert main(["stability", "spring", "--max-steps", "0"]) == 2
     assert "--max-steps" in capsys.readouterr().err
+
+
+def test_ladder_has_every_integrator_that_declares_one():
+    """The ladder comes from the integrators' own ``ladder`` attributes: the Newton-solved ones
+    are in it (with the fix only), the linearised step with and without the fix, symplectic first."""
+    from massspring.integrators import INTEGRATORS
+
+    names = [row[0] for row in stability.LADDER]
+    assert names[0] == "symplectic"
+    assert {name for name, cls in INTEGRATORS.items() if cls.ladder} == set(names) >= {"backward-euler", "bdf2"}
+    assert [row[1] for row in stability.LADDER if row[0] == "implicit"] == [True, False]
+    assert [row[1] for row in stability.LADDER if row[0] == "bdf2"] == [True]

@@ -296,3 +296,18 @@ def test_rk4_cache_tells_air_pins_and_colliders_apart(tmp_path):
                        damping=spring.damping, rest_lengths=spring.rest_lengths, gravity=spring.gravity,
                        fixed=spring.fixed, drag=0.1)
     assert reference.exact_spring(dragged, [0.1]) is None
+
+
+def test_newton_integrators_get_a_line_per_newton_tolerance(tmp_path):
+    """backward-euler and bdf2 run at each of newton_tols (not cg_tols), recorded per run and
+    in the lines' names; bdf2's error falls about 4x per halving of dt, backward Euler's 2x."""
+    ladders = {"backward-euler": [2e-3, 1e-3, 5e-4], "bdf2": [2e-3, 1e-3, 5e-4]}
+    s = study.run_study(tiny_chain(), duration=0.04, integrators=["backward-euler", "bdf2"], ladders=ladders,
+                        cg_tols=[1e-8], newton_tols=[1e-10, 1e-2], repeats=1, cache=tmp_path)
+    assert len(s.runs) == 12 and all(r.cg_tol is None for r in s.runs)
+    assert {r.newton_tol for r in s.runs} == {1e-10, 1e-2}
+    assert "bdf2 (block-jacobi) newton_tol=1e-10" in s.orders
+    assert all(row["newton_tol"] in (1e-10, 1e-2) for row in (r.row() for r in s.runs))
+    assert s.orders["backward-euler (block-jacobi) newton_tol=1e-10"]["order"] == pytest.approx(1.0, abs=0.15)
+    assert s.orders["bdf2 (block-jacobi) newton_tol=1e-10"]["order"] == pytest.approx(2.0, abs=0.25)
+    assert "1e-10" in report.table(s) and "newton_tol=1e-10" in report.progress_line(s.runs[0])

@@ -17,6 +17,12 @@ Two kinds:
 * ``ParticleTerm``: a force on each particle on its own (``force``, N), its share
   of f - D v (``rhs``), and of the diagonal of A (``diagonal``, a multiple of I).
 
+For the line search of the Newton-solved integrators (``kernels/newton.py``) each
+term also gives its change of potential energy (``potential_change``, J: a
+conservative force is minus its gradient) or of Rayleigh dissipation
+(``dissipation_change``, W: a damping force is minus its gradient in the
+velocities); the defaults are 0 (a term with neither adds nothing there).
+
 Data: ``arrays(model)`` maps array names to ``(per, values)``, ``per`` one of
 "spring" (one value per spring), "particle" (per particle), "vector" (one 3-vector
 for the scene) or "scalar". The device bundle holds them in the run's precision

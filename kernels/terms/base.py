@@ -17,6 +17,16 @@ class SpringTerm:
     def coefficients(s, dev, n, length, h, fix: ti.template()):
         return 0, 0
 
+    @staticmethod
+    @ti.func
+    def potential_change(s, dev, old_length, new_length, change):
+        return 0
+
+    @staticmethod
+    @ti.func
+    def dissipation_change(s, dev, n, old_rate, new_rate):
+        return 0
+
 
 class ParticleTerm:
     kind = "particle"
@@ -25,4 +35,14 @@ class ParticleTerm:
     @staticmethod
     @ti.func
     def diagonal(i, dev, h):
+        return 0
+
+    @staticmethod
+    @ti.func
+    def potential_change(i, dev, dx):
+        return 0
+
+    @staticmethod
+    @ti.func
+    def dissipation_change(i, dev, old_v, new_v):
         return 0

@@ -32,3 +32,12 @@ class SpringDamping(SpringTerm):
     @ti.func
     def coefficients(s, dev, n, length, h, fix: ti.template()):
         return 0, h * dev.kd[s]
+
+    @staticmethod
+    @ti.func
+    def dissipation_change(s, dev, n, old_rate, new_rate):
+        """Change of the Rayleigh dissipation kd/2 (n . (v_j - v_i))^2 (W) between the end
+        velocity differences ``old_rate`` and ``new_rate``, n held fixed."""
+        a = n.dot(old_rate)
+        b = n.dot(new_rate)
+        return 0.5 * dev.kd[s] * (b - a) * (b + a)

@@ -38,3 +38,9 @@ class Drag(ParticleTerm):
     @ti.func
     def diagonal(i, dev, h):
         return h * dev.drag[None]
+
+    @staticmethod
+    @ti.func
+    def dissipation_change(i, dev, old_v, new_v):
+        """Change of the dissipation drag/2 |v - wind|^2 (W) from ``old_v`` to ``new_v``."""
+        return 0.5 * dev.drag[None] * (new_v - old_v).dot(new_v + old_v - 2 * dev.wind[None])

@@ -27,3 +27,9 @@ class Gravity(ParticleTerm):
     @ti.func
     def rhs(i, dev, x, v):
         return dev.mass[i] * dev.gravity[None]
+
+    @staticmethod
+    @ti.func
+    def potential_change(i, dev, dx):
+        """-m g . dx (J) for a displacement dx (m)."""
+        return -dev.mass[i] * dev.gravity[None].dot(dx)

@@ -42,3 +42,9 @@ class Springs(SpringTerm):
             c = ti.min(c, 0)
         k = h * h * dev.ks[s]
         return -k * c, k * (1 + c)
+
+    @staticmethod
+    @ti.func
+    def potential_change(s, dev, old_length, new_length, change):
+        """ks/2 ((l' - l0)^2 - (l - l0)^2) (J), from the length change l' - l given separately."""
+        return 0.5 * dev.ks[s] * change * (new_length + old_length - 2 * dev.l0[s])

@@ -8,7 +8,7 @@ TARGETS = (1e-2, 1e-3, 1e-4)
 
 
 def fit_orders(runs, finest=3) -> dict:
-    """{line: {"integrator", "cg_tol", "preconditioner", "order", "order_finest", "points"}}.
+    """{line: {"integrator", "cg_tol", "newton_tol", "preconditioner", "order", "order_finest", "points"}}.
 
     ``order``: least-squares slope of log(error) against log(dt) over the line's
     non-diverged runs with a positive error (None with fewer than 2 dt values);
@@ -23,6 +23,7 @@ def fit_orders(runs, finest=3) -> dict:
         good = sorted((r for r in members if not r.diverged and r.error is not None and r.error > 0),
                       key=lambda r: r.dt)
         out[line] = {"integrator": members[0].integrator, "cg_tol": members[0].cg_tol,
+                     "newton_tol": members[0].newton_tol,
                      "preconditioner": members[0].preconditioner,
                      "order": slope(good), "order_finest": slope(good[:finest]), "points": len(good)}
     return out
@@ -35,12 +36,13 @@ def slope(runs):
 
 
 def integrator_orders(orders) -> dict:
-    """One order per integrator: for the implicit one, the line with the tightest CG tolerance."""
+    """One order per integrator: for the implicit ones, the line with the tightest tolerance."""
     out = {}
     for entry in orders.values():
         name = entry["integrator"]
         best = out.get(name)
-        if best is None or (entry["cg_tol"] is not None and entry["cg_tol"] < best["cg_tol"]):
+        tol = entry.get("newton_tol") or entry["cg_tol"]
+        if best is None or (tol is not None and tol < (best.get("newton_tol") or best["cg_tol"])):
             out[name] = entry
     return {name: entry["order"] for name, entry in out.items()}
 
@@ -52,5 +54,6 @@ def cheapest(runs, target) -> dict | None:
     if not good:
         return None
     best = min(good, key=lambda r: r.wall_s)
-    return {"integrator": best.integrator, "dt": best.dt, "cg_tol": best.cg_tol, "preconditioner": best.preconditioner,
+    return {"integrator": best.integrator, "dt": best.dt, "cg_tol": best.cg_tol, "newton_tol": best.newton_tol,
+            "preconditioner": best.preconditioner,
             "error": best.error, "wall_s": best.wall_s}

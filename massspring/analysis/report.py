@@ -10,6 +10,7 @@ from pathlib import Path
 
 from massspring.analysis.fits import TARGETS, cheapest
 from massspring.analysis.study import COLUMNS
+from massspring.integrators import INTEGRATORS
 from massspring.io.files import atomic_output
 
 
@@ -25,9 +26,10 @@ def _fmt(value, spec=".3g"):
 
 def table(study) -> str:
     """The runs as a fixed-width text table."""
-    head = ("integrator", "precond", "cg_tol", "dt", "steps", "error", "err(t)", "energy", "wall_s", "CG its",
+    head = ("integrator", "precond", "tol", "dt", "steps", "error", "err(t)", "energy", "wall_s", "CG its",
             "status")
-    rows = [(r.integrator, _fmt(r.preconditioner), _fmt(r.cg_tol, ".0e"), _fmt(r.dt, ".4g"), str(r.steps), _fmt(r.error),
+    rows = [(r.integrator, _fmt(r.preconditioner), _fmt(r.cg_tol if r.newton_tol is None else r.newton_tol, ".0e"),
+             _fmt(r.dt, ".4g"), str(r.steps), _fmt(r.error),
              _fmt(r.error_over_time), _fmt(r.energy_error), _fmt(r.wall_s, ".4g"),
              str(r.cg_iterations), r.status) for r in study.runs]
     widths = [max(len(h), *(len(row[i]) for row in rows)) if rows else len(h) for i, h in enumerate(head)]
@@ -51,6 +53,8 @@ def report(study) -> str:
             out.append(f"error <= {target:g}: no run reached it")
         else:
             tol = "" if best["cg_tol"] is None else f" ({best['preconditioner']}), cg_tol {best['cg_tol']:g}"
+            if best["newton_tol"] is not None:
+                tol = f" ({best['preconditioner']}), newton_tol {best['newton_tol']:g}"
             out.append(f"error <= {target:g}: cheapest {best['integrator']} dt {best['dt']:.4g} s{tol} "
                        f"(error {best['error']:.3g}, {best['wall_s']:.3g} s)")
     return "\n".join(out)
@@ -91,7 +95,7 @@ def plot(study, path, title=None):
     for run in study.runs:
         if not run.diverged and run.error and run.wall_s:
             lines.setdefault(run.line, []).append(run)
-    markers = {"explicit": "o", "symplectic": "s", "implicit": "^", "rk4": "D"}
+    markers = dict(zip(INTEGRATORS, "os^vPD*X"))
     for line, members in lines.items():
         members.sort(key=lambda r: r.dt)
         ax.plot([r.wall_s for r in members], [r.error for r in members],
@@ -129,8 +133,8 @@ def new_out_dir(scene_name, base=".") -> Path:
 
 
 def progress_line(run) -> str:
-    what = f"{run.integrator:10s} dt {run.dt:<10.4g}" + ("" if run.cg_tol is None else
-                                                         f" {run.preconditioner} cg_tol {run.cg_tol:g}")
+    what = f"{run.integrator:10s} dt {run.dt:<10.4g}" + ("" if run.line == run.integrator else
+                                                         run.line[len(run.integrator):])
     done = run.status if run.diverged else f"{run.steps} steps in {run.wall_s:.3g} s"
     return f"  {what}: {done}"
 

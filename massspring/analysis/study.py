@@ -44,6 +44,7 @@ from massspring.integrators import INTEGRATORS
 from massspring.simulation import Simulation
 
 DEFAULT_CG_TOLS = (1e-2, 1e-4, 1e-6)
+DEFAULT_NEWTON_TOLS = (1e-3, 1e-6)
 DEFAULT_RUNGS = 7            # dt values per line: 2^6 = 64, about 2 decades
 DEFAULT_DURATION_FRACTION = 0.1  # of the scene's duration (see default_duration)
 MAX_REFERENCE_STEPS = 1e9  # steps of the RK4 reference at its starting dt
@@ -52,7 +53,7 @@ DEFAULT_REPEATS = 3
 DEFAULT_TIME_BUDGET = 2.0    # s of timed runs per configuration before repeats stop
 REFERENCE_RATIO = 1e-3       # RK4 halving change / smallest reported error must be below this
 REFERENCE_HALVINGS = 4       # extra RK4 refinements tried before the check is reported failed
-COLUMNS = ("integrator", "dt", "cg_tol", "preconditioner", "error", "error_over_time", "energy_error", "wall_s",
+COLUMNS = ("integrator", "dt", "cg_tol", "newton_tol", "preconditioner", "error", "error_over_time", "energy_error", "wall_s",
            "steps", "cg_iterations", "diverged", "timed_runs", "status")
 
 
@@ -64,6 +65,7 @@ class Run:
     dt: float
     cg_tol: float | None
     preconditioner: str | None = None  # implicit runs: the one used ("auto" resolved)
+    newton_tol: float | None = None  # Newton-solved runs: their newton_tol (cg_tol is then None)
     error: float | None = None
     error_over_time: float | None = None
     energy_error: float | None = None
@@ -82,6 +84,8 @@ class Run:
     @property
     def line(self) -> str:
         """The plot line (and slope fit) this run belongs to."""
+        if self.newton_tol is not None:
+            return f"{self.integrator} ({self.preconditioner}) newton_tol={self.newton_tol:g}"
         if self.cg_tol is None:
             return self.integrator
         return f"{self.integrator} ({self.preconditioner}) cg_tol={self.cg_tol:g}"
@@ -185,7 +189,8 @@ DEFAULT_INTEGRATORS = ("explicit", "symplectic", "implicit")
 
 
 def run_study(scene, *, integrators=DEFAULT_INTEGRATORS, duration=None, rungs=DEFAULT_RUNGS,
-              ladders=None, cg_tols=DEFAULT_CG_TOLS, preconditioners=("auto",), repeats=DEFAULT_REPEATS,
+              ladders=None, cg_tols=DEFAULT_CG_TOLS, newton_tols=DEFAULT_NEWTON_TOLS, preconditioners=("auto",),
+              repeats=DEFAULT_REPEATS,
               time_budget=DEFAULT_TIME_BUDGET, cache=None, use_cache=True,
               reference_ratio=REFERENCE_RATIO, reference_dt=None, progress=None) -> Study:
     """Run the sweep on ``scene`` (a Scene) and measure every run against the reference.
@@ -206,6 +211,7 @@ def run_study(scene, *, integrators=DEFAULT_INTEGRATORS, duration=None, rungs=DE
     rungs = validate.count("rungs", rungs)
     repeats = validate.count("repeats", repeats)
     cg_tols = [validate.fraction("cg_tols", t) for t in cg_tols] or list(DEFAULT_CG_TOLS)
+    newton_tols = [validate.fraction("newton_tols", t) for t in newton_tols] or list(DEFAULT_NEWTON_TOLS)
     for name in preconditioners:
         validate.choice("preconditioners", name, solvers.CHOICES)
     model = scene.model()
@@ -227,9 +233,11 @@ def run_study(scene, *, integrators=DEFAULT_INTEGRATORS, duration=None, rungs=DE
 
     runs = []
     for name in integrators:
-        for pre in (preconditioners if name == "implicit" else [None]):
+        cls = INTEGRATORS[name]
+        tols = [{"newton_tol": t} for t in newton_tols] if cls.newton else [{"cg_tol": t} for t in cg_tols]
+        for pre in (preconditioners if cls.linear_solver else [None]):
             _warm_up(model, name, ladders[name][0], pre)
-            for tol in (cg_tols if name == "implicit" else [None]):
+            for tol in (tols if cls.linear_solver else [{}]):
                 for dt in ladders[name]:
                     run = _measure(model, name, dt, tol, pre, times, size, repeats, time_budget)
                     runs.append(run)
@@ -244,7 +252,7 @@ def run_study(scene, *, integrators=DEFAULT_INTEGRATORS, duration=None, rungs=DE
 
 def _warm_up(model, integrator, dt, preconditioner):
     """Compile this integrator's kernels (one step on a throwaway Simulation)."""
-    sim = Simulation(model, integrator=integrator, dt=dt, **_solver(None, preconditioner))
+    sim = Simulation(model, integrator=integrator, dt=dt, **_solver({}, preconditioner))
     try:
         sim.step(1)
     except DivergenceError:
@@ -253,16 +261,16 @@ def _warm_up(model, integrator, dt, preconditioner):
     sim.close()  # its fields (if any) go to the pool: the runs below reuse them, compiled
 
 
-def _solver(cg_tol, preconditioner):
-    """Simulation arguments of an implicit run (none for the others)."""
-    out = {} if cg_tol is None else {"cg_tol": cg_tol}
-    return out if preconditioner is None else {**out, "preconditioner": preconditioner}
+def _solver(tol, preconditioner):
+    """Simulation arguments of a run: its tolerance ({"cg_tol": t}, {"newton_tol": t} or
+    {}) and preconditioner (None for integrators without a linear solve)."""
+    return dict(tol) if preconditioner is None else {**tol, "preconditioner": preconditioner}
 
 
-def _measure(model, integrator, dt, cg_tol, preconditioner, times, size, repeats, time_budget) -> Run:
+def _measure(model, integrator, dt, tol, preconditioner, times, size, repeats, time_budget) -> Run:
     """The measured run (states at the save instants, stepping timed) and the extra timed runs."""
-    kwargs = _solver(cg_tol, preconditioner)
-    run = Run(integrator, dt, cg_tol, preconditioner)
+    kwargs = _solver(tol, preconditioner)
+    run = Run(integrator, dt, tol.get("cg_tol"), preconditioner, tol.get("newton_tol"))
     counts = reference.steps_between(times, dt)
     sim = Simulation(model, integrator=integrator, dt=dt, **kwargs)
     positions, wall = [], 0.0
@@ -358,7 +366,7 @@ def _reference(model, times, dt0, runs, size, cache, use_cache, ratio):
         fine = reference.rk4(model, times, dt, cache=cache, use_cache=use_cache)
         diff = coarse.positions[:, moving] - fine.positions[:, moving]
         change = max(_rms(diff[-1]), _rms(diff)) / size if np.all(np.isfinite(diff)) else math.inf
-        provisional = [Run(r.integrator, r.dt, r.cg_tol, r.preconditioner, positions=r.positions,
+        provisional = [Run(r.integrator, r.dt, r.cg_tol, r.preconditioner, r.newton_tol, positions=r.positions,
                            velocities=r.velocities, diverged=r.diverged) for r in runs]
         for run in provisional:
             _score(run, fine, model, size)

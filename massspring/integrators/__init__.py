@@ -9,9 +9,10 @@ default time step from a stability prediction (``suggest_dt``) for scenes whose
 from .base import Integrator
 from .explicit import ExplicitEuler
 from .implicit import ImplicitEuler
+from .newton import BDF2, BackwardEuler
 from .rk4 import RK4
 from .symplectic import SymplecticEuler
 
-INTEGRATORS = {cls.name: cls for cls in (ExplicitEuler, SymplecticEuler, ImplicitEuler, RK4)}
+INTEGRATORS = {cls.name: cls for cls in (ExplicitEuler, SymplecticEuler, ImplicitEuler, BackwardEuler, BDF2, RK4)}
 
 __all__ = ["INTEGRATORS", "Integrator"]

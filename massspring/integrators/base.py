@@ -14,7 +14,10 @@ class Integrator:
     Class attributes: ``name`` (the registry key), ``order`` (of accuracy),
     ``description`` (one line for the CLI), ``has_stats`` (steps one at a time,
     each with solver statistics), ``linear_solver`` (solves a linear system each step
-    with CG and a preconditioner). ``serial`` (from ``settings.loops``):
+    with CG and a preconditioner), ``newton`` (solves nonlinear equations each step by
+    Newton's method: takes ``newton_tol`` and ``newton_max_iter``), ``ladder`` and
+    ``ladder_without_fix`` (its rows of ``analysis.stability``'s ladder). ``serial`` (from
+    ``settings.loops``):
     run whole steps or solves in one launch with serial loops (small systems), else
     one parallel launch per phase.
     """
@@ -24,6 +27,10 @@ class Integrator:
     description = ""
     has_stats = False
     linear_solver = False
+    newton = False
+    ladder = None  # stability ladder: (the Prediction attribute dt is relative to, multiples), None: none
+    extra_bytes = 0  # bytes per particle beyond the linearised step's (memory.run_bytes)
+    ladder_without_fix = False  # also run the ladder without the definiteness fix
 
     def __init__(self, dev, model, settings):
         self.dev = dev

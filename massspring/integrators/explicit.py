@@ -18,6 +18,7 @@ class ExplicitEuler(Integrator):
     """
 
     name = "explicit"
+    ladder = ("explicit_doubling_dt", (0.5, 1.0, 2.0, 10.0, 100.0))
     order = 1
     description = "explicit Euler: x' = x + dt v, v' = v + dt f(x, v)/m"
     symplectic = False

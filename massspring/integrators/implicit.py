@@ -36,6 +36,8 @@ class ImplicitEuler(Integrator):
     description = "linearised implicit Euler (Eq. 15), matrix-free preconditioned CG"
     has_stats = True
     linear_solver = True
+    ladder = ("symplectic_dt", (1.0, 10.0, 100.0, 1000.0))
+    ladder_without_fix = True
 
     def __init__(self, dev, model, settings):
         super().__init__(dev, model, settings)
@@ -102,7 +104,8 @@ class ImplicitEuler(Integrator):
             return 0, divergence.NONFINITE, math.inf
         if self.cfg.contact_filter:
             friction.contact_friction(self.dev, self.cfg, self.time, self.serial)
-        code, kinetic = cg.advance_positions(self.dev, self.cfg, s.dt, (self.steps + 1) * s.dt, self.serial)
+        code, kinetic = cg.advance_positions(self.dev, self.cfg, self.dev.x, s.dt, s.dt, (self.steps + 1) * s.dt,
+                                               self.serial, False)
         code = int(code)
         if code != divergence.OK:
             self.dev.v.copy_from(self.dev.keep)

@@ -15,6 +15,7 @@ class SymplecticEuler(ExplicitEuler):
     order = 1
     description = "symplectic Euler: v' = v + dt f(x, v)/m, x' = x + dt v'"
     symplectic = True
+    ladder = ("symplectic_dt", (0.5, 0.9, 1.1, 1.5, 3.0))
 
     @staticmethod
     def suggest_dt(prediction):

@@ -21,7 +21,9 @@ lists every key. A generator scene file looks like::
 
     [solver]                         # optional: implicit integrator's solver (Simulation arguments)
     preconditioner = "auto"          # or "block-jacobi", "multigrid", "none"
-    cg_tol = 1e-6                    # relative CG tolerance
+    cg_tol = 1e-6                    # CG tolerance, relative to the first residual of each solve
+    newton_tol = 1e-3                # backward-euler, bdf2: Newton tolerance (see Simulation)
+    newton_max_iter = 50             # backward-euler, bdf2: Newton iterations per step at most
 
     [view]                           # optional: camera of GIF/PNG pictures (io.camera.View)
     azimuth = -60.0                  # degrees about +z, 0 = looking from +x
@@ -83,7 +85,8 @@ TOP_KEYS = {"description": str, "integrator": str, "duration": float, "dt": dict
             "solver": dict, "view": dict, "particles": dict, "springs": dict, "collider": list, "pin": list}
 # [solver]: Simulation arguments of the implicit integrator a scene may set (the CLI's
 # options and the API's arguments override them).
-SOLVER_KEYS = {"preconditioner": str, "cg_tol": float, "cg_max_iter": int, "definiteness_fix": bool}
+SOLVER_KEYS = {"preconditioner": str, "cg_tol": float, "cg_max_iter": int, "definiteness_fix": bool,
+               "newton_tol": float, "newton_max_iter": int}
 VIEW_KEYS = {"azimuth": float, "elevation": float, "projection": str, "framing": str}
 FORMS = ("generator", "mesh", "particles")
 # Hand-made scenes: key -> what it holds ("rows": a list of lists of numbers, "numbers": one
@@ -296,7 +299,8 @@ class Scene:
         solver = None
         if INTEGRATORS.get(integrator) is not None and INTEGRATORS[integrator].linear_solver:
             solver = preconditioners.resolve_for_count(options.get("preconditioner", "auto"), particles)
-        self.check_memory(memory.run_bytes(particles, springs, solver), particles, springs,
+        extra = INTEGRATORS[integrator].extra_bytes if integrator in INTEGRATORS else 0
+        self.check_memory(memory.run_bytes(particles, springs, solver, extra=extra), particles, springs,
                           f"a run of it ({integrator}{f', {solver}' if solver else ''})")
         dt = self.default_dt(integrator) if dt is None else dt
         return Simulation(self.model(), integrator=integrator, dt=dt, **options)
@@ -455,11 +459,13 @@ def _solver(data, source):
     if solver.get("preconditioner", "auto") not in CHOICES:
         raise SceneError(f"{source}: solver.preconditioner: unknown value {solver['preconditioner']!r} "
                          f"(expected {', '.join(CHOICES)})")
-    tol = solver.get("cg_tol", 0.5)
-    if not (math.isfinite(tol) and 0 < tol < 1):
-        raise SceneError(f"{source}: solver.cg_tol: must be in (0, 1), got {tol}")
-    if solver.get("cg_max_iter", 1) < 1:
-        raise SceneError(f"{source}: solver.cg_max_iter: must be >= 1, got {solver['cg_max_iter']}")
+    for key in ("cg_tol", "newton_tol"):
+        tol = solver.get(key, 0.5)
+        if not (math.isfinite(tol) and 0 < tol < 1):
+            raise SceneError(f"{source}: solver.{key}: must be in (0, 1), got {tol}")
+    for key in ("cg_max_iter", "newton_max_iter"):
+        if solver.get(key, 1) < 1:
+            raise SceneError(f"{source}: solver.{key}: must be >= 1, got {solver[key]}")
     return solver
 
 

@@ -1,0 +1,199 @@
+"""Newton-solved backward Euler and BDF2 against the linearised implicit step (seed Eq. 15).
+
+Tables (all f64, this machine):
+
+1. energy: the shipped undamped ``stiffchain`` over 2 s at dt 0.01 and 0.002, the
+   largest total energy above its start (J) and at the end, per integrator;
+2. residual: one step from a stretched, moving ``stiffchain`` state, the backward-Euler
+   equations' residual ||M (v1 - v0) - dt f(x1, v1)|| relative to ||dt f(x0, v0)||;
+3. order: end-time position error against RK4 at dt / 10 of the finest on ``chain``
+   (0.25 s, dt 1/2000 .. 1/16000) and the observed orders;
+4. terminal velocity: a particle with linear drag and wind after 30 s at dt 0.05,
+   relative error against m g / c + wind, at default tolerances;
+5. cloth: ``cloth`` at ``--resolution`` (dt 1/60, ks 1e4, multigrid), median step
+   time of each integrator over ``--steps`` steps after a warm-up step, measured
+   interleaved in one process, mean Newton iterations and CG iterations per step, and
+   the ratio to the linearised step.
+
+    python benchmarks/newton.py                       # all tables, cloth 128 x 128
+    python benchmarks/newton.py --tables cloth --resolution 64 --steps 10
+    python benchmarks/newton.py --json benchmarks/results/newton.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import output  # noqa: E402
+
+import massspring as ms  # noqa: E402
+from massspring.io.files import write_json  # noqa: E402
+
+NEWTON = ("backward-euler", "bdf2")
+TABLES = ("energy", "residual", "order", "terminal", "cloth")
+
+
+def parse_args(argv=None):
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--tables", nargs="+", default=list(TABLES), choices=TABLES)
+    p.add_argument("--resolution", type=int, default=128, help="cloth table: grid resolution (default 128)")
+    p.add_argument("--steps", type=int, default=20, help="cloth table: timed steps per integrator (default 20)")
+    output.add_json(p, "newton")
+    return p.parse_args(argv)
+
+
+def forces(model, x, v):
+    """Total force (n, 3): springs, dampers, gravity and drag, in numpy (independent of the kernels)."""
+    i, j = model.springs[:, 0], model.springs[:, 1]
+    d = x[j] - x[i]
+    length = np.linalg.norm(d, axis=1)
+    n = np.divide(d, length[:, None], out=np.zeros_like(d), where=length[:, None] > 1e-12)
+    tension = model.stiffness * (length - model.rest_lengths) + model.damping * np.sum((v[j] - v[i]) * n, axis=1)
+    f = model.masses[:, None] * model.gravity - model.drag * (v - model.wind)
+    np.add.at(f, i, tension[:, None] * n)
+    np.add.at(f, j, -tension[:, None] * n)
+    return f
+
+
+def energy_table():
+    rows = []
+    scene = ms.load_scene("stiffchain")
+    for dt in (0.01, 0.002):
+        for integrator in ("implicit", *NEWTON):
+            sim = scene.simulation(integrator, dt=dt)
+            e0 = sim.energy()["total"]
+            top, start = -np.inf, time.perf_counter()
+            for _ in range(int(round(2.0 / dt))):
+                sim.step()
+                top = max(top, sim.energy()["total"] - e0)
+            newton = sim.newton_iterations
+            rows.append({"dt": dt, "integrator": integrator, "max_gain_J": top, "end_J": sim.energy()["total"] - e0,
+                         "wall_s": time.perf_counter() - start, "newton_mean": float(np.mean(newton)) if newton else None,
+                         "newton_max": max(newton) if newton else None, "not_converged": sim.cg_failures})
+            sim.close()
+    print("stiffchain, 2 s: energy above the start (J)")
+    print(f"{'dt':>6s}  {'integrator':15s} {'max gain':>10s} {'end':>10s} {'wall s':>7s} {'Newton':>7s} {'max':>4s} {'fail':>4s}")
+    for r in rows:
+        newton = "" if r["newton_mean"] is None else f"{r['newton_mean']:7.2f} {r['newton_max']:4d}"
+        print(f"{r['dt']:6g}  {r['integrator']:15s} {r['max_gain_J']:10.3g} {r['end_J']:10.3g} {r['wall_s']:7.2f} "
+              f"{newton:>12s} {r['not_converged']:4d}")
+    return rows
+
+
+def residual_table():
+    scene = ms.load_scene("stiffchain")
+    model = scene.model()
+    rng = np.random.default_rng(4)
+    x = model.positions * 1.02 + rng.normal(scale=1e-3, size=model.positions.shape)
+    v = rng.normal(scale=0.5, size=x.shape)
+    x[model.fixed], v[model.fixed] = model.positions[model.fixed], 0.0
+    dt, free = 0.01, model.free_mask()
+    scale = np.linalg.norm((dt * forces(model, x, v))[free])
+    rows = []
+    for integrator, options in (("implicit", {}), ("backward-euler", {}), ("backward-euler", {"newton_tol": 1e-8})):
+        sim = ms.Simulation(model, integrator, dt=dt, **options).set_state(x, v)
+        sim.step()
+        residual = model.masses[:, None] * (sim.velocities - v) - dt * forces(model, sim.positions, sim.velocities)
+        rows.append({"integrator": integrator, **options, "relative_residual": float(np.linalg.norm(residual[free]) / scale),
+                     "newton_iterations": sim.solver_stats.newton_iterations})
+        sim.close()
+    print("\none step of a stretched, moving stiffchain (dt 0.01): backward-Euler residual / ||dt f||")
+    for r in rows:
+        print(f"  {r['integrator']:15s} newton_tol {r.get('newton_tol', 'default')!s:8s} {r['relative_residual']:.3g}"
+              + ("" if r["newton_iterations"] is None else f"  ({r['newton_iterations']} Newton iterations)"))
+    return rows
+
+
+def order_table():
+    scene = ms.load_scene("chain")
+    duration, counts = 0.25, (500, 1000, 2000, 4000)
+    reference = scene.simulation("rk4", dt=duration / 40000).step(40000).positions
+    rows = []
+    for integrator in NEWTON:
+        errors = []
+        for n in counts:
+            sim = scene.simulation(integrator, dt=duration / n, newton_tol=1e-10, cg_tol=1e-12, newton_max_iter=100)
+            start = time.perf_counter()
+            sim.step(n)
+            errors.append(float(np.abs(sim.positions - reference).max()))
+            rows.append({"integrator": integrator, "dt": duration / n, "error_m": errors[-1],
+                         "wall_s": time.perf_counter() - start})
+            sim.close()
+        orders = np.log2(np.array(errors[:-1]) / np.array(errors[1:]))
+        for row, order in zip(rows[-len(counts) + 1:], orders):
+            row["order"] = float(order)
+    print("\nchain, 0.25 s, against RK4 at dt 6.25e-6: largest position error (m)")
+    for r in rows:
+        print(f"  {r['integrator']:15s} dt {r['dt']:.3g}  error {r['error_m']:.3g}" +
+              (f"  order {r['order']:.3f}" if "order" in r else ""))
+    return rows
+
+
+def terminal_table():
+    m, c, g, wind = 0.2, 0.5, np.array([0.0, 0.0, -9.81]), np.array([1.0, -0.5, 0.0])
+    model = ms.Model([[0.0, 0.0, 0.0]], np.zeros((0, 2), int), masses=m, gravity=g, drag=c, wind=wind)
+    terminal = m * g / c + wind
+    rows = []
+    for integrator in ("implicit", *NEWTON):
+        sim = ms.Simulation(model, integrator, dt=0.05).step(600)
+        rows.append({"integrator": integrator,
+                     "relative_error": float(np.linalg.norm(sim.velocities[0] - terminal) / np.linalg.norm(terminal))})
+        sim.close()
+    print("\nterminal velocity with drag and wind after 30 s (dt 0.05, default tolerances): relative error")
+    for r in rows:
+        print(f"  {r['integrator']:15s} {r['relative_error']:.3g}")
+    return rows
+
+
+def cloth_table(resolution, steps):
+    scene = ms.load_scene("cloth").with_params(resolution=resolution, stiffness=1e4)
+    sims = {name: scene.simulation(name, dt=1 / 60, preconditioner="multigrid") for name in ("implicit", *NEWTON)}
+    for sim in sims.values():
+        sim.step(1)  # compiles; its time is not counted
+    times = {name: [] for name in sims}
+    for _ in range(steps):  # interleaved: the machine's load falls on all alike
+        for name, sim in sims.items():
+            start = time.perf_counter()
+            sim.step(1)
+            times[name].append(time.perf_counter() - start)
+    base = statistics.median(times["implicit"])
+    rows = []
+    for name, sim in sims.items():
+        newton = sim.newton_iterations[1:]
+        rows.append({"integrator": name, "resolution": resolution, "steps": steps,
+                     "median_ms": 1e3 * statistics.median(times[name]),
+                     "ratio_to_implicit": statistics.median(times[name]) / base,
+                     "newton_mean": float(np.mean(newton)) if newton else None,
+                     "newton_max": max(newton) if newton else None,
+                     "cg_per_step": float(np.mean(sim.cg_iterations[1:])), "not_converged": sim.cg_failures})
+        sim.close()
+    print(f"\ncloth {resolution} x {resolution}, dt 1/60, ks 1e4, multigrid, {steps} steps after the first")
+    print(f"  {'integrator':15s} {'ms/step':>9s} {'ratio':>6s} {'Newton':>7s} {'max':>4s} {'CG/step':>8s} {'fail':>4s}")
+    for r in rows:
+        newton = "" if r["newton_mean"] is None else f"{r['newton_mean']:7.2f} {r['newton_max']:4d}"
+        print(f"  {r['integrator']:15s} {r['median_ms']:9.1f} {r['ratio_to_implicit']:6.2f} {newton:>12s} "
+              f"{r['cg_per_step']:8.1f} {r['not_converged']:4d}")
+    return rows
+
+
+def main(argv=None):
+    args = parse_args(argv)
+    result = {}
+    for table in args.tables:
+        if table == "cloth":
+            result[table] = cloth_table(args.resolution, args.steps)
+        else:
+            result[table] = globals()[f"{table}_table"]()
+    write_json(args.json, result)
+    print(f"\nwrote {args.json}")
+
+
+if __name__ == "__main__":
+    main()

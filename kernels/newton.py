@@ -1,0 +1,240 @@
+"""Newton's method for the nonlinear implicit steps (``massspring/integrators/newton.py``).
+
+Backward Euler and BDF2 both solve, for the new velocity v,
+
+    g(v) = M (v - v^) - h f(x^ + h v, v) - F(v) = 0                       (*)
+
+with a base state (x^, v^) and a step h: (x_n, v_n) and dt for backward Euler,
+(4/3 x_n - 1/3 x_{n-1}, 4/3 v_n - 1/3 v_{n-1}) and 2 dt / 3 for BDF2; F is the
+friction of contacts (linear in v, ``contact.friction_diagonal``, ``friction_impulse``),
+and the directions prescribed by pins and contacts are held (contacts detected once,
+at the step's start, as the linearised step detects them). Newton starts from v = v^;
+each iteration refreshes the operator at the iterate (``operator.refresh`` in
+``NEWTON`` mode: A = M - h D - h^2 K at x = x^ + h v, and b = A v - g(v)), so the
+CG solve of A v' = b (warm-started from v) gives the Newton iterate v'.
+
+(*) is the stationarity of the incremental potential
+
+    E(v) = 1/2 (v - v^)^T M (v - v^) + U(x^ + h v) + h Psi(v) + 1/2 v^T C v - v^T F_0
+
+(U: the terms' potential energy, ``potential_change``; Psi: their Rayleigh
+dissipation, ``dissipation_change``, spring directions held at the iterate's;
+C, F_0: friction's damper and impulse), whose gradient is g. ``newton_trial`` gives
+E(v + a d) - E(v) for the line search, each element's change computed from the
+difference of its lengths and velocities (not as a difference of two energies), so
+it keeps its relative precision when the change is tiny.
+
+Fields (n particles, vec3 in the run's precision): ``xb``, ``vb`` (x^, v^), ``xk``,
+``vk`` (the iterate's positions and velocity), ``dir`` (the Newton direction d =
+v' - v), ``res`` (g at the iterate, filtered); with colliders ``carrier`` (the
+velocity of the collider each particle touches, from ``contact.detect``); BDF2's
+``xo``, ``vo`` (x_{n-1}, v_{n-1}).
+"""
+
+import taichi as ti
+
+from .blocks import BLOCK, block_count, block_end, ordered_sum
+from .constraints import constrain, is_free, prescribed
+from .contact import detect, friction_diagonal, friction_impulse
+from .forces import spring_direction, tiny_length
+from .operator import NEWTON, refresh
+
+
+@ti.func
+def start(dev, cfg: ti.template(), dt, t, bdf2: ti.template()):
+    """The base state (x^, v^) of the step from (x_n, v_n) = (``dev.x``, ``dev.keep``) at
+    time t; contacts detected from (x_n, v_n) as the linearised step detects them
+    (``contact.detect``, step dt); the iterate v = v^ with the prescribed directions set.
+    Returns the number of particles in contact."""
+    touching = 0
+    for i in range(dev.size[0]):
+        xb = dev.x[i]
+        vb = dev.keep[i]  # v_n, also when dev.v holds a base already
+        if ti.static(bdf2):
+            xb = (4 * dev.x[i] - dev.xo[i]) / 3
+            vb = (4 * dev.keep[i] - dev.vo[i]) / 3
+        dev.xb[i] = xb
+        dev.vb[i] = vb
+        if ti.static(cfg.contact_filter):
+            dev.carrier[i] = detect(i, dev, cfg, dev.x, dev.keep, dt, t)
+            if dev.contacts[i] != 0:
+                touching += 1
+        if not is_free(i, dev, cfg):
+            vb = constrain(i, dev, cfg, vb) + prescribed(i, dev, cfg)
+        dev.v[i] = vb
+    return touching
+
+
+@ti.kernel
+def newton_start(dev: ti.template(), cfg: ti.template(), dt: ti.f64, t: ti.f64, bdf2: ti.template(),
+                 serial: ti.template()) -> ti.i32:
+    """``start`` of a step of size dt (s) at time t (s); ``bdf2``: BDF2's base. Returns
+    the number of particles in contact."""
+    step = ti.cast(dt, cfg.real)
+    now = ti.cast(t, cfg.real)
+    out = 0
+    if ti.static(serial):
+        ti.loop_config(serialize=True)
+        for _ in range(1):
+            touching = start(dev, cfg, step, now, bdf2)
+            out = touching
+    else:
+        touching = start(dev, cfg, step, now, bdf2)
+        out = touching
+    return out
+
+
+@ti.func
+def residual_sums(dev, cfg: ti.template(), h):
+    """(||S g||^2, a round-off scale of g squared): the scale sums per particle
+    m (|v| + |v^|) + h m |g| + (|a| + |b|) l / h over its springs (about h ks l: a
+    tension ks (l - l0) is the difference of terms that large), the size of the
+    terms whose difference g is."""
+    n = dev.size[0]
+    for blk in range(block_count(n)):
+        acc = ti.Vector.zero(ti.f64, 3)
+        for i in range(blk * BLOCK, block_end(blk, n)):
+            scale = dev.mass[i] * (dev.v[i].norm() + dev.vb[i].norm())
+            if ti.static(cfg.has_springs):
+                for e in range(dev.offsets[i], dev.offsets[i + 1]):
+                    c = dev.coef[e]
+                    length = (dev.xk[dev.other[e]] - dev.xk[i]).norm()
+                    scale += (ti.abs(c[3]) + ti.abs(c[4])) * length / h
+            if ti.static(cfg.has_gravity):
+                scale += h * dev.mass[i] * dev.gravity[None].norm()
+            r = ti.cast(dev.res[i], ti.f64)
+            acc += ti.Vector([r.dot(r), ti.cast(scale, ti.f64) ** 2, 0.0], ti.f64)
+        dev.partial[blk] = acc
+    return ordered_sum(dev.partial, block_count(n))
+
+
+@ti.func
+def iterate(dev, cfg: ti.template(), h, t):
+    n = dev.size[0]
+    for blk in range(block_count(n)):
+        acc = ti.Vector.zero(ti.f64, 3)
+        for i in range(blk * BLOCK, block_end(blk, n)):
+            step = ti.cast(dev.v[i] - dev.vk[i], ti.f64)
+            change = ti.cast(dev.v[i] - dev.vb[i], ti.f64)
+            m = ti.cast(dev.mass[i], ti.f64)
+            acc += ti.Vector([m * step.dot(step), m * change.dot(change), 0.0], ti.f64)
+        dev.partial[blk] = acc
+    sizes = ordered_sum(dev.partial, block_count(n))
+    for i in range(n):
+        dev.vk[i] = dev.v[i]
+        dev.xk[i] = dev.xb[i] + h * dev.v[i]
+    refresh(dev, cfg, dev.xk, dev.v, h, t, NEWTON)
+    sums = residual_sums(dev, cfg, h)
+    return ti.Vector([sums[0], sums[1], sizes[0], sizes[1]], ti.f64)
+
+
+@ti.kernel
+def newton_refresh(dev: ti.template(), cfg: ti.template(), h: ti.f64, t: ti.f64,
+                   serial: ti.template()) -> ti.types.vector(4, ti.f64):
+    """At the iterate v = ``dev.v``: v_k = v, x_k = x^ + h v, the operator and b of
+    Newton's linear system, g(v) in ``dev.res``. Returns (``residual_sums``, then
+    ||v - v_k||_M^2 with the v_k of the last call (the step just taken) and
+    ||v - v^||_M^2 (the step's velocity change), in kg m^2/s^2)."""
+    hh = ti.cast(h, cfg.real)
+    now = ti.cast(t, cfg.real)
+    out = ti.Vector.zero(ti.f64, 4)
+    if ti.static(serial):
+        ti.loop_config(serialize=True)
+        for _ in range(1):
+            sums = iterate(dev, cfg, hh, now)
+            for k in ti.static(range(4)):
+                out[k] = sums[k]
+    else:
+        sums = iterate(dev, cfg, hh, now)
+        for k in ti.static(range(4)):
+            out[k] = sums[k]
+    return out
+
+
+@ti.func
+def spring_change(s, dev, cfg: ti.template(), h):
+    """Spring s's change of U + h Psi from the iterate (``xk``, ``vk``) to (x^ + h v, v)."""
+    out = ti.cast(0, cfg.real)
+    i = dev.ends[s][0]
+    j = dev.ends[s][1]
+    old = dev.xk[j] - dev.xk[i]
+    step = h * ((dev.v[j] - dev.v[i]) - (dev.vk[j] - dev.vk[i]))
+    new = old + step
+    _, old_length = spring_direction(old, cfg.real)
+    _, new_length = spring_direction(new, cfg.real)
+    change = ti.cast(0, cfg.real)
+    if old_length + new_length > tiny_length(cfg.real):
+        change = step.dot(old + new) / (old_length + new_length)  # l' - l without cancellation
+    c = dev.spring_coef[s]
+    n = ti.Vector([c[0], c[1], c[2]], cfg.real)
+    for term in ti.static(cfg.spring_terms):
+        out += term.potential_change(s, dev, old_length, new_length, change)
+        out += h * term.dissipation_change(s, dev, n, dev.vk[j] - dev.vk[i], dev.v[j] - dev.v[i])
+    return out
+
+
+@ti.func
+def particle_change(i, dev, cfg: ti.template(), h):
+    """Particle i's change of inertia, particle terms' U + h Psi and friction from ``vk`` to v."""
+    v = dev.v[i]
+    w = dev.vk[i]
+    dv = v - w
+    out = 0.5 * dev.mass[i] * dv.dot(v + w - 2 * dev.vb[i])
+    for term in ti.static(cfg.particle_terms):
+        out += term.potential_change(i, dev, h * dv)
+        out += h * term.dissipation_change(i, dev, w, v)
+    if ti.static(cfg.contact_filter):
+        out += 0.5 * friction_diagonal(i, dev, cfg) * dv.dot(v + w)
+        out -= friction_impulse(i, dev, cfg, dev.carrier[i]).dot(dv)
+    return out
+
+
+@ti.func
+def trial(dev, cfg: ti.template(), h, alpha):
+    """v = v_k + alpha d; returns (E(v) - E(v_k), g(v_k) . d)."""
+    n = dev.size[0]
+    for i in range(n):
+        dev.v[i] = dev.vk[i] + alpha * dev.dir[i]
+    if ti.static(cfg.has_springs):
+        for s in range(dev.size[1]):
+            dev.fs[s] = ti.Vector([spring_change(s, dev, cfg, h), 0, 0], cfg.real)  # fs is scratch here
+    for blk in range(block_count(n)):
+        acc = ti.Vector.zero(ti.f64, 3)
+        for i in range(blk * BLOCK, block_end(blk, n)):
+            change = ti.cast(particle_change(i, dev, cfg, h), ti.f64)
+            if ti.static(cfg.has_springs):
+                for e in range(dev.offsets[i], dev.offsets[i + 1]):
+                    s = dev.entry[e]
+                    if s >= 0:  # each spring once, at its first end
+                        change += ti.cast(dev.fs[s][0], ti.f64)
+            slope = ti.cast(dev.res[i], ti.f64).dot(ti.cast(dev.dir[i], ti.f64))
+            acc += ti.Vector([change, slope, 0.0], ti.f64)
+        dev.partial[blk] = acc
+    return ordered_sum(dev.partial, block_count(n))
+
+
+@ti.kernel
+def newton_direction(dev: ti.template(), cfg: ti.template()):
+    """d = v' - v_k after the linear solve (``dev.v`` = v')."""
+    for i in range(dev.size[0]):
+        dev.dir[i] = dev.v[i] - dev.vk[i]
+
+
+@ti.kernel
+def newton_trial(dev: ti.template(), cfg: ti.template(), h: ti.f64, alpha: ti.f64,
+                 serial: ti.template()) -> ti.types.vector(3, ti.f64):
+    """``trial``: v = v_k + alpha d; returns (E(v) - E(v_k) in J, g(v_k) . d, 0)."""
+    hh = ti.cast(h, cfg.real)
+    a = ti.cast(alpha, cfg.real)
+    out = ti.Vector.zero(ti.f64, 3)
+    if ti.static(serial):
+        ti.loop_config(serialize=True)
+        for _ in range(1):
+            sums = trial(dev, cfg, hh, a)
+            for k in ti.static(range(3)):
+                out[k] = sums[k]
+    else:
+        sums = trial(dev, cfg, hh, a)
+        for k in ti.static(range(3)):
+            out[k] = sums[k]
+    return out

@@ -1,0 +1,206 @@
+"""Backward Euler and BDF2 solved by Newton's method (``kernels/newton.py``)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from massspring.kernels import cg, divergence, friction, newton, operator
+from massspring.kernels import state as state_kernels
+from massspring.solvers import SolverStats, solve
+from massspring.solvers.cg import EPS32, EPS64, ROUNDOFF
+
+from .implicit import ImplicitEuler
+
+NEWTON_TOL = 1e-3  # default newton_tol: a full Newton step this small relative to the step's velocity change ends it
+NEWTON_MAX_ITER = 50  # default newton_max_iter: linear solves per step
+ARMIJO = 1e-4  # sufficient decrease: E(v + a d) - E(v) <= ARMIJO a g . d
+MAX_CUTS = 12  # halvings of a line search before it takes the shortest step tried
+ETA_FIRST = 1e-2  # CG tolerance of the first linear solve of a step (relative to its first residual)
+ETA_MAX = 0.1  # loosest CG tolerance of a later solve
+GOLDEN = (1 + 5**0.5) / 2  # safeguard exponent of Eisenstat and Walker's first choice
+
+
+class BackwardEuler(ImplicitEuler):
+    """Backward Euler M (v' - v_n) = dt f(x_n + dt v', v'), x' = x_n + dt v', solved by Newton.
+
+    Newton starts from v_n. Each iteration solves Eq. 15's system at the iterate (the
+    same matrix-free operator, preconditioners, definiteness fix and contact
+    constraints as the linearised step: ``kernels/newton.py``) by CG to a forcing
+    tolerance (inexact Newton): ``ETA_FIRST`` in a step's first solve, then how far
+    the last linear model missed, |‖g_k‖ - ‖r_{k-1}‖| / ‖g_{k-1}‖ (Eisenstat and Walker's
+    first choice, safeguarded), within [cg_tol, ``ETA_MAX``]. A backtracking line
+    search on the incremental potential makes every iteration decrease it (Armijo).
+
+    The step has converged when a full Newton step moved v by at most newton_tol
+    times the step's velocity change, ‖v_{k+1} - v_k‖_M <= newton_tol ‖v_{k+1} - v^‖_M
+    (M-norms: kinetic energy), or when ‖g‖ is at the round-off of the terms it is the
+    difference of; at most newton_max_iter linear solves. With the definiteness fix
+    and spring damping the Jacobian is not exact, so convergence is linear where
+    springs are compressed, quadratic elsewhere. Contacts are detected once per step,
+    from (x_n, v_n), and held through its iterations; friction is decided after the
+    last, as in the linearised step.
+    """
+
+    name = "backward-euler"
+    order = 1
+    description = "backward Euler solved by Newton's method with a line search (CG per iteration)"
+    newton = True
+    ladder_without_fix = False
+    extra_bytes = 7 * 24  # xb, vb, xk, vk, dir, res and a contact's carrier: f64 3-vectors
+
+    @classmethod
+    def declare(cls, layout, model, settings):
+        super().declare(layout, model, settings)
+        real = layout.real
+        for name in ("xb", "vb", "xk", "vk", "dir", "res"):  # kernels/newton.py
+            layout.vectors(name, real)
+        if model.has_colliders:
+            layout.vectors("carrier", real)
+
+    def step_size(self) -> float:
+        """h of (*) in ``kernels/newton.py`` for the next step."""
+        return self.settings.dt
+
+    def base_is_bdf2(self) -> bool:
+        return False
+
+    def advance(self, steps):
+        """One step (``steps`` must be 1: each step has its own solver stats)."""
+        assert steps == 1
+        s = self.settings
+        dev, cfg, serial, eps = self.dev, self.cfg, self.serial, EPS64 if s.precision == "f64" else EPS32
+        h, t = self.step_size(), self.time
+        touching = newton.newton_start(dev, cfg, s.dt, t, self.base_is_bdf2(), serial)
+        if touching and self.base_is_bdf2():  # contact breaks the history: a backward-Euler step
+            self.ready = False
+            h = self.step_size()
+            newton.newton_start(dev, cfg, s.dt, t, False, serial)
+        g2, scale2, _, _ = newton.newton_refresh(dev, cfg, h, t, serial)
+        first = norm = math.sqrt(g2)
+        norms = [norm]
+        floor = ROUNDOFF * eps * math.sqrt(scale2)
+        solves, cuts, total, setup, reason, last = [], 0, 0, 0.0, "converged", None
+        previous = predicted = math.inf
+        eta = ETA_FIRST
+        while math.isfinite(norm) and norm > floor:
+            if len(solves) >= s.newton_max_iter:
+                reason = "max_newton"
+                break
+            if solves:
+                safeguard = eta ** GOLDEN
+                eta = abs(norm - predicted) / previous  # how far the linear model missed
+                if safeguard > 0.1:
+                    eta = max(eta, safeguard)
+            eta = min(max(eta, s.cg_tol), ETA_MAX)
+            last = solve(dev, cfg, self.preconditioner, h, eta, s.cg_max_iter, serial, t, mode=operator.REFRESHED)
+            solves.append(last.iterations)
+            total += last.iterations
+            setup += last.setup_s
+            predicted = last.residual * last.first_residual  # ||g|| the linear model predicts
+            if last.reason == "non-finite":
+                norm = math.inf
+                break
+            newton.newton_direction(dev, cfg)
+            alpha, tried = 1.0, 0
+            while True:
+                change, slope, _ = newton.newton_trial(dev, cfg, h, alpha, serial)
+                if change <= ARMIJO * alpha * slope or tried == MAX_CUTS or not math.isfinite(change):
+                    break
+                alpha *= 0.5
+                tried += 1
+            cuts += tried
+            previous = norm
+            g2, scale2, moved2, change2 = newton.newton_refresh(dev, cfg, h, t, serial)
+            norm = math.sqrt(g2)
+            norms.append(norm)
+            floor = max(floor, ROUNDOFF * eps * math.sqrt(scale2))
+            if tried == 0 and moved2 <= s.newton_tol**2 * change2:
+                break  # a full Newton step this small: what is left is smaller still
+        if not math.isfinite(norm):
+            reason = "non-finite"
+        relative = tuple(value / first if first > 0 else 0.0 for value in norms)
+        self._stats = SolverStats(total, last.residual if last else 0.0, reason == "converged", reason, setup,
+                                  newton_iterations=len(solves), cg_per_newton=tuple(solves), cuts=cuts,
+                                  newton_residual=relative[-1], newton_residuals=relative, first_residual=first)
+        if reason == "non-finite":  # no velocity to step with
+            dev.v.copy_from(dev.keep)
+            return 0, divergence.NONFINITE, math.inf
+        if cfg.contact_filter:
+            friction.contact_friction(dev, cfg, t, serial)
+        code, kinetic = cg.advance_positions(dev, cfg, dev.xb, h, s.dt, (self.steps + 1) * s.dt, serial,
+                                             self.carries)
+        code = int(code)
+        if code != divergence.OK:
+            dev.v.copy_from(dev.keep)
+        self.steps += code == divergence.OK
+        self.after_step(code == divergence.OK, touching)
+        return int(code == divergence.OK), code, float(kinetic)
+
+    carries = False
+
+    def after_step(self, accepted, touching):
+        """Hook after a step (BDF2 records whether it has a history to use)."""
+
+
+class BDF2(BackwardEuler):
+    """BDF2: v' = 4/3 v_n - 1/3 v_{n-1} + 2/3 dt a', x' = 4/3 x_n - 1/3 x_{n-1} + 2/3 dt v',
+    a' = f(x', v') / m, solved as backward Euler is (``kernels/newton.py`` (*) with
+    the base (4/3 x_n - 1/3 x_{n-1}, 4/3 v_n - 1/3 v_{n-1}) and h = 2 dt / 3). Second
+    order. A backward-Euler step instead where the history is missing or broken: the
+    first step (and the first after a restart without the carried state), and a step
+    with a particle in contact or following one (an impact makes the velocity jump,
+    and a base extrapolated across the jump would add energy: contact is first order
+    in every integrator). Carries (x_{n-1}, v_{n-1}) and whether it may use them."""
+
+    name = "bdf2"
+    order = 2
+    extra_bytes = BackwardEuler.extra_bytes + 2 * 24  # and x_{n-1}, v_{n-1}
+    description = "BDF2 (second order, first step backward Euler) solved by Newton's method with a line search"
+    carries = True
+
+    def __init__(self, dev, model, settings):
+        super().__init__(dev, model, settings)
+        self.ready = False
+
+    @classmethod
+    def declare(cls, layout, model, settings):
+        super().declare(layout, model, settings)
+        layout.vectors("xo", layout.real)
+        layout.vectors("vo", layout.real)
+
+    def base_is_bdf2(self):
+        return self.ready
+
+    def step_size(self):
+        return 2.0 * self.settings.dt / 3.0 if self.ready else self.settings.dt
+
+    def after_step(self, accepted, touching):
+        if accepted:
+            self.ready = not touching
+
+    def carried_names(self):
+        """The previous state x_{n-1} ("x_prev", m), v_{n-1} ("v_prev", m/s) and "ready"
+        (1: they hold the previous step; 0: the next step is backward Euler), with the
+        linearised step's contact memory."""
+        return {**super().carried_names(), "x_prev": (np.float64, (3,)), "v_prev": (np.float64, (3,)),
+                "ready": (np.int32, ())}
+
+    def carried(self):
+        out = {name: self.dev.read(name).astype(dtype) for name, (dtype, _) in super().carried_names().items()}
+        out["x_prev"] = self.dev.read("xo").astype(np.float64)
+        out["v_prev"] = self.dev.read("vo").astype(np.float64)
+        out["ready"] = np.full(len(out["x_prev"]), int(self.ready), np.int32)
+        return out
+
+    def load_state(self, positions, velocities, carried=None):
+        """Continue from (positions, velocities); with ``carried``, from its previous state."""
+        rest = None if carried is None else {k: v for k, v in carried.items() if k not in ("x_prev", "v_prev", "ready")}
+        super().load_state(positions, velocities, rest)
+        if carried is None:
+            self.ready = False
+            return
+        state_kernels.load_vectors(self.dev.xo, carried["x_prev"].astype(np.float64))
+        state_kernels.load_vectors(self.dev.vo, carried["v_prev"].astype(np.float64))
+        self.ready = bool(np.all(carried["ready"] != 0)) and len(carried["ready"]) > 0

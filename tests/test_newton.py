@@ -1,0 +1,172 @@
+"""Backward Euler and BDF2 solved by Newton's method (massspring/integrators/newton.py).
+
+References: the backward-Euler equations M (v1 - v0) = dt f(x0 + dt v1, v1) with an
+independent numpy force (conftest.numpy_forces); the order of accuracy against an RK4
+run at a far smaller dt; the terminal velocity m g / c + wind of a particle with
+linear drag; a cloth resting on a plane; the energy of the undamped stiff chain.
+"""
+
+import math
+
+import numpy as np
+import pytest
+
+import massspring as ms
+from massspring.scene import load_scene
+from conftest import PATHS, numpy_forces, random_system, simulation
+
+NEWTON = ("backward-euler", "bdf2")
+
+
+def free_rows(model):
+    return model.free_mask()
+
+
+@pytest.mark.parametrize("path", PATHS)
+@pytest.mark.parametrize("seed", [0, 1])
+def test_one_step_solves_the_backward_euler_equations(seed, path):
+    """Pins, damping, drag and wind; compressed and stretched springs; the definiteness fix on."""
+    model = random_system(seed, rest=(0.7, 1.3), drag=0.3, wind=(0.5, -0.2, 0.1))
+    dt = 0.02
+    sim = simulation(model, path, integrator="backward-euler", dt=dt, newton_tol=1e-12, cg_tol=1e-12,
+                     newton_max_iter=200)
+    x0, v0 = model.positions, model.velocities
+    sim.step()
+    x1, v1 = sim.positions, sim.velocities
+    assert np.allclose(x1, x0 + dt * v1, rtol=0, atol=1e-14)
+    residual = model.masses[:, None] * (v1 - v0) - dt * numpy_forces(model, x1, v1)
+    scale = np.linalg.norm(dt * numpy_forces(model, x0, v0)[free_rows(model)])
+    assert np.linalg.norm(residual[free_rows(model)]) <= 1e-9 * scale
+    assert np.array_equal(v1[model.fixed], model.pin_velocity)
+    stats = sim.solver_stats
+    assert stats.converged and stats.newton_iterations >= 2 and len(stats.cg_per_newton) == stats.newton_iterations
+
+
+def test_the_linearised_step_leaves_the_equations_unsolved_where_newton_solves_them():
+    """A stretched, moving stiff chain: Eq. 15 (one linearisation) misses the backward-Euler
+    equations by a large fraction of dt f; Newton meets them to 1e-6."""
+    scene = load_scene("stiffchain")
+    model = scene.model()
+    rng = np.random.default_rng(4)
+    x = model.positions * 1.02 + rng.normal(scale=1e-3, size=model.positions.shape)
+    v = rng.normal(scale=0.5, size=x.shape)
+    x[model.fixed] = model.positions[model.fixed]
+    v[model.fixed] = 0.0
+    dt = 0.01
+    scale = np.linalg.norm((dt * numpy_forces(model, x, v))[free_rows(model)])
+    misses = {}
+    for integrator, options in (("implicit", {}), ("backward-euler", {"newton_tol": 1e-10, "newton_max_iter": 200})):
+        sim = ms.Simulation(model, integrator, dt=dt, **options).set_state(x, v)
+        sim.step()
+        x1, v1 = sim.positions, sim.velocities
+        residual = model.masses[:, None] * (v1 - v) - dt * numpy_forces(model, x1, v1)
+        misses[integrator] = np.linalg.norm(residual[free_rows(model)]) / scale
+    assert misses["implicit"] > 1e-2
+    assert misses["backward-euler"] <= 1e-6
+
+
+def test_newton_converges_quadratically_without_the_fix():
+    """No damping and no definiteness fix: the operator is the exact Jacobian, so near the
+    solution each residual is at most a power 1.5 of the one before (relative residuals)."""
+    base = random_system(0, rest=(0.8, 0.95))
+    model = ms.Model(base.positions, base.springs, masses=base.masses, stiffness=base.stiffness,
+                     rest_lengths=base.rest_lengths, velocities=base.velocities, gravity=base.gravity,
+                     fixed=base.fixed)
+    sim = ms.Simulation(model, "backward-euler", dt=0.05, cg_tol=1e-14, newton_tol=1e-13, newton_max_iter=30,
+                        definiteness_fix=False)
+    sim.step()
+    residuals = np.array(sim.solver_stats.newton_residuals)
+    assert residuals[0] == 1.0 and residuals[-1] < 1e-10
+    pairs = [(a, b) for a, b in zip(residuals[:-1], residuals[1:]) if 1e-10 < a < 1e-1 and b > 1e-12]
+    assert len(pairs) >= 2
+    for a, b in pairs:
+        assert b <= a**1.5, residuals
+
+
+def _chain_errors(integrator, counts, duration=0.1):
+    scene = load_scene("chain").with_params(count=10)
+    reference = scene.simulation("rk4", dt=duration / 20000).step(20000).positions
+    errors = []
+    for n in counts:
+        sim = scene.simulation(integrator, dt=duration / n, newton_tol=1e-10, cg_tol=1e-12, newton_max_iter=100)
+        sim.step(n)
+        errors.append(np.abs(sim.positions - reference).max())
+        sim.close()
+    return np.array(errors)
+
+
+@pytest.mark.parametrize("integrator, low, high", [("backward-euler", 0.9, 1.1), ("bdf2", 1.8, 2.2)])
+def test_order_of_accuracy_against_rk4(integrator, low, high):
+    errors = _chain_errors(integrator, (100, 200, 400))
+    orders = np.log2(errors[:-1] / errors[1:])
+    assert np.all((orders >= low) & (orders <= high)), (errors, orders)
+
+
+@pytest.mark.parametrize("integrator", ["implicit", *NEWTON])
+def test_terminal_velocity_with_drag_at_default_tolerances(integrator):
+    """v -> m g / c + wind; the step's solve is relative to its own change, so a steady
+    motion is solved as closely as a fast one."""
+    m, c, g, wind = 0.2, 0.5, np.array([0.0, 0.0, -9.81]), np.array([1.0, -0.5, 0.0])
+    model = ms.Model([[0.0, 0.0, 0.0]], np.zeros((0, 2), int), masses=m, gravity=g, drag=c, wind=wind)
+    sim = ms.Simulation(model, integrator, dt=0.05)
+    sim.step(600)  # 30 s: 75 time constants m / c
+    terminal = m * g / c + wind
+    assert np.linalg.norm(sim.velocities[0] - terminal) <= 1e-8 * np.linalg.norm(terminal)
+
+
+@pytest.mark.parametrize("integrator", NEWTON)
+def test_a_cloth_resting_on_a_plane_stays_at_rest(integrator):
+    """Contacts and friction inside Newton: a flat cloth at rest on the ground, no pins."""
+    base = load_scene("cloth").with_params(resolution=6).model()
+    x = base.positions.copy()
+    x[:, 2] = 0.0
+    model = ms.Model(x, base.springs, masses=base.masses, stiffness=base.stiffness, damping=base.damping,
+                     rest_lengths=np.linalg.norm(x[base.springs[:, 1]] - x[base.springs[:, 0]], axis=1),
+                     gravity=base.gravity, colliders=[ms.Plane((0, 0, 0), (0, 0, 1), friction=0.5)])
+    sim = ms.Simulation(model, integrator, dt=1 / 60)
+    for _ in range(60):
+        sim.step()
+        assert np.abs(sim.positions - x).max() <= 1e-9
+    assert np.abs(sim.velocities).max() <= 1e-9
+    assert sim.cg_failures == 0
+
+
+@pytest.mark.parametrize("dt", [0.01, 0.002])
+def test_stiff_chain_energy_never_grows_with_backward_euler(dt):
+    """The shipped undamped stiff chain over 2 s: total energy never above its start
+    (the linearised step gains up to 15 J here, see test_stability)."""
+    sim = load_scene("stiffchain").simulation("backward-euler", dt=dt)
+    e0 = sim.energy()["total"]
+    for _ in range(int(round(2.0 / dt))):
+        sim.step()
+        assert sim.energy()["total"] <= e0 + 1e-9
+    assert sim.cg_failures == 0
+
+
+@pytest.mark.parametrize("path", PATHS)
+def test_bdf2_restart_continues_bitwise(path):
+    model = random_system(3)
+    whole = simulation(model, path, integrator="bdf2", dt=2e-3).step(12)
+    part = simulation(model, path, integrator="bdf2", dt=2e-3).step(5)
+    x, v, carried = part.positions, part.velocities, part.carried_state()
+    assert set(carried) == {"x_prev", "v_prev", "ready"} and carried["ready"].all()
+    part.close()
+    rest = simulation(model, path, integrator="bdf2", dt=2e-3).set_state(x, v, steps=5, carried=carried).step(7)
+    assert np.array_equal(rest.positions, whole.positions) and np.array_equal(rest.velocities, whole.velocities)
+    cold = simulation(model, path, integrator="bdf2", dt=2e-3).set_state(x, v, steps=5).step(7)
+    assert not np.array_equal(cold.positions, whole.positions)  # without its history it restarts with backward Euler
+
+
+def test_newton_options_are_validated_and_reported():
+    model = random_system(2)
+    for kwargs, word in (({"newton_tol": 0.0}, "newton_tol"), ({"newton_tol": 1.5}, "newton_tol"),
+                         ({"newton_max_iter": 0}, "newton_max_iter"), ({"newton_max_iter": 2.5}, "newton_max_iter")):
+        with pytest.raises(ValueError, match=word):
+            ms.Simulation(model, "backward-euler", **kwargs)
+    sim = ms.Simulation(model, "bdf2", dt=1e-2, newton_tol=1e-6, newton_max_iter=1)
+    sim.step(3)
+    assert sim.newton_iterations == [1, 1, 1] and sim.cg_failures == 3
+    assert sim.solver_stats.reason == "max_newton" and not sim.solver_stats.converged
+    info = sim.info()
+    assert info["newton"] and info["preconditioner"] == "block-jacobi"
+    assert math.isfinite(sim.solver_stats.newton_residual)

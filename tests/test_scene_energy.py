@@ -1,0 +1,52 @@
+"""Every shipped scene's default run never gains energy it was not given.
+
+The total energy (kinetic + spring + gravity, ``Model.energy``) of a scene run at its
+default integrator and dt, for its whole default duration, never rises above its start
+plus the work done on it from outside: by moving pins (the constraint force on a
+pin, minus the other forces on it, times its velocity) and by the wind (the drag
+force's part c wind . v; its other part -c |v|^2 only dissipates). Both works are
+integrated with the trapezoidal rule over the steps, and the bound allows that
+rule's error (a tenth of the work so far) plus round-off.
+"""
+
+import numpy as np
+import pytest
+
+from massspring.scene import builtin_scenes, load_scene
+from conftest import numpy_forces
+
+CONTACT_GAIN = pytest.mark.xfail(strict=True, reason=(
+    "known limitation of the contact model (kernels/contact.py), whatever the integrator: a particle that "
+    "meets a collider within a large step is moved onto its surface along the normal, stretching its springs "
+    "at the impact: drape +8.4 J (implicit) / +7.4 J (backward-euler) at dt 1/60, none at dt 0.004; "
+    "rope-drop +3.7 J / +1.8 J at dt 0.005"))
+SIZES = {"cloth": {"resolution": 24}, "drape": {"resolution": 16}, "tablecloth": {"resolution": 16},
+         "flag": {"resolution": 16}, "swing": {"resolution": 16}}  # smaller grids: the same physics, faster
+
+
+def external_power(model, x, v):
+    """Power (W) put in by moving pins and the wind at the state (x, v)."""
+    power = model.drag * float(np.sum(v @ model.wind))
+    if model.has_moving_pins:
+        pins = model.fixed
+        power -= float(np.sum(numpy_forces(model, x, v)[pins] * model.pin_velocity))
+    return power
+
+
+@pytest.mark.parametrize("name", [pytest.param(n, marks=CONTACT_GAIN) if n in ("drape", "rope-drop") else n
+                                  for n in sorted(builtin_scenes())])
+def test_default_run_never_gains_energy(name):
+    scene = load_scene(name).with_params(**SIZES.get(name, {}))
+    sim = scene.simulation()
+    model = sim.model
+    e0 = sim.energy()["total"]
+    work, power = 0.0, external_power(model, model.positions, model.velocities)
+    scale = abs(e0) + float(np.sum(model.masses)) * 9.81
+    for _ in range(int(round(scene.duration / sim.dt))):
+        sim.step()
+        x, v = sim.positions, sim.velocities
+        after = external_power(model, x, v)
+        work += 0.5 * sim.dt * (power + after)
+        power = after
+        gain = sim.energy()["total"] - e0
+        assert gain <= max(work, 0.0) * 1.1 + 1e-9 * scale, (sim.time, gain, work)
