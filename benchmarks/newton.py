@@ -62,6 +62,12 @@ def forces(model, x, v):
     return f
 
 
+def newton_cells(row):
+    """The Newton columns (mean, max) of a table row, blank for the linearised step."""
+    cells = "" if row["newton_mean"] is None else f"{row['newton_mean']:7.2f} {row['newton_max']:4d}"
+    return f"{cells:>12s}"
+
+
 def energy_table():
     rows = []
     scene = ms.load_scene("stiffchain")
@@ -81,9 +87,8 @@ def energy_table():
     print("stiffchain, 2 s: energy above the start (J)")
     print(f"{'dt':>6s}  {'integrator':15s} {'max gain':>10s} {'end':>10s} {'wall s':>7s} {'Newton':>7s} {'max':>4s} {'fail':>4s}")
     for r in rows:
-        newton = "" if r["newton_mean"] is None else f"{r['newton_mean']:7.2f} {r['newton_max']:4d}"
         print(f"{r['dt']:6g}  {r['integrator']:15s} {r['max_gain_J']:10.3g} {r['end_J']:10.3g} {r['wall_s']:7.2f} "
-              f"{newton:>12s} {r['not_converged']:4d}")
+              f"{newton_cells(r)} {r['not_converged']:4d}")
     return rows
 
 
@@ -177,8 +182,7 @@ def cloth_table(resolution, steps):
     print(f"\ncloth {resolution} x {resolution}, dt 1/60, ks 1e4, multigrid, {steps} steps after the first")
     print(f"  {'integrator':15s} {'ms/step':>9s} {'ratio':>6s} {'Newton':>7s} {'max':>4s} {'CG/step':>8s} {'fail':>4s}")
     for r in rows:
-        newton = "" if r["newton_mean"] is None else f"{r['newton_mean']:7.2f} {r['newton_max']:4d}"
-        print(f"  {r['integrator']:15s} {r['median_ms']:9.1f} {r['ratio_to_implicit']:6.2f} {newton:>12s} "
+        print(f"  {r['integrator']:15s} {r['median_ms']:9.1f} {r['ratio_to_implicit']:6.2f} {newton_cells(r)} "
               f"{r['cg_per_step']:8.1f} {r['not_converged']:4d}")
     return rows
 

@@ -124,18 +124,13 @@ def make_simulation(args):
     except ValueError as exc:
         raise UsageError(str(exc)) from None
     integrator = args.integrator or scene.integrator
-    if not INTEGRATORS[integrator].linear_solver:
-        given = [option for option, key in SOLVER_OPTIONS.items() if key in options]
-        if given:
-            raise UsageError(f"{'/'.join(given)}: {integrator} solves no linear system; "
+    for flags, needs, lacks in ((SOLVER_OPTIONS, "linear_solver", "solves no linear system"),
+                                (NEWTON_OPTIONS, "newton", "takes no Newton iterations")):
+        given = [option for option, key in flags.items() if key in options]
+        if given and not getattr(INTEGRATORS[integrator], needs):
+            raise UsageError(f"{'/'.join(given)}: {integrator} {lacks}; "
                              f"{'these options are' if len(given) > 1 else 'this option is'} for "
-                             + ", ".join(k for k, cls in INTEGRATORS.items() if cls.linear_solver))
-    if not INTEGRATORS[integrator].newton:
-        given = [option for option, key in NEWTON_OPTIONS.items() if key in options]
-        if given:
-            raise UsageError(f"{'/'.join(given)}: {integrator} takes no Newton iterations; "
-                             f"{'these options are' if len(given) > 1 else 'this option is'} for "
-                             + ", ".join(k for k, cls in INTEGRATORS.items() if cls.newton))
+                             + ", ".join(k for k, cls in INTEGRATORS.items() if getattr(cls, needs)))
     with progress.phase(f"{args.command} {scene.name}: building the model and the simulation",
                         show=not getattr(args, "quiet", False)):
         sim = scene.simulation(integrator=args.integrator, dt=args.dt, precision=args.precision, arch=args.arch,

@@ -170,3 +170,21 @@ def test_newton_options_are_validated_and_reported():
     info = sim.info()
     assert info["newton"] and info["preconditioner"] == "block-jacobi"
     assert math.isfinite(sim.solver_stats.newton_residual)
+
+
+def test_cli_newton_options(capsys):
+    """--newton-* reach the solver and its summary, are checked by name, and are refused by an
+    integrator that takes no Newton iterations."""
+    from massspring.cli import main
+    from conftest import one_line_error
+
+    assert main(["run", "stiffchain", "--set", "count=6", "--steps", "3", "--newton-tol", "1e-6",
+                 "--newton-max-iter", "40", "--quiet"]) == 0
+    out = capsys.readouterr().out
+    assert "Newton " in out and "(tol 1e-06)" in out
+    assert main(["run", "spring", "--integrator", "implicit", "--newton-tol", "1e-3", "--quiet"]) == 2
+    one_line_error(capsys, "--newton-tol", "takes no Newton iterations", "backward-euler, bdf2")
+    assert main(["run", "stiffchain", "--newton-tol", "1.5", "--quiet"]) == 2
+    one_line_error(capsys, "--newton-tol")
+    assert main(["run", "stiffchain", "--newton-max-iter", "0", "--quiet"]) == 2
+    one_line_error(capsys, "--newton-max-iter")

@@ -117,6 +117,8 @@ class BackwardEuler(ImplicitEuler):
             norms.append(norm)
             floor = max(floor, ROUNDOFF * eps * math.sqrt(scale2))
             if tried == 0 and moved2 <= s.newton_tol**2 * change2:
+                if moved2 == 0.0 and not last.converged:
+                    reason = last.reason  # CG could not move v (indefinite, stalled): nor can Newton
                 break  # a full Newton step this small: what is left is smaller still
         if not math.isfinite(norm):
             reason = "non-finite"
