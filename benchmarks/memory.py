@@ -20,12 +20,14 @@ import resource
 import subprocess
 import sys
 import time
+from pathlib import Path
 
 from massspring.io.files import write_json
 import output
 
 CASES = [("cloth", "resolution", 150), ("cloth", "resolution", 300), ("chain", "count", 40000),
          ("chain", "count", 160000), ("cube", "resolution", 25), ("cube", "resolution", 40)]
+ROOT = Path(__file__).resolve().parent.parent  # the repository: messages name files relative to it
 SOLVERS = [("explicit", None), ("implicit", "block-jacobi"), ("implicit", "multigrid")]
 
 
@@ -92,7 +94,7 @@ def refusal(resolution, ulimit_kb):
                             preexec_fn=limit)
     _, status, usage = os.wait4(proc.pid, 0)
     wall = time.perf_counter() - t0
-    stderr = proc.stderr.read().decode().strip()
+    stderr = proc.stderr.read().decode().strip().replace(f"{ROOT}/", "")  # paths relative to the repository
     return {"resolution": resolution, "ulimit_kb": ulimit_kb, "exit": os.waitstatus_to_exitcode(status),
             "wall_s": wall, "peak_rss_bytes": usage.ru_maxrss * 1024, "message": stderr.splitlines()[-1:]}
 

@@ -47,6 +47,7 @@ class BackwardEuler(ImplicitEuler):
     order = 1
     description = "backward Euler solved by Newton's method with a line search (CG per iteration)"
     newton = True
+    carries = False  # whether a step's commit keeps the state it replaces (BDF2's history)
     ladder_without_fix = False
     extra_bytes = 7 * 24  # xb, vb, xk, vk, dir, res and a contact's carrier: f64 3-vectors
 
@@ -139,8 +140,6 @@ class BackwardEuler(ImplicitEuler):
         self.steps += code == divergence.OK
         self.after_step(code == divergence.OK, touching)
         return int(code == divergence.OK), code, float(kinetic)
-
-    carries = False
 
     def after_step(self, accepted, touching):
         """Hook after a step (BDF2 records whether it has a history to use)."""
