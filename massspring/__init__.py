@@ -12,9 +12,10 @@ os.environ.setdefault("ENABLE_TAICHI_HEADER_PRINT", "0")
 from massspring.errors import DivergenceError, SimulationClosedError  # noqa: E402
 from massspring.model import Model  # noqa: E402
 from massspring.colliders import Box, Plane, Sphere  # noqa: E402
+from massspring.self_collision import SelfCollision  # noqa: E402
 from massspring.scene import Scene, SceneError, load_scene  # noqa: E402
 from massspring.simulation import Simulation, run  # noqa: E402
 
-__all__ = ["Model", "Plane", "Sphere", "Box", "Simulation", "run", "Scene", "SceneError", "load_scene", "DivergenceError",
-           "SimulationClosedError"]
+__all__ = ["Model", "Plane", "Sphere", "Box", "SelfCollision", "Simulation", "run", "Scene", "SceneError", "load_scene",
+           "DivergenceError", "SimulationClosedError"]
 __version__ = "0.2.0"

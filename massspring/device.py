@@ -42,7 +42,7 @@ from massspring.kernels.contact import collider_arrays, collider_groups
 from massspring.kernels.terms import active_terms
 
 REAL = {"f32": ti.f32, "f64": ti.f64}
-_NUMPY = {ti.f32: np.float32, ti.f64: np.float64, ti.i32: np.int32}
+_NUMPY = {ti.f32: np.float32, ti.f64: np.float64, ti.i32: np.int32, ti.i64: np.int64}
 ARCHS = ("cpu", "gpu", "cuda", "vulkan", "metal", "opengl", "x64", "arm64")
 CPU_ARCHS = ("cpu", "x64", "arm64")
 PARTICLE_FLOOR = 4096   # smallest particle capacity

@@ -239,7 +239,7 @@ def pins_in_box(vertices, pin_box):
 
 def mesh_arguments(vertices, faces, *, density=None, mass=None, stiffness=1e4, damping=0.0, bend=0.1, shear=1.0,
                    fixed=None, pin_box=None, gravity=(0.0, 0.0, -9.81), velocities=None, colliders=(), drag=0.0,
-                   wind=(0.0, 0.0, 0.0), pin_velocity=None):
+                   wind=(0.0, 0.0, 0.0), pin_velocity=None, self_collision=None):
     """The keyword arguments of :class:`Model` for a mesh (see ``model_from_mesh``)."""
     x = real_array("vertices", vertices)
     if x.ndim != 2 or x.shape[1] != 3 or x.shape[0] < 3:
@@ -268,7 +268,7 @@ def mesh_arguments(vertices, faces, *, density=None, mass=None, stiffness=1e4, d
                 stiffness=_number("stiffness", stiffness, 0.0, ">=") * factor,
                 damping=_number("damping", damping, 0.0, ">=") * factor, gravity=gravity,
                 fixed=pins, triangles=triangles, velocities=velocities, colliders=colliders, drag=drag, wind=wind,
-                pin_velocity=pin_velocity)
+                pin_velocity=pin_velocity, self_collision=self_collision)
 
 
 def model_from_mesh(vertices, faces, **parameters) -> Model:

@@ -102,8 +102,8 @@ class Model:
     fixed : None, indices (k,) int, or a bool mask (n,)
         Pinned particles: their velocity is exactly their pin velocity (0 by default) at all times.
     triangles : None or (t, 3) int
-        Surface triangles (particle indices) for drawing; the physics never reads
-        them. Empty when None.
+        Surface triangles (particle indices) for drawing, and for self-collision
+        when it is on (otherwise the physics never reads them). Empty when None.
     colliders : sequence of ``massspring.Plane``, ``Sphere``, ``Box``
         Obstacles the particles cannot enter (at most 31); stored as a tuple.
     drag : float, N s/m, >= 0
@@ -115,6 +115,9 @@ class Model:
         entry of ``fixed`` in the order given (ascending indices for a mask); zero
         if None. Stored in the order of the stored ``fixed`` (sorted); a pinned
         particle's initial velocity is its pin velocity.
+    self_collision : None or ``massspring.SelfCollision``
+        Keeps the mesh of ``triangles`` from passing through itself (needs triangles);
+        None: off.
 
     All arrays are stored as read-only float64/int64 copies under the constructor's
     argument names; ``fixed`` is stored as sorted unique indices. Numbers must be
@@ -136,10 +139,11 @@ class Model:
     drag: float
     wind: np.ndarray
     pin_velocity: np.ndarray
+    self_collision: object
 
     def __init__(self, positions, springs, masses=1.0, stiffness=1e3, damping=0.0,
                  rest_lengths=None, velocities=None, gravity=(0.0, 0.0, -9.81), fixed=None, triangles=None,
-                 colliders=(), drag=0.0, wind=(0.0, 0.0, 0.0), pin_velocity=None):
+                 colliders=(), drag=0.0, wind=(0.0, 0.0, 0.0), pin_velocity=None, self_collision=None):
         x = real_array("positions", positions)
         if x.ndim != 2 or x.shape[1] != 3 or x.shape[0] < 1:
             raise ValueError(f"positions: expected shape (n, 3) with n >= 1, got shape {x.shape}")
@@ -208,6 +212,7 @@ class Model:
             object.__setattr__(self, name, _readonly(np.ascontiguousarray(value)))
         object.__setattr__(self, "drag", float(air))
         object.__setattr__(self, "colliders", _colliders(colliders))
+        object.__setattr__(self, "self_collision", _self_collision(self_collision, tris))
 
     @classmethod
     def from_mesh(cls, vertices, faces, **parameters) -> "Model":
@@ -229,6 +234,9 @@ class Model:
             digest.update(f"{name}:{arr.dtype.str}:{arr.shape}".encode())
             digest.update(arr.tobytes())
         digest.update(repr(self.colliders).encode())  # frozen dataclasses of floats: repr is exact
+        if self.self_collision is not None:  # the triangles then take part in the physics
+            digest.update(repr(self.self_collision).encode())
+            digest.update(self.triangles.astype(np.int64).tobytes())
         return digest.hexdigest()
 
     @property
@@ -260,6 +268,10 @@ class Model:
     @property
     def has_colliders(self) -> bool:
         return len(self.colliders) > 0
+
+    @property
+    def has_self_collision(self) -> bool:
+        return self.self_collision is not None
 
     @property
     def has_drag(self) -> bool:
@@ -330,6 +342,19 @@ def _pin_velocities(pin_velocity, fixed, fixed_idx):
         raise ValueError(f"pin_velocity: particle {given[clash[0]]} is listed in fixed more than once "
                          "with different velocities")
     return out
+
+
+def _self_collision(value, triangles):
+    from massspring.self_collision import SelfCollision  # self_collision.py reads this module's checks
+
+    if value is None:
+        return None
+    if not isinstance(value, SelfCollision):
+        raise ValueError(f"self_collision: expected a massspring.SelfCollision or None, got {_describe(value)}")
+    if len(triangles) == 0:
+        raise ValueError("self_collision: needs the model's triangles (a mesh, a grid or a cloth generator, or "
+                         "triangles=...); this model has none")
+    return value
 
 
 def _colliders(colliders):

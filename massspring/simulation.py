@@ -7,7 +7,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from massspring import memory, validate
+from massspring import memory, self_collision, validate
 from massspring.colliders import COLLIDERS
 from massspring.device import ARCHS, CPU_ARCHS, POOL, ensure_taichi, model_layout
 from massspring.errors import DivergenceError, SimulationClosedError
@@ -178,15 +178,20 @@ class Simulation:
 
         cls = INTEGRATORS[integrator]
         memory.check(memory.run_bytes(model.n_particles, model.n_springs, preconditioner if cls.linear_solver else None,
-                                      model_built=True, extra=cls.extra_bytes),
+                                      model_built=True,
+                                      extra=cls.extra_bytes + self_collision.PASS_BYTES * model.has_self_collision),
                      f"model: {model.n_particles:,} particles and {model.n_springs:,} springs; a run of it ({integrator})")
         layout = model_layout(model, precision)
         cls.declare(layout, model, self._settings)
+        if model.has_self_collision:
+            self_collision.declare(layout, model)
         self._layout_names = [name for name in layout.decls if name not in ("size", "check", "partial")]
         self._bytes = layout.nbytes()
         dev = layout.allocate()
         dev.check[None] = self._check
         self._integrator = cls(dev, model, self._settings)
+        self._guard = (self_collision.Pass(dev, self._integrator.cfg, model, self._integrator.serial)
+                       if model.has_self_collision else None)
         self._release = weakref.finalize(self, _release, dev, self._integrator)
 
     # ------------------------------------------------------------------ settings
@@ -332,7 +337,7 @@ class Simulation:
         """
         integrator = self._open()
         n = validate.count("n", n, low=0, high=2**62)
-        if not integrator.has_stats:
+        if not integrator.has_stats and self._guard is None:
             while n:
                 chunk = min(n, STEPS_PER_LAUNCH)
                 done, code, kinetic = integrator.advance(chunk)
@@ -341,7 +346,15 @@ class Simulation:
                 n -= chunk
             return self
         for _ in range(n):
+            if self._guard is not None:
+                self._guard.begin(integrator.state)
             done, code, kinetic = integrator.advance(1)
+            if done and self._guard is not None:
+                self._guard.end(integrator.state, self.dt)
+            if not integrator.has_stats:
+                self._steps += done
+                self._raise_if_diverged(code, kinetic)
+                continue
             stats = integrator.stats
             if done:
                 self._steps += 1
@@ -379,6 +392,8 @@ class Simulation:
         if self._model.has_colliders:
             kinds = sorted({c.kind for c in self._model.colliders}, key=list(COLLIDERS).index)
             terms.append("contact (" + ", ".join(kinds) + ")")
+        if self._model.has_self_collision:
+            terms.append("self-collision")
         out = {"integrator": self.integrator, "precision": self.precision, "dt": self.dt,
                "particles": self._model.n_particles, "springs": self._model.n_springs,
                "terms": terms, "arrays": list(self._layout_names), "loops": self.loops,

@@ -28,7 +28,8 @@ PARAMETERS = {
               "gravity": [0.0, 0.0, -9.81], "mass_ratio": 1.0, "rest_scale": 1.0, "spread": 1.0, "pin": "end"},
     "grid": {"resolution": 32, "size": 1.0, "mass": 1.0, "stiffness": 1e4, "damping": 0.0,
              "shear": 1.0, "bend": 0.1, "pin": "corners", "gravity": [0.0, 0.0, -9.81],
-             "compress": 1.0, "crumple": 0.0, "seed": 0, "upright": False},
+             "compress": 1.0, "crumple": 0.0, "seed": 0, "upright": False, "layers": 1,
+             "spacing": 0.1, "turn": 0.0},
     "lattice": {"resolution": 6, "size": 0.5, "mass": 1.0, "stiffness": 2e4, "damping": 0.0,
                 "squash": 0.8, "spin": 2.0, "gravity": [0.0, 0.0, -9.81]},
 }
@@ -79,7 +80,7 @@ def chain(count, length, mass, stiffness, damping, gravity, mass_ratio=1.0, rest
 
 
 def grid(resolution, size, mass, stiffness, damping, shear, bend, pin, gravity,
-         compress=1.0, crumple=0.0, seed=0, upright=False):
+         compress=1.0, crumple=0.0, seed=0, upright=False, layers=1, spacing=0.1, turn=0.0):
     """A square cloth of resolution x resolution particles in the z = 0 plane (``upright``:
     in the y = 0 plane, its y running up as z, like a flag), with structural, shear (diagonal)
     and bend (skip-one) springs. ``shear`` and ``bend`` scale their stiffness and
@@ -92,8 +93,17 @@ def grid(resolution, size, mass, stiffness, damping, shear, bend, pin, gravity,
     middle (0.5: half the rest size, every spring compressed); ``crumple`` in [0, 1]
     blends each particle towards a uniformly random point of a cube of side
     ``size * compress`` (1: fully crumpled; pinned particles stay put), drawn from a
-    generator seeded by ``seed``."""
+    generator seeded by ``seed``.
+
+    ``layers`` sheets (>= 1), each a copy of the first raised by ``spacing`` (m) along
+    the sheet's normal and turned by ``turn`` degrees more than the one below about the
+    normal through the sheet's centre; pins hold the first (lowest) sheet only; ``mass``
+    is each sheet's."""
     _at_least("resolution", resolution, 2)
+    _at_least("layers", layers, 1)
+    _positive("spacing", spacing)
+    if not isinstance(turn, (int, float)) or isinstance(turn, bool) or not np.isfinite(turn):
+        raise ValueError(f"turn: expected a finite number of degrees, got {turn!r}")
     _positive("size", size)
     _positive("mass", mass)
     _positive("compress", compress)
@@ -127,11 +137,29 @@ def grid(resolution, size, mass, stiffness, damping, shear, bend, pin, gravity,
              "side": list(idx[:, 0])}[pin]
     x[fixed] = flat[fixed]  # pins are not crumpled
     rest_lengths = np.linalg.norm(rest[springs[:, 1]] - rest[springs[:, 0]], axis=1)
+    triangles = _cell_triangles(idx)
+    if layers > 1:
+        x, springs, factor, rest_lengths, triangles = _stack(x, springs, factor, rest_lengths, triangles,
+                                                            [size / 2, size / 2], layers, spacing, turn)
     if upright:
         x = x[:, [0, 2, 1]]  # (x, y, z) -> (x, z, y): the cloth stands in the y = 0 plane
     return dict(positions=x, springs=springs, masses=mass / (r * r), stiffness=stiffness * factor,
                 damping=damping * factor, rest_lengths=rest_lengths, gravity=gravity,
-                fixed=np.array(fixed, dtype=np.int64), triangles=_cell_triangles(idx))
+                fixed=np.array(fixed, dtype=np.int64), triangles=triangles)
+
+
+def _stack(x, springs, factor, rest_lengths, triangles, centre, layers, spacing, turn):
+    """``layers`` copies of a sheet in the z = 0 plane, copy k raised by k spacing and
+    turned by k turn degrees about the vertical through ``centre`` (x, y)."""
+    n, centre = len(x), np.array([*centre, 0.0])
+    copies = []
+    for k in range(layers):
+        angle = np.radians(k * turn)
+        rotation = np.array([[np.cos(angle), -np.sin(angle), 0], [np.sin(angle), np.cos(angle), 0], [0, 0, 1]])
+        copies.append(centre + (x - centre) @ rotation.T + [0.0, 0.0, k * spacing])
+    return (np.concatenate(copies), np.concatenate([springs + k * n for k in range(layers)]),
+            np.tile(factor, layers), np.tile(rest_lengths, layers),
+            np.concatenate([triangles + k * n for k in range(layers)]))
 
 
 def lattice(resolution, size, mass, stiffness, damping, squash, spin, gravity):
@@ -205,7 +233,8 @@ def counts(generator, params):
         springs = 2 * r * max(r - 1, 0)
         springs += 2 * max(r - 1, 0) ** 2 if params["shear"] > 0 else 0
         springs += 2 * r * max(r - 2, 0) if params["bend"] > 0 else 0
-        return r * r, springs
+        layers = max(int(params.get("layers", 1)), 1)
+        return layers * r * r, layers * springs
     r = max(int(params["resolution"]), 0)
     return r ** 3, sum(int(np.prod([max(r - abs(o), 0) for o in offset])) for offset in _neighbour_offsets())
 

@@ -42,6 +42,9 @@ Contact, pins and air (optional; ``COMMON_KEYS`` work with every generator and `
     index = -1                       # particle index; negative counts from the end
     velocity = [0.5, 0.0, 0.0]       # m/s (default 0)
 
+    [self_collision]                 # the mesh never passes through itself (massspring.SelfCollision)
+    thickness = 0.005                # m; optional: friction, stiffness (N/m)
+
     [[collider]]                     # repeatable; the fields of massspring.Plane/Sphere/Box
     type = "sphere"                  # "plane" | "sphere" | "box"
     center = [0.5, 0.5, -0.4]
@@ -68,6 +71,7 @@ import numpy as np
 from massspring import memory, mesh, validate
 from massspring import solvers as preconditioners
 from massspring.colliders import COLLIDERS
+from massspring.self_collision import PASS_BYTES, SelfCollision
 from massspring.integrators import INTEGRATORS
 from massspring.io.camera import DEFAULT_FRAMING, FRAMINGS, View
 from massspring.model import Model
@@ -82,7 +86,8 @@ class SceneError(ValueError):
 MAX_FLOAT = sys.float_info.max
 SIZE_KEYS = {"chain": ("count",), "grid": ("resolution",), "lattice": ("resolution",)}
 TOP_KEYS = {"description": str, "integrator": str, "duration": float, "dt": dict, "model": dict,
-            "solver": dict, "view": dict, "particles": dict, "springs": dict, "collider": list, "pin": list}
+            "solver": dict, "view": dict, "particles": dict, "springs": dict, "collider": list, "pin": list,
+            "self_collision": dict}
 # [solver]: Simulation arguments of the implicit integrator a scene may set (the CLI's
 # options and the API's arguments override them).
 SOLVER_KEYS = {"preconditioner": str, "cg_tol": float, "cg_max_iter": int, "definiteness_fix": bool,
@@ -126,7 +131,8 @@ class Scene:
     ``tables``: the [particles] and [springs] tables (hand-made form); ``solver``: its
     [solver] table (checked Simulation arguments); ``common``: the ``COMMON_KEYS``
     (defaults filled in); ``colliders``: its [[collider]] tables as
-    ``massspring.Plane``/``Sphere``/``Box``; ``pins``: its [[pin]] tables as
+    ``massspring.Plane``/``Sphere``/``Box``; ``self_collision``: its [self_collision]
+    table as a ``massspring.SelfCollision`` (None without one); ``pins``: its [[pin]] tables as
     (index, velocity) pairs; ``set_keys``: the [model] keys changed by ``with_settings``
     (``--set``), which errors found when the model is built then name instead of the file."""
 
@@ -147,6 +153,7 @@ class Scene:
     common: dict = field(default_factory=lambda: dict(COMMON_KEYS))
     colliders: tuple = ()
     pins: tuple = ()
+    self_collision: object = None
     set_keys: tuple = ()
     _suggested: dict = field(default_factory=dict, repr=False, compare=False)
 
@@ -259,7 +266,8 @@ class Scene:
         """The Model arguments of ``common``, ``pins`` and ``colliders`` for a form's ``args``:
         its pins move with ``pin_velocity``; each [[pin]] pins its particle (one already
         pinned too) with its own velocity."""
-        air = {"drag": self.common["drag"], "wind": self.common["wind"], "colliders": self.colliders}
+        air = {"drag": self.common["drag"], "wind": self.common["wind"], "colliders": self.colliders,
+               "self_collision": self.self_collision}
         if not self.pins and not any(self.common["pin_velocity"]):
             return air  # the form's own pins, left to the Model to check
         n = len(np.asarray(args["positions"]))
@@ -300,6 +308,7 @@ class Scene:
         if INTEGRATORS.get(integrator) is not None and INTEGRATORS[integrator].linear_solver:
             solver = preconditioners.resolve_for_count(options.get("preconditioner", "auto"), particles)
         extra = INTEGRATORS[integrator].extra_bytes if integrator in INTEGRATORS else 0
+        extra += PASS_BYTES if self.self_collision is not None else 0
         self.check_memory(memory.run_bytes(particles, springs, solver, extra=extra), particles, springs,
                           f"a run of it ({integrator}{f', {solver}' if solver else ''})")
         dt = self.default_dt(integrator) if dt is None else dt
@@ -353,7 +362,8 @@ def parse_scene(data: dict, name: str, source: str) -> Scene:
     pins = tuple(_pin(k, table, source) for k, table in enumerate(data.get("pin", [])))
     scene = Scene(name=name, source=source, description=data.get("description", ""), integrator=integrator,
                   duration=duration, dt=dt, generator=None, view=view, framing=framing, solver=_solver(data, source),
-                  form=_form(data, source), colliders=colliders, pins=pins)
+                  form=_form(data, source), colliders=colliders, pins=pins,
+                  self_collision=_self_collision(data.get("self_collision"), source))
     model = dict(data.get("model", {}))
     if scene.form == "generator":
         generator = model.pop("generator")
@@ -407,6 +417,22 @@ def _collider(k, table, source):
         return cls(**fields)
     except ValueError as exc:
         raise SceneError(f"{where}.{exc}") from None
+
+
+def _self_collision(table, source):
+    """The [self_collision] table as a ``massspring.SelfCollision`` (None without one)."""
+    if table is None:
+        return None
+    names = [f.name for f in dataclasses.fields(SelfCollision)]
+    for key in table:
+        if key not in names:
+            raise SceneError(f"{source}: self_collision.{key}: unknown key (expected {', '.join(names)})")
+    if "thickness" not in table:
+        raise SceneError(f"{source}: self_collision.thickness: missing (m: how close the mesh may come to itself)")
+    try:
+        return SelfCollision(**table)
+    except ValueError as exc:
+        raise SceneError(f"{source}: self_collision.{exc}") from None
 
 
 def _pin(k, table, source):

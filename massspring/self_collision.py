@@ -1,0 +1,140 @@
+"""Self-collision of a model's triangle mesh: its settings and the mesh's edges.
+
+``SelfCollision(thickness, friction=0.0, stiffness=None)`` turns it on:
+``Model(..., triangles=..., self_collision=SelfCollision(0.005))``, or a scene's
+``[self_collision]`` table with the same fields. Fields:
+
+* ``thickness`` (m, > 0): pairs of the mesh closer than this repel each other;
+* ``friction``: the Coulomb coefficient mu >= 0 between touching parts of the mesh;
+* ``stiffness`` (N/m, > 0, or None: the median spring stiffness of the model): the
+  repulsion spring that pushes a pair closer than ``thickness`` apart.
+
+A frozen dataclass validated in its constructor; a bad field raises ``ValueError``
+naming it. What a step does with it is in ``kernels/self_collision.py``: the guarantee
+is that a step which starts with no edge of the mesh through a triangle it shares
+no vertex with ends with none either (pinned particles held still).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from massspring.model import real_array
+
+
+def _number(name, value, allow_none=False):
+    if value is None and allow_none:
+        return None
+    arr = real_array(name, value)
+    if arr.shape != ():
+        raise ValueError(f"{name}: expected a number, got shape {arr.shape}")
+    return float(arr)
+
+
+@dataclass(frozen=True)
+class SelfCollision:
+    """Self-collision of the mesh: ``thickness`` (m), ``friction`` (mu), ``stiffness``
+    (N/m, None: the model's median spring stiffness). See the module docstring."""
+
+    thickness: float
+    friction: float = 0.0
+    stiffness: float | None = None
+
+    def __post_init__(self):
+        thickness = _number("thickness", self.thickness)
+        if not thickness > 0:
+            raise ValueError(f"thickness: must be > 0 (m), got {thickness:g}")
+        friction = _number("friction", self.friction)
+        if friction < 0:
+            raise ValueError(f"friction: must be >= 0, got {friction:g}")
+        stiffness = _number("stiffness", self.stiffness, allow_none=True)
+        if stiffness is not None and not stiffness > 0:
+            raise ValueError(f"stiffness: must be > 0 (N/m) or None, got {stiffness:g}")
+        object.__setattr__(self, "thickness", thickness)
+        object.__setattr__(self, "friction", friction)
+        object.__setattr__(self, "stiffness", stiffness)
+
+    def repulsion_stiffness(self, model) -> float:
+        """``stiffness``, or the median spring stiffness of ``model`` (1 N/m without springs)."""
+        if self.stiffness is not None:
+            return self.stiffness
+        positive = model.stiffness[model.stiffness > 0]
+        return float(np.median(positive)) if positive.size else 1.0
+
+
+def mesh_edges(triangles) -> np.ndarray:
+    """(e, 2) int64: the distinct edges of ``triangles`` ((t, 3) particle indices), each
+    as (low, high) index, sorted."""
+    tris = np.asarray(triangles, dtype=np.int64).reshape(-1, 3)
+    pairs = np.concatenate([tris[:, [0, 1]], tris[:, [1, 2]], tris[:, [2, 0]]])
+    pairs.sort(axis=1)
+    return np.unique(pairs, axis=0) if len(pairs) else np.zeros((0, 2), dtype=np.int64)
+
+
+PAIRS_PER_PARTICLE = 64  # the pair list's capacity per particle (capacity class); beyond it the pass sweeps again
+PAIR_BYTES = 16 + 4 * 8 + 4  # a listed pair: 4 particles, 4 weights (f64), its kind
+# Bytes per particle of the pass's fields (``declare``), for ``memory.run_bytes``: start, scale,
+# impulses, hits, hash items (24 + 8 + 24 + 4 + 4); about 2 triangles (12 B) and 3 edges (8 + 4 B
+# each, two hash tables of 8 B per slot, 2 slots per edge); the pair list.
+PASS_BYTES = 64 + 2 * 12 + 3 * (12 + 2 * 2 * 8) + PAIRS_PER_PARTICLE * PAIR_BYTES
+
+
+def declare(layout, model):
+    """Declare the fields of ``kernels/self_collision.py`` for ``model`` in ``layout`` (a
+    ``device.Layout``): its triangles and edges (capacity classes like the springs'), the
+    step's start positions, bounds, impulses and two hash tables of twice the edge capacity."""
+    import taichi as ti
+
+    from massspring.device import capacity
+
+    tris = model.triangles.astype(np.int32)
+    edges = mesh_edges(model.triangles).astype(np.int32)
+    tri_cap, edge_cap = capacity(len(tris), 8192), capacity(len(edges), 12288)
+    size = 2 * edge_cap  # the tables' capacity; the hash uses 2 slots per edge (sc_count[2])
+    layout.vectors("sc_tris", ti.i32, tri_cap, values=tris)
+    layout.vectors("sc_edges", ti.i32, edge_cap, values=edges, k=2)
+    pairs = PAIRS_PER_PARTICLE * layout.counts["particle"]
+    layout.add("sc_count", ti.i32, 4, values=np.array([len(tris), len(edges), max(2 * len(edges), 16), pairs]))
+    layout.vectors("sc_pidx", ti.i32, pairs, k=4)
+    layout.vectors("sc_pw", layout.real, pairs, k=4)
+    layout.add("sc_pkind", ti.i32, pairs)
+    layout.vectors("sc_start", layout.real)
+    layout.add("sc_scale", layout.real, "particle")
+    layout.vectors("sc_dv", ti.i64)
+    layout.add("sc_hits", ti.i32, "particle")
+    for table, items in (("v", "particle"), ("e", edge_cap)):
+        layout.add(f"sc_{table}cell", ti.i32, size)
+        layout.add(f"sc_{table}first", ti.i32, size + 1)
+        layout.add(f"sc_{table}item", ti.i32, items)
+    layout.add("sc_box", ti.f64, 10)
+    layout.add("sc_tally", ti.i32, 4)
+
+
+class Pass:
+    """The self-collision pass of one simulation around each step of its integrator
+    (``kernels/self_collision.py``): ``begin(state)`` before the step, ``end(state, dt)``
+    after it; ``serial``: in serial loops, as the integrator runs (``Settings.loops``). ``last``: the last pass's (pairs within reach, pairs repelled, particles
+    held back, reach r in m, the smallest distance of a pair in m, whether the pairs
+    fitted the pair list)."""
+
+    def __init__(self, dev, cfg, model, serial):
+        self.dev, self.cfg, self.serial = dev, cfg, serial
+        sc = model.self_collision
+        self.parameters = (sc.thickness, sc.friction, sc.repulsion_stiffness(model))
+        self.last = (0, 0, 0, 0.0, math.inf, True)
+
+    def begin(self, state):
+        from massspring.kernels.self_collision import self_collision_begin
+
+        self_collision_begin(self.dev, state, self.serial)
+
+    def end(self, state, dt):
+        from massspring.kernels.self_collision import self_collision_bound, self_collision_detect
+
+        out = self_collision_detect(self.dev, self.cfg, state, dt, *self.parameters, self.serial)
+        fits = bool(out[5])
+        held = self_collision_bound(self.dev, self.cfg, state, dt, self.parameters[0], fits, self.serial)
+        self.last = (int(out[0]), int(out[1]), int(held), float(out[3]), float(out[4]), fits)

@@ -1,0 +1,263 @@
+"""Self-collision (massspring/self_collision.py, kernels/self_collision.py): the mesh never
+passes through itself, checked by a crossing counter written here in numpy (not the
+project's detection), the narrow phase against sampled distances, validation,
+determinism and restart."""
+
+import dataclasses
+import hashlib
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+import taichi as ti
+
+import massspring as ms
+from massspring.device import ensure_taichi
+from massspring.kernels import self_collision as kernels
+from massspring.self_collision import mesh_edges
+
+
+def crossings(x, triangles, edges):
+    """How many (edge, triangle) pairs without a common vertex cross: the segment meets the
+    triangle (Moller-Trumbore, both end points included)."""
+    a, b, c = x[triangles[:, 0]], x[triangles[:, 1]], x[triangles[:, 2]]
+    e1, e2 = b - a, c - a
+    count = 0
+    for i, j in edges:
+        d = x[j] - x[i]
+        h = np.cross(d, e2)
+        det = np.einsum("ij,ij->i", e1, h)
+        ok = np.abs(det) > 1e-300
+        f = np.where(ok, 1.0 / np.where(ok, det, 1.0), 0.0)
+        s = x[i] - a
+        u = f * np.einsum("ij,ij->i", s, h)
+        q = np.cross(s, e1)
+        v = f * (q @ d)
+        t = f * np.einsum("ij,ij->i", e2, q)
+        hit = ok & (u >= 0) & (v >= 0) & (u + v <= 1) & (t >= 0) & (t <= 1)
+        shared = (triangles == i).any(axis=1) | (triangles == j).any(axis=1)
+        count += int(np.sum(hit & ~shared))
+    return count
+
+
+def sheets(resolution=10, on=True):
+    scene = ms.load_scene("sheets").with_params(resolution=resolution)
+    return dataclasses.replace(scene, self_collision=scene.self_collision if on else None)
+
+
+def frames_crossings(sim, model, frames, steps):
+    edges = mesh_edges(model.triangles)
+    out = []
+    for _ in range(frames):
+        sim.step(steps)
+        out.append(crossings(sim.positions, model.triangles, edges))
+    return out
+
+
+def test_the_counter_sees_the_sheets_pass_through_each_other_without_self_collision():
+    scene = sheets(on=False)
+    model = scene.model()
+    sim = scene.simulation("implicit")
+    counts = frames_crossings(sim, model, 6, 40)
+    assert max(counts) > 20, counts
+
+
+@pytest.mark.parametrize("integrator, resolution, dt, frames, steps", [
+    ("implicit", 10, None, 6, 40), ("backward-euler", 10, None, 4, 50), ("bdf2", 10, None, 4, 50),
+    ("symplectic", 8, 1e-4, 3, 1000), ("explicit", 8, 1e-4, 3, 1000), ("rk4", 8, 2e-4, 3, 500)])
+def test_no_crossing_in_any_sampled_frame(integrator, resolution, dt, frames, steps):
+    scene = sheets(resolution)
+    model = scene.model()
+    sim = scene.simulation(integrator, dt=dt)
+    counts = frames_crossings(sim, model, frames, steps)
+    assert counts == [0] * frames
+    assert sim._guard.last[1] > 0  # pairs closer than the thickness: the upper sheet lies on the lower one
+
+
+def test_the_pass_keeps_pairs_apart_by_at_least_half_the_thickness():
+    scene = sheets()
+    sim = scene.simulation("implicit")
+    sim.step(200)
+    pairs, repelled, _, reach, closest, _ = sim._guard.last
+    assert pairs > 0 and repelled > 0
+    assert closest >= 0.5 * scene.self_collision.thickness * (1 - 1e-9)
+    assert reach > scene.self_collision.thickness
+
+
+def test_one_and_two_threads_give_the_same_bits():
+    script = ("import hashlib, massspring as ms\n"
+              "sim = ms.load_scene('sheets').with_params(resolution=10).simulation(loops='parallel')\n"
+              "sim.step(120)\n"
+              "print(hashlib.sha256(sim.positions.tobytes() + sim.velocities.tobytes()).hexdigest())\n")
+    out = []
+    for threads in ("1", "2"):
+        env = dict(os.environ, TI_CPU_MAX_NUM_THREADS=threads)
+        proc = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, env=env, timeout=300)
+        assert proc.returncode == 0, proc.stderr
+        out.append(proc.stdout.split()[-1])
+    assert out[0] == out[1]
+
+
+def test_restart_continues_to_the_bit():
+    scene = sheets()
+    whole = scene.simulation("implicit").step(100)
+    first = scene.simulation("implicit").step(60)
+    second = scene.simulation("implicit").set_state(first.positions, first.velocities, steps=60,
+                                                    carried=first.carried_state()).step(40)
+    np.testing.assert_array_equal(whole.positions, second.positions)
+    np.testing.assert_array_equal(whole.velocities, second.velocities)
+
+
+def test_tablecloth_as_shipped_keeps_self_collision_and_a_sampled_start_has_no_crossing():
+    scene = ms.load_scene("tablecloth")
+    assert scene.self_collision is not None
+    scene = scene.with_params(resolution=16)
+    model = scene.model()
+    sim = scene.simulation()
+    assert frames_crossings(sim, model, 1, 60) == [0]
+
+
+# ---------------------------------------------------------------- the narrow phase
+
+
+@ti.kernel
+def _point_triangle(p: ti.types.ndarray(dtype=ti.f64, ndim=2), out: ti.types.ndarray(dtype=ti.f64, ndim=2)):
+    for k in range(p.shape[0]):
+        point = ti.Vector([p[k, 0], p[k, 1], p[k, 2]])
+        a = ti.Vector([p[k, 3], p[k, 4], p[k, 5]])
+        b = ti.Vector([p[k, 6], p[k, 7], p[k, 8]])
+        c = ti.Vector([p[k, 9], p[k, 10], p[k, 11]])
+        d, w = kernels.point_triangle(point, a, b, c)
+        out[k, 0] = d
+        for m in ti.static(range(3)):
+            out[k, 1 + m] = w[m]
+
+
+@ti.kernel
+def _segment_segment(p: ti.types.ndarray(dtype=ti.f64, ndim=2), out: ti.types.ndarray(dtype=ti.f64, ndim=2)):
+    for k in range(p.shape[0]):
+        p1 = ti.Vector([p[k, 0], p[k, 1], p[k, 2]])
+        q1 = ti.Vector([p[k, 3], p[k, 4], p[k, 5]])
+        p2 = ti.Vector([p[k, 6], p[k, 7], p[k, 8]])
+        q2 = ti.Vector([p[k, 9], p[k, 10], p[k, 11]])
+        d, s, t = kernels.segment_segment(p1, q1, p2, q2)
+        out[k, 0] = d
+        out[k, 1] = s
+        out[k, 2] = t
+
+
+def _sampled_triangle_distance(p, a, b, c, n=120):
+    u, v = np.meshgrid(np.linspace(0, 1, n + 1), np.linspace(0, 1, n + 1))
+    keep = u + v <= 1
+    points = a + u[keep][:, None] * (b - a) + v[keep][:, None] * (c - a)
+    return np.linalg.norm(points - p, axis=1).min()
+
+
+def _sampled_segment_distance(p1, q1, p2, q2, n=400):
+    s = np.linspace(0, 1, n + 1)
+    first = p1 + s[:, None] * (q1 - p1)
+    second = p2 + s[:, None] * (q2 - p2)
+    return np.linalg.norm(first[:, None, :] - second[None, :, :], axis=2).min()
+
+
+TRIANGLE_CASES = {
+    "above the interior": ([0.2, 0.2, 0.5], [0, 0, 0], [1, 0, 0], [0, 1, 0]),
+    "beyond a vertex": ([2.0, -1.0, 0.3], [0, 0, 0], [1, 0, 0], [0, 1, 0]),
+    "beyond an edge": ([0.8, 0.8, -0.2], [0, 0, 0], [1, 0, 0], [0, 1, 0]),
+    "in the plane, inside": ([0.25, 0.25, 0.0], [0, 0, 0], [1, 0, 0], [0, 1, 0]),
+    "on a vertex": ([1.0, 0.0, 0.0], [0, 0, 0], [1, 0, 0], [0, 1, 0]),
+    "degenerate (collinear)": ([0.5, 1.0, 0.0], [0, 0, 0], [1, 0, 0], [2, 0, 0]),
+    "degenerate (a point)": ([0.3, 0.4, 0.0], [1, 1, 1], [1, 1, 1], [1, 1, 1]),
+}
+
+SEGMENT_CASES = {
+    "crossing at a distance": ([0, 0, 0], [1, 0, 0], [0.5, -1, 0.3], [0.5, 1, 0.3]),
+    "parallel, overlapping": ([0, 0, 0], [1, 0, 0], [0.5, 0.2, 0], [1.5, 0.2, 0]),
+    "parallel, apart": ([0, 0, 0], [1, 0, 0], [2, 0.1, 0], [3, 0.1, 0]),
+    "collinear": ([0, 0, 0], [1, 0, 0], [2, 0, 0], [3, 0, 0]),
+    "coincident points": ([0.5, 0.5, 0.5], [0.5, 0.5, 0.5], [0.5, 0.5, 0.5], [0.5, 0.5, 0.5]),
+    "a point and a segment": ([0.3, 1, 0], [0.3, 1, 0], [0, 0, 0], [1, 0, 0]),
+    "touching": ([0, 0, 0], [1, 0, 0], [0.5, 0, 0], [0.5, 1, 0]),
+}
+
+
+@pytest.mark.parametrize("case", list(TRIANGLE_CASES))
+def test_point_triangle_distance_against_sampling(case):
+    ensure_taichi()
+    data = np.array([np.concatenate([np.asarray(v, float) for v in TRIANGLE_CASES[case]])])
+    out = np.zeros((1, 4))
+    _point_triangle(data, out)
+    p, a, b, c = (data[0, 3 * k:3 * k + 3] for k in range(4))
+    d, w = out[0, 0], out[0, 1:]
+    assert np.all(w >= -1e-12) and abs(w.sum() - 1) < 1e-12
+    assert d == pytest.approx(np.linalg.norm(p - (w[0] * a + w[1] * b + w[2] * c)), abs=1e-12)
+    sampled = _sampled_triangle_distance(p, a, b, c)
+    assert d <= sampled + 1e-12 and d >= sampled - 2e-2 * max(1.0, np.linalg.norm(b - a))
+
+
+@pytest.mark.parametrize("case", list(SEGMENT_CASES))
+def test_segment_segment_distance_against_sampling(case):
+    ensure_taichi()
+    data = np.array([np.concatenate([np.asarray(v, float) for v in SEGMENT_CASES[case]])])
+    out = np.zeros((1, 3))
+    _segment_segment(data, out)
+    p1, q1, p2, q2 = (data[0, 3 * k:3 * k + 3] for k in range(4))
+    d, s, t = out[0]
+    assert 0 <= s <= 1 and 0 <= t <= 1
+    assert d == pytest.approx(np.linalg.norm((p1 + s * (q1 - p1)) - (p2 + t * (q2 - p2))), abs=1e-12)
+    sampled = _sampled_segment_distance(p1, q1, p2, q2)
+    assert d <= sampled + 1e-12 and d >= sampled - 1e-2
+
+
+# ---------------------------------------------------------------- data and compilation
+
+
+@pytest.mark.parametrize("fields, message", [({"thickness": 0}, "thickness: must be > 0"),
+                                             ({"thickness": "a"}, "thickness"),
+                                             ({"thickness": 0.01, "friction": -1}, "friction: must be >= 0"),
+                                             ({"thickness": 0.01, "stiffness": 0}, "stiffness: must be > 0"),
+                                             ({"thickness": float("nan")}, "thickness")])
+def test_bad_fields_are_refused_by_name(fields, message):
+    with pytest.raises(ValueError, match=message):
+        ms.SelfCollision(**fields)
+
+
+def test_a_model_needs_triangles_and_a_self_collision_object():
+    with pytest.raises(ValueError, match="self_collision: needs the model's triangles"):
+        ms.Model([[0, 0, 0], [1, 0, 0]], [[0, 1]], self_collision=ms.SelfCollision(0.01))
+    with pytest.raises(ValueError, match="self_collision: expected a massspring.SelfCollision"):
+        ms.Model([[0, 0, 0], [1, 0, 0], [0, 1, 0]], [[0, 1]], triangles=[[0, 1, 2]], self_collision=0.01)
+
+
+def test_scene_table_errors_name_the_key(tmp_path):
+    base = 'integrator = "implicit"\nduration = 1.0\n[model]\ngenerator = "grid"\nresolution = 4\n'
+    for table, message in (("[self_collision]\nthick = 0.1\n", "self_collision.thick: unknown key"),
+                           ("[self_collision]\nfriction = 0.1\n", "self_collision.thickness: missing"),
+                           ("[self_collision]\nthickness = -1.0\n", "self_collision.thickness: must be > 0")):
+        path = tmp_path / "s.toml"
+        path.write_text(base + table)
+        with pytest.raises(ms.SceneError, match=message):
+            ms.load_scene(str(path))
+
+
+def test_default_stiffness_is_the_median_spring_stiffness():
+    model = sheets().model()
+    assert model.self_collision.repulsion_stiffness(model) == np.median(model.stiffness[model.stiffness > 0])
+
+
+def test_nothing_is_compiled_or_allocated_without_it():
+    on = sheets().simulation().info()
+    off = sheets(on=False).simulation().info()
+    assert "self-collision" in on["terms"] and "self-collision" not in off["terms"]
+    assert any(name.startswith("sc_") for name in on["arrays"])
+    assert not any(name.startswith("sc_") for name in off["arrays"])
+
+
+def test_stacked_layers_are_counted_before_they_are_built():
+    scene = ms.load_scene("sheets")
+    model = scene.model()
+    assert scene.counts() == (model.n_particles, model.n_springs)
+    assert model.n_particles == 2 * scene.params["resolution"] ** 2
+    assert model.fingerprint() != dataclasses.replace(scene, self_collision=None).model().fingerprint()
