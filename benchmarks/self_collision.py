@@ -28,8 +28,8 @@ import output  # noqa: E402
 import massspring as ms  # noqa: E402
 from massspring.io.files import write_json  # noqa: E402
 
-DT = {"implicit": 1 / 60, "backward-euler": 1 / 60, "bdf2": 1 / 60, "symplectic": 5e-5, "explicit": 2e-5,
-      "rk4": 1e-4}  # at 32 x 32; the explicit integrators' dt shrinks as 1 / resolution
+DT = {"implicit": 1 / 60, "backward-euler": 1 / 60, "bdf2": 1 / 60, "symplectic": 2.5e-5, "explicit": 1e-5,
+      "rk4": 5e-5}  # at 32 x 32; the explicit integrators' dt shrinks as 1 / resolution
 
 
 def parse_args(argv=None):

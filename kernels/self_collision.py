@@ -4,15 +4,16 @@ After an integrator has taken a step from the start positions x0 (``dev.sc_start
 copied by ``self_collision_begin``) to a candidate state (x, v), ``self_collision_detect``
 and ``self_collision_bound``:
 
-1. Proximity. Every pair of non-adjacent primitives of the mesh closer than a
-   radius r at x0 is found: point-triangle pairs (a vertex and a triangle that does
-   not hold it) and edge-edge pairs (two edges without a common vertex). Broad phase:
-   two spatial hashes of cell size c = r + L (L: the longest edge at x0), one of the
-   vertices and one of the edges' midpoints, built by counting sort; each triangle
-   looks up the vertices in the cells its box grown by r covers, each edge the edge
-   midpoints in its box grown by r + L/2 (at most 3 cells a side), so the work is
-   linear in the mesh size. Narrow phase: exact closest points (``point_triangle``,
-   ``segment_segment``, degenerate primitives included).
+1. Pairs. Each particle's swept box is the box of its straight path from x0 to the
+   step's candidate x, grown by thickness / 2; a triangle's or an edge's is its
+   particles' together. Every pair of primitives that share no particle and whose
+   swept boxes meet is found: point-triangle pairs and edge-edge pairs. Broad phase:
+   two spatial hashes, of the particles' and of the edges' boxes by their low
+   corners, in cells as large as the largest edge box along each axis, built by
+   counting sort; a box then meets only boxes starting in 3 x 3 x 3 cells, so the work
+   is linear in the mesh size. Narrow phase at x0: exact closest points and distance
+   d (``point_triangle``, ``segment_segment``, degenerate primitives included). The
+   pairs go to a list (``sc_pidx``...) while it has room.
 2. Repulsion (in the spirit of Bridson, Fedkiw and Anderson 2002). A pair closer
    than ``thickness`` gets an inelastic normal impulse that stops the approach of its
    closest points over the step and pushes them apart, at most to separate them at
@@ -20,16 +21,19 @@ and ``self_collision_bound``:
    Coulomb friction (mu) on the tangential relative velocity; the impulses are
    spread over the pair's four particles by their barycentric weights and inverse
    masses and averaged per particle (Jacobi). The step's displacement x - x0 and
-   the velocity change by the same amount.
-3. Displacement bound (the guarantee, as in Offset Geometric Contact, Chen et al.
-   2025). Each particle moves at most GAMMA (< 1/2) times the smallest distance at
-   x0 of a pair it belongs to (or r): along straight paths from x0, a pair's
-   distance then shrinks by less than it is, so no pair touches during the step and
-   no edge passes through a triangle it does not share a vertex with. A particle
-   held back so ends at x0 + s (x - x0) with velocity s (x - x0) / dt. r is
-   max displacement / GAMMA + thickness (capped by the mesh's size), so a particle
-   far from everything is never held back. Pinned particles are neither pushed nor
-   held back.
+   the velocity change by the same amount, within the particle's swept box.
+3. Displacement bounds on the separating plane (after the bounds of Offset Geometric
+   Contact, Chen et al. 2025). A pair's closest points p - q = d n give a plane
+   between its primitives; each of its particles may move towards the other side by
+   at most GAMMA (< 1/2) times (d - OFFSET thickness): a displacement that goes
+   further first loses that excess along n (averaged over its pairs, within its box),
+   and then, if a pair still objects, is scaled down until all agree (a smaller
+   scale keeps every bound met: each holds at x0). The primitives of a listed pair
+   then stay on their sides of the plane along the whole straight step, and those of
+   an unlisted pair in disjoint boxes, so no pair touches during the step and no
+   edge passes through a triangle it does not share a particle with. A particle held
+   back ends at x0 + s (x - x0) with velocity s (x - x0) / dt. Pinned particles are
+   neither pushed nor held back.
 
 Deterministic for any thread count: distances are reduced with atomic min/max (exact),
 impulses summed in 64-bit fixed point (integer addition: order-free), and nothing
@@ -152,36 +156,49 @@ def bucket(cell, size):
 
 
 @ti.func
-def midpoint(dev, e):
+def vertex_box(dev, i, margin):
+    """Particle i's swept box: its straight path from x0 (``sc_start``) to the step's
+    candidate position (``sc_end``), grown by ``margin`` (m)."""
+    a = dev.sc_start[i]
+    b = dev.sc_end[i]
+    return ti.min(a, b) - margin, ti.max(a, b) + margin
+
+
+@ti.func
+def edge_box(dev, e, margin):
+    """Edge e's swept box: its two particles' boxes together."""
     ends = dev.sc_edges[e]
-    return 0.5 * (dev.sc_start[ends[0]] + dev.sc_start[ends[1]])
+    lo_a, hi_a = vertex_box(dev, ends[0], margin)
+    lo_b, hi_b = vertex_box(dev, ends[1], margin)
+    return ti.min(lo_a, lo_b), ti.max(hi_a, hi_b)
 
 
 @ti.func
-def key(dev, i, inverse, size, edges: ti.template()):
-    """The bucket of vertex i at x0, or (``edges``) of edge i's midpoint."""
-    point = dev.sc_start[i]
+def key(dev, i, inverse, size, margin, edges: ti.template()):
+    """The bucket of vertex i's swept box's low corner, or (``edges``) edge i's."""
+    lo, _ = vertex_box(dev, i, margin)
     if ti.static(edges):
-        point = midpoint(dev, i)
-    return bucket(cell_of(point, inverse), size)
+        low, _ = edge_box(dev, i, margin)
+        lo = low
+    return bucket(cell_of(lo, inverse), size)
 
 
 @ti.func
-def count_sort(dev, cells: ti.template(), first: ti.template(), items: ti.template(), size, inverse, count,
+def count_sort(dev, cells: ti.template(), first: ti.template(), items: ti.template(), size, inverse, margin, count,
                edges: ti.template()):
     """Hash items 0..count-1 (vertices, or ``edges``) by ``key``: ``first[b]:first[b + 1]``
     of ``items`` lists bucket b's items (in no fixed order)."""
     for b in range(size):
         cells[b] = 0
     for i in range(count):
-        ti.atomic_add(cells[key(dev, i, inverse, size, edges)], 1)
+        ti.atomic_add(cells[key(dev, i, inverse, size, margin, edges)], 1)
     first[0] = 0
     ti.loop_config(serialize=True)
     for b in range(size):
         first[b + 1] = first[b] + cells[b]
         cells[b] = 0
     for i in range(count):
-        b = key(dev, i, inverse, size, edges)
+        b = key(dev, i, inverse, size, margin, edges)
         items[first[b] + ti.atomic_add(cells[b], 1)] = i
 
 
@@ -258,72 +275,87 @@ def pair(dev, cfg: ti.template(), state, idx, w, d, h, thickness, mu, ks, sides:
 
 
 @ti.func
-def vertex_candidates(dev, cfg: ti.template(), state, cell, corner, a, b, c, low, high, r, inverse, size, h, thick, mu,
-                      ks, phase: ti.template()):
-    """Point-triangle pairs of triangle ``corner`` (a, b, c at x0) with the vertices of ``cell``."""
+def overlap(lo_a, hi_a, lo_b, hi_b):
+    return (lo_a <= hi_b).all() and (lo_b <= hi_a).all()
+
+
+@ti.func
+def vertex_candidates(dev, cfg: ti.template(), state, cell, corner, tlo, thi, inverse, size, margin, h, thick, mu, ks,
+                      phase: ti.template()):
+    """Point-triangle pairs of triangle ``corner`` (swept box tlo, thi) with the particles
+    whose swept boxes start in ``cell`` and meet it."""
     bk = bucket(cell, size)
     for slot in range(dev.sc_vfirst[bk], dev.sc_vfirst[bk + 1]):
         p = dev.sc_vitem[slot]
-        x = dev.sc_start[p]
-        if p != corner[0] and p != corner[1] and p != corner[2] and (x >= low).all() and (x <= high).all() \
-                and (cell_of(x, inverse) == cell).all():
-            d, w = point_triangle(x, a, b, c)
-            if d < r:
+        if p != corner[0] and p != corner[1] and p != corner[2]:
+            lo, hi = vertex_box(dev, p, margin)
+            if overlap(lo, hi, tlo, thi) and (cell_of(lo, inverse) == cell).all():
+                d, w = point_triangle(dev.sc_start[p], dev.sc_start[corner[0]], dev.sc_start[corner[1]],
+                                      dev.sc_start[corner[2]])
                 pair(dev, cfg, state, ti.Vector([p, corner[0], corner[1], corner[2]]),
                      ti.Vector([1, -w[0], -w[1], -w[2]], cfg.real), d, h, thick, mu, ks, POINT_TRIANGLE, phase)
 
 
 @ti.func
-def edge_candidates(dev, cfg: ti.template(), state, cell, e, ends, p1, q1, low, high, r, inverse, size, h, thick, mu,
-                    ks, phase: ti.template()):
-    """Edge-edge pairs of edge e (``ends``, p1 q1 at x0) with the later edges whose midpoints are in ``cell``."""
+def edge_candidates(dev, cfg: ti.template(), state, cell, e, ends, elo, ehi, inverse, size, margin, h, thick, mu, ks,
+                    phase: ti.template()):
+    """Edge-edge pairs of edge e (``ends``, swept box elo, ehi) with the later edges whose
+    swept boxes start in ``cell`` and meet it."""
     bk = bucket(cell, size)
     for slot in range(dev.sc_efirst[bk], dev.sc_efirst[bk + 1]):
         f = dev.sc_eitem[slot]
         other = dev.sc_edges[f]
         if f > e and other[0] != ends[0] and other[0] != ends[1] and other[1] != ends[0] and other[1] != ends[1]:
-            p2 = dev.sc_start[other[0]]
-            q2 = dev.sc_start[other[1]]
-            if (ti.min(p2, q2) <= high + r).all() and (ti.max(p2, q2) >= low - r).all() \
-                    and (cell_of(midpoint(dev, f), inverse) == cell).all():
-                d, s, u = segment_segment(p1, q1, p2, q2)
-                if d < r:
-                    pair(dev, cfg, state, ti.Vector([ends[0], ends[1], other[0], other[1]]),
-                         ti.Vector([1 - s, s, u - 1, -u], cfg.real), d, h, thick, mu, ks, EDGE_EDGE, phase)
+            lo, hi = edge_box(dev, f, margin)
+            if overlap(lo, hi, elo, ehi) and (cell_of(lo, inverse) == cell).all():
+                d, s, u = segment_segment(dev.sc_start[ends[0]], dev.sc_start[ends[1]], dev.sc_start[other[0]],
+                                          dev.sc_start[other[1]])
+                pair(dev, cfg, state, ti.Vector([ends[0], ends[1], other[0], other[1]]),
+                     ti.Vector([1 - s, s, u - 1, -u], cfg.real), d, h, thick, mu, ks, EDGE_EDGE, phase)
 
 
 @ti.func
-def pairs(dev, cfg: ti.template(), state, tris, edges, r, longest, inverse, size, h, thick, mu, ks,
-          phase: ti.template()):
-    """Every point-triangle and edge-edge pair within r at x0, through ``pair`` in ``phase``."""
+def pairs(dev, cfg: ti.template(), state, tris, edges, span, size, margin, h, thick, mu, ks, phase: ti.template()):
+    """Every point-triangle and edge-edge pair whose swept boxes meet, through ``pair`` in
+    ``phase``. Cells are ``span`` (per axis, m: the largest swept edge box), so a box meets
+    only boxes starting in the 3 x 3 x 3 cells from its low corner less span to its high
+    corner."""
+    inverse = 1 / span
     for t in range(tris):  # point-triangle pairs
         corner = dev.sc_tris[t]
-        a = dev.sc_start[corner[0]]
-        b = dev.sc_start[corner[1]]
-        c = dev.sc_start[corner[2]]
-        low = ti.min(ti.min(a, b), c) - r
-        high = ti.max(ti.max(a, b), c) + r
-        first = cell_of(low, inverse)
-        last = cell_of(high, inverse)
+        lo_a, hi_a = vertex_box(dev, corner[0], margin)
+        lo_b, hi_b = vertex_box(dev, corner[1], margin)
+        lo_c, hi_c = vertex_box(dev, corner[2], margin)
+        tlo = ti.min(ti.min(lo_a, lo_b), lo_c)
+        thi = ti.max(ti.max(hi_a, hi_b), hi_c)
+        first = cell_of(tlo - span, inverse)
+        last = cell_of(thi, inverse)
         for cx in range(first[0], last[0] + 1):
             for cy in range(first[1], last[1] + 1):
                 for cz in range(first[2], last[2] + 1):
-                    vertex_candidates(dev, cfg, state, ti.Vector([cx, cy, cz]), corner, a, b, c, low, high, r, inverse,
-                                      size, h, thick, mu, ks, phase)
-    margin = r + ti.cast(0.5 * longest, cfg.real)
+                    vertex_candidates(dev, cfg, state, ti.Vector([cx, cy, cz]), corner, tlo, thi, inverse, size,
+                                      margin, h, thick, mu, ks, phase)
     for e in range(edges):  # edge-edge pairs
         ends = dev.sc_edges[e]
-        p1 = dev.sc_start[ends[0]]
-        q1 = dev.sc_start[ends[1]]
-        low = ti.min(p1, q1)
-        high = ti.max(p1, q1)
-        first = cell_of(low - margin, inverse)
-        last = cell_of(high + margin, inverse)
+        elo, ehi = edge_box(dev, e, margin)
+        first = cell_of(elo - span, inverse)
+        last = cell_of(ehi, inverse)
         for cx in range(first[0], last[0] + 1):
             for cy in range(first[1], last[1] + 1):
                 for cz in range(first[2], last[2] + 1):
-                    edge_candidates(dev, cfg, state, ti.Vector([cx, cy, cz]), e, ends, p1, q1, low, high, r, inverse,
-                                    size, h, thick, mu, ks, phase)
+                    edge_candidates(dev, cfg, state, ti.Vector([cx, cy, cz]), e, ends, elo, ehi, inverse, size,
+                                    margin, h, thick, mu, ks, phase)
+
+
+@ti.func
+def clip(dev, cfg: ti.template(), state, i, margin, h):
+    """Keep particle i within its swept box (what the broad phase assumed), its velocity
+    changed with its position."""
+    lo, hi = vertex_box(dev, i, margin)
+    x = state.x[i]
+    inside = ti.min(ti.max(x, lo), hi)
+    state.v[i] += (inside - x) / h
+    state.x[i] = inside
 
 
 @ti.func
@@ -349,10 +381,10 @@ def self_collision_begin(dev: ti.template(), state: ti.template(), serial: ti.te
 
 @ti.func
 def detect(dev, cfg: ti.template(), state, dt, thickness, friction, stiffness):
-    """Steps 1 and 2 of the pass (module docstring): the reach, the hashes, the pairs
-    (listed while the list has room), their repulsion applied, and no particle moved
-    further than GAMMA r. Returns (pairs within r, pairs repelled, 0, r in m, the
-    smallest distance of a pair in m, 1 if the pairs fitted the list)."""
+    """Steps 1 and 2 of the pass (module docstring): the swept boxes, the hashes, the
+    pairs (listed while the list has room), their repulsion applied within the boxes.
+    Returns (pairs, pairs repelled, 0, the largest displacement in m, the smallest
+    distance of a pair in m, 1 if the pairs fitted the list)."""
     n = dev.size[0]
     tris = dev.sc_count[0]
     edges = dev.sc_count[1]
@@ -361,52 +393,37 @@ def detect(dev, cfg: ti.template(), state, dt, thickness, friction, stiffness):
     thick = ti.cast(thickness, cfg.real)
     mu = ti.cast(friction, cfg.real)
     ks = ti.cast(stiffness, cfg.real)
+    margin = 0.5 * thick
     for k in range(4):
         dev.sc_tally[k] = 0
     for k in range(3):
-        dev.sc_box[k] = 1e300
-        dev.sc_box[3 + k] = -1e300
+        dev.sc_box[k] = 0.0
     dev.sc_box[6] = 0.0
-    dev.sc_box[7] = 0.0
     dev.sc_box[8] = 1e300
     for i in range(n):
-        x0 = ti.cast(dev.sc_start[i], ti.f64)
+        dev.sc_end[i] = state.x[i]
         ti.atomic_max(dev.sc_box[6], ti.cast((state.x[i] - dev.sc_start[i]).norm(), ti.f64))
-        for k in ti.static(range(3)):
-            ti.atomic_min(dev.sc_box[k], x0[k])
-            ti.atomic_max(dev.sc_box[3 + k], x0[k])
         dev.sc_dv[i] = ti.Vector.zero(ti.i64, 3)
         dev.sc_hits[i] = 0
     for e in range(edges):
-        ends = dev.sc_edges[e]
-        ti.atomic_max(dev.sc_box[7], ti.cast((dev.sc_start[ends[1]] - dev.sc_start[ends[0]]).norm(), ti.f64))
-    span = ti.Vector([dev.sc_box[3 + k] - dev.sc_box[k] for k in ti.static(range(3))]).norm()
-    reach = ti.min(dev.sc_box[6] / GAMMA, span) + thickness
-    dev.sc_box[9] = reach
-    r = ti.cast(reach, cfg.real)
-    inverse = ti.cast(1.0 / (reach + dev.sc_box[7]), cfg.real)
-    count_sort(dev, dev.sc_vcell, dev.sc_vfirst, dev.sc_vitem, size, inverse, n, False)
-    count_sort(dev, dev.sc_ecell, dev.sc_efirst, dev.sc_eitem, size, inverse, edges, True)
-    pairs(dev, cfg, state, tris, edges, r, dev.sc_box[7], inverse, size, h, thick, mu, ks, REPEL)
+        lo, hi = edge_box(dev, e, margin)
+        extent = ti.cast(hi - lo, ti.f64)
+        for k in ti.static(range(3)):
+            ti.atomic_max(dev.sc_box[k], extent[k])
+    span = ti.Vector([dev.sc_box[k] for k in ti.static(range(3))], cfg.real)
+    inverse = 1 / span
+    count_sort(dev, dev.sc_vcell, dev.sc_vfirst, dev.sc_vitem, size, inverse, margin, n, False)
+    count_sort(dev, dev.sc_ecell, dev.sc_efirst, dev.sc_eitem, size, inverse, margin, edges, True)
+    pairs(dev, cfg, state, tris, edges, span, size, margin, h, thick, mu, ks, REPEL)
     for i in range(n):
-        if not is_pinned(i, dev, cfg):
-            x = state.x[i]
-            v = state.v[i]
-            hits = dev.sc_hits[i]
-            if hits > 0:
-                du = ti.cast(dev.sc_dv[i], cfg.real) / ti.cast(SCALE * hits, cfg.real)
-                x += h * du
-                v += du
-            dx = x - dev.sc_start[i]
-            length = dx.norm()
-            if length > GAMMA * r:  # what no pair within r can see
-                dx *= GAMMA * r / length
-                x = dev.sc_start[i] + dx
-                v = dx / h
-            state.x[i] = x
-            state.v[i] = v
+        hits = dev.sc_hits[i]
+        if hits > 0 and not is_pinned(i, dev, cfg):
+            du = ti.cast(dev.sc_dv[i], cfg.real) / ti.cast(SCALE * hits, cfg.real)
+            state.x[i] += h * du
+            state.v[i] += du
+            clip(dev, cfg, state, i, margin, h)
     fits = 1 if dev.sc_tally[0] <= dev.sc_count[3] else 0
-    return ti.Vector([dev.sc_tally[0], dev.sc_tally[1], 0, reach, dev.sc_box[8], fits], ti.f64)
+    return ti.Vector([dev.sc_tally[0], dev.sc_tally[1], 0, dev.sc_box[6], dev.sc_box[8], fits], ti.f64)
 
 
 @ti.func
@@ -417,11 +434,11 @@ def bound(dev, cfg: ti.template(), state, dt, thickness, from_list: ti.template(
     n = dev.size[0]
     h = ti.cast(dt, cfg.real)
     thick = ti.cast(thickness, cfg.real)
+    margin = 0.5 * thick
     tris = dev.sc_count[0]
     edges = dev.sc_count[1]
     size = dev.sc_count[2]
-    r = ti.cast(dev.sc_box[9], cfg.real)
-    inverse = ti.cast(1.0 / (dev.sc_box[9] + dev.sc_box[7]), cfg.real)
+    span = ti.Vector([dev.sc_box[k] for k in ti.static(range(3))], cfg.real)
     count = dev.sc_tally[0]
     dev.sc_tally[2] = 0
     for i in range(n):
@@ -431,17 +448,18 @@ def bound(dev, cfg: ti.template(), state, dt, thickness, from_list: ti.template(
     if ti.static(from_list):
         listed_pairs(dev, cfg, state, count, thick, PROJECT)
     else:
-        pairs(dev, cfg, state, tris, edges, r, dev.sc_box[7], inverse, size, h, thick, 0, 0, PROJECT)
+        pairs(dev, cfg, state, tris, edges, span, size, margin, h, thick, 0, 0, PROJECT)
     for i in range(n):
         hits = dev.sc_hits[i]
         if hits > 0:
             dx = ti.cast(dev.sc_dv[i], cfg.real) / ti.cast(SCALE * hits, cfg.real)
             state.x[i] += dx
             state.v[i] += dx / h
+            clip(dev, cfg, state, i, margin, h)
     if ti.static(from_list):
         listed_pairs(dev, cfg, state, count, thick, BOUND)
     else:
-        pairs(dev, cfg, state, tris, edges, r, dev.sc_box[7], inverse, size, h, thick, 0, 0, BOUND)
+        pairs(dev, cfg, state, tris, edges, span, size, margin, h, thick, 0, 0, BOUND)
     for i in range(n):
         scale = dev.sc_scale[i]
         if scale < 1 and not is_pinned(i, dev, cfg):

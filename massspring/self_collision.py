@@ -76,10 +76,10 @@ def mesh_edges(triangles) -> np.ndarray:
 
 PAIRS_PER_PARTICLE = 64  # the pair list's capacity per particle (capacity class); beyond it the pass sweeps again
 PAIR_BYTES = 16 + 4 * 8 + 4  # a listed pair: 4 particles, 4 weights (f64), its kind
-# Bytes per particle of the pass's fields (``declare``), for ``memory.run_bytes``: start, scale,
-# impulses, hits, hash items (24 + 8 + 24 + 4 + 4); about 2 triangles (12 B) and 3 edges (8 + 4 B
+# Bytes per particle of the pass's fields (``declare``), for ``memory.run_bytes``: start, end, scale,
+# impulses, hits, hash items (24 + 24 + 8 + 24 + 4 + 4); about 2 triangles (12 B) and 3 edges (8 + 4 B
 # each, two hash tables of 8 B per slot, 2 slots per edge); the pair list.
-PASS_BYTES = 64 + 2 * 12 + 3 * (12 + 2 * 2 * 8) + PAIRS_PER_PARTICLE * PAIR_BYTES
+PASS_BYTES = 88 + 2 * 12 + 3 * (12 + 2 * 2 * 8) + PAIRS_PER_PARTICLE * PAIR_BYTES
 
 
 def declare(layout, model):
@@ -102,6 +102,7 @@ def declare(layout, model):
     layout.vectors("sc_pw", layout.real, pairs, k=4)
     layout.add("sc_pkind", ti.i32, pairs)
     layout.vectors("sc_start", layout.real)
+    layout.vectors("sc_end", layout.real)
     layout.add("sc_scale", layout.real, "particle")
     layout.vectors("sc_dv", ti.i64)
     layout.add("sc_hits", ti.i32, "particle")
@@ -117,8 +118,8 @@ class Pass:
     """The self-collision pass of one simulation around each step of its integrator
     (``kernels/self_collision.py``): ``begin(state)`` before the step, ``end(state, dt)``
     after it; ``serial``: in serial loops, as the integrator runs (``Settings.loops``). ``last``: the last pass's (pairs within reach, pairs repelled, particles
-    held back, reach r in m, the smallest distance of a pair in m, whether the pairs
-    fitted the pair list)."""
+    held back, the largest displacement in m, the smallest distance of a pair in m,
+    whether the pairs fitted the pair list)."""
 
     def __init__(self, dev, cfg, model, serial):
         self.dev, self.cfg, self.serial = dev, cfg, serial
