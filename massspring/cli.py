@@ -360,6 +360,10 @@ def divergence_hint(sim, exc):
         return "try a smaller --dt or --integrator implicit"
 
     suggested = INTEGRATORS[sim.integrator].suggest_dt(prediction)
+    if suggested >= sim.dt:  # the estimate at the initial state did not hold for this run
+        return (f"try --dt {sim.dt / 4:.3g} (a quarter of this run's; the stability estimate for {sim.integrator} "
+                f"at the initial state, {suggested:.3g} s, did not hold as the state changed) or --integrator "
+                "implicit (no stability limit)")
     if sim.integrator == "explicit" and not prediction.explicit_stable_dt > 0:
         return (f"explicit Euler grows at every dt on this scene's undamped stiffest mode; --dt {suggested:.3g} "
                 "keeps that growth under 2x per simulated second, or try --integrator symplectic or implicit")

@@ -272,3 +272,38 @@ def test_ladder_has_every_integrator_that_declares_one():
     assert {name for name, cls in INTEGRATORS.items() if cls.ladder} == set(names) >= {"backward-euler", "bdf2"}
     assert [row[1] for row in stability.LADDER if row[0] == "implicit"] == [True, False]
     assert [row[1] for row in stability.LADDER if row[0] == "bdf2"] == [True]
+
+
+def test_rk4_stable_dt_meets_rk4s_region_on_both_axes_and_for_overdamped_modes():
+    from massspring.integrators.rk4 import RK4_IMAGINARY_LIMIT, rk4_amplification, rk4_stable_dt
+
+    assert rk4_stable_dt(1.0, 0.0) == pytest.approx(RK4_IMAGINARY_LIMIT, rel=1e-9)  # undamped: the imaginary axis
+    assert rk4_stable_dt(0.0, 1.0) == pytest.approx(2.785293563405282, rel=1e-9)  # pure decay: the real axis
+    omega, rate = 2601.14, 7163.0  # the cube's stiffest mode: overdamped, limited by its fast real root
+    fast = (rate + (rate ** 2 - 4 * omega ** 2) ** 0.5) / 2
+    limit = rk4_stable_dt(omega, rate)
+    assert limit == pytest.approx(2.785293563405282 / fast, rel=1e-9) and limit < RK4_IMAGINARY_LIMIT / omega
+    assert rk4_amplification(-fast * limit * 1.01) > 1 > rk4_amplification(-fast * limit * 0.99)
+
+
+def test_stability_prints_rk4s_limit(capsys):
+    from massspring.integrators.rk4 import rk4_stable_dt
+
+    assert main(["stability", "cube", "--predict-only"]) == 0
+    prediction = stability.predict(load_scene("cube").model())
+    assert f"rk4 stable below         dt = {rk4_stable_dt(prediction.omega_max, prediction.damping_rate):.4g} s" \
+        in capsys.readouterr().out
+
+
+@pytest.mark.parametrize("name", ["cube", "heavychain"])
+def test_rk4_default_dt_holds_on_heavily_damped_scenes(name):
+    """Before, the RK4 default ignored damping: cube diverged at step 14, heavychain at 3."""
+    sim = ms.load_scene(name).simulation("rk4")
+    sim.step(300)
+    assert np.all(np.isfinite(sim.positions))
+
+
+def test_a_divergence_at_the_estimated_dt_suggests_a_smaller_one(capsys):
+    assert main(["run", "zerolength", "--integrator", "rk4", "--quiet"]) == 3
+    err = capsys.readouterr().err
+    assert "try --dt 0.0025 (a quarter of this run's" in err and "did not hold" in err

@@ -31,6 +31,7 @@ import numpy as np
 
 from massspring.errors import DivergenceError
 from massspring.integrators import INTEGRATORS
+from massspring.integrators.rk4 import rk4_stable_dt
 from massspring.operators import Jacobians
 from massspring.model import Model
 
@@ -289,6 +290,8 @@ def prediction_lines(prediction: Prediction, scene_name) -> list:
         f"no growth below dt = {p.explicit_stable_dt:.4g} s",
         f"  explicit doubles energy  within 1 s at dt = {p.explicit_doubling_dt:.4g} s "
         f"(growth/step {p.explicit_growth(p.explicit_doubling_dt):.10g})",
+        f"  rk4 stable below         dt = {rk4_stable_dt(p.omega_max, p.damping_rate):.4g} s (both roots of the "
+        "damped stiffest mode in RK4's region)",
         "  implicit                 no limit predicted (linearised backward Euler)",
     ]
 

@@ -11,6 +11,30 @@ from .base import Integrator
 RK4_IMAGINARY_LIMIT = 2.0 * math.sqrt(2.0)  # |dt omega| where RK4's stability region meets the imaginary axis
 
 
+def rk4_amplification(z: complex) -> float:
+    """|R(z)|, R(z) = 1 + z + z^2/2 + z^3/6 + z^4/24: RK4's growth per step of y' = lambda y, z = lambda dt."""
+    return abs(1 + z + z * z / 2 + z ** 3 / 6 + z ** 4 / 24)
+
+
+def rk4_stable_dt(omega: float, rate: float) -> float:
+    """The largest dt (s) at which both roots lambda of lambda^2 + rate lambda + omega^2 = 0
+    (the damped mode x'' + rate x' + omega^2 x = 0) stay in RK4's stability region:
+    overdamped modes (rate > 2 omega) are limited by their fast real root, about -rate,
+    not by omega. Found by bisection along each root's ray (inf if both roots are 0)."""
+    disc = complex(rate * rate - 4 * omega * omega)
+    roots = [(-rate + sign * disc ** 0.5) / 2 for sign in (1, -1)]
+    limits = []
+    for root in roots:
+        if abs(root) == 0:
+            continue
+        low, high = 0.0, 3.0 / abs(root)  # RK4's region lies within |z| < 3
+        for _ in range(60):
+            mid = 0.5 * (low + high)
+            low, high = (mid, high) if rk4_amplification(root * mid) <= 1 + 1e-12 else (low, mid)
+        limits.append(low)
+    return min(limits) if limits else math.inf
+
+
 class RK4(Integrator):
     """Four force evaluations per step (``kernels/rk4.py``); fourth order. The study's
     reference solutions are RK4 runs in f64. With colliders it gets the explicit
@@ -53,6 +77,7 @@ class RK4(Integrator):
 
     @staticmethod
     def suggest_dt(prediction):
-        """Half the dt at which the undamped stiffest mode leaves RK4's stability region."""
-        omega = prediction.omega_max
-        return 0.5 * RK4_IMAGINARY_LIMIT / omega if omega > 0 else 1e-2
+        """Half the dt at which the stiffest mode, with its damping, leaves RK4's stability
+        region (``rk4_stable_dt``); 1e-2 s where nothing limits it."""
+        limit = rk4_stable_dt(prediction.omega_max, prediction.damping_rate)
+        return 0.5 * limit if math.isfinite(limit) else 1e-2
