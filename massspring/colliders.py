@@ -28,7 +28,7 @@ from typing import ClassVar
 
 import numpy as np
 
-from massspring.model import real_array
+from massspring.model import real_array, real_number
 
 
 def _vector(name, value):
@@ -36,13 +36,6 @@ def _vector(name, value):
     if arr.shape != (3,):
         raise ValueError(f"{name}: expected 3 components, got shape {arr.shape}")
     return tuple(float(c) for c in arr)
-
-
-def _number(name, value):
-    arr = real_array(name, value)
-    if arr.shape != ():
-        raise ValueError(f"{name}: expected a number, got shape {arr.shape}")
-    return float(arr)
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -58,10 +51,10 @@ class Collider:
     GEOMETRY: ClassVar[tuple] = ()
 
     def __post_init__(self):
-        friction = _number("friction", self.friction)
+        friction = real_number("friction", self.friction)
         if friction < 0:
             raise ValueError(f"friction: must be >= 0, got {friction:g}")
-        restitution = _number("restitution", self.restitution)
+        restitution = real_number("restitution", self.restitution)
         if not 0.0 <= restitution <= 1.0:
             raise ValueError(f"restitution: must be within [0, 1], got {restitution:g}")
         object.__setattr__(self, "friction", friction)
@@ -111,7 +104,7 @@ class Sphere(Collider):
 
     def __post_init__(self):
         object.__setattr__(self, "center", _vector("center", self.center))
-        radius = _number("radius", self.radius)
+        radius = real_number("radius", self.radius)
         if not radius > 0:
             raise ValueError(f"radius: must be > 0, got {radius:g}")
         object.__setattr__(self, "radius", radius)
@@ -144,7 +137,7 @@ class Box(Collider):
             if not lo < hi:
                 raise ValueError(f"lower: must be < upper on every axis; on {'xyz'[axis]} lower is {lo:g} "
                                  f"and upper {hi:g}")
-        radius = _number("radius", self.radius)
+        radius = real_number("radius", self.radius)
         half = 0.5 * min(hi - lo for lo, hi in zip(self.lower, self.upper))
         if not 0 <= radius <= half:
             raise ValueError(f"radius: must be within [0, {half:g}] (half the smallest side), got {radius:g}")

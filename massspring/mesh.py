@@ -36,7 +36,7 @@ import inspect
 
 import numpy as np
 
-from massspring.model import Model, real_array
+from massspring.model import Model, real_array, real_number
 
 # [model] parameters of a mesh scene (``scene/spec.py``) and their defaults; None: not given.
 PARAMETERS = {"mesh": "", "density": None, "mass": None, "stiffness": 1e4, "damping": 0.0, "bend": 0.1,
@@ -162,17 +162,8 @@ def lumped_masses(vertices, indices, sizes, density=None, mass=None):
     return total * (share / share.sum())
 
 
-def _number(name, value, low, low_text):
-    value = real_array(name, value)
-    if value.ndim != 0:
-        raise ValueError(f"{name}: expected one number, got shape {value.shape}")
-    if not (value > low if low_text == ">" else value >= low):
-        raise ValueError(f"{name}: must be {low_text} {low:g}, got {float(value):g}")
-    return float(value)
-
-
 def _positive(name, value):
-    return _number(name, value, 0.0, ">")
+    return real_number(name, value, 0.0, ">")
 
 
 def _unique_pairs(a, b, n):
@@ -252,8 +243,8 @@ def mesh_arguments(vertices, faces, *, density=None, mass=None, stiffness=1e4, d
     unused = unused_vertices(len(x), triangles)
     if unused.size:
         raise ValueError(f"vertices: vertex {unused[0]} belongs to no face (it would have no mass)")
-    factors = {"structural": 1.0, "shear": _number("shear", shear, 0.0, ">="),
-               "bend": _number("bend", bend, 0.0, ">=")}
+    factors = {"structural": 1.0, "shear": real_number("shear", shear, 0.0, ">="),
+               "bend": real_number("bend", bend, 0.0, ">=")}
     families = mesh_springs(triangles, inner)
     kept = [name for name in factors if factors[name] > 0]
     factor = np.concatenate([np.full(len(families[name]), factors[name]) for name in kept])
@@ -265,8 +256,8 @@ def mesh_arguments(vertices, faces, *, density=None, mass=None, stiffness=1e4, d
         pin_velocity = np.tile(real_array("pin_velocity", pin_velocity), (0 if pins is None else len(pins), 1))
     return dict(positions=x, springs=np.concatenate([families[name] for name in kept]),
                 masses=lumped_masses(x, indices, sizes, density, mass),
-                stiffness=_number("stiffness", stiffness, 0.0, ">=") * factor,
-                damping=_number("damping", damping, 0.0, ">=") * factor, gravity=gravity,
+                stiffness=real_number("stiffness", stiffness, 0.0, ">=") * factor,
+                damping=real_number("damping", damping, 0.0, ">=") * factor, gravity=gravity,
                 fixed=pins, triangles=triangles, velocities=velocities, colliders=colliders, drag=drag, wind=wind,
                 pin_velocity=pin_velocity, self_collision=self_collision)
 

@@ -56,6 +56,18 @@ def real_array(name, value):
     return arr
 
 
+def real_number(name, value, low=None, low_text=""):
+    """One real number with ``real_array``'s checks; ``> low`` or ``>= low`` (``low_text``)
+    when ``low`` is given."""
+    arr = real_array(name, value)
+    if arr.ndim != 0:
+        raise ValueError(f"{name}: expected a number, got shape {arr.shape}")
+    out = float(arr)
+    if low is not None and not (out > low if low_text == ">" else out >= low):
+        raise ValueError(f"{name}: must be {low_text} {low:g}, got {out:g}")
+    return out
+
+
 def _per_item(name, value, count, what, low=None, low_text=""):
     """A scalar broadcast to ``count`` items, or an array of shape (count,); every
     value (the scalar too, even with no items) must be ``> low`` or ``>= low``."""

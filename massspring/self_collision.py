@@ -22,16 +22,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from massspring.model import real_array
-
-
-def _number(name, value, allow_none=False):
-    if value is None and allow_none:
-        return None
-    arr = real_array(name, value)
-    if arr.shape != ():
-        raise ValueError(f"{name}: expected a number, got shape {arr.shape}")
-    return float(arr)
+from massspring.model import real_number
 
 
 @dataclass(frozen=True)
@@ -44,15 +35,9 @@ class SelfCollision:
     stiffness: float | None = None
 
     def __post_init__(self):
-        thickness = _number("thickness", self.thickness)
-        if not thickness > 0:
-            raise ValueError(f"thickness: must be > 0 (m), got {thickness:g}")
-        friction = _number("friction", self.friction)
-        if friction < 0:
-            raise ValueError(f"friction: must be >= 0, got {friction:g}")
-        stiffness = _number("stiffness", self.stiffness, allow_none=True)
-        if stiffness is not None and not stiffness > 0:
-            raise ValueError(f"stiffness: must be > 0 (N/m) or None, got {stiffness:g}")
+        thickness = real_number("thickness", self.thickness, 0.0, ">")
+        friction = real_number("friction", self.friction, 0.0, ">=")
+        stiffness = None if self.stiffness is None else real_number("stiffness", self.stiffness, 0.0, ">")
         object.__setattr__(self, "thickness", thickness)
         object.__setattr__(self, "friction", friction)
         object.__setattr__(self, "stiffness", stiffness)
