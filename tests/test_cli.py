@@ -22,7 +22,8 @@ def run_cli(*args):
 def test_run_every_scene(scene, integrator, tmp_path, capsys):
     out = tmp_path / "state.npz"
     grid = ["--set", "resolution=6"]
-    small = {"cloth": grid, "drape": grid, "tablecloth": grid, "flag": grid, "swing": grid,
+    small = {"cloth": grid, "drape": grid, "tablecloth": grid, "flag": grid, "swing": grid, "sheets": grid,
+             "ledge": grid, "thrown": grid,
              "cube": ["--set", "resolution=3"], "chain": ["--set", "count=5"],
              "rope-drop": ["--set", "count=5"]}.get(scene, [])
     code = main(["run", scene, "--integrator", integrator, "--steps", "3", "--quiet", "--out", str(out), *small])

@@ -29,7 +29,7 @@ PARAMETERS = {
     "grid": {"resolution": 32, "size": 1.0, "mass": 1.0, "stiffness": 1e4, "damping": 0.0,
              "shear": 1.0, "bend": 0.1, "pin": "corners", "gravity": [0.0, 0.0, -9.81],
              "compress": 1.0, "crumple": 0.0, "seed": 0, "upright": False, "layers": 1,
-             "spacing": 0.1, "turn": 0.0},
+             "spacing": 0.1, "turn": 0.0, "throw": [0.0, 0.0, 0.0]},
     "lattice": {"resolution": 6, "size": 0.5, "mass": 1.0, "stiffness": 2e4, "damping": 0.0,
                 "squash": 0.8, "spin": 2.0, "gravity": [0.0, 0.0, -9.81]},
 }
@@ -80,7 +80,8 @@ def chain(count, length, mass, stiffness, damping, gravity, mass_ratio=1.0, rest
 
 
 def grid(resolution, size, mass, stiffness, damping, shear, bend, pin, gravity,
-         compress=1.0, crumple=0.0, seed=0, upright=False, layers=1, spacing=0.1, turn=0.0):
+         compress=1.0, crumple=0.0, seed=0, upright=False, layers=1, spacing=0.1, turn=0.0,
+         throw=(0.0, 0.0, 0.0)):
     """A square cloth of resolution x resolution particles in the z = 0 plane (``upright``:
     in the y = 0 plane, its y running up as z, like a flag), with structural, shear (diagonal)
     and bend (skip-one) springs. ``shear`` and ``bend`` scale their stiffness and
@@ -98,12 +99,14 @@ def grid(resolution, size, mass, stiffness, damping, shear, bend, pin, gravity,
     ``layers`` sheets (>= 1), each a copy of the first raised by ``spacing`` (m) along
     the sheet's normal and turned by ``turn`` degrees more than the one below about the
     normal through the sheet's centre; pins hold the first (lowest) sheet only; ``mass``
-    is each sheet's."""
+    is each sheet's. ``throw`` (m/s, 3 numbers): the initial velocity of every sheet above
+    the first, in world axes (a sheet thrown at a resting one)."""
     _at_least("resolution", resolution, 2)
     _at_least("layers", layers, 1)
     _positive("spacing", spacing)
     if not isinstance(turn, (int, float)) or isinstance(turn, bool) or not np.isfinite(turn):
         raise ValueError(f"turn: expected a finite number of degrees, got {turn!r}")
+    _velocity("throw", throw)
     _positive("size", size)
     _positive("mass", mass)
     _positive("compress", compress)
@@ -143,7 +146,9 @@ def grid(resolution, size, mass, stiffness, damping, shear, bend, pin, gravity,
                                                             [size / 2, size / 2], layers, spacing, turn)
     if upright:
         x = x[:, [0, 2, 1]]  # (x, y, z) -> (x, z, y): the cloth stands in the y = 0 plane
-    return dict(positions=x, springs=springs, masses=mass / (r * r), stiffness=stiffness * factor,
+    v = np.zeros_like(x)
+    v[r * r:] = throw
+    return dict(positions=x, springs=springs, masses=mass / (r * r), stiffness=stiffness * factor, velocities=v,
                 damping=damping * factor, rest_lengths=rest_lengths, gravity=gravity,
                 fixed=np.array(fixed, dtype=np.int64), triangles=triangles)
 
@@ -254,6 +259,13 @@ def _positive(name, value):
 def _at_least(name, value, low):
     if not value >= low:
         raise ValueError(f"{name}: must be >= {low}, got {value!r}")
+
+
+def _velocity(name, value):
+    ok = isinstance(value, (list, tuple)) and len(value) == 3 and all(
+        isinstance(c, (int, float)) and not isinstance(c, bool) and np.isfinite(c) for c in value)
+    if not ok:
+        raise ValueError(f"{name}: expected 3 finite numbers (m/s), got {value!r}")
 
 
 def _not_negative(**moduli):
