@@ -16,6 +16,7 @@ import signal
 import sys
 import time
 from dataclasses import dataclass, replace
+from pathlib import Path
 
 import numpy as np
 
@@ -74,6 +75,10 @@ def build_parser():
     study = verbs["study"] = sub.add_parser(
         "study", help="work-precision study: error against run time per integrator and dt")
     add_study_arguments(study)
+
+    sweep = verbs["sweep"] = sub.add_parser(
+        "sweep", help="run a scene once per combination of varied parameters, here or on a Dask cluster")
+    add_sweep_arguments(sweep, INTEGRATORS)
     return parser, verbs
 
 
@@ -649,6 +654,7 @@ def add_study_arguments(p):
     p.add_argument("--repeats", type=int, default=3, help="timed runs per configuration, at most (default 3)")
     p.add_argument("--cache-dir", help="RK4 reference cache (default $MASSSPRING_CACHE, "
                    "else $XDG_CACHE_HOME/massspring or ~/.cache/massspring)")
+    add_cluster_arguments(p)
 
 
 # run_study's arguments -> the options of `massspring study` that give them
@@ -658,9 +664,7 @@ STUDY_OPTIONS = {"integrators": "--integrators", "duration": "--duration", "rung
 
 
 def cmd_study(args):
-    from pathlib import Path
-
-    from massspring.analysis import report, study
+    from massspring.analysis import cluster, report, study
     from massspring.scene import load_scene
 
     scene = load_scene(args.scene).with_settings(args.set)
@@ -674,10 +678,16 @@ def cmd_study(args):
         except ValueError as exc:
             raise UsageError(f"--{key.replace('_', '-')}: {exc}") from None
     try:
-        result = study.run_study(scene, integrators=[s.strip() for s in args.integrators.split(",") if s.strip()],
-                                 duration=args.duration, rungs=args.rungs, **tols,
-                                 preconditioners=[s.strip() for s in args.preconditioners.split(",") if s.strip()],
-                                 repeats=args.repeats, cache=args.cache_dir, progress=report.print_progress)
+        cluster.check_options(args.workers, args.address)
+    except ValueError as exc:
+        raise UsageError(str(exc)) from None
+    try:
+        with cluster.cluster(args.workers, args.address) as client:
+            result = study.run_study(
+                scene, integrators=[s.strip() for s in args.integrators.split(",") if s.strip()],
+                duration=args.duration, rungs=args.rungs, **tols,
+                preconditioners=[s.strip() for s in args.preconditioners.split(",") if s.strip()],
+                repeats=args.repeats, cache=args.cache_dir, progress=report.print_progress, client=client)
     except ValueError as exc:  # run_study checks its arguments first: name them as options
         name, _, reason = str(exc).partition(": ")
         if name in STUDY_OPTIONS:
@@ -703,12 +713,11 @@ def add_stability_arguments(p, integrators):
                    help="predict at the state the implicit integrator reaches after SECONDS (default 0: "
                    "the initial state)")
     p.add_argument("--predict-only", action="store_true", help="print the predictions, run no ladder")
+    add_cluster_arguments(p)
 
 
 def cmd_stability(args):
-    from pathlib import Path
-
-    from massspring.analysis import stability
+    from massspring.analysis import cluster, stability
     from massspring.scene import load_scene
 
     for name in ("run_duration", "at"):
@@ -722,6 +731,10 @@ def cmd_stability(args):
     if args.integrator or args.dt is not None or args.no_definiteness_fix:
         raise UsageError("--integrator/--dt/--no-definiteness-fix: the ladder runs every integrator "
                          "at its own dts, implicit with the fix on and off")
+    try:
+        cluster.check_options(args.workers, args.address)
+    except ValueError as exc:
+        raise UsageError(str(exc)) from None
     scene = load_scene(args.scene).with_settings(args.set)
     prefix = Path(args.out) if args.out else Path(f"stability-{scene.name}")
     if not prefix.parent.is_dir():
@@ -747,8 +760,9 @@ def cmd_stability(args):
             fix = "" if row["definiteness_fix"] in (None, True) else " without the definiteness fix"
             print(f"stability {scene.name}: {row['integrator']}{fix} dt {row['dt']:.4g}: {row['outcome']}",
                   file=sys.stderr, flush=True)
-    rows = stability.ladder(scene, prediction, duration=args.run_duration, max_steps=args.max_steps,
-                            progress=on_row, **options)
+    with cluster.cluster(args.workers, args.address) as client:
+        rows = stability.ladder(scene, prediction, duration=args.run_duration, max_steps=args.max_steps,
+                                progress=on_row, client=client, **options)
     if progress.interactive(sys.stderr):
         print(file=sys.stderr)
     print(stability.format_table(rows))
@@ -761,8 +775,102 @@ def cmd_stability(args):
     return EXIT_OK
 
 
+def add_cluster_arguments(p):
+    where = p.add_mutually_exclusive_group()
+    where.add_argument("--workers", type=int, metavar="N", help="run the cases on a local Dask cluster of N "
+                       "worker processes, started for this command (pip install 'massspring[cluster]')")
+    where.add_argument("--address", metavar="tcp://HOST:PORT",
+                       help="run the cases on the Dask cluster whose scheduler listens there")
+
+
+def add_sweep_arguments(p, integrators):
+    from massspring.analysis.sweep import MAX_CASES, METRICS
+
+    add_scene_arguments(p, integrators)
+    p.add_argument("--vary", action="append", default=[], metavar="KEY=V1,V2,...", required=True,
+                   help="a model parameter (as --set), dt, integrator or preconditioner and its values; "
+                   "repeatable: one case per combination")
+    length = p.add_mutually_exclusive_group()
+    length.add_argument("--steps", type=int, help="steps per case (default: the scene's duration / dt)")
+    length.add_argument("--duration", type=float, help="simulated seconds per case (default: the scene's)")
+    p.add_argument("--out", required=True, help="the CSV: a row per case, appended as each finishes; "
+                   "an existing one of the same sweep is resumed (its finished cases are skipped)")
+    p.add_argument("--states", metavar="DIR", help="keep each case's final state as DIR/caseNNNN.npz")
+    p.add_argument("--plot", metavar="PNG", help="draw --metric against the first varied key (a line per "
+                   "value of the second) (pip install 'massspring[plot]')")
+    p.add_argument("--metric", choices=METRICS, default="energy", help="what --plot draws (default energy)")
+    p.add_argument("--yes", action="store_true", help=f"run more than {MAX_CASES} cases")
+    p.add_argument("--quiet", action="store_true", help="no line per finished case")
+    add_cluster_arguments(p)
+
+
+def cmd_sweep(args):
+    from massspring.analysis import cluster, sweep
+    from massspring.device import ensure_taichi
+    from massspring.io.files import check_writable
+    from massspring.scene import load_scene
+
+    scene = load_scene(args.scene).with_settings(args.set)
+    try:
+        vary = sweep.parse_vary(args.vary)
+        cases = sweep.plan(scene, vary, integrator=args.integrator, confirm=args.yes, option="--vary")
+        for name in ("dt", "duration"):
+            if getattr(args, name) is not None:
+                validate.positive_float(f"--{name}", getattr(args, name))
+        if args.steps is not None and not 1 <= args.steps <= MAX_STEPS:
+            raise ValueError(f"--steps: must be within 1..{MAX_STEPS}, got {args.steps}")
+        check_writable(args.out, "--out", (".csv",))
+        if args.states is not None and not Path(args.states).is_dir():
+            raise ValueError(f"--states: {args.states!r} is not a directory")
+        if args.plot is not None:
+            check_writable(args.plot, "--plot", (".png",))
+            if len(vary) > 2:
+                raise ValueError(f"--plot: draws against one or two varied keys, not {len(vary)}")
+            _needs_matplotlib("--plot")
+        cluster.check_options(args.workers, args.address)
+        ensure_taichi(args.arch, "--arch")
+    except ValueError as exc:
+        raise UsageError(str(exc)) from None
+    options = dict(precision=args.precision, arch=args.arch, **solver_options(args))
+    total = len(cases)
+    finished = []
+
+    def on_case(case, row):
+        finished.append(row)
+        if not args.quiet:
+            message = f": {row['message']}" if row["message"] else ""
+            print(f"sweep {scene.name}: case {case.number} of {total} ({case.label()}): {row['status']} in "
+                  f"{row['wall_s']:.2f} s{message}", file=sys.stderr, flush=True)
+
+    if not args.quiet and Path(args.out).exists():
+        print(f"sweep {scene.name}: resuming {args.out}: its finished cases are skipped", file=sys.stderr)
+    try:
+        with cluster.cluster(args.workers, args.address) as client:
+            rows = sweep.sweep(scene, vary, integrator=args.integrator, dt=args.dt, duration=args.duration,
+                               steps=args.steps, out=args.out, states=args.states, client=client,
+                               options=options, confirm=args.yes, progress=on_case)
+    except KeyboardInterrupt as exc:
+        what = "terminated" if isinstance(exc, Terminated) else "interrupted"
+        print(f"massspring: {what} after {len(finished)} new case(s); {args.out} holds every finished one",
+              file=sys.stderr)
+        return 128 + exc.signum if isinstance(exc, Terminated) else EXIT_INTERRUPTED
+    print(sweep.format_table(rows, list(vary)))
+    written = [args.out]
+    if args.plot is not None:
+        written.append(sweep.plot(rows, list(vary), args.metric, args.plot, f"{scene.name}: {args.metric}"))
+    print("wrote " + ", ".join(str(p) for p in written))
+    return EXIT_OK
+
+
+def _needs_matplotlib(option):
+    try:
+        import matplotlib  # noqa: F401
+    except ImportError:
+        raise ValueError(f"{option}: matplotlib is not installed (pip install 'massspring[plot]')") from None
+
+
 COMMANDS = {"run": cmd_run, "scenes": cmd_scenes, "info": cmd_info, "study": cmd_study,
-            "stability": cmd_stability}
+            "stability": cmd_stability, "sweep": cmd_sweep}
 
 
 def _terminate(signum, frame):

@@ -29,6 +29,7 @@ from pathlib import Path
 
 import numpy as np
 
+from massspring.analysis import cluster
 from massspring.errors import DivergenceError
 from massspring.integrators import INTEGRATORS
 from massspring.integrators.rk4 import rk4_stable_dt
@@ -260,22 +261,35 @@ def run_case(scene, integrator, dt, definiteness_fix=True, duration=1.0, max_ste
 
 
 def ladder(scene, prediction: Prediction, duration=1.0, max_steps=1000, cases=LADDER, progress=None,
-           **sim_kwargs) -> list:
+           client=None, **sim_kwargs) -> list:
     """Rows of ``COLUMNS``: every (integrator, fix, multiple) of ``cases`` run by ``run_case``
-    at dt = multiple x the named prediction, plus the scene's own default dt for each."""
-    rows = []
+    at dt = multiple x the named prediction, plus the scene's own default dt for each.
+    ``client``: a ``dask.distributed.Client`` to run them on (None: in this process);
+    the rows are the same either way, in this order."""
+    tasks, scales = [], []
     for integrator, fix, relative_to, multiples in cases:
         reference = getattr(prediction, relative_to)
         dts = [m * reference for m in multiples if math.isfinite(m * reference)]
         dts.append(scene.default_dt(integrator))
         for dt in dts:
-            row = run_case(scene, integrator, dt, fix, duration, max_steps, **sim_kwargs)
-            row["dt_ratio"] = dt / reference if math.isfinite(reference) else math.nan
-            row["relative_to"] = relative_to
-            rows.append({key: row[key] for key in COLUMNS})
-            if progress:
-                progress(rows[-1])
+            tasks.append((scene, integrator, dt, fix, duration, max_steps, sim_kwargs))
+            scales.append((dt / reference if math.isfinite(reference) else math.nan, relative_to))
+    rows = [None] * len(tasks)
+
+    def finished(index, row):
+        if isinstance(row, Exception):  # a worker that kept dying
+            raise row
+        row["dt_ratio"], row["relative_to"] = scales[index]
+        rows[index] = {key: row[key] for key in COLUMNS}
+        if progress:
+            progress(rows[index])
+
+    cluster.run_tasks(_ladder_case, tasks, client=client, on_result=finished)
     return rows
+
+
+def _ladder_case(scene, integrator, dt, fix, duration, max_steps, sim_kwargs):
+    return run_case(scene, integrator, dt, fix, duration, max_steps, **sim_kwargs)
 
 
 def prediction_lines(prediction: Prediction, scene_name) -> list:

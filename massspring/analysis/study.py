@@ -37,7 +37,7 @@ from dataclasses import asdict, dataclass, field
 import numpy as np
 
 from massspring import solvers, validate
-from massspring.analysis import reference
+from massspring.analysis import cluster, reference
 from massspring.analysis.fits import TARGETS, cheapest, fit_orders
 from massspring.errors import DivergenceError
 from massspring.integrators import INTEGRATORS
@@ -192,7 +192,7 @@ def run_study(scene, *, integrators=DEFAULT_INTEGRATORS, duration=None, rungs=DE
               ladders=None, cg_tols=DEFAULT_CG_TOLS, newton_tols=DEFAULT_NEWTON_TOLS, preconditioners=("auto",),
               repeats=DEFAULT_REPEATS,
               time_budget=DEFAULT_TIME_BUDGET, cache=None, use_cache=True,
-              reference_ratio=REFERENCE_RATIO, reference_dt=None, progress=None) -> Study:
+              reference_ratio=REFERENCE_RATIO, reference_dt=None, progress=None, client=None) -> Study:
     """Run the sweep on ``scene`` (a Scene) and measure every run against the reference.
 
     ``ladders``: optional {integrator: [dt, ...]} replacing the default ladders (from
@@ -200,6 +200,9 @@ def run_study(scene, *, integrators=DEFAULT_INTEGRATORS, duration=None, rungs=DE
     the largest dt given. ``preconditioners``: the implicit runs' (``solvers.CHOICES``),
     each a line per CG tolerance. ``reference_dt``: the RK4 step to start the self-check from
     (default: the scene's explicit dt). ``progress``: a callable given each finished Run.
+    ``client``: a ``dask.distributed.Client`` to run the runs on, a task each (None: in
+    this process); the reference is computed here. The errors are the same either way;
+    wall times on a cluster are those of its workers, sharing their machines.
     """
     integrators = _check_integrators(integrators)
     duration = default_duration(scene) if duration is None else validate.positive_float("duration", duration)
@@ -231,23 +234,34 @@ def run_study(scene, *, integrators=DEFAULT_INTEGRATORS, duration=None, rungs=DE
                 reference.steps_between(times, dt, name=f"ladders[{name!r}]")
     size = scene_size(model)
 
-    runs = []
+    tasks = []
     for name in integrators:
         cls = INTEGRATORS[name]
         tols = [{"newton_tol": t} for t in newton_tols] if cls.newton else [{"cg_tol": t} for t in cg_tols]
         for pre in (preconditioners if cls.linear_solver else [None]):
-            _warm_up(model, name, ladders[name][0], pre)
             for tol in (tols if cls.linear_solver else [{}]):
                 for dt in ladders[name]:
-                    run = _measure(model, name, dt, tol, pre, times, size, repeats, time_budget)
-                    runs.append(run)
-                    if progress:
-                        progress(run)
+                    tasks.append((model, name, ladders[name][0], dt, tol, pre, times, size, repeats, time_budget))
+
+    def finished(index, run):
+        if isinstance(run, Exception):  # a worker that kept dying
+            raise run
+        if progress:
+            progress(run)
+
+    runs = cluster.run_tasks(_warm_and_measure, tasks, client=client, on_result=finished)
     ref, check = _reference(model, times, start_dt,
                             runs, size, cache, use_cache, reference_ratio)
     for run in runs:
         _score(run, ref, model, size)
     return Study(scene.name, dict(scene.params), duration, times, size, runs, check, fit_orders(runs))
+
+
+def _warm_and_measure(model, integrator, warm_dt, dt, tol, preconditioner, times, size, repeats, time_budget):
+    """One task of the study: ``_warm_up`` (at once when this process has compiled the
+    kernels already), then ``_measure``."""
+    _warm_up(model, integrator, warm_dt, preconditioner)
+    return _measure(model, integrator, dt, tol, preconditioner, times, size, repeats, time_budget)
 
 
 def _warm_up(model, integrator, dt, preconditioner):

@@ -45,10 +45,15 @@ COMPRESSION_NAMES = {1: "Shrink", 6: "Implode", 9: "Deflate64", 12: "BZIP2", 14:
 def write_state(sim, path, scene=""):
     """Write ``sim``'s current state to ``path`` (.npz), atomically; ``scene``: its name."""
     with atomic_output(path) as fh:
-        carried = {f"{CARRIED}{name}": values for name, values in sim.carried_state().items()}
-        np.savez(fh, positions=sim.positions, velocities=sim.velocities, springs=sim.model.springs,
-                 time=sim.time, steps=sim.steps, dt=sim.dt, fingerprint=sim.model.fingerprint(),
-                 scene=str(scene), integrator=sim.integrator, triangles=sim.model.triangles, **carried)
+        save_state(sim, fh, scene)
+
+
+def save_state(sim, fh, scene=""):
+    """Write ``sim``'s current state as .npz to the binary file object ``fh``."""
+    carried = {f"{CARRIED}{name}": values for name, values in sim.carried_state().items()}
+    np.savez(fh, positions=sim.positions, velocities=sim.velocities, springs=sim.model.springs,
+             time=sim.time, steps=sim.steps, dt=sim.dt, fingerprint=sim.model.fingerprint(),
+             scene=str(scene), integrator=sim.integrator, triangles=sim.model.triangles, **carried)
 
 
 @dataclass(frozen=True)

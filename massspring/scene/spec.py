@@ -195,10 +195,7 @@ class Scene:
                 raise SceneError(f"--set {key}: given twice")
             if any(c in text for c in "\n\r\x00"):
                 raise SceneError(f"--set {key}: one value on one line, got {brief(text)}")
-            try:
-                value = tomllib.loads(f"v = {text.strip()}")["v"]
-            except tomllib.TOMLDecodeError:
-                value = text.strip()
+            value = setting_value(text)
             if key in COMMON_KEYS:
                 overrides[key] = _check_common(key, value, f"--set {key}")
             else:
@@ -313,6 +310,15 @@ class Scene:
                           f"a run of it ({integrator}{f', {solver}' if solver else ''})")
         dt = self.default_dt(integrator) if dt is None else dt
         return Simulation(self.model(), integrator=integrator, dt=dt, **options)
+
+
+def setting_value(text):
+    """The value of a ``--set`` (or ``--vary``) text: parsed as a TOML value, else the
+    stripped text as a string."""
+    try:
+        return tomllib.loads(f"v = {text.strip()}")["v"]
+    except tomllib.TOMLDecodeError:
+        return text.strip()
 
 
 def load_scene(name_or_path) -> Scene:

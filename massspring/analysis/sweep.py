@@ -1,0 +1,383 @@
+"""Parameter sweeps: one run of a scene per combination of varied values.
+
+``plan`` checks the varied keys and values and lists the cases (before any run);
+``run_case`` runs one (a plain function of plain data, so a Dask worker can run it);
+``sweep`` runs them all, here or on a cluster (``cluster.run_tasks``), appending a CSV
+row as each finishes and skipping the cases a previous run of the same sweep finished.
+
+Keys are the scene's model parameters (as ``--set``), plus ``dt``, ``integrator`` and
+``preconditioner``. A row holds the varied values, ``status`` (``ok``, ``diverged``,
+``failed``) and ``message``, ``steps``, ``time`` (simulated s), ``wall_s``, ``energy``
+(the final total energy, J, ``Model.energy``), ``max_strain`` (the largest |l / l0 - 1|
+of a spring at the end) and ``cg_iterations`` (mean per step, implicit integrators).
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import itertools
+import math
+import os
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from massspring import validate
+from massspring.analysis import cluster
+
+RUN_KEYS = ("dt", "integrator", "preconditioner")
+COLUMNS = ("status", "message", "steps", "time", "wall_s", "energy", "max_strain", "cg_iterations")
+NUMBERS = ("steps", "time", "wall_s", "energy", "max_strain", "cg_iterations")
+METRICS = ("energy", "max_strain", "wall_s", "steps", "time", "cg_iterations")
+UNITS = {"energy": "J", "wall_s": "s", "time": "s"}
+MAX_CASES = 200  # more than this needs confirm=True (--yes)
+
+
+@dataclass(frozen=True)
+class Case:
+    """One combination: its number in the sweep (from 1) and ((key, value), ...) in the
+    order the keys were varied."""
+
+    number: int
+    values: tuple
+
+    @property
+    def texts(self) -> tuple:
+        return tuple(value_text(v) for _, v in self.values)
+
+    def label(self) -> str:
+        return " ".join(f"{k}={value_text(v)}" for k, v in self.values)
+
+
+def value_text(value) -> str:
+    """A value as the CSV writes it (and a resumed sweep compares it): TOML-like."""
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, float):
+        return repr(value)
+    if isinstance(value, (list, tuple)):
+        return "[" + ",".join(value_text(v) for v in value) + "]"
+    return str(value)
+
+
+def split_values(text) -> list:
+    """``"1e3,1e4"`` -> ["1e3", "1e4"]; commas inside brackets or quotes do not split
+    (``"[0,0,-9.81],[0,0,-1.62]"`` is two values)."""
+    out, depth, quote, start = [], 0, None, 0
+    for i, c in enumerate(text):
+        if quote:
+            quote = None if c == quote else quote
+        elif c in "\"'":
+            quote = c
+        elif c == "[":
+            depth += 1
+        elif c == "]":
+            depth -= 1
+        elif c == "," and depth == 0:
+            out.append(text[start:i])
+            start = i + 1
+    out.append(text[start:])
+    return [t.strip() for t in out]
+
+
+def parse_vary(items) -> dict:
+    """``--vary KEY=V1,V2,...`` strings -> {key: [value, ...]} (values parsed like ``--set``)."""
+    from massspring.scene.spec import setting_value
+
+    vary = {}
+    for item in items:
+        key, sep, text = item.partition("=")
+        key = key.strip()
+        if not sep or not key:
+            raise ValueError(f"--vary: expected KEY=V1,V2,..., got {item!r}")
+        if key in vary:
+            raise ValueError(f"--vary {key}: given twice")
+        texts = split_values(text)
+        if any(t == "" for t in texts):
+            raise ValueError(f"--vary {key}: an empty value in {text!r} (values are separated by commas)")
+        vary[key] = [setting_value(t) for t in texts]
+    return vary
+
+
+def plan(scene, vary, integrator=None, confirm=False, limit=MAX_CASES, option="vary") -> list:
+    """The cases of ``vary`` ({key: [values]}) on ``scene``, checked: every key known, every
+    value valid for its key (each model parameter value builds a model, without kernels),
+    no list empty or repeating a value, a varied preconditioner only with an integrator
+    that solves linear systems (``integrator``, else the scene's, unless the integrator is
+    varied too), at most ``limit`` cases unless ``confirm``. Raises ValueError naming
+    ``option``, the key and the value."""
+    from massspring.integrators import INTEGRATORS
+    from massspring.solvers import CHOICES
+
+    if not isinstance(vary, dict) or not vary:
+        raise ValueError(f"{option}: nothing to vary (give KEY=V1,V2,...)")
+    known = set(scene.params) | set(scene.common)
+    for key, values in vary.items():
+        where = f"{option} {key}"
+        if key not in known and key not in RUN_KEYS:
+            raise ValueError(f"{where}: unknown key; expected one of {', '.join(sorted(known | set(RUN_KEYS)))}")
+        if not isinstance(values, (list, tuple)) or not values:
+            raise ValueError(f"{where}: no values")
+        texts = [value_text(v) for v in values]
+        if len(set(texts)) < len(texts):
+            raise ValueError(f"{where}: a value given twice ({', '.join(texts)})")
+        for value in values:
+            try:
+                if key == "dt":
+                    validate.positive_float("dt", value)
+                elif key == "integrator":
+                    validate.choice("integrator", value, tuple(INTEGRATORS))
+                elif key == "preconditioner":
+                    validate.choice("preconditioner", value, CHOICES)
+                else:
+                    scene.with_params(**{key: value}).model()
+            except ValueError as exc:
+                raise ValueError(f"{where}: value {value_text(value)}: {exc}") from None
+    fixed = integrator or scene.integrator
+    if "preconditioner" in vary and "integrator" not in vary and not INTEGRATORS[fixed].linear_solver:
+        raise ValueError(f"{option} preconditioner: {fixed} solves no linear system; vary it with "
+                         + ", ".join(k for k, cls in INTEGRATORS.items() if cls.linear_solver))
+    count = math.prod(len(v) for v in vary.values())
+    if count > limit and not confirm:
+        raise ValueError(f"{option}: {count} cases, more than {limit}; pass --yes (confirm=True) to run them all")
+    keys = list(vary)
+    return [Case(n, tuple(zip(keys, combo))) for n, combo in enumerate(itertools.product(*vary.values()), start=1)]
+
+
+def run_case(scene, case, integrator=None, dt=None, duration=None, steps=None, options=None, keep_state=False):
+    """Run one case to its end and measure it; never raises for the run's own failure.
+
+    Returns (row, state): ``row`` the case's CSV values (``status`` ``diverged`` with the
+    last good state's figures, ``failed`` with the error's message), ``state`` the final
+    state's .npz bytes when ``keep_state`` (else None)."""
+    from massspring.errors import DivergenceError
+    from massspring.integrators import INTEGRATORS
+    from massspring.io.render import spring_strain
+    from massspring.io.state import save_state
+
+    values = dict(case.values)
+    params = {k: v for k, v in values.items() if k not in RUN_KEYS}
+    integrator = values.get("integrator", integrator)
+    dt = values.get("dt", dt)
+    options = dict(options or {})
+    if "preconditioner" in values:
+        options["preconditioner"] = values["preconditioner"]
+    row = {"status": "ok", "message": "", **{k: "" for k in NUMBERS}}
+    start = time.perf_counter()
+    sim = None
+    try:
+        solves = INTEGRATORS[integrator or scene.integrator].linear_solver
+        if "preconditioner" in values and not solves:
+            raise ValueError(f"preconditioner: {integrator} solves no linear system")
+        case_scene = scene.with_params(**params)
+        sim = case_scene.simulation(integrator, dt=dt, **options)
+        count = steps if steps is not None else max(1, round((duration or case_scene.duration) / sim.dt))
+        try:
+            sim.step(count)
+        except DivergenceError as exc:
+            row.update(status="diverged", message=str(exc))
+        model = sim.model
+        strain = spring_strain(sim.positions, model.springs, model.rest_lengths)
+        row.update(steps=sim.steps, time=sim.time, energy=sim.energy()["total"],
+                   max_strain=float(np.abs(strain).max()) if len(strain) else 0.0,
+                   cg_iterations=float(np.mean(sim.cg_iterations)) if sim.cg_iterations else "")
+        state = None
+        if keep_state:
+            buffer = io.BytesIO()
+            save_state(sim, buffer, scene.name)
+            state = buffer.getvalue()
+    except Exception as exc:  # a case that cannot run is a row, not the end of the sweep
+        row.update(status="failed", message=f"{type(exc).__name__}: {exc}")
+        state = None
+    finally:
+        if sim is not None:
+            sim.close()
+    row["wall_s"] = time.perf_counter() - start
+    return row, state
+
+
+class Results:
+    """The sweep's CSV: its header, the rows already there (a resumed sweep skips their
+    cases), and appending a row as a case finishes (one write of a whole line)."""
+
+    def __init__(self, path, keys):
+        self.path = Path(path)
+        self.keys = list(keys)
+        self.header = ["case", *keys, *COLUMNS]
+        self.done = {}
+        if self.path.exists():
+            self._read()
+        else:
+            with open(self.path, "w", newline="") as fh:
+                csv.writer(fh).writerow(self.header)
+
+    def _read(self):
+        with open(self.path, newline="") as fh:
+            text = fh.read()
+        lines = list(csv.reader(io.StringIO(text)))
+        if not lines or lines[0] != self.header:
+            found = ",".join(lines[0]) if lines else "nothing"
+            raise ValueError(f"--out: {str(self.path)!r} holds another table (columns {found}; this sweep "
+                             f"writes {','.join(self.header)}); give another --out")
+        kept = [lines[0]]
+        for line in lines[1:]:
+            if len(line) == len(self.header):  # a line cut short by a crash is dropped
+                kept.append(line)
+                self.done[tuple(line[1:1 + len(self.keys)])] = dict(zip(self.header, line))
+        if len(kept) != len(lines) or not text.endswith("\n"):
+            from massspring.io.files import atomic_output
+
+            with atomic_output(self.path) as fh:
+                out = io.StringIO()
+                csv.writer(out).writerows(kept)
+                fh.write(out.getvalue().encode())
+
+    def append(self, case, row):
+        out = io.StringIO()
+        csv.writer(out).writerow([case.number, *case.texts, *(_cell(row[k]) for k in COLUMNS)])
+        with open(self.path, "a", newline="") as fh:
+            fh.write(out.getvalue())
+            fh.flush()
+            os.fsync(fh.fileno())
+
+
+def _cell(value):
+    return repr(value) if isinstance(value, float) else str(value)
+
+
+def sweep(scene, vary, *, integrator=None, dt=None, duration=None, steps=None, out=None, states=None,
+          client=None, options=None, confirm=False, progress=None):
+    """Run every combination of ``vary`` ({key: [values]}) on ``scene`` (a Scene or a
+    built-in scene's name) and return the rows in case order.
+
+    ``integrator``, ``dt``, ``options`` (Simulation arguments such as cg_tol): for every
+    case, unless varied. ``duration`` (s) or ``steps``: each run's length (default: the
+    scene's duration). ``out``: the CSV (a row appended as each case finishes; cases
+    already in it are skipped and their rows returned as read). ``states``: a directory
+    for each case's final state (``case0001.npz``...). ``client``: a
+    ``dask.distributed.Client`` (None: in this process). ``progress(case, row)`` is
+    called as each case finishes."""
+    from massspring.io.files import atomic_output, check_writable
+    from massspring.scene import load_scene
+
+    if isinstance(scene, str):
+        scene = load_scene(scene)
+    cases = plan(scene, vary, integrator=integrator, confirm=confirm)
+    if steps is not None:
+        steps = validate.count("steps", steps)
+    if duration is not None:
+        duration = validate.positive_float("duration", duration)
+    if dt is not None:
+        dt = validate.positive_float("dt", dt)
+    if states is not None:
+        states = Path(states)
+        if not states.is_dir():
+            raise ValueError(f"states: {str(states)!r} is not a directory")
+    results = None
+    if out is not None:
+        check_writable(out, "out", (".csv",))
+        results = Results(out, list(vary))
+    previous = results.done if results else {}
+    todo = [case for case in cases if case.texts not in previous]
+    rows = {case.number: _typed(previous[case.texts]) for case in cases if case.texts in previous}
+    keep = states is not None
+
+    def finished(index, result):
+        case = todo[index]
+        if isinstance(result, Exception):  # a worker that kept dying
+            row, state = {"status": "failed", "message": f"{type(result).__name__}: {result}",
+                          **{k: "" for k in NUMBERS}}, None
+        else:
+            row, state = result
+        if state is not None:
+            with atomic_output(states / f"case{case.number:04d}.npz") as fh:
+                fh.write(state)
+        if results:
+            results.append(case, row)
+        rows[case.number] = {"case": case.number, **dict(case.values), **row}
+        if progress:
+            progress(case, row)
+
+    tasks = [(scene, case, integrator, dt, duration, steps, options, keep) for case in todo]
+    cluster.run_tasks(run_case, tasks, client=client, on_result=finished)
+    return [rows[case.number] for case in cases]
+
+
+def format_table(rows, keys) -> str:
+    """The rows as an aligned text table: the varied keys, status and figures."""
+    columns = ["case", *keys, "status", "steps", "time", "wall_s", "energy", "max_strain", "cg_iterations"]
+    cells = [columns] + [[value_text(row[c]) if c in keys or isinstance(row[c], str) else f"{row[c]:.4g}"
+                          for c in columns] for row in rows]
+    widths = [max(len(line[i]) for line in cells) for i in range(len(columns))]
+    lines = ["  ".join(cell.rjust(w) for cell, w in zip(line, widths)) for line in cells]
+    notes = [f"case {row['case']}: {row['message']}" for row in rows if row["message"]]
+    return "\n".join(lines + notes)
+
+
+def _typed(line):
+    """A row read back from the CSV with its figures as numbers (varied values as text)."""
+    row = dict(line)
+    row["case"] = int(row["case"])
+    for key in NUMBERS:
+        if row.get(key, "") != "":
+            row[key] = float(row[key])
+    return row
+
+
+def plot(rows, keys, metric, path, title=""):
+    """Draw ``metric`` against the first varied key (a line per value of the second, if
+    any) to ``path``; diverged and failed cases are red crosses at the foot of the axes."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from massspring.io.files import atomic_path
+
+    first, second = keys[0], (keys[1] if len(keys) > 1 else None)
+    xs = list(dict.fromkeys(value_text(r[first]) for r in rows))
+    numeric = all(_is_number(r[first]) for r in rows)
+    fig, ax = plt.subplots(figsize=(6.4, 4.2))
+    groups = list(dict.fromkeys(value_text(r[second]) for r in rows)) if second else [None]
+    for group in groups:
+        chosen = [r for r in rows if second is None or value_text(r[second]) == group]
+        ok = [r for r in chosen if r["status"] == "ok" and r[metric] != ""]
+        x = [float(r[first]) if numeric else xs.index(value_text(r[first])) for r in ok]
+        order = np.argsort(x)
+        label = f"{second} = {group}" if second else None
+        ax.plot(np.array(x)[order], np.array([float(r[metric]) for r in ok])[order], "o-", label=label)
+        bad = [r for r in chosen if r["status"] != "ok"]
+        ax.plot([float(r[first]) if numeric else xs.index(value_text(r[first])) for r in bad], [0.02] * len(bad),
+                "x", color="red", markersize=9, transform=ax.get_xaxis_transform(), clip_on=False)
+    if numeric and all(float(r[first]) > 0 for r in rows) and len(xs) > 1:
+        values = [float(r[first]) for r in rows]
+        if max(values) / min(values) >= 10:
+            ax.set_xscale("log")
+    if not numeric:
+        ax.set_xticks(range(len(xs)), xs)
+    ax.set_xlabel(first)
+    ax.set_ylabel(f"{metric} ({UNITS[metric]})" if metric in UNITS else metric)
+    ax.set_title(title + ("  (x: diverged or failed)" if any(r["status"] != "ok" for r in rows) else ""))
+    if second:
+        ax.legend(fontsize=8)
+    ax.grid(True, alpha=0.3)
+    fig.tight_layout()
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, format="png", dpi=110)
+    plt.close(fig)
+    return path
+
+
+def _is_number(value):
+    return isinstance(value, (int, float)) and not isinstance(value, bool) or _parses(value)
+
+
+def _parses(value):
+    try:
+        float(value)
+        return True
+    except (TypeError, ValueError):
+        return False

@@ -1,0 +1,240 @@
+"""Sweeps (massspring/analysis/sweep.py, cluster.py, `massspring sweep`): the cases and
+their checks, rows equal to direct runs of the same case, resume, divergence and
+failure as rows, final states, the plot, and the same rows from a Dask cluster of
+worker processes, also when a worker is killed mid-case."""
+
+import csv
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+
+import massspring as ms
+from massspring.analysis import sweep
+from massspring.cli import main
+from massspring.io.state import read_state
+
+from conftest import one_line_error
+
+
+def chain(count=5):
+    return ms.load_scene("chain").with_params(count=count)
+
+
+def direct(scene, steps, integrator=None, dt=None, **params):
+    """The case run by hand: (final total energy, largest |strain|, steps)."""
+    sim = scene.with_params(**params).simulation(integrator, dt=dt)
+    try:
+        sim.step(steps)
+    except ms.DivergenceError:
+        pass
+    x = sim.positions
+    springs, rest = sim.model.springs, sim.model.rest_lengths
+    strain = np.linalg.norm(x[springs[:, 1]] - x[springs[:, 0]], axis=1) / rest - 1
+    out = sim.energy()["total"], float(np.abs(strain).max()), sim.steps
+    sim.close()
+    return out
+
+
+def read_rows(path):
+    with open(path, newline="") as fh:
+        return list(csv.DictReader(fh))
+
+
+def test_split_values_keeps_lists_and_quotes_whole():
+    assert sweep.split_values("1e3, 1e4") == ["1e3", "1e4"]
+    assert sweep.split_values("[0,0,-9.81],[0,0,-1.62]") == ["[0,0,-9.81]", "[0,0,-1.62]"]
+    assert sweep.split_values('"a,b",c') == ['"a,b"', "c"]
+    assert sweep.parse_vary(["gravity=[0,0,-9.81],[0,0,-1.62]", "pin=end,none"]) == {
+        "gravity": [[0, 0, -9.81], [0, 0, -1.62]], "pin": ["end", "none"]}
+
+
+def test_one_case_per_combination_in_order():
+    cases = sweep.plan(chain(), {"stiffness": [1e2, 1e3], "dt": [0.01, 0.02, 0.03]})
+    assert [c.number for c in cases] == [1, 2, 3, 4, 5, 6]
+    assert [c.label() for c in cases[:2]] == ["stiffness=100.0 dt=0.01", "stiffness=100.0 dt=0.02"]
+
+
+@pytest.mark.parametrize("vary, message", [
+    ({"bogus": [1]}, "vary bogus: unknown key"),
+    ({"stiffness": []}, "vary stiffness: no values"),
+    ({"count": [5, 1]}, "vary count: value 1: .*must be >= 2"),
+    ({"stiffness": [1e3, 1000.0]}, "vary stiffness: a value given twice"),
+    ({"dt": [0.01, -1.0]}, "vary dt: value -1.0"),
+    ({"integrator": ["implicit", "leapfrog"]}, "vary integrator: value leapfrog"),
+    ({"preconditioner": ["multigrid"]}, "vary preconditioner: explicit solves no linear system"),
+    ({"count": list(range(2, 17)), "stiffness": list(range(1, 15))}, "vary: 210 cases, more than 200"),
+])
+def test_bad_vary_is_refused_before_any_case(vary, message):
+    scene = chain()
+    with pytest.raises(ValueError, match=message):
+        sweep.plan(scene, vary, integrator="explicit" if "preconditioner" in vary else None)
+
+
+def test_rows_are_the_direct_runs_and_resume_skips_finished_cases(tmp_path):
+    out = tmp_path / "rows.csv"
+    vary = {"stiffness": [1e2, 1e3], "integrator": ["implicit", "symplectic"]}
+    rows = sweep.sweep(chain(), vary, steps=20, out=out)
+    assert [(r["stiffness"], r["integrator"]) for r in rows] == [
+        (1e2, "implicit"), (1e2, "symplectic"), (1e3, "implicit"), (1e3, "symplectic")]
+    for row in rows:
+        energy, strain, steps = direct(chain(), 20, row["integrator"], stiffness=row["stiffness"])
+        assert (row["status"], row["energy"], row["max_strain"], row["steps"]) == ("ok", energy, strain, steps)
+        assert (row["cg_iterations"] != "") == (row["integrator"] == "implicit")
+    written = read_rows(out)
+    assert [float(r["energy"]) for r in written] == [r["energy"] for r in rows]  # repr: the same bits
+    # a crash cut the last line short: that case is run again, the others are skipped
+    text = out.read_text()
+    out.write_text(text[: text.rstrip("\n").rfind("\n") + 12])
+    seen = []
+    again = sweep.sweep(chain(), vary, steps=20, out=out, progress=lambda case, row: seen.append(case.number))
+    assert seen == [4]
+    assert [r["energy"] for r in again] == [r["energy"] for r in rows]
+    assert len(read_rows(out)) == 4
+
+
+def test_an_out_file_of_another_sweep_is_refused(tmp_path):
+    out = tmp_path / "rows.csv"
+    sweep.sweep(chain(), {"stiffness": [1e2]}, steps=2, out=out)
+    with pytest.raises(ValueError, match="holds another table"):
+        sweep.sweep(chain(), {"damping": [0.1]}, steps=2, out=out)
+
+
+def test_diverged_and_failed_cases_are_rows_and_the_sweep_goes_on(tmp_path):
+    rows = sweep.sweep(chain(), {"integrator": ["explicit", "implicit"], "preconditioner": ["block-jacobi"]},
+                       dt=0.05, steps=30)
+    failed, ok = rows
+    assert failed["status"] == "failed" and "explicit solves no linear system" in failed["message"]
+    assert ok["status"] == "ok"
+    rows = sweep.sweep(chain(), {"dt": [1e-3, 0.05]}, integrator="explicit", steps=30, states=tmp_path)
+    assert [r["status"] for r in rows] == ["ok", "diverged"]
+    energy, _, steps = direct(chain(), 30, "explicit", dt=0.05)
+    assert rows[1]["steps"] == steps < 30 and rows[1]["energy"] == energy  # the last good state
+    assert "diverged at step" in rows[1]["message"]
+    state = read_state(tmp_path / "case0002.npz", chain().model())
+    assert state.steps == steps and state.dt == 0.05
+
+
+def test_cli_sweep_writes_csv_and_table(tmp_path, capsys):
+    out = tmp_path / "s.csv"
+    code = main(["sweep", "chain", "--set", "count=5", "--vary", "stiffness=1e2,1e3", "--vary", "damping=0,0.1",
+                 "--steps", "10", "--out", str(out)])
+    assert code == 0
+    text = capsys.readouterr()
+    assert "case 4 of 4 (stiffness=1000.0 damping=0.1): ok" in text.err
+    assert len(read_rows(out)) == 4
+    assert text.out.splitlines()[0].split() == ["case", "stiffness", "damping", "status", "steps", "time", "wall_s",
+                                                "energy", "max_strain", "cg_iterations"]
+
+
+def test_plot_marks_diverged_cases(tmp_path):
+    pytest.importorskip("matplotlib")
+    from PIL import Image
+
+    rows = sweep.sweep(chain(), {"dt": [1e-3, 2e-3, 0.05], "damping": [0.0, 0.1]}, integrator="explicit", steps=30)
+    assert sorted({r["status"] for r in rows}) == ["diverged", "ok"]
+    path = sweep.plot(rows, ["dt", "damping"], "max_strain", tmp_path / "p.png", "chain")
+    pixels = np.asarray(Image.open(path).convert("RGB")).reshape(-1, 3).astype(int)
+    red = (pixels[:, 0] > 200) & (pixels[:, 1] < 60) & (pixels[:, 2] < 60)
+    assert red.sum() > 20  # the crosses of the diverged cases
+
+
+@pytest.mark.parametrize("argv, words", [
+    (["--vary", "bogus=1"], ["--vary bogus", "unknown key"]),
+    (["--vary", "count="], ["--vary count", "empty value"]),
+    (["--vary", "count=2,3", "--plot", "x.gif"], ["--plot", ".png"]),
+    (["--vary", "count=2", "--vary", "stiffness=1", "--vary", "damping=0", "--plot", "p.png"], ["--plot", "two"]),
+    (["--vary", "count=2", "--workers", "0"], ["--workers", "1..1024"]),
+    (["--vary", "count=2", "--steps", "0"], ["--steps"]),
+])
+def test_cli_bad_input_exits_2_naming_it(argv, words, tmp_path, capsys, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    assert main(["sweep", "chain", "--out", "s.csv", *argv]) == 2
+    one_line_error(capsys, *words)
+    assert not (tmp_path / "s.csv").exists()
+
+
+def test_sigterm_keeps_every_finished_row_and_a_rerun_finishes(tmp_path):
+    out = tmp_path / "s.csv"
+    args = [sys.executable, "-m", "massspring", "sweep", "cloth", "--set", "resolution=16", "--integrator",
+            "implicit", "--vary", "stiffness=1e3,2e3,3e3,4e3,5e3,6e3", "--steps", "1000", "--out", str(out)]
+    proc = subprocess.Popen(args, stderr=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+    for line in proc.stderr:  # wait for the first finished case
+        if "case 1 of 6" in line:
+            break
+    proc.send_signal(signal.SIGTERM)
+    _, err = proc.communicate(timeout=60)
+    assert proc.returncode == 143, err
+    assert "terminated" in err and "Traceback" not in err
+    done = read_rows(out)
+    assert 1 <= len(done) < 6 and all(r["status"] == "ok" for r in done)
+    rerun = subprocess.run(args, capture_output=True, text=True)
+    assert rerun.returncode == 0, rerun.stderr
+    assert f"case {len(done) + 1} of 6" in rerun.stderr and "case 1 of 6" not in rerun.stderr
+    assert sorted(int(r["case"]) for r in read_rows(out)) == [1, 2, 3, 4, 5, 6]
+
+
+# ---------------------------------------------------------------- on a Dask cluster
+
+distributed = pytest.importorskip("distributed")
+
+
+@pytest.fixture(scope="module")
+def client():
+    from massspring.analysis import cluster
+
+    with cluster.cluster(workers=2) as c:
+        yield c
+
+
+def test_a_cluster_gives_the_serial_rows_to_the_bit(client, tmp_path):
+    vary = {"stiffness": [1e2, 1e3], "integrator": ["implicit", "bdf2", "symplectic"]}
+    here = sweep.sweep(chain(), vary, steps=20)
+    there = sweep.sweep(chain(), vary, steps=20, client=client, out=tmp_path / "s.csv", states=tmp_path)
+    keys = ("stiffness", "integrator", "status", "steps", "energy", "max_strain", "cg_iterations")
+    assert [[r[k] for k in keys] for r in there] == [[r[k] for k in keys] for r in here]
+    assert len(read_rows(tmp_path / "s.csv")) == 6 and len(list(tmp_path.glob("case*.npz"))) == 6
+
+
+def test_a_case_whose_worker_is_killed_is_run_again(client):
+    pids = list(client.run(os.getpid).values())
+    killed = []
+
+    def kill_one(case, row):
+        if not killed:  # both workers are busy with the next cases: kill one mid-case
+            time.sleep(0.3)
+            os.kill(pids[0], signal.SIGKILL)
+            killed.append(case.number)
+
+    vary = {"stiffness": [1e3 * (k + 1) for k in range(6)]}
+    cloth = ms.load_scene("cloth").with_params(resolution=16)
+    rows = sweep.sweep(cloth, vary, integrator="implicit", steps=1000, client=client, progress=kill_one)
+    assert killed and [r["status"] for r in rows] == ["ok"] * 6
+    assert all(r["steps"] == 1000 for r in rows)
+    client.wait_for_workers(2, timeout=60)  # the nanny restarted the killed one
+
+
+def test_cli_runs_on_local_workers(tmp_path, capsys):
+    out = tmp_path / "s.csv"
+    assert main(["sweep", "chain", "--set", "count=5", "--vary", "stiffness=1e2,1e3", "--steps", "10",
+                 "--out", str(out), "--workers", "2", "--quiet"]) == 0
+    assert [r["status"] for r in read_rows(out)] == ["ok", "ok"]
+
+
+def test_stability_ladder_and_study_on_a_cluster_equal_the_serial_ones(client):
+    from massspring.analysis import stability, study
+
+    scene = chain()
+    prediction = stability.predict(scene.model())
+    here = stability.ladder(scene, prediction, duration=0.05, max_steps=50)
+    there = stability.ladder(scene, prediction, duration=0.05, max_steps=50, client=client)
+    assert repr(there) == repr(here) and len(here) > 10  # repr: nan equals nan
+    options = dict(integrators=["explicit", "bdf2"], rungs=2, repeats=1, duration=0.05, use_cache=False)
+    a, b = study.run_study(scene, **options), study.run_study(scene, client=client, **options)
+    assert [(r.integrator, r.dt, r.error, r.steps) for r in b.runs] == [(r.integrator, r.dt, r.error, r.steps)
+                                                                        for r in a.runs]
+    assert all(r.error is not None for r in a.runs)
