@@ -4,7 +4,7 @@ Runs each built-in scene that has a ``[self_collision]`` table, at its shipped s
 dt, with each integrator, for ``--duration`` seconds (default: the scene's, capped at
 ``--cap`` seconds for the explicit integrators, whose tiny dt makes a whole run long),
 and counts at ``--frames`` evenly spaced frames the crossings (an edge through a triangle
-it shares no particle with) with the numpy counter of ``tests/test_self_collision.py``
+it shares no particle with) with the tests' numpy counter (``tests/crossings.py``)
 (not the project's own detection). Prints a table and writes JSON.
 
     python benchmarks/self_collision_scenes.py
@@ -23,7 +23,7 @@ HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
 sys.path.insert(0, str(HERE.parent / "tests"))
 import output  # noqa: E402
-from test_self_collision import crossings  # noqa: E402
+from crossings import crossings  # noqa: E402
 
 import massspring as ms  # noqa: E402
 from massspring.io.files import write_json  # noqa: E402

@@ -8,6 +8,10 @@ is not installed: ``pip install 'massspring[plot]'``). The cloth, pinned at two
 corners, falls and swings; the stiffer it is, the less it stretches (strain ~ 1/stiffness).
 
     python examples/stiffness_sweep.py [--small] [--out strain.png]
+
+The command line runs such sweeps without code, on several processes if asked:
+``massspring sweep cloth --vary stiffness=1e2,1e3,1e4 --out sweep.csv --plot sweep.png --metric max_strain``
+(README, Sweeps).
 """
 
 import argparse

@@ -29,7 +29,7 @@ def imported_modules(path):
 def test_the_bench_extra_installs_what_the_benchmarks_import():
     project = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]
     installed = requirement_names(project["dependencies"] + project["optional-dependencies"]["bench"])
-    local = {path.stem for path in BENCHMARKS} | {"massspring"}
+    local = {path.stem for path in BENCHMARKS} | {path.stem for path in (ROOT / "tests").glob("*.py")} | {"massspring"}
     for path in BENCHMARKS:
         for module in imported_modules(path) - local - set(sys.stdlib_module_names):
             assert DISTRIBUTIONS.get(module, module).lower() in installed, (path.name, module)
