@@ -78,7 +78,7 @@ def test_bad_vary_is_refused_before_any_case(vary, message):
 def test_rows_are_the_direct_runs_and_resume_skips_finished_cases(tmp_path):
     out = tmp_path / "rows.csv"
     vary = {"stiffness": [1e2, 1e3], "integrator": ["implicit", "symplectic"]}
-    rows = sweep.sweep(chain(), vary, steps=20, out=out)
+    rows = ms.sweep(chain(), vary, steps=20, out=out)
     assert [(r["stiffness"], r["integrator"]) for r in rows] == [
         (1e2, "implicit"), (1e2, "symplectic"), (1e3, "implicit"), (1e3, "symplectic")]
     for row in rows:
@@ -180,24 +180,57 @@ def test_sigterm_keeps_every_finished_row_and_a_rerun_finishes(tmp_path):
 
 # ---------------------------------------------------------------- on a Dask cluster
 
-distributed = pytest.importorskip("distributed")
+def free_port():
+    import socket
+
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        return sock.getsockname()[1]
 
 
 @pytest.fixture(scope="module")
 def client():
+    """A real cluster on 127.0.0.1: `dask scheduler` and two `dask worker` processes (one
+    thread each, under a nanny that restarts a killed worker), torn down after."""
+    pytest.importorskip("distributed", reason="the [cluster] extra (Dask distributed) is not installed")
     from massspring.analysis import cluster
 
-    with cluster.cluster(workers=2) as c:
-        yield c
+    address = f"tcp://127.0.0.1:{free_port()}"
+    dask = [sys.executable, "-m", "dask"]
+    quiet = dict(stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    processes = [subprocess.Popen([*dask, "scheduler", "--host", "127.0.0.1", "--port", address.rsplit(":", 1)[1],
+                                   "--no-dashboard"], **quiet)]
+    try:
+        processes += [subprocess.Popen([*dask, "worker", address, "--nthreads", "1", "--no-dashboard",
+                                        "--death-timeout", "60"], **quiet) for _ in range(2)]
+        with cluster.cluster(address=address, timeout=60) as c:
+            c.wait_for_workers(2, timeout=120)
+            yield c
+    finally:
+        for proc in processes[::-1]:
+            proc.terminate()
+        for proc in processes[::-1]:
+            try:
+                proc.wait(timeout=30)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                proc.wait()
 
 
-def test_a_cluster_gives_the_serial_rows_to_the_bit(client, tmp_path):
+def test_a_cluster_gives_the_serial_rows_to_the_bit_and_resumes(client, tmp_path):
     vary = {"stiffness": [1e2, 1e3], "integrator": ["implicit", "bdf2", "symplectic"]}
     here = sweep.sweep(chain(), vary, steps=20)
-    there = sweep.sweep(chain(), vary, steps=20, client=client, out=tmp_path / "s.csv", states=tmp_path)
+    out = tmp_path / "s.csv"
+    there = sweep.sweep(chain(), vary, steps=20, client=client, out=out, states=tmp_path)
     keys = ("stiffness", "integrator", "status", "steps", "energy", "max_strain", "cg_iterations")
     assert [[r[k] for k in keys] for r in there] == [[r[k] for k in keys] for r in here]
-    assert len(read_rows(tmp_path / "s.csv")) == 6 and len(list(tmp_path.glob("case*.npz"))) == 6
+    assert len(read_rows(out)) == 6 and len(list(tmp_path.glob("case*.npz"))) == 6
+    lines = out.read_text().splitlines(keepends=True)
+    out.write_text("".join(lines[:4]))  # the header and three cases
+    seen = []
+    again = sweep.sweep(chain(), vary, steps=20, client=client, out=out, progress=lambda c, r: seen.append(c.number))
+    assert len(seen) == 3 and sorted(int(r["case"]) for r in read_rows(out)) == [1, 2, 3, 4, 5, 6]
+    assert [r["energy"] for r in again] == [r["energy"] for r in here]
 
 
 def test_a_case_whose_worker_is_killed_is_run_again(client):
@@ -219,6 +252,7 @@ def test_a_case_whose_worker_is_killed_is_run_again(client):
 
 
 def test_cli_runs_on_local_workers(tmp_path, capsys):
+    pytest.importorskip("distributed", reason="the [cluster] extra (Dask distributed) is not installed")
     out = tmp_path / "s.csv"
     assert main(["sweep", "chain", "--set", "count=5", "--vary", "stiffness=1e2,1e3", "--steps", "10",
                  "--out", str(out), "--workers", "2", "--quiet"]) == 0

@@ -200,9 +200,10 @@ def run_study(scene, *, integrators=DEFAULT_INTEGRATORS, duration=None, rungs=DE
     the largest dt given. ``preconditioners``: the implicit runs' (``solvers.CHOICES``),
     each a line per CG tolerance. ``reference_dt``: the RK4 step to start the self-check from
     (default: the scene's explicit dt). ``progress``: a callable given each finished Run.
-    ``client``: a ``dask.distributed.Client`` to run the runs on, a task each (None: in
-    this process); the reference is computed here. The errors are the same either way;
-    wall times on a cluster are those of its workers, sharing their machines.
+    ``client``: a ``dask.distributed.Client`` to run the runs and the first two RK4
+    references on, a task each (None: in this process); further halvings of the
+    reference, when its check asks for them, run here. The errors are the same either
+    way; wall times on a cluster are those of its workers, sharing their machines.
     """
     integrators = _check_integrators(integrators)
     duration = default_duration(scene) if duration is None else validate.positive_float("duration", duration)
@@ -234,32 +235,42 @@ def run_study(scene, *, integrators=DEFAULT_INTEGRATORS, duration=None, rungs=DE
                 reference.steps_between(times, dt, name=f"ladders[{name!r}]")
     size = scene_size(model)
 
-    tasks = []
+    exact = reference.exact_spring(model, times)
+    first = _reference_dt(times, start_dt)
+    reference_dts = [] if exact is not None else [first, first / 2]  # RK4's first pair: tasks too
+    tasks = [("reference", (model, times, dt, cache, use_cache)) for dt in reference_dts]
     for name in integrators:
         cls = INTEGRATORS[name]
         tols = [{"newton_tol": t} for t in newton_tols] if cls.newton else [{"cg_tol": t} for t in cg_tols]
         for pre in (preconditioners if cls.linear_solver else [None]):
             for tol in (tols if cls.linear_solver else [{}]):
                 for dt in ladders[name]:
-                    tasks.append((model, name, ladders[name][0], dt, tol, pre, times, size, repeats, time_budget))
+                    tasks.append(("run", (model, name, ladders[name][0], dt, tol, pre, times, size, repeats,
+                                          time_budget)))
 
-    def finished(index, run):
-        if isinstance(run, Exception):  # a worker that kept dying
-            raise run
-        if progress:
-            progress(run)
+    def finished(index, result):
+        if isinstance(result, Exception):  # a worker that kept dying
+            raise result
+        if progress and index >= len(reference_dts):
+            progress(result)
 
-    runs = cluster.run_tasks(_warm_and_measure, tasks, client=client, on_result=finished)
-    ref, check = _reference(model, times, start_dt,
-                            runs, size, cache, use_cache, reference_ratio)
+    results = cluster.run_tasks(_task, tasks, client=client, on_result=finished)
+    runs = results[len(reference_dts):]
+    known = dict(zip(reference_dts, results[:len(reference_dts)]))
+    ref, check = (exact, ReferenceCheck("exact")) if exact is not None else _reference(
+        model, times, first, runs, size, cache, use_cache, reference_ratio, known)
     for run in runs:
         _score(run, ref, model, size)
     return Study(scene.name, dict(scene.params), duration, times, size, runs, check, fit_orders(runs))
 
 
-def _warm_and_measure(model, integrator, warm_dt, dt, tol, preconditioner, times, size, repeats, time_budget):
-    """One task of the study: ``_warm_up`` (at once when this process has compiled the
-    kernels already), then ``_measure``."""
+def _task(kind, args):
+    """One task of the study: an RK4 reference trajectory (``reference.rk4``), or a run:
+    ``_warm_up`` (at once when this process has compiled the kernels already), then
+    ``_measure``."""
+    if kind == "reference":
+        return reference.rk4(*args)
+    model, integrator, warm_dt, dt, tol, preconditioner, times, size, repeats, time_budget = args
     _warm_up(model, integrator, warm_dt, preconditioner)
     return _measure(model, integrator, dt, tol, preconditioner, times, size, repeats, time_budget)
 
@@ -361,23 +372,29 @@ def _smallest_error(runs):
     return min(values) if values else math.inf
 
 
-def _reference(model, times, dt0, runs, size, cache, use_cache, ratio):
-    """The reference trajectory and its check: exact if the model has one, else RK4.
+def _reference_dt(times, dt0):
+    """RK4's first step: ``dt0`` made to divide the save interval."""
+    return times[0] / math.ceil(times[0] / dt0 - 1e-9)
 
-    RK4 starts at ``dt0`` (made to divide the save interval) and compares it with RK4
-    at half that dt; while the change is not below ``ratio`` x the smallest error of
-    the (provisionally scored) runs, it halves again, up to REFERENCE_HALVINGS times.
-    The finer of the last pair is the reference.
+
+def _reference(model, times, dt, runs, size, cache, use_cache, ratio, known=None):
+    """The RK4 reference trajectory and its check.
+
+    RK4 starts at ``dt`` (``_reference_dt``) and compares it with RK4 at half that dt;
+    while the change is not below ``ratio`` x the smallest error of the (provisionally
+    scored) runs, it halves again, up to REFERENCE_HALVINGS times. The finer of the
+    last pair is the reference. ``known``: {dt: trajectory} already computed.
     """
-    exact = reference.exact_spring(model, times)
-    if exact is not None:
-        return exact, ReferenceCheck("exact")
+    known = known or {}
+
+    def rk4(dt):
+        return known[dt] if dt in known else reference.rk4(model, times, dt, cache=cache, use_cache=use_cache)
+
     moving = model.free_mask()
-    dt = times[0] / math.ceil(times[0] / dt0 - 1e-9)
-    coarse = reference.rk4(model, times, dt, cache=cache, use_cache=use_cache)
+    coarse = rk4(dt)
     for _ in range(REFERENCE_HALVINGS + 1):
         dt /= 2
-        fine = reference.rk4(model, times, dt, cache=cache, use_cache=use_cache)
+        fine = rk4(dt)
         diff = coarse.positions[:, moving] - fine.positions[:, moving]
         change = max(_rms(diff[-1]), _rms(diff)) / size if np.all(np.isfinite(diff)) else math.inf
         provisional = [Run(r.integrator, r.dt, r.cg_tol, r.preconditioner, r.newton_tol, positions=r.positions,
