@@ -1,14 +1,17 @@
-"""A sweep in one process against the same sweep on a local Dask cluster.
+"""A sweep in one process against the same sweep on local Dask workers.
 
-Runs ``--cases`` stiffness values of the ``cloth`` scene (``--resolution``, implicit,
-``--steps`` steps each) serially in this process, then on local clusters of each of
-``--workers`` worker processes (started before the clock starts, closed after), and
-prints the wall time of each, its speed-up over the serial run and whether every
-row's figures are the same bits. Taichi's threads per process are left at their
-default, so on a machine with few cores the workers share them.
+The sweep: ``--cases`` stiffness values of a ``chain`` of ``--count`` particles,
+implicit, ``--steps`` steps each (about 1 s of wall time per case here with the
+defaults). It runs serially in this process (kernels compiled beforehand), then, for
+each of ``--workers``, as ``massspring sweep --workers N`` does: the clock starts
+before the local cluster is started and stops after it is shut down (startup, each
+worker's compilation and the shutdown included). Every row's figures must be the same
+bits as the serial one's. Then the overhead per task on a warm worker: the same
+cases on one warmed-up worker, the elapsed time minus the time the cases report
+inside the worker, per case.
 
     python benchmarks/sweep.py
-    python benchmarks/sweep.py --workers 1 2 4 --cases 16
+    python benchmarks/sweep.py --workers 1 2 --cases 12
     python benchmarks/sweep.py --json benchmarks/results/sweep.json
 """
 
@@ -16,6 +19,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import statistics
 import sys
 import time
 from pathlib import Path
@@ -32,39 +36,50 @@ FIGURES = ("status", "steps", "energy", "max_strain", "cg_iterations")
 
 def parse_args(argv=None):
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--resolution", type=int, default=32)
-    p.add_argument("--steps", type=int, default=120, help="implicit steps of 1/60 s per case (default 120)")
-    p.add_argument("--cases", type=int, default=8, help="stiffness values, 1e3 to 1e5 (default 8)")
-    p.add_argument("--workers", nargs="+", type=int, default=[2], help="cluster sizes to time (default 2)")
+    p.add_argument("--count", type=int, default=400, help="chain particles (default 400)")
+    p.add_argument("--steps", type=int, default=300, help="implicit steps per case (default 300)")
+    p.add_argument("--cases", type=int, default=12, help="stiffness values (default 12)")
+    p.add_argument("--workers", nargs="+", type=int, default=[2], help="local cluster sizes (default 2)")
     output.add_json(p, "sweep")
     return p.parse_args(argv)
 
 
 def main(argv=None):
     args = parse_args(argv)
-    scene = ms.load_scene("cloth").with_params(resolution=args.resolution)
-    vary = {"stiffness": [float(f"{1e3 * 100 ** (k / max(1, args.cases - 1)):.4g}") for k in range(args.cases)]}
-    sweep.sweep(scene, {"stiffness": vary["stiffness"][:1]}, integrator="implicit", steps=1)  # compile here
+    scene = ms.load_scene("chain").with_params(count=args.count)
+    vary = {"stiffness": [1000.0 + 100.0 * k for k in range(args.cases)]}
+    options = dict(integrator="implicit", steps=args.steps)
+    ms.sweep(scene, {"stiffness": [1000.0]}, integrator="implicit", steps=1)  # compile here first
     start = time.perf_counter()
-    serial = sweep.sweep(scene, vary, integrator="implicit", steps=args.steps)
-    wall = time.perf_counter() - start
-    rows = [{"workers": 0, "wall_s": wall, "speedup": 1.0, "same": True}]
-    print(f"cloth {args.resolution}x{args.resolution}, {args.cases} cases of {args.steps} implicit steps, "
-          f"{os.cpu_count()} CPUs")
-    print(f"{'where':>12s} {'wall s':>8s} {'speed-up':>9s} {'same bits':>9s}")
-    print(f"{'serial':>12s} {wall:8.2f} {1.0:9.2f} {'':>9s}")
+    serial = ms.sweep(scene, vary, **options)
+    serial_wall = time.perf_counter() - start
+    case_wall = statistics.median(r["wall_s"] for r in serial)
+    print(f"chain of {args.count}, {args.cases} cases of {args.steps} implicit steps ({case_wall:.2f} s each, "
+          f"median), {os.cpu_count()} CPUs")
+    print(f"{'where':>10s} {'wall s':>8s} {'speed-up':>9s} {'same bits':>9s}")
+    print(f"{'serial':>10s} {serial_wall:8.2f} {1.0:9.2f}")
+    rows = [{"workers": 0, "wall_s": serial_wall, "speedup": 1.0, "same": True}]
     for workers in args.workers:
+        start = time.perf_counter()
         with cluster.cluster(workers=workers) as client:
-            start = time.perf_counter()
-            there = sweep.sweep(scene, vary, integrator="implicit", steps=args.steps, client=client)
-            wall = time.perf_counter() - start
+            there = ms.sweep(scene, vary, client=client, **options)
+        wall = time.perf_counter() - start
         same = [[r[k] for k in FIGURES] for r in there] == [[r[k] for k in FIGURES] for r in serial]
-        rows.append({"workers": workers, "wall_s": wall, "speedup": rows[0]["wall_s"] / wall, "same": same})
-        print(f"{f'{workers} workers':>12s} {wall:8.2f} {rows[-1]['speedup']:9.2f} {'yes' if same else 'NO':>9s}",
+        rows.append({"workers": workers, "wall_s": wall, "speedup": serial_wall / wall, "same": same})
+        print(f"{f'{workers} workers':>10s} {wall:8.2f} {serial_wall / wall:9.2f} {'yes' if same else 'NO':>9s}",
               flush=True)
-    write_json(args.json, {"resolution": args.resolution, "steps": args.steps, "cases": args.cases,
-                           "cpus": os.cpu_count(), "rows": rows})
-    print(f"\nwrote {args.json}")
+    with cluster.cluster(workers=1) as client:
+        ms.sweep(scene, {"stiffness": [1000.0]}, client=client, **options)  # warm the worker up
+        start = time.perf_counter()
+        warm = ms.sweep(scene, vary, client=client, **options)
+        elapsed = time.perf_counter() - start
+    overhead = (elapsed - sum(r["wall_s"] for r in warm)) / len(warm)
+    print(f"\noverhead per task on a warm worker: {overhead * 1e3:.1f} ms, {overhead / case_wall:.1%} of a "
+          f"{case_wall:.2f} s case")
+    write_json(args.json, {"count": args.count, "steps": args.steps, "cases": args.cases, "case_s": case_wall,
+                           "cpus": os.cpu_count(), "rows": rows, "task_overhead_s": overhead,
+                           "task_overhead_fraction": overhead / case_wall})
+    print(f"wrote {args.json}")
 
 
 if __name__ == "__main__":

@@ -472,7 +472,7 @@ def plan_pictures(args, scene, sim, steps, steps_at):
     if args.projection is not None:
         view = replace(view, projection=args.projection)
     check_kept_frames(len(steps_at), sim.model.n_particles, 12, "positions")
-    return PicturePlan(render.Recording(steps_at), view, framing, size, fps, args.gif, args.png)
+    return PicturePlan(render.Recording(), view, framing, size, fps, args.gif, args.png)
 
 
 def check_kept_frames(frames, particles, size, what, limit=2e9):

@@ -440,18 +440,19 @@ def run(sim, steps, *, frames=(), on_frame=None, progress=None):
     """
     steps = validate.count("steps", steps, low=0, high=2**62)
     chunk = max(1, steps // 200)
-    pending = [int(f) for f in frames] if on_frame is not None else []
-    done = next_frame = 0
+    pending = iter(frames if on_frame is not None else ())  # read as the run goes: frames may be lazy
+    upcoming = next(pending, None)
+    done = 0
     while True:
-        while next_frame < len(pending) and pending[next_frame] <= done:
-            if pending[next_frame] == done:
+        while upcoming is not None and upcoming <= done:
+            if upcoming == done:
                 on_frame(sim)
-            next_frame += 1
+            upcoming = next(pending, None)
         if done >= steps:
             return steps
         k = min(chunk, steps - done)
-        if next_frame < len(pending):
-            k = min(k, pending[next_frame] - done)
+        if upcoming is not None:
+            k = min(k, int(upcoming) - done)
         sim.step(k)
         done += k
         if progress is not None:

@@ -5,6 +5,8 @@ refused before the first step."""
 
 import json
 import os
+import signal
+import subprocess
 import sys
 import time
 
@@ -35,7 +37,9 @@ def test_obj_frames_at_the_gif_steps_read_back_exactly(tmp_path, capsys):
     info = manifest(out)
     assert [f["step"] for f in info["frames"]] == steps
     assert [f["time"] for f in info["frames"]] == pytest.approx([s / 60 for s in steps], rel=1e-12)
-    assert sorted(p.name for p in out.iterdir()) == sorted([f["file"] for f in info["frames"]] + ["manifest.json"])
+    assert sorted(p.name for p in out.iterdir()) == sorted([f["file"] for f in info["frames"]]
+                                                           + ["manifest.json", "frames.jsonl"])
+    assert [json.loads(line) for line in (out / "frames.jsonl").read_text().splitlines()] == info["frames"]
     assert info["status"] == "complete" and info["last_step"] == 12 and info["format"] == "obj"
     assert info["integrator"] == "implicit" and info["dt"] == pytest.approx(1 / 60) and info["series"] is None
     assert info["scene"]["name"] == "cloth" and info["scene"]["params"]["resolution"] == 5
@@ -319,3 +323,40 @@ def test_usd_stage_of_a_run_that_stops_early_or_cannot_be_saved(tmp_path, capsys
     info = manifest(out)
     assert info["status"] == "failed" and info["frames"] == [] and sorted(p.name for p in out.iterdir()) == [
         "manifest.json"]
+
+
+def test_the_manifest_is_rewritten_a_logarithmic_number_of_times(tmp_path, monkeypatch):
+    """Each frame appends one journal line; the whole manifest is rewritten at the start,
+    at frame counts that are powers of two and at the end: 12 times for 1,001 frames."""
+    from massspring.io import frames
+
+    writes = []
+    original = frames.FrameExport._write_manifest
+    monkeypatch.setattr(frames.FrameExport, "_write_manifest",
+                        lambda self, *a: (writes.append(len(self.frames)), original(self, *a))[1])
+    out = tmp_path / "e"
+    assert main(["run", "spring", "--steps", "1000", "--every", "1", "--quiet", "--export", str(out)]) == 0
+    assert writes == [0, 1, 2, 4, 8, 16, 32, 64, 128, 256, 512, 1001]
+    info = manifest(out)
+    assert [json.loads(line) for line in (out / "frames.jsonl").read_text().splitlines()] == info["frames"]
+    assert len(info["frames"]) == 1001
+
+
+def test_a_huge_frame_plan_starts_at_once_and_a_signal_leaves_the_frames_listed(tmp_path):
+    """10^12 steps, a frame each: nothing is planned ahead (the run starts at once), and
+    SIGTERM leaves a manifest listing exactly the frames on disk."""
+    out = tmp_path / "e"
+    proc = subprocess.Popen([sys.executable, "-m", "massspring", "run", "spring", "--steps", str(10 ** 12), "--every",
+                             "1", "--quiet", "--export", str(out)], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            text=True)
+    deadline = time.monotonic() + 60
+    while time.monotonic() < deadline and not (out / "frame_0000000000100.obj").exists():
+        time.sleep(0.05)
+    proc.send_signal(signal.SIGTERM)
+    _, err = proc.communicate(timeout=60)
+    assert proc.returncode == 143 and "Traceback" not in err, err
+    info = manifest(out)
+    on_disk = sorted(p.name for p in out.glob("frame_*.obj"))
+    assert info["status"] == "terminated" and len(on_disk) > 100
+    assert [f["file"] for f in info["frames"]] == on_disk
+    assert [json.loads(line) for line in (out / "frames.jsonl").read_text().splitlines()] == info["frames"]

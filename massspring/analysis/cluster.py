@@ -8,7 +8,9 @@ process keeps its Taichi runtime and its pool of fields between tasks
 (``massspring.device``), so each kernel compiles once per worker and size class.
 
 ``cluster(workers, address)`` opens the client of the command line's ``--workers N``
-(a local cluster of N single-threaded worker processes, shut down afterwards) or
+(a local cluster of N worker processes, shut down afterwards; each runs one task at a
+time, its Taichi loops on its share of the CPUs, ``TI_CPU_MAX_NUM_THREADS`` = CPUs // N
+unless that variable is set) or
 ``--address tcp://HOST:PORT`` (a running ``dask scheduler``), or None for neither.
 Dask is the optional extra ``pip install "massspring[cluster]"``.
 """
@@ -17,6 +19,7 @@ from __future__ import annotations
 
 import contextlib
 import logging
+import os
 import threading
 
 EXTRA = 'pip install "massspring[cluster]"'
@@ -71,8 +74,10 @@ def cluster(workers=None, address=None, timeout=10):
         with client:
             yield client
         return
+    threads = os.environ.get("TI_CPU_MAX_NUM_THREADS") or str(max(1, (os.cpu_count() or 1) // workers))
     local = distributed.LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
-                                     dashboard_address=":0", silence_logs=logging.ERROR)
+                                     dashboard_address=":0", silence_logs=logging.ERROR,
+                                     env={"TI_CPU_MAX_NUM_THREADS": threads})
     with local, distributed.Client(local) as client:
         yield client
 

@@ -27,9 +27,17 @@ def _temp_name(path):
     return dict(prefix=f".{path.name}.{TAG}-{os.getpid()}-", suffix=".tmp", dir=path.parent)
 
 
+_CLEANED = set()  # directories this process has cleaned: later writes there skip the scan
+
+
 def remove_stale_temporaries(directory):
     """Delete the temporary files of this module in ``directory`` whose writing process
-    has ended (see the module's docstring for which files those are)."""
+    has ended (see the module's docstring for which files those are); once per
+    directory and process, so that writing many files into one costs no rescans."""
+    key = os.path.realpath(directory)
+    if key in _CLEANED:
+        return
+    _CLEANED.add(key)
     try:
         entries = list(Path(directory).iterdir())
     except OSError:

@@ -20,22 +20,30 @@ its triangles; a model without one (a chain) gets its springs as line elements:
 Frames are named ``frame_00000.EXT``, ``frame_00001.EXT``, ... in the order written
 (at least 5 digits, more for more frames); files of an earlier run in the directory
 are replaced where the names repeat, and otherwise left alone. Every file is written
-to a temporary name and renamed, and ``manifest.json`` is rewritten the same way after
-each frame, so whatever stops the run, the manifest lists exactly the frames of this
-run on disk and says how far the run got. A single-file format (usd) holds its frames
-in memory and writes its file when the run ends, however it ends (not if the process
-is killed outright); its manifest lists them from then on. Its keys: ``status``
-("running", "complete", "diverged", "interrupted", "terminated", or "failed" when a
-frame could not be written), ``message`` (why it stopped, or ""), ``format``,
-``frames`` (a list of {``file``, ``step``, ``time``}), ``last_step``/``last_time``
-(the last good state reached), ``series`` (the .pvd or the single file, else null),
-``massspring`` (version) and whatever the caller describes the run with (``info``:
-scene, integrator, dt, ...).
+to a temporary name and renamed. After each frame's file is in place, one line
+({``file``, ``step``, ``time``}) is appended to ``frames.jsonl``, the journal: a cost
+per frame that does not grow with the run. ``manifest.json`` (and the ``.pvd``) are
+rewritten, atomically, when the run starts, when the frame count reaches a power of
+two and when the run ends, however it ends: then its ``frames`` lists exactly the
+frames of this run on disk; while the run goes (or if the process was killed
+outright) the journal does (all but, after SIGKILL, a frame whose file was renamed
+into place just before), and the manifest lists a prefix of them. A single-file
+format (usd) holds its frames in memory and writes its file when the run ends (not
+if the process is killed outright); its manifest lists them from then on. The
+manifest's keys: ``status`` ("running", "complete", "diverged", "interrupted",
+"terminated", or "failed" when a frame could not be written), ``message`` (why it
+stopped, or ""), ``format``, ``frames`` (a list of {``file``, ``step``, ``time``}),
+``journal`` ("frames.jsonl"; null for a single-file format), ``last_step``/``last_time`` (the last good state
+reached), ``series`` (the .pvd or the single file, else null), ``massspring``
+(version) and whatever the caller describes the run with (``info``: scene,
+integrator, dt, ...).
 """
 
 from __future__ import annotations
 
 import importlib
+import json
+import os
 from dataclasses import dataclass
 from pathlib import Path
 from xml.sax.saxutils import quoteattr
@@ -47,6 +55,7 @@ from massspring.io.obj import write_obj
 from massspring.io.state import write_state
 
 MANIFEST = "manifest.json"
+JOURNAL = "frames.jsonl"
 
 
 @dataclass(frozen=True)
@@ -193,9 +202,12 @@ class FrameExport:
         except OSError as exc:
             raise ValueError(f"{self.name}: cannot create the directory {str(self.directory)!r}: "
                              f"{exc.strerror or exc}") from None
-        for file in (MANIFEST, self.file_name(0)):
+        for file in (MANIFEST, JOURNAL, self.file_name(0)):
             check_writable(self.directory / file, self.name)
         try:
+            if not FORMATS[self.fmt].single_file:
+                with atomic_output(self.directory / JOURNAL):
+                    pass  # empty: an earlier run's journal goes
             self._write_manifest("running", "")
         except OSError as exc:
             raise ValueError(f"{self.name}: cannot write {str(self.directory / MANIFEST)!r}: "
@@ -218,7 +230,9 @@ class FrameExport:
                 return
             record.load()(self.directory / file, sim, self.scene)
             self.frames.append({"file": file, "step": sim.steps, "time": sim.time})
-            self._write_manifest("running", "")
+            self._journal(self.frames[-1])
+            if len(self.frames) & (len(self.frames) - 1) == 0:  # a power of two: amortised constant time
+                self._write_manifest("running", "")
         except OSError as exc:
             self.error = f"could not write {str(self.directory / file)!r}: {exc.strerror or exc}"
 
@@ -242,6 +256,15 @@ class FrameExport:
             self.error = self.error or f"could not write {str(self.directory / MANIFEST)!r}: {exc.strerror or exc}"
         return self.error
 
+    def _journal(self, frame):
+        """Append ``frame``'s line to the journal in one write (a line is never half there)."""
+        line = (json.dumps(frame) + "\n").encode()
+        fd = os.open(self.directory / JOURNAL, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o666)
+        try:
+            os.write(fd, line)
+        finally:
+            os.close(fd)
+
     def _write_manifest(self, status, message):
         from massspring import __version__
 
@@ -251,7 +274,8 @@ class FrameExport:
         step, time = self.last
         write_json(self.directory / MANIFEST, {
             "massspring": __version__, "status": status, "message": message, "format": self.fmt, **self.info,
-            "last_step": step, "last_time": time, "series": record.series, "frames": self.frames})
+            "last_step": step, "last_time": time, "series": record.series,
+            "journal": None if record.single_file else JOURNAL, "frames": self.frames})
 
     def __len__(self):
         return len(self.frames)

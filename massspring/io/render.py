@@ -21,6 +21,7 @@ cloth: 1.8 MB); rendered frames are kept as 8-bit palette images (W x H bytes ea
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -91,7 +92,7 @@ def edge_springs(springs, triangles, n_particles):
 
 
 def frame_steps(steps, frames=None, every=None, duration=None, fps=DEFAULT_FPS, max_frames=DEFAULT_MAX_FRAMES):
-    """Steps (sorted int array, from 0 to ``steps``) at which to record a frame.
+    """Steps (a lazy ``FrameSteps``, from 0 to ``steps``) at which to record a frame.
 
     ``every`` K: steps 0, K, 2K, ... and the last step. ``frames`` N: N steps spread
     evenly from 0 to ``steps`` (N <= steps + 1; N = 1 is the last step alone).
@@ -103,26 +104,51 @@ def frame_steps(steps, frames=None, every=None, duration=None, fps=DEFAULT_FPS, 
     if every is not None:
         if every < 1:
             raise ValueError(f"every: must be >= 1, got {every}")
-        out = list(range(0, steps + 1, every))
-        if out[-1] != steps:
-            out.append(steps)
-        return np.array(out, dtype=np.int64)
+        return FrameSteps(steps, every=every)
     if frames is None:
         frames = max(2, min(max_frames, int(round(duration * fps)) + 1))
         frames = min(frames, steps + 1)
     elif frames < 1 or frames > steps + 1:
         raise ValueError(f"frames: must be within 1..{steps + 1} (steps + 1), got {frames}")
-    if frames == 1:
-        return np.array([steps], dtype=np.int64)
-    return np.arange(frames, dtype=np.int64) * steps // (frames - 1)
+    return FrameSteps(steps, count=frames)
+
+
+class FrameSteps(Sequence):
+    """The sorted steps 0..``steps`` of the frames, each computed when asked (no list of
+    them, so a plan of 10^12 frames costs nothing until it runs): every ``every``-th step
+    and the last, or ``count`` steps spread evenly (``count`` = 1: the last alone)."""
+
+    def __init__(self, steps, every=None, count=None):
+        self.steps, self.every = int(steps), every
+        if every is not None:
+            regular = self.steps // every + 1
+            self.count = regular + (self.steps % every != 0)
+        else:
+            self.count = int(count)
+
+    def __len__(self):
+        return self.count
+
+    def __getitem__(self, k):
+        if isinstance(k, slice):
+            return [self[i] for i in range(*k.indices(self.count))]
+        if k < 0:
+            k += self.count
+        if not 0 <= k < self.count:
+            raise IndexError(k)
+        if self.every is not None:
+            return min(k * self.every, self.steps)
+        return self.steps if self.count == 1 else k * self.steps // (self.count - 1)
+
+    def tolist(self):
+        return list(self)
 
 
 class Recording:
     """Positions of a run at chosen steps: ``record(sim)`` is the frame callback of the
     CLI's ``advance``. Frames with non-finite positions (a diverged state) are skipped."""
 
-    def __init__(self, steps):
-        self.steps = np.asarray(steps, dtype=np.int64)
+    def __init__(self):
         self.positions = []  # (n, 3) float32 each
         self.times = []      # simulated time (s) of each kept frame
         self.skipped = 0
