@@ -286,12 +286,14 @@ def cmd_run(args):
     except DivergenceError as exc:  # the simulation holds the last good state
         diverged = exc
     wall = time.perf_counter() - start
-    if pictures is not None and (diverged or stopped):
-        pictures.recording.record_last(sim)  # the picture ends on the last good state
-    failed = write_outputs(args, scene, sim, start_steps + steps, pictures)
-    if export is not None:
-        failed += finish_export(export, sim, start_steps + steps, diverged, stopped)
-    print_summary(scene, sim, wall, energy0, args.out if args.out and "--out" not in failed else None, start_steps)
+    with LateSignals() as late:  # from here a signal stops the rendering only, never a write
+        if pictures is not None and (diverged or stopped):
+            pictures.recording.record_last(sim)  # the picture ends on the last good state
+        failed = write_outputs(args, scene, sim, start_steps + steps, pictures, late.arrived)
+        if export is not None:
+            failed += finish_export(export, sim, start_steps + steps, diverged, stopped)
+        print_summary(scene, sim, wall, energy0, args.out if args.out and "--out" not in failed else None,
+                      start_steps)
     done = sim.steps - start_steps
     if diverged is not None:
         print(f"massspring: {diverged}; {divergence_hint(sim, diverged)}", file=sys.stderr)
@@ -301,6 +303,10 @@ def cmd_run(args):
         print(f"massspring: {what} after {done} of {steps} steps; the state reached so far "
               f"{'was written' if args.out and '--out' not in failed else 'is above'}", file=sys.stderr)
         return 128 + stopped.signum if isinstance(stopped, Terminated) else EXIT_INTERRUPTED
+    if late.signum is not None:  # the run had ended; a signal cut the pictures short
+        print(f"massspring: {'terminated' if late.signum == signal.SIGTERM else 'interrupted'} while writing the "
+              "outputs; what was written is listed above", file=sys.stderr)
+        return 128 + late.signum
     return EXIT_OUTPUT if failed else EXIT_OK
 
 
@@ -331,10 +337,36 @@ def restart(args, scene, sim):
     return state.steps
 
 
-def write_outputs(args, scene, sim, end_step, pictures):
+class LateSignals:
+    """While the outputs are written after a run: SIGINT and SIGTERM are recorded
+    (``signum``, the first) instead of raising, so no file write is cut short; the
+    rendering asks ``arrived()`` between frames and stops."""
+
+    def __init__(self):
+        self.signum, self.previous = None, {}
+
+    def _record(self, signum, frame):
+        self.signum = self.signum or signum
+
+    def arrived(self):
+        return self.signum is not None
+
+    def __enter__(self):
+        if _main_thread():
+            for sig in (signal.SIGINT, signal.SIGTERM):
+                self.previous[sig] = signal.signal(sig, self._record)
+        return self
+
+    def __exit__(self, *exc):
+        for sig, handler in self.previous.items():
+            signal.signal(sig, handler)
+
+
+def write_outputs(args, scene, sim, end_step, pictures, stop=None):
     """Write --out, then the pictures, each on its own: one failing does not stop the
-    others (``end_step``: the step the run was to reach). Returns the options whose
-    output failed (each reported on stderr)."""
+    others (``end_step``: the step the run was to reach; ``stop()``: true when the
+    rendering should end early). Returns the options whose output failed (each
+    reported on stderr)."""
     from massspring.io.state import write_state
 
     failed = []
@@ -345,7 +377,7 @@ def write_outputs(args, scene, sim, end_step, pictures):
             print(f"massspring: --out: could not write {args.out!r}: {exc.strerror or exc}", file=sys.stderr)
             failed.append("--out")
     if pictures is not None:
-        failed += finish_pictures(pictures, scene, sim, end_step)
+        failed += finish_pictures(pictures, scene, sim, end_step, stop)
     return failed
 
 
@@ -549,7 +581,7 @@ def _number(text):
         raise ValueError(f"expected a number, got {text.strip()!r}") from None
 
 
-def finish_pictures(plan, scene, sim, end_step):
+def finish_pictures(plan, scene, sim, end_step, stop=None):
     """Render what was recorded, write the GIF/PNG and say what was written (on stderr
     if the run or the rendering stopped early). Returns the options whose file failed."""
     from massspring.io import render
@@ -564,7 +596,7 @@ def finish_pictures(plan, scene, sim, end_step):
     renderer = render.FrameRenderer(sim.model, np.stack(rec.positions), plan.view, plan.size,
                                     label=f"{scene.name}  {sim.integrator}  dt = {format_seconds(sim.dt)}",
                                     framing=plan.framing, times=rec.times)
-    result = render.export(renderer, rec, gif=plan.gif, png=plan.png, fps=plan.fps)
+    result = render.export(renderer, rec, gif=plan.gif, png=plan.png, fps=plan.fps, stop=stop)
     wall = time.perf_counter() - start
     for option, error in result.errors.items():
         print(f"massspring: {option}: could not write: {error}", file=sys.stderr)

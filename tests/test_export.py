@@ -360,3 +360,27 @@ def test_a_huge_frame_plan_starts_at_once_and_a_signal_leaves_the_frames_listed(
     assert info["status"] == "terminated" and len(on_disk) > 100
     assert [f["file"] for f in info["frames"]] == on_disk
     assert [json.loads(line) for line in (out / "frames.jsonl").read_text().splitlines()] == info["frames"]
+
+
+def test_a_second_signal_during_the_pictures_keeps_what_was_rendered(tmp_path):
+    """SIGTERM stops the run; a second one while thousands of recorded frames are being
+    rendered stops the rendering: the GIF holds the frames rendered so far, the manifest
+    says "terminated", exit 143, no traceback."""
+    from PIL import Image
+
+    out, gif = tmp_path / "e", tmp_path / "a.gif"
+    proc = subprocess.Popen([sys.executable, "-m", "massspring", "run", "cloth", "--set", "resolution=8", "--integrator",
+                             "symplectic", "--steps", "4000000", "--every", "20", "--gif", str(gif), "--export",
+                             str(out), "--quiet"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    deadline = time.monotonic() + 60
+    while time.monotonic() < deadline and len(list(out.glob("frame_*.obj"))) < 2000:
+        time.sleep(0.05)
+    proc.send_signal(signal.SIGTERM)
+    time.sleep(1.0)  # rendering 2,000 frames takes about 25 s here
+    proc.send_signal(signal.SIGTERM)
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode == 143 and "Traceback" not in err, err
+    assert "rendering interrupted" in err
+    frames = Image.open(gif).n_frames
+    assert 1 <= frames < len(manifest(out)["frames"])
+    assert manifest(out)["status"] == "terminated"

@@ -508,7 +508,7 @@ def write_png(path, image):
 @dataclass
 class ExportResult:
     """What ``export`` did: frames written (GIF frames, or 1 for a PNG alone), whether
-    Ctrl-C stopped the rendering, and the error of each output that failed
+    Ctrl-C (or ``stop``) stopped the rendering, and the error of each output that failed
     ({"--gif": message, ...})."""
 
     count: int
@@ -516,14 +516,18 @@ class ExportResult:
     errors: dict
 
 
-def export(renderer, recording, gif=None, png=None, fps=DEFAULT_FPS) -> ExportResult:
+def export(renderer, recording, gif=None, png=None, fps=DEFAULT_FPS, stop=None) -> ExportResult:
     """Render ``recording`` with ``renderer`` and write the GIF (every frame) and/or the
     PNG (the last frame rendered), each on its own: one failing does not stop the
-    other. A Ctrl-C while rendering stops it, and what was rendered is still written."""
+    other. A Ctrl-C while rendering, or ``stop()`` turning true between frames, stops
+    it, and what was rendered is still written."""
     frames, last, interrupted = [], None, False
     todo = range(len(recording)) if gif else range(len(recording) - 1, len(recording))
     try:
         for i in todo:
+            if stop is not None and stop():
+                interrupted = True
+                break
             last = renderer.render(recording.positions[i], recording.times[i])
             if gif:
                 frames.append(to_palette(last))
