@@ -3,9 +3,11 @@
 The sweep: ``--cases`` stiffness values of a ``chain`` of ``--count`` particles,
 implicit, ``--steps`` steps each (about 1 s of wall time per case here with the
 defaults). It runs serially in this process (kernels compiled beforehand), then, for
-each of ``--workers``, as ``massspring sweep --workers N`` does: the clock starts
-before the local cluster is started and stops after it is shut down (startup, each
-worker's compilation and the shutdown included). Every row's figures must be the same
+each of ``--workers``: as the command a user types, serial and with ``--workers N``,
+each in a new process (process start, Taichi's start and compilation included); and
+in this process as ``massspring sweep --workers N`` does: the clock starts before the
+local cluster is started and stops after it is shut down (startup, each worker's
+compilation and the shutdown included). Every row's figures must be the same
 bits as the serial one's. Then the overhead per task on a warm worker: the same
 cases on one warmed-up worker, the elapsed time minus the time the cases report
 inside the worker, per case.
@@ -20,7 +22,9 @@ from __future__ import annotations
 import argparse
 import os
 import statistics
+import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -44,6 +48,18 @@ def parse_args(argv=None):
     return p.parse_args(argv)
 
 
+def command(args, vary, where):
+    """Wall time of `massspring sweep` in a new process (serial, or ``where`` = --workers N)."""
+    with tempfile.TemporaryDirectory() as tmp:
+        argv = [sys.executable, "-m", "massspring", "sweep", "chain", "--set", f"count={args.count}", "--integrator",
+                "implicit", "--steps", str(args.steps), "--vary", "stiffness=" + ",".join(map(str, vary["stiffness"])),
+                "--out", str(Path(tmp) / "s.csv"), "--quiet", *where]
+        start = time.perf_counter()
+        subprocess.run(argv, check=True, capture_output=True)
+        wall = time.perf_counter() - start
+    return {"workers": int(where[1]) if where else 0, "command": True, "wall_s": wall}
+
+
 def main(argv=None):
     args = parse_args(argv)
     scene = ms.load_scene("chain").with_params(count=args.count)
@@ -60,6 +76,11 @@ def main(argv=None):
     print(f"{'serial':>10s} {serial_wall:8.2f} {1.0:9.2f}")
     rows = [{"workers": 0, "wall_s": serial_wall, "speedup": 1.0, "same": True}]
     for workers in args.workers:
+        for where in ([], ["--workers", str(workers)]):  # the command as a user runs it, process start included
+            rows.append(command(args, vary, where))
+            print(f"{'command' + (f' --workers {workers}' if where else ''):>10s} {rows[-1]['wall_s']:8.2f} "
+                  f"{rows[-1 - (1 if where else 0)]['wall_s'] / rows[-1]['wall_s'] if where else 1.0:9.2f}",
+                  flush=True)
         start = time.perf_counter()
         with cluster.cluster(workers=workers) as client:
             there = ms.sweep(scene, vary, client=client, **options)
