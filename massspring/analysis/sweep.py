@@ -85,16 +85,10 @@ def split_values(text) -> list:
 
 def parse_vary(items) -> dict:
     """``--vary KEY=V1,V2,...`` strings -> {key: [value, ...]} (values parsed like ``--set``)."""
-    from massspring.scene.spec import setting_value
+    from massspring.scene.spec import setting_items, setting_value
 
     vary = {}
-    for item in items:
-        key, sep, text = item.partition("=")
-        key = key.strip()
-        if not sep or not key:
-            raise ValueError(f"--vary: expected KEY=V1,V2,..., got {item!r}")
-        if key in vary:
-            raise ValueError(f"--vary {key}: given twice")
+    for key, text in setting_items(items, "--vary", "KEY=V1,V2,..."):
         texts = split_values(text)
         if any(t == "" for t in texts):
             raise ValueError(f"--vary {key}: an empty value in {text!r} (values are separated by commas)")

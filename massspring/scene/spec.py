@@ -186,15 +186,7 @@ class Scene:
         """Apply ``key=value`` strings (values parsed as TOML, else taken as strings);
         a key given twice is an error."""
         overrides = {}
-        for item in settings:
-            key, sep, text = item.partition("=")
-            key = key.strip()
-            if not sep or not key:
-                raise SceneError(f"--set: expected key=value, got {item!r}")
-            if key in overrides:
-                raise SceneError(f"--set {key}: given twice")
-            if any(c in text for c in "\n\r\x00"):
-                raise SceneError(f"--set {key}: one value on one line, got {brief(text)}")
+        for key, text in setting_items(settings, "--set", "key=value"):
             value = setting_value(text)
             if key in COMMON_KEYS:
                 overrides[key] = _check_common(key, value, f"--set {key}")
@@ -310,6 +302,23 @@ class Scene:
                           f"a run of it ({integrator}{f', {solver}' if solver else ''})")
         dt = self.default_dt(integrator) if dt is None else dt
         return Simulation(self.model(), integrator=integrator, dt=dt, **options)
+
+
+def setting_items(items, option, form):
+    """(key, text) of each ``KEY=TEXT`` string of ``option`` (``form``: how to write one),
+    checked: a key, an equals sign, each key once, one line."""
+    seen = set()
+    for item in items:
+        key, sep, text = item.partition("=")
+        key = key.strip()
+        if not sep or not key:
+            raise SceneError(f"{option}: expected {form}, got {item!r}")
+        if key in seen:
+            raise SceneError(f"{option} {key}: given twice")
+        if any(c in text for c in "\n\r\x00"):
+            raise SceneError(f"{option} {key}: one value on one line, got {brief(text)}")
+        seen.add(key)
+        yield key, text
 
 
 def setting_value(text):
