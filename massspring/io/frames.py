@@ -185,6 +185,7 @@ class FrameExport:
         self.writer = None  # a single-file format's writer, made at the first frame
         self.error = None
         self.last = (None, None)  # (step, time) of the last state seen
+        self.journal = None  # the journal's file descriptor while frames are written
 
     def file_name(self, k):
         record = FORMATS[self.fmt]
@@ -242,6 +243,9 @@ class FrameExport:
         not be written) and the last good state ``sim`` reached. Returns ``error`` (None
         if every file was written)."""
         self.last = (sim.steps, sim.time)
+        if self.journal is not None:
+            os.close(self.journal)
+            self.journal = None
         if self.writer is not None and self.error is None:
             try:
                 self.writer.save()
@@ -257,13 +261,11 @@ class FrameExport:
         return self.error
 
     def _journal(self, frame):
-        """Append ``frame``'s line to the journal in one write (a line is never half there)."""
-        line = (json.dumps(frame) + "\n").encode()
-        fd = os.open(self.directory / JOURNAL, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o666)
-        try:
-            os.write(fd, line)
-        finally:
-            os.close(fd)
+        """Append ``frame``'s line to the journal in one write (a line is never half
+        there); the journal stays open until ``finish``."""
+        if self.journal is None:
+            self.journal = os.open(self.directory / JOURNAL, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o666)
+        os.write(self.journal, (json.dumps(frame) + "\n").encode())
 
     def _write_manifest(self, status, message):
         from massspring import __version__
