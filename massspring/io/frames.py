@@ -186,6 +186,8 @@ class FrameExport:
         self.error = None
         self.last = (None, None)  # (step, time) of the last state seen
         self.journal = None  # the journal's file descriptor while frames are written
+        self.journaled = 0  # frames in the journal
+        self.writing = None  # the frame whose file is being written
 
     def file_name(self, k):
         record = FORMATS[self.fmt]
@@ -229,9 +231,14 @@ class FrameExport:
                 self.writer.add(sim)
                 self.pending.append({"file": file, "step": sim.steps, "time": sim.time})
                 return
-            record.load()(self.directory / file, sim, self.scene)
-            self.frames.append({"file": file, "step": sim.steps, "time": sim.time})
-            self._journal(self.frames[-1])
+            frame, path = {"file": file, "step": sim.steps, "time": sim.time}, self.directory / file
+            # finish lists it if a signal comes once its file is in place; not if an earlier
+            # run's file of that name is there, which cannot be told from it
+            self.writing = None if path.exists() else frame
+            record.load()(path, sim, self.scene)
+            self.frames.append(frame)
+            self.writing = None
+            self._journal()
             if len(self.frames) & (len(self.frames) - 1) == 0:  # a power of two: amortised constant time
                 self._write_manifest("running", "")
         except OSError as exc:
@@ -243,7 +250,15 @@ class FrameExport:
         not be written) and the last good state ``sim`` reached. Returns ``error`` (None
         if every file was written)."""
         self.last = (sim.steps, sim.time)
+        writing = self.writing
+        if writing is not None and writing not in self.frames[-1:] and (self.directory / writing["file"]).exists():
+            self.frames.append(writing)  # a signal came after its file was renamed into place
+        self.writing = None
         if self.journal is not None:
+            try:
+                self._journal()  # a signal may have come between a frame's file and its line
+            except OSError as exc:
+                self.error = self.error or f"could not write {str(self.directory / JOURNAL)!r}: {exc.strerror or exc}"
             os.close(self.journal)
             self.journal = None
         if self.writer is not None and self.error is None:
@@ -260,12 +275,14 @@ class FrameExport:
             self.error = self.error or f"could not write {str(self.directory / MANIFEST)!r}: {exc.strerror or exc}"
         return self.error
 
-    def _journal(self, frame):
-        """Append ``frame``'s line to the journal in one write (a line is never half
-        there); the journal stays open until ``finish``."""
+    def _journal(self):
+        """Append the lines of the frames not yet in the journal, each in one write (a line
+        is never half there); the journal stays open until ``finish``."""
         if self.journal is None:
             self.journal = os.open(self.directory / JOURNAL, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o666)
-        os.write(self.journal, (json.dumps(frame) + "\n").encode())
+        while self.journaled < len(self.frames):
+            os.write(self.journal, (json.dumps(self.frames[self.journaled]) + "\n").encode())
+            self.journaled += 1
 
     def _write_manifest(self, status, message):
         from massspring import __version__
