@@ -16,8 +16,10 @@ Lengths in m. Each is a frozen dataclass validated in its constructor (finite re
 numbers, a non-zero normal, radius > 0, lower < upper on every axis, friction >= 0,
 restitution in [0, 1]); a bad field raises ``ValueError`` naming it. ``friction``,
 ``restitution`` and ``velocity`` are keyword-only. A plane's
-normal is stored normalised. Pass them as ``Model(..., colliders=[...])``; how the
-integrators respond to contact is described in ``kernels/contact.py``.
+normal is stored normalised. Pass them as ``Model(..., colliders=[...])``, which refuses
+free particles that start inside one (``check_start_outside``, with each collider's
+numpy ``signed_distance``); how the integrators respond to contact is described in
+``kernels/contact.py``.
 """
 
 from __future__ import annotations
@@ -92,6 +94,10 @@ class Plane(Collider):
         object.__setattr__(self, "normal", tuple(float(c) for c in normal / length))
         super().__post_init__()
 
+    def signed_distance(self, points):
+        """(k,) signed distances (m) of (k, 3) ``points`` to the plane at t = 0: < 0 in the solid."""
+        return (np.asarray(points, dtype=np.float64) - self.point) @ np.array(self.normal)
+
 
 @dataclass(frozen=True)
 class Sphere(Collider):
@@ -109,6 +115,10 @@ class Sphere(Collider):
             raise ValueError(f"radius: must be > 0, got {radius:g}")
         object.__setattr__(self, "radius", radius)
         super().__post_init__()
+
+    def signed_distance(self, points):
+        """(k,) signed distances (m) of (k, 3) ``points`` to the sphere at t = 0: < 0 inside."""
+        return np.linalg.norm(np.asarray(points, dtype=np.float64) - self.center, axis=1) - self.radius
 
 
 @dataclass(frozen=True)
@@ -143,6 +153,33 @@ class Box(Collider):
             raise ValueError(f"radius: must be within [0, {half:g}] (half the smallest side), got {radius:g}")
         object.__setattr__(self, "radius", radius)
         super().__post_init__()
+
+    def signed_distance(self, points):
+        """(k,) signed distances (m) of (k, 3) ``points`` to the rounded box at t = 0
+        (as ``kernels/contact.py``'s ``BoxKind``): < 0 inside."""
+        lower, upper = np.array(self.lower), np.array(self.upper)
+        a = np.abs(np.asarray(points, dtype=np.float64) - 0.5 * (lower + upper)) - (0.5 * (upper - lower) - self.radius)
+        outside = np.linalg.norm(np.maximum(a, 0.0), axis=1)
+        return np.where(outside > 0, outside, a.max(axis=1)) - self.radius
+
+
+def check_start_outside(colliders, positions, free):
+    """Refuse free particles that start inside a collider (ValueError naming the collider,
+    how many particles and the deepest): contact pushes a particle out along the surface
+    normal, which from deep inside is a jump, not a contact. Touching (within 1e-9 of the
+    model's size) is fine."""
+    x = np.asarray(positions, dtype=np.float64)[free]
+    if not len(x):
+        return
+    tolerance = 1e-9 * max(1.0, float(np.ptp(x, axis=0).max()))
+    for k, collider in enumerate(colliders):
+        depth = -collider.signed_distance(x)
+        inside = np.flatnonzero(depth > tolerance)
+        if len(inside):
+            deepest = inside[np.argmax(depth[inside])]
+            index = int(np.flatnonzero(free)[deepest])
+            raise ValueError(f"colliders: item {k} ({collider.kind}) holds {len(inside)} free particle(s) at the "
+                             f"start, particle {index} {depth[deepest]:.3g} m deep; move it or the particles outside")
 
 
 COLLIDERS = {cls.kind: cls for cls in (Plane, Sphere, Box)}  # in the order the kernels visit them

@@ -224,6 +224,10 @@ class Model:
             object.__setattr__(self, name, _readonly(np.ascontiguousarray(value)))
         object.__setattr__(self, "drag", float(air))
         object.__setattr__(self, "colliders", _colliders(colliders))
+        if self.colliders:
+            from massspring.colliders import check_start_outside
+
+            check_start_outside(self.colliders, x, self.free_mask())
         object.__setattr__(self, "self_collision", _self_collision(self_collision, tris))
 
     @classmethod

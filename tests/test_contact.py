@@ -412,3 +412,26 @@ def test_plane_normals_of_any_scale_are_normalised():
     assert ms.Plane((0, 0, 0), (3e90, 0, 4e90)).normal == pytest.approx((0.6, 0.0, 0.8), rel=1e-15)
     with pytest.raises(ValueError, match="normal: must be a non-zero vector"):
         ms.Plane((0, 0, 0), (0.0, -0.0, 0.0))
+
+
+@pytest.mark.parametrize("collider, point, distance", [
+    (ms.Plane((0, 0, 1), (0, 0, 2)), (3.0, -1.0, 0.0), -1.0),
+    (ms.Sphere((1, 1, 1), 0.5), (1.0, 1.0, 3.0), 1.5),
+    (ms.Sphere((1, 1, 1), 0.5), (1.0, 1.2, 1.0), -0.3),
+    (ms.Box((0, 0, 0), (2, 2, 2)), (1.0, 1.0, 2.5), 0.5),        # above a face
+    (ms.Box((0, 0, 0), (2, 2, 2)), (3.0, 3.0, 1.0), math.sqrt(2)),  # off an edge
+    (ms.Box((0, 0, 0), (2, 2, 2)), (1.0, 1.0, 1.8), -0.2),       # inside, nearest the top
+    (ms.Box((0, 0, 0), (2, 2, 2), radius=0.5), (2.5, 2.5, 1.0), math.sqrt(2) - 0.5),  # off a rounded edge
+])
+def test_signed_distance_of_each_collider(collider, point, distance):
+    assert collider.signed_distance([point])[0] == pytest.approx(distance, abs=1e-12)
+
+
+def test_a_particle_starting_inside_a_collider_is_refused_naming_it():
+    x = np.array([[0.0, 0.0, 1.0], [0.0, 0.0, 0.0], [0.0, 0.5, -0.25]])
+    springs = np.array([[0, 1], [1, 2]])
+    ground = ms.Plane((0, 0, 0), (0, 0, 1))
+    with pytest.raises(ValueError, match=r"colliders: item 1 \(plane\) holds 1 free particle\(s\) at the start, "
+                                         r"particle 2 0.25 m deep"):
+        ms.Model(x, springs, colliders=[ms.Sphere((5, 5, 5), 1), ground])
+    ms.Model(x, springs, fixed=[2], colliders=[ground])  # a pin may sit in it; touching (particle 1) is fine
