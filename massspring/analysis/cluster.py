@@ -82,15 +82,15 @@ def cluster(workers=None, address=None, timeout=10):
         yield client
 
 
-def run_tasks(function, tasks, client=None, on_result=None):
+def run_tasks(function, tasks, client=None, on_result=None, keep_lost=False):
     """``[function(*task) for task in tasks]``, on ``client``'s workers when given.
 
     ``on_result(index, result)`` is called as each task finishes (in finishing order on a
     cluster, in order here). A task whose worker dies is rerun by Dask (up to its
-    ``allowed-failures``); if it still cannot finish, its result is the exception
-    (``distributed.KilledWorker``) rather than the sweep failing. An exception the
-    function raises is raised here, as in this process. Returns the results in the
-    tasks' order."""
+    ``allowed-failures``); if it still cannot finish, ``distributed.KilledWorker`` is
+    raised here, or with ``keep_lost`` becomes that task's result (a sweep's failed row).
+    An exception the function raises is raised here, as in this process. Returns the
+    results in the tasks' order."""
     tasks = list(tasks)
     results = [None] * len(tasks)
     if client is None:
@@ -107,6 +107,8 @@ def run_tasks(function, tasks, client=None, on_result=None):
             try:
                 results[index] = future.result()
             except distributed.KilledWorker as exc:  # its worker died more often than Dask retries
+                if not keep_lost:
+                    raise
                 results[index] = exc
             if on_result:
                 on_result(index, results[index])

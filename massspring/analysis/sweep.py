@@ -296,7 +296,7 @@ def sweep(scene, vary, *, integrator=None, dt=None, duration=None, steps=None, o
             progress(case, row)
 
     tasks = [(scene, case, integrator, dt, duration, steps, options, keep) for case in todo]
-    cluster.run_tasks(run_case, tasks, client=client, on_result=finished)
+    cluster.run_tasks(run_case, tasks, client=client, on_result=finished, keep_lost=True)
     return [rows[case.number] for case in cases]
 
 
@@ -366,10 +366,7 @@ def plot(rows, keys, metric, path, title=""):
 
 
 def _is_number(value):
-    return isinstance(value, (int, float)) and not isinstance(value, bool) or _parses(value)
-
-
-def _parses(value):
+    """A number, or text that reads as one (values resumed from the CSV)."""
     try:
         float(value)
         return True
