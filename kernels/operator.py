@@ -14,7 +14,10 @@ them instead of looking them up by spring, which measured 1.1-1.7x faster here)
 and forms ``dev.diag`` (d_i) and the right-hand side ``dev.b``. ``apply_row``
 gathers (A p)_i over particle i's entries:
 
-    (A p)_i = d_i p_i + sum_e [a_e (p_i - p_j) + b_e n_e (n_e . (p_i - p_j))].
+    (A p)_i = d_i p_i + sum_e [a_e (p_i - p_j) + b_e n_e (n_e . (p_i - p_j))]
+
+(plus, with self-collision pairs in the solve, their penalty's share,
+``pair_penalty.pair_row``).
 
 Shapes (n particles, m springs): ``spring_coef`` (m,), ``coef`` (2m,) of
 5-vectors (n_x, n_y, n_z, a, b) in the run's precision; ``diag`` (n,); ``b`` (n,)
@@ -26,6 +29,7 @@ import taichi as ti
 from .constraints import constrain, is_pinned
 from .contact import detect, friction_diagonal, friction_impulse
 from .forces import particle_force, spring_direction, tiny_length
+from .pair_penalty import collect, pair_diagonal, pair_force, pair_row
 
 
 @ti.func
@@ -82,6 +86,8 @@ def diagonal_block(i, dev, cfg: ti.template()):
             c = dev.coef[e]
             n = ti.Vector([c[0], c[1], c[2]], cfg.real)
             block += c[3] * ti.Matrix.identity(cfg.real, 3) + c[4] * n.outer_product(n)
+    if ti.static(cfg.self_pairs):
+        block += pair_diagonal(i, dev, cfg)
     return block
 
 
@@ -124,6 +130,8 @@ def refresh_row(i, dev, cfg: ti.template(), x, v, h, t, mode: ti.template()):
             dev.res[i] = constrain(i, dev, cfg, g)
         else:
             f = particle_force(i, dev, cfg, x, v, True)
+            if ti.static(cfg.self_pairs):
+                f += pair_force(i, dev, cfg)
             dev.b[i] = dev.mass[i] * v[i] + h * f
             if ti.static(cfg.contact_filter):
                 dev.b[i] += friction_impulse(i, dev, cfg, carrier)
@@ -140,8 +148,11 @@ def refresh_row(i, dev, cfg: ti.template(), x, v, h, t, mode: ti.template()):
 def refresh(dev, cfg: ti.template(), x, v, h, t, mode: ti.template()):
     """Operator coefficients, diagonal, right-hand side, contact constraints and pointwise
     preconditioner for the state (x, v) at time t (s): two loops, over springs then
-    particles. ``mode``: see ``refresh_row``."""
+    particles (with ``cfg.self_pairs``, the self-collision pairs' between them,
+    ``pair_penalty.collect``). ``mode``: see ``refresh_row``."""
     spring_coefficients(dev, cfg, x, v, h, mode == NEWTON)
+    if ti.static(cfg.self_pairs):
+        collect(dev, cfg, x, h)
     for i in range(dev.size[0]):
         refresh_row(i, dev, cfg, x, v, h, t, mode)
 
@@ -157,6 +168,8 @@ def apply_row(i, dev, cfg: ti.template(), p):
             n = ti.Vector([c[0], c[1], c[2]], cfg.real)
             dp = pi - p[dev.other[e]]
             out += c[3] * dp + c[4] * n.dot(dp) * n
+    if ti.static(cfg.self_pairs):
+        out += pair_row(i, dev, cfg, p)
     return out
 
 

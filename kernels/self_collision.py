@@ -1,11 +1,28 @@
 """Self-collision of a triangle mesh: a pass after every step of every integrator.
 
-After an integrator has taken a step from the start positions x0 (``dev.sc_start``,
-copied by ``self_collision_begin``) to a candidate state (x, v), ``self_collision_detect``
-and ``self_collision_bound``:
+After an integrator has taken a step from the start positions x0 (``dev.sc_start``)
+to a candidate state (x, v), ``self_collision_check`` asks whether every particle is
+still within its free distance of its anchor (0. below); if so the step stands as it
+is, else ``self_collision_detect`` and ``self_collision_bound`` run the full pass:
+
+0. Reuse (after the Verlet lists of molecular dynamics and the per-vertex bounds of
+   Offset Geometric Contact). A full pass ends by setting each particle's anchor
+   (``sc_anchor``) to its position and its free distance (``sc_free``) to GAMMA times
+   the smallest (distance - thickness) of its listed pairs at the step's end, at most
+   GAMMA times the listing's reach (below). While every particle stays within its free
+   distance of its anchor, the two primitives of any pair, listed or not, move
+   towards each other by less than (their distance - thickness): no pair comes
+   within ``thickness`` (so no repulsion is due) and none touches, and the step needs
+   no pass. Particles end within thickness / 2 of their paths' boxes, so pairs
+   whose boxes grown by m do not meet end more than 2 m - thickness apart: with
+   m = thickness (every pair within thickness at the end is listed, as
+   ``kernels/pair_penalty.py`` needs) they get no free distance, and a step whose
+   particles moved less than REUSE_BELOW x thickness (explicit steps) lists pairs
+   with m = REUSE_MARGIN x thickness, which gives them GAMMA x thickness.
 
 1. Pairs. Each particle's swept box is the box of its straight path from x0 to the
-   step's candidate x, grown by thickness / 2; a triangle's or an edge's is its
+   step's candidate x, grown by the listing margin m (thickness, or REUSE_MARGIN x
+   thickness, 0. above); a triangle's or an edge's is its
    particles' together. Every pair of primitives that share no particle and whose
    swept boxes meet is found: point-triangle pairs and edge-edge pairs. Broad phase:
    two spatial hashes, of the particles' and of the edges' boxes by their low
@@ -18,10 +35,17 @@ and ``self_collision_bound``:
    than ``thickness`` gets an inelastic normal impulse that stops the approach of its
    closest points over the step and pushes them apart, at most to separate them at
    0.1 (thickness - d) / dt and at most a spring of ``stiffness`` would in dt, with
-   Coulomb friction (mu) on the tangential relative velocity; the impulses are
-   spread over the pair's four particles by their barycentric weights and inverse
-   masses and averaged per particle (Jacobi). The step's displacement x - x0 and
-   the velocity change by the same amount, within the particle's swept box.
+   Coulomb friction (mu) on the tangential relative velocity; the impulses are spread
+   over the pair's four particles by their barycentric weights and inverse masses and
+   averaged per particle (Jacobi). With the pairs in the implicit solve
+   (``kernels/pair_penalty.py``), whose penalty pushed the pair apart by J = dt k
+   (thickness - d - dt vn) (N s; its linearised force at the step's end, vn the pair's
+   normal relative velocity over the step), J brings friction too: each particle's velocity
+   change that would stop its pairs' tangential relative velocities (its share of
+   each pair's, by weight and inverse mass), averaged over its pairs by their normal
+   impulses |w_k| J, at most mu times their sum over its mass. The step's displacement x - x0 and
+   the velocity change by the same amount, within the particle's path box grown by
+   thickness / 2 (inside its swept box).
 3. Displacement bounds on the separating plane (after the bounds of Offset Geometric
    Contact, Chen et al. 2025). A pair's closest points p - q = d n give a plane
    between its primitives; each of its particles may move towards the other side by
@@ -41,10 +65,12 @@ reads the order within a hash cell.
 
 Fields (``massspring/self_collision.py`` declares them; n particles, t triangles, e
 edges, T cells per table): ``sc_tris`` (t,) int 3-vectors, ``sc_edges`` (e,) int
-2-vectors, ``sc_count`` (t, e, T), ``sc_start`` (n,) vec3 m, ``sc_bound`` (n,) m,
+2-vectors, ``sc_count`` (t, e, T, pair list capacity), ``sc_start`` and ``sc_anchor`` (n,)
+vec3 m, ``sc_free`` (n,) m, ``sc_scale`` (n,),
 ``sc_dv`` (n,) int64 3-vectors (fixed point, ``SCALE`` per m/s), ``sc_hits`` (n,),
 ``sc_vcell``/``sc_ecell`` (T,), ``sc_vfirst``/``sc_efirst`` (T + 1,), ``sc_vitem``
-(n,), ``sc_eitem`` (e,) int32, ``sc_box`` (8,) f64, ``sc_tally`` (4,) int32.
+(n,), ``sc_eitem`` (e,) int32, ``sc_box`` (10,) f64 (cell span, largest displacement,
+smallest distance, listing margin), ``sc_tally`` (4,) int32.
 """
 
 import taichi as ti
@@ -58,8 +84,10 @@ DV_LIMIT = 1e6  # m/s: a pair's velocity change is clipped to this before it bec
 CELL_LIMIT = 2**30  # cell coordinates are clipped to +-this
 POINT_TRIANGLE = (1, -1, -1, -1)  # the sides of a pair's particles: a point (A), a triangle (B)
 EDGE_EDGE = (1, 1, -1, -1)  # two edges
-REPEL, PROJECT, BOUND = 0, 1, 2  # the passes over the pairs
+REPEL, PROJECT, BOUND, LIST = 0, 1, 2, 3  # the passes over the pairs
 OFFSET = 0.5  # pairs closer than this fraction of the thickness may not approach at all
+REUSE_BELOW = 0.05  # a step whose particles moved less than this x thickness lists pairs for reuse
+REUSE_MARGIN = 1.5  # ... in boxes grown by this x thickness (unlisted pairs then end > 2 x thickness apart)
 
 
 @ti.func
@@ -206,7 +234,9 @@ def count_sort(dev, cells: ti.template(), first: ti.template(), items: ti.templa
 def pair(dev, cfg: ti.template(), state, idx, w, d, h, thickness, mu, ks, sides: ti.template(), phase: ti.template()):
     """A pair of primitives at distance d (m) at x0: particles ``idx``, weights ``w``
     (side A positive, side B negative; sum w x0 = p - q, from B's closest point q to
-    A's p), ``sides``: each particle's side (+1: A, -1: B), ``POINT_TRIANGLE`` or ``EDGE_EDGE``. ``REPEL``: the pair's repulsion impulse if d < ``thickness``. ``BOUND``: each
+    A's p), ``sides``: each particle's side (+1: A, -1: B), ``POINT_TRIANGLE`` or ``EDGE_EDGE``.
+    ``LIST``: the pair into the list (while it has room); ``REPEL``: that and the pair's
+    repulsion impulse if d < ``thickness``. ``BOUND``: each
     of its particles k, of side sign s_k, may move at most GAMMA d towards the other
     side, s_k n . dx_k >= -GAMMA d with n = (p - q) / d: a particle whose displacement
     dx_k (the state's, less x0) breaks it gets the scale that meets it (``sc_scale``,
@@ -215,7 +245,7 @@ def pair(dev, cfg: ti.template(), state, idx, w, d, h, thickness, mu, ks, sides:
     for k in ti.static(range(4)):
         gap_vector += w[k] * dev.sc_start[idx[k]]
     length = gap_vector.norm()
-    if ti.static(phase != REPEL):
+    if ti.static(phase == PROJECT or phase == BOUND):
         if length > 0:
             normal = gap_vector / length
             allowed = GAMMA * ti.max(length - OFFSET * thickness, 0)
@@ -241,7 +271,7 @@ def pair(dev, cfg: ti.template(), state, idx, w, d, h, thickness, mu, ks, sides:
             dev.sc_pw[slot] = w
             dev.sc_pkind[slot] = sides[1]  # 1: edge-edge, -1: point-triangle
         ti.atomic_min(dev.sc_box[8], ti.cast(d, ti.f64))
-        if d < thickness and length > 0:
+        if ti.static(phase == REPEL) and d < thickness and length > 0:
             ti.atomic_add(dev.sc_tally[1], 1)
             rel = ti.Vector.zero(cfg.real, 3)
             inverse = ti.cast(0, cfg.real)
@@ -257,21 +287,40 @@ def pair(dev, cfg: ti.template(), state, idx, w, d, h, thickness, mu, ks, sides:
                 need = SEPARATION * gap / h - vn
                 cap = ti.max(-vn, 0) + h * ks * gap * inverse
                 dvn = ti.max(ti.min(need, cap), 0)
+                tangential = rel - vn * normal
+                vt = tangential.norm()
                 if dvn > 0:
                     change = dvn * normal
-                    tangential = rel - vn * normal
-                    vt = tangential.norm()
                     if vt > 0:
                         change -= ti.min(mu * dvn, vt) / vt * tangential
-                    impulse = change / inverse
+                    spread(dev, cfg, idx, w, change / inverse, dev.sc_dv, True)
+                if ti.static(cfg.self_pairs):  # the friction of the implicit solve's penalty impulse
+                    pushed = h * ks * ti.max(gap - h * vn, 0)  # the solve's impulse: its force at x_n + h v
                     for k in ti.static(range(4)):
                         i = idx[k]
                         if not is_pinned(i, dev, cfg):
-                            du = w[k] * impulse / dev.mass[i]
-                            fixed = ti.Vector([ti.cast(ti.round(ti.min(ti.max(du[c], -DV_LIMIT), DV_LIMIT) * SCALE),
-                                                       ti.i64) for c in ti.static(range(3))])
-                            ti.atomic_add(dev.sc_dv[i], fixed)
-                            ti.atomic_add(dev.sc_hits[i], 1)
+                            weight = pushed * ti.abs(w[k])
+                            want = -w[k] / (inverse * dev.mass[i]) * tangential
+                            item = ti.Vector([weight * want[0], weight * want[1], weight * want[2], weight])
+                            ti.atomic_add(dev.sp_friction[i], ti.Vector(
+                                [ti.cast(ti.round(ti.min(ti.max(item[c], -DV_LIMIT), DV_LIMIT) * SCALE), ti.i64)
+                                 for c in ti.static(range(4))]))
+
+
+@ti.func
+def spread(dev, cfg: ti.template(), idx, w, impulse, into: ti.template(), count: ti.template()):
+    """Add a pair's ``impulse`` (N s, on side A; side B gets its opposite) to its free
+    particles' velocity changes in ``into`` (fixed point, by weight and inverse mass);
+    ``count``: and count it in ``sc_hits``."""
+    for k in ti.static(range(4)):
+        i = idx[k]
+        if not is_pinned(i, dev, cfg):
+            du = w[k] * impulse / dev.mass[i]
+            fixed = ti.Vector([ti.cast(ti.round(ti.min(ti.max(du[c], -DV_LIMIT), DV_LIMIT) * SCALE), ti.i64)
+                               for c in ti.static(range(3))])
+            ti.atomic_add(into[i], fixed)
+            if ti.static(count):
+                ti.atomic_add(dev.sc_hits[i], 1)
 
 
 @ti.func
@@ -349,8 +398,8 @@ def pairs(dev, cfg: ti.template(), state, tris, edges, span, size, margin, h, th
 
 @ti.func
 def clip(dev, cfg: ti.template(), state, i, margin, h):
-    """Keep particle i within its swept box (what the broad phase assumed), its velocity
-    changed with its position."""
+    """Keep particle i within its path box grown by ``margin`` (m; within its swept box,
+    what the broad phase assumed), its velocity changed with its position."""
     lo, hi = vertex_box(dev, i, margin)
     x = state.x[i]
     inside = ti.min(ti.max(x, lo), hi)
@@ -371,40 +420,47 @@ def listed_pairs(dev, cfg: ti.template(), state, count, thick, phase: ti.templat
 
 
 @ti.kernel
-def self_collision_begin(dev: ti.template(), state: ti.template(), serial: ti.template()):
-    """x0 = the state's positions, before a step (``serial``: in a serial loop)."""
+def self_collision_begin(dev: ti.template(), state: ti.template(), fresh: ti.template(), serial: ti.template()):
+    """x0 = the state's positions (``serial``: in a serial loop); ``fresh``: anchors there
+    too, with no free distance (the next step runs the full pass)."""
     if ti.static(serial):
         ti.loop_config(serialize=True)
     for i in range(dev.size[0]):
         dev.sc_start[i] = state.x[i]
+        if ti.static(fresh):
+            dev.sc_anchor[i] = state.x[i]
+            dev.sc_free[i] = 0
+
+
+@ti.kernel
+def self_collision_check(dev: ti.template(), state: ti.template(), serial: ti.template()) -> ti.i32:
+    """The particles of ``state`` farther than their free distance from their anchors
+    (0. of the module docstring); if none, x0 = the state's positions for the next step."""
+    dev.sc_tally[3] = 0
+    if ti.static(serial):
+        ti.loop_config(serialize=True)
+    for i in range(dev.size[0]):
+        if (state.x[i] - dev.sc_anchor[i]).norm() > dev.sc_free[i]:
+            ti.atomic_add(dev.sc_tally[3], 1)
+    if ti.static(serial):
+        ti.loop_config(serialize=True)
+    for i in range(dev.size[0]):
+        if dev.sc_tally[3] == 0:
+            dev.sc_start[i] = state.x[i]
+    return dev.sc_tally[3]
 
 
 @ti.func
-def detect(dev, cfg: ti.template(), state, dt, thickness, friction, stiffness):
-    """Steps 1 and 2 of the pass (module docstring): the swept boxes, the hashes, the
-    pairs (listed while the list has room), their repulsion applied within the boxes.
-    Returns (pairs, pairs repelled, 0, the largest displacement in m, the smallest
-    distance of a pair in m, 1 if the pairs fitted the list)."""
-    n = dev.size[0]
-    tris = dev.sc_count[0]
+def broad_phase(dev, cfg: ti.template(), margin):
+    """The two hashes of the swept boxes (``sc_start`` to ``sc_end``) grown by ``margin``
+    (m), the tallies reset; returns the cells' span (m per axis)."""
+    for k in range(3):
+        dev.sc_tally[k] = 0
+        dev.sc_box[k] = 0.0
+    dev.sc_box[8] = 1e300
+    dev.sc_box[9] = ti.cast(margin, ti.f64)
     edges = dev.sc_count[1]
     size = dev.sc_count[2]
-    h = ti.cast(dt, cfg.real)
-    thick = ti.cast(thickness, cfg.real)
-    mu = ti.cast(friction, cfg.real)
-    ks = ti.cast(stiffness, cfg.real)
-    margin = 0.5 * thick
-    for k in range(4):
-        dev.sc_tally[k] = 0
-    for k in range(3):
-        dev.sc_box[k] = 0.0
-    dev.sc_box[6] = 0.0
-    dev.sc_box[8] = 1e300
-    for i in range(n):
-        dev.sc_end[i] = state.x[i]
-        ti.atomic_max(dev.sc_box[6], ti.cast((state.x[i] - dev.sc_start[i]).norm(), ti.f64))
-        dev.sc_dv[i] = ti.Vector.zero(ti.i64, 3)
-        dev.sc_hits[i] = 0
     for e in range(edges):
         lo, hi = edge_box(dev, e, margin)
         extent = ti.cast(hi - lo, ti.f64)
@@ -412,18 +468,119 @@ def detect(dev, cfg: ti.template(), state, dt, thickness, friction, stiffness):
             ti.atomic_max(dev.sc_box[k], extent[k])
     span = ti.Vector([dev.sc_box[k] for k in ti.static(range(3))], cfg.real)
     inverse = 1 / span
-    count_sort(dev, dev.sc_vcell, dev.sc_vfirst, dev.sc_vitem, size, inverse, margin, n, False)
+    count_sort(dev, dev.sc_vcell, dev.sc_vfirst, dev.sc_vitem, size, inverse, margin, dev.size[0], False)
     count_sort(dev, dev.sc_ecell, dev.sc_efirst, dev.sc_eitem, size, inverse, margin, edges, True)
-    pairs(dev, cfg, state, tris, edges, span, size, margin, h, thick, mu, ks, REPEL)
+    return span
+
+
+@ti.kernel
+def self_collision_list(dev: ti.template(), cfg: ti.template(), state: ti.template(), thickness: ti.f64,
+                        serial: ti.template()):
+    """List the pairs of the state as it stands (no step: x0 = x, boxes grown by
+    ``thickness``), as a pass would have: every pair within ``thickness`` is listed if
+    the list has room (``kernels/pair_penalty.py`` reads them)."""
+    if ti.static(serial):
+        ti.loop_config(serialize=True)
+    for i in range(dev.size[0]):
+        dev.sc_start[i] = state.x[i]
+        dev.sc_end[i] = state.x[i]
+    if ti.static(serial):
+        ti.loop_config(serialize=True)
+        for _ in range(1):
+            list_pairs(dev, cfg, state, thickness)
+    else:
+        list_pairs(dev, cfg, state, thickness)
+
+
+@ti.func
+def list_pairs(dev, cfg: ti.template(), state, thickness):
+    thick = ti.cast(thickness, cfg.real)
+    span = broad_phase(dev, cfg, thick)
+    pairs(dev, cfg, state, dev.sc_count[0], dev.sc_count[1], span, dev.sc_count[2], thick, 1, thick, 0, 0, LIST)
+
+
+@ti.func
+def detect(dev, cfg: ti.template(), state, dt, thickness, friction, stiffness):
+    """Steps 1 and 2 of the pass (module docstring): the listing margin, the swept boxes, the hashes, the
+    pairs (listed while the list has room), their repulsion applied within the boxes.
+    Returns (pairs, pairs repelled, 0, the largest displacement in m, the smallest
+    distance of a pair in m, 1 if the pairs fitted the list)."""
+    n = dev.size[0]
+    h = ti.cast(dt, cfg.real)
+    thick = ti.cast(thickness, cfg.real)
+    mu = ti.cast(friction, cfg.real)
+    ks = ti.cast(stiffness, cfg.real)
+    dev.sc_box[6] = 0.0
+    for i in range(n):
+        dev.sc_end[i] = state.x[i]
+        ti.atomic_max(dev.sc_box[6], ti.cast((state.x[i] - dev.sc_start[i]).norm(), ti.f64))
+        dev.sc_dv[i] = ti.Vector.zero(ti.i64, 3)
+        dev.sc_hits[i] = 0
+        if ti.static(cfg.self_pairs):
+            dev.sp_friction[i] = ti.Vector.zero(ti.i64, 4)
+    margin = thick
+    if dev.sc_box[6] < REUSE_BELOW * thickness:
+        margin = REUSE_MARGIN * thick
+    span = broad_phase(dev, cfg, margin)
+    pairs(dev, cfg, state, dev.sc_count[0], dev.sc_count[1], span, dev.sc_count[2], margin, h, thick, mu, ks, REPEL)
     for i in range(n):
         hits = dev.sc_hits[i]
-        if hits > 0 and not is_pinned(i, dev, cfg):
+        touched = hits > 0
+        du = ti.Vector.zero(cfg.real, 3)
+        if hits > 0:
             du = ti.cast(dev.sc_dv[i], cfg.real) / ti.cast(SCALE * hits, cfg.real)
+        if ti.static(cfg.self_pairs):
+            sums = ti.cast(dev.sp_friction[i], cfg.real) / ti.cast(SCALE, cfg.real)
+            if sums[3] > 0:
+                want = ti.Vector([sums[0], sums[1], sums[2]]) / sums[3]
+                limit = mu * sums[3] / dev.mass[i]
+                size = want.norm()
+                if size > limit:
+                    want *= limit / size
+                touched = True
+                du += want
+        if touched and not is_pinned(i, dev, cfg):
             state.x[i] += h * du
             state.v[i] += du
-            clip(dev, cfg, state, i, margin, h)
+            clip(dev, cfg, state, i, 0.5 * thick, h)
     fits = 1 if dev.sc_tally[0] <= dev.sc_count[3] else 0
     return ti.Vector([dev.sc_tally[0], dev.sc_tally[1], 0, dev.sc_box[6], dev.sc_box[8], fits], ti.f64)
+
+
+@ti.func
+def distance_now(dev, state, idx, kind):
+    """The distance (m) at the state's positions of a listed pair (particles ``idx``;
+    ``kind`` 1: edge-edge, else point-triangle)."""
+    x0, x1, x2, x3 = state.x[idx[0]], state.x[idx[1]], state.x[idx[2]], state.x[idx[3]]
+    d = x0[0] * 0
+    if kind == 1:
+        ee, _, _ = segment_segment(x0, x1, x2, x3)
+        d = ee
+    else:
+        pt, _ = point_triangle(x0, x1, x2, x3)
+        d = pt
+    return d
+
+
+@ti.func
+def anchor(dev, cfg: ti.template(), state, count, thick, margin, from_list: ti.template()):
+    """Step 0 of the pass (module docstring) at the pass's end: anchors at the state's
+    positions (and x0 for the next step), free distances GAMMA (d - thickness) over each
+    particle's listed pairs, at most GAMMA (2 margin - 2 thickness) (unlisted pairs end
+    more than 2 margin - thickness apart); none if the pairs did not fit the list."""
+    cap = ti.cast(0, cfg.real)
+    if ti.static(from_list):
+        cap = GAMMA * ti.max(2 * margin - 2 * thick, 0)
+    for i in range(dev.size[0]):
+        dev.sc_start[i] = state.x[i]
+        dev.sc_anchor[i] = state.x[i]
+        dev.sc_free[i] = cap
+    if ti.static(from_list):
+        for slot in range(count):
+            idx = dev.sc_pidx[slot]
+            allowed = GAMMA * ti.max(distance_now(dev, state, idx, dev.sc_pkind[slot]) - thick, 0)
+            for k in ti.static(range(4)):
+                ti.atomic_min(dev.sc_free[idx[k]], allowed)
 
 
 @ti.func
@@ -434,7 +591,7 @@ def bound(dev, cfg: ti.template(), state, dt, thickness, from_list: ti.template(
     n = dev.size[0]
     h = ti.cast(dt, cfg.real)
     thick = ti.cast(thickness, cfg.real)
-    margin = 0.5 * thick
+    margin = ti.cast(dev.sc_box[9], cfg.real)
     tris = dev.sc_count[0]
     edges = dev.sc_count[1]
     size = dev.sc_count[2]
@@ -455,7 +612,7 @@ def bound(dev, cfg: ti.template(), state, dt, thickness, from_list: ti.template(
             dx = ti.cast(dev.sc_dv[i], cfg.real) / ti.cast(SCALE * hits, cfg.real)
             state.x[i] += dx
             state.v[i] += dx / h
-            clip(dev, cfg, state, i, margin, h)
+            clip(dev, cfg, state, i, 0.5 * thick, h)
     if ti.static(from_list):
         listed_pairs(dev, cfg, state, count, thick, BOUND)
     else:
@@ -467,6 +624,7 @@ def bound(dev, cfg: ti.template(), state, dt, thickness, from_list: ti.template(
             state.x[i] = dev.sc_start[i] + dx
             state.v[i] = dx / h
             ti.atomic_add(dev.sc_tally[2], 1)
+    anchor(dev, cfg, state, count, thick, margin, from_list)
     return dev.sc_tally[2]
 
 

@@ -15,3 +15,10 @@ def load_integers(field: ti.template(), values: ti.types.ndarray(dtype=ti.i32, n
     """field[i] = values[i] for the (n,) int32 ``values``."""
     for i in range(values.shape[0]):
         field[i] = values[i]
+
+
+@ti.kernel
+def load_reals(field: ti.template(), values: ti.types.ndarray(dtype=ti.f64, ndim=1)):
+    """field[i] = values[i] for the (n,) float64 ``values``, cast to the field's precision."""
+    for i in range(values.shape[0]):
+        field[i] = ti.cast(values[i], field.dtype)

@@ -113,7 +113,8 @@ class Config:
     ``kernels.preconditioners`` or None; colliders: (kind, count, first) of each
     collider kind present (``kernels.contact.collider_groups``); moving_pins: whether
     some pin has a velocity; contact_filter: whether contacts are constraints of the
-    implicit solve (``kernels/constraints.py``).
+    implicit solve (``kernels/constraints.py``); self_pairs: whether self-collision
+    pairs are penalties of the implicit solve (``kernels/pair_penalty.py``).
     """
 
     real: object
@@ -125,6 +126,7 @@ class Config:
     colliders: tuple = ()
     moving_pins: bool = False
     contact_filter: bool = False
+    self_pairs: bool = False
 
     @property
     def has_springs(self):

@@ -61,10 +61,11 @@ def mesh_edges(triangles) -> np.ndarray:
 
 PAIRS_PER_PARTICLE = 64  # the pair list's capacity per particle (capacity class); beyond it the pass sweeps again
 PAIR_BYTES = 16 + 4 * 8 + 4  # a listed pair: 4 particles, 4 weights (f64), its kind
-# Bytes per particle of the pass's fields (``declare``), for ``memory.run_bytes``: start, end, scale,
-# impulses, hits, hash items (24 + 24 + 8 + 24 + 4 + 4); about 2 triangles (12 B) and 3 edges (8 + 4 B
-# each, two hash tables of 8 B per slot, 2 slots per edge); the pair list.
-PASS_BYTES = 88 + 2 * 12 + 3 * (12 + 2 * 2 * 8) + PAIRS_PER_PARTICLE * PAIR_BYTES
+# Bytes per particle of the pass's fields (``declare``), for ``memory.run_bytes``: start, anchor, free,
+# end, scale, impulses, hits, hash items (24 + 24 + 8 + 24 + 8 + 24 + 4 + 4); about 2 triangles (12 B)
+# and 3 edges (8 + 4 B each, two hash tables of 8 B per slot, 2 slots per edge); the pair list.
+PASS_BYTES = 120 + 2 * 12 + 3 * (12 + 2 * 2 * 8) + PAIRS_PER_PARTICLE * PAIR_BYTES
+CARRIED = {"sc_anchor": (np.float64, (3,)), "sc_free": (np.float64, ())}  # what a restart needs of the pass
 
 
 def declare(layout, model):
@@ -87,6 +88,8 @@ def declare(layout, model):
     layout.vectors("sc_pw", layout.real, pairs, k=4)
     layout.add("sc_pkind", ti.i32, pairs)
     layout.vectors("sc_start", layout.real)
+    layout.vectors("sc_anchor", layout.real)
+    layout.add("sc_free", layout.real, "particle")
     layout.vectors("sc_end", layout.real)
     layout.add("sc_scale", layout.real, "particle")
     layout.vectors("sc_dv", ti.i64)
@@ -99,28 +102,87 @@ def declare(layout, model):
     layout.add("sc_tally", ti.i32, 4)
 
 
+SOLVE_PAIRS_PER_PARTICLE = 16  # capacity of the implicit solve's pairs per particle (``declare_solve``)
+# Bytes per particle of ``declare_solve``: first, fill, friction; per pair 4 particles, 4 weights,
+# 5 coefficients, 4 entries.
+SOLVE_BYTES = 4 + 4 + 32 + SOLVE_PAIRS_PER_PARTICLE * (16 + 4 * 8 + 5 * 8 + 4 * 4)
+
+
+def declare_solve(layout, model):
+    """Declare the fields of ``kernels/pair_penalty.py`` for ``model`` in ``layout``: its
+    thickness and stiffness, the pairs in the solve and each particle's entries."""
+    import taichi as ti
+
+    sc = model.self_collision
+    n = layout.counts["particle"]
+    cap = SOLVE_PAIRS_PER_PARTICLE * n
+    layout.add("sp_param", layout.real, 2, values=np.array([sc.thickness, sc.repulsion_stiffness(model)]))
+    layout.add("sp_count", ti.i32, 2)
+    layout.vectors("sp_idx", ti.i32, cap, k=4)
+    layout.vectors("sp_w", layout.real, cap, k=4)
+    layout.vectors("sp_nf", layout.real, cap, k=5)
+    layout.add("sp_first", ti.i32, n + 1)
+    layout.add("sp_fill", ti.i32, "particle")
+    layout.add("sp_entry", ti.i32, 4 * cap)
+    layout.vectors("sp_friction", ti.i64, k=4)
+
+
 class Pass:
     """The self-collision pass of one simulation around each step of its integrator
     (``kernels/self_collision.py``): ``begin(state)`` before the step, ``end(state, dt)``
-    after it; ``serial``: in serial loops, as the integrator runs (``Settings.loops``). ``last``: the last pass's (pairs within reach, pairs repelled, particles
-    held back, the largest displacement in m, the smallest distance of a pair in m,
-    whether the pairs fitted the pair list)."""
+    after it; ``serial``: in serial loops, as the integrator runs (``Settings.loops``).
+    ``end`` runs the full pass only when a particle left its free distance of its anchor
+    (step 0 of the kernels' docstring). ``last``: the last full pass's (pairs within
+    reach, pairs repelled, particles held back, the largest displacement in m, the
+    smallest distance of a pair in m, whether the pairs fitted the pair list);
+    ``passes`` and ``steps``: full passes and steps so far."""
 
     def __init__(self, dev, cfg, model, serial):
         self.dev, self.cfg, self.serial = dev, cfg, serial
         sc = model.self_collision
         self.parameters = (sc.thickness, sc.friction, sc.repulsion_stiffness(model))
         self.last = (0, 0, 0, 0.0, math.inf, True)
+        self.passes = self.steps = 0
+        self.fresh = True  # x0 and the anchors are not set yet
 
     def begin(self, state):
-        from massspring.kernels.self_collision import self_collision_begin
+        if self.fresh:
+            from massspring.kernels.self_collision import self_collision_begin, self_collision_list
 
-        self_collision_begin(self.dev, state, self.serial)
+            if self.cfg.self_pairs:  # the solve's pairs come from the list
+                self_collision_list(self.dev, self.cfg, state, self.parameters[0], self.serial)
+            self_collision_begin(self.dev, state, True, self.serial)
+            self.fresh = False
 
     def end(self, state, dt):
-        from massspring.kernels.self_collision import self_collision_bound, self_collision_detect
+        from massspring.kernels.self_collision import (self_collision_bound, self_collision_check,
+                                                       self_collision_detect)
 
+        self.steps += 1
+        if self_collision_check(self.dev, state, self.serial) == 0:
+            return
+        self.passes += 1
         out = self_collision_detect(self.dev, self.cfg, state, dt, *self.parameters, self.serial)
         fits = bool(out[5])
         held = self_collision_bound(self.dev, self.cfg, state, dt, self.parameters[0], fits, self.serial)
         self.last = (int(out[0]), int(out[1]), int(held), float(out[3]), float(out[4]), fits)
+
+    def carried(self) -> dict:
+        """The anchors (n, 3) and free distances (n,) in m, for a restart."""
+        return {name: self.dev.read(name).astype(dtype) for name, (dtype, _) in CARRIED.items()}
+
+    def load(self, state, carried=None):
+        """Continue from ``state`` (just set by a restart) with ``carried`` (``carried()``
+        of the saved run, checked by the caller; None: the next step runs the full pass)."""
+        from massspring.kernels import state as state_kernels
+        from massspring.kernels.self_collision import self_collision_begin
+
+        self.fresh = carried is None
+        if carried is not None:
+            from massspring.kernels.self_collision import self_collision_list
+
+            if self.cfg.self_pairs:
+                self_collision_list(self.dev, self.cfg, state, self.parameters[0], self.serial)
+            state_kernels.load_vectors(self.dev.sc_anchor, carried["sc_anchor"].astype(np.float64))
+            state_kernels.load_reals(self.dev.sc_free, carried["sc_free"].astype(np.float64))
+            self_collision_begin(self.dev, state, False, self.serial)

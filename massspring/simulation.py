@@ -179,7 +179,8 @@ class Simulation:
         cls = INTEGRATORS[integrator]
         memory.check(memory.run_bytes(model.n_particles, model.n_springs, preconditioner if cls.linear_solver else None,
                                       model_built=True,
-                                      extra=cls.extra_bytes + self_collision.PASS_BYTES * model.has_self_collision),
+                                      extra=cls.extra_bytes + self_collision.PASS_BYTES * model.has_self_collision
+                                      + self_collision.SOLVE_BYTES * cls.pairs_in_solve(model)),
                      f"model: {model.n_particles:,} particles and {model.n_springs:,} springs; a run of it ({integrator})")
         layout = model_layout(model, precision)
         cls.declare(layout, model, self._settings)
@@ -283,9 +284,20 @@ class Simulation:
         """What the integrator carries from one step to the next besides positions and
         velocities, as numpy arrays with a row per particle: for the implicit integrator
         with colliders, its contact memory ("released": contacts that pulled, "stick":
-        sticking particles, "fric": kinetic friction impulses, N s); else empty. Give it
-        back to ``set_state`` for a restart that continues to the bit."""
-        return self._open().carried()
+        sticking particles, "fric": kinetic friction impulses, N s), for the Newton-solved
+        integrators the previous state, and with self-collision the pass's anchors and free
+        distances ("sc_anchor", "sc_free", m); else empty. Give it back to ``set_state``
+        for a restart that continues to the bit."""
+        carried = self._open().carried()
+        if self._guard is not None:
+            carried.update(self._guard.carried())
+        return carried
+
+    def _carried_names(self, integrator) -> dict:
+        names = dict(integrator.carried_names())
+        if self._guard is not None:
+            names.update(self_collision.CARRIED)
+        return names
 
     def set_state(self, positions, velocities, steps=0, carried=None):
         """Continue from a given state (a restart): ``positions`` (n, 3) in m,
@@ -319,8 +331,12 @@ class Simulation:
             raise ValueError(f"velocities: particle {int(fixed[k])} is pinned, so its velocity must be its pin "
                              f"velocity {pinned[k].tolist()}, got {arrays['velocities'][fixed[k]].tolist()}")
         steps = validate.count("steps", steps, low=0, high=2**62)
-        carried = _check_carried(carried, integrator.carried_names(), n)
-        integrator.load_state(arrays["positions"], arrays["velocities"], carried)
+        carried = _check_carried(carried, self._carried_names(integrator), n)
+        own = None if carried is None else {k: v for k, v in carried.items() if k not in self_collision.CARRIED}
+        integrator.load_state(arrays["positions"], arrays["velocities"], own)
+        if self._guard is not None:
+            self._guard.load(integrator.state, None if carried is None else
+                             {k: carried[k] for k in self_collision.CARRIED})
         integrator.steps = steps  # moving pins and colliders are where they are at steps x dt
         self._steps = steps
         return self

@@ -18,7 +18,7 @@ from massspring.device import ensure_taichi
 from massspring.kernels import self_collision as kernels
 from massspring.self_collision import mesh_edges
 
-from crossings import crossings
+from crossings import crossings, pair_distances
 
 
 def sheets(resolution=10, on=True):
@@ -141,6 +141,86 @@ def test_the_pass_keeps_pairs_apart_by_at_least_half_the_thickness():
     assert reach > 0  # the largest displacement of the step
 
 
+def test_small_steps_skip_the_pass_only_while_no_pair_comes_within_the_thickness():
+    """A step that skips the pass (every particle within its free distance of where the
+    last full pass left it) may not bring a pair within the thickness, checked with the
+    tests' own distances: a pair closer than that has not moved since that pass."""
+    scene = sheets(8)
+    model = scene.model()
+    thickness = scene.self_collision.thickness
+    edges = mesh_edges(model.triangles)
+    sim = scene.simulation("symplectic", dt=1e-4)
+    anchor, skipped, close_checked = None, 0, 0
+    for step in range(3000):
+        passes = sim._guard.passes
+        sim.step(1)
+        x = sim.positions
+        if sim._guard.passes > passes:
+            anchor = x
+            continue
+        skipped += 1
+        if step % 5:
+            continue
+        d, particles = pair_distances(x, model.triangles, edges)
+        close = d <= thickness
+        moved = np.any(x[particles[close]] != anchor[particles[close]], axis=(1, 2))
+        assert not moved.any(), (step, d[close][moved].min())
+        close_checked += int(close.sum())
+    assert 0 < sim._guard.passes < skipped  # most steps skip the pass
+    assert crossings(sim.positions, model.triangles, edges) == 0
+    assert sim._guard.last[1] > 0  # the upper sheet lies on the lower one
+
+
+@pytest.mark.parametrize("height, lateral", [(0.02, (0.3, 0.25)), (0.01, (0.6, 0.45))])
+def test_a_pair_within_the_thickness_is_a_penalty_of_the_implicit_solve(height, lateral):
+    """One linearised implicit step of a triangle (springs on its edges) and a particle
+    closer to it than the thickness, against a dense solve of Eq. 15 (tests/conftest.py)
+    plus the pair's penalty assembled here: energy k (t - d)^2 / 2 on the distance d from
+    the particle to the triangle's closest point q = sum b_k x_k, so dt^2 k (w w^T) (x)
+    (n n^T) in A and dt k (t - d) w_k n in b, with w = (1, -b) and n = (p - q) / d. Over
+    the inside (projection) and beyond an edge (closest point on it)."""
+    from conftest import dense_system
+
+    dt, k, thickness = 2e-2, 500.0, 0.05
+    rng = np.random.default_rng(3)
+    x = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [lateral[0], lateral[1], height]])
+    x[:3] += rng.normal(scale=0.01, size=(3, 3)) * [1, 1, 0]
+    model = ms.Model(x, [[0, 1], [1, 2], [2, 0]], masses=[0.01, 0.012, 0.011, 0.013], stiffness=200.0,
+                     damping=0.05, velocities=rng.normal(scale=0.01, size=(4, 3)), gravity=(0, 0, 0),
+                     triangles=[[0, 1, 2]], self_collision=ms.SelfCollision(thickness, stiffness=k))
+    A, b = dense_system(model, dt, True)
+    a_, b_, c_ = x[0], x[1], x[2]
+    best = None
+    for u, v in ((a_, b_), (b_, c_), (c_, a_)):  # the closest point: on an edge, or the projection inside
+        q = u + np.clip(np.dot(x[3] - u, v - u) / np.dot(v - u, v - u), 0, 1) * (v - u)
+        if best is None or np.linalg.norm(x[3] - q) < best[0]:
+            best = (np.linalg.norm(x[3] - q), q)
+    normal = np.cross(b_ - a_, c_ - a_)
+    normal /= np.linalg.norm(normal)
+    foot = x[3] - normal * np.dot(x[3] - a_, normal)
+    bary = np.linalg.solve(np.column_stack([b_ - a_, c_ - a_, normal]), foot - a_)
+    if bary[0] >= 0 and bary[1] >= 0 and bary[0] + bary[1] <= 1:
+        best = (np.linalg.norm(x[3] - foot), foot)
+    d, q = best
+    assert d < thickness
+    weights = np.linalg.lstsq(np.column_stack([a_ - c_, b_ - c_]), q - c_, rcond=None)[0]
+    w = np.array([1.0, -weights[0], -weights[1], -(1 - weights.sum())])
+    n = (x[3] - q) / d
+    order = [3, 0, 1, 2]  # w's particles: the point, then the triangle's
+    for r, pr in enumerate(order):
+        for c, pc in enumerate(order):
+            A[3 * pr:3 * pr + 3, 3 * pc:3 * pc + 3] += dt * dt * k * w[r] * w[c] * np.outer(n, n)
+        b[3 * pr:3 * pr + 3] += dt * k * (thickness - d) * w[r] * n
+    expected = np.linalg.solve(A, b).reshape(-1, 3)
+
+    sim = ms.Simulation(model, integrator="implicit", dt=dt, cg_tol=1e-12)
+    sim.step()
+    assert sim._integrator.dev.sp_count.to_numpy().tolist() == [1, 0]
+    assert sim._guard.last[2] == 0  # the pass after the solve held nothing back
+    np.testing.assert_allclose(sim.velocities, expected, rtol=0, atol=1e-8 * np.abs(expected).max())
+    np.testing.assert_allclose(sim.positions, x + dt * sim.velocities, rtol=0, atol=1e-14)
+
+
 def test_one_and_two_threads_give_the_same_bits():
     script = ("import hashlib, massspring as ms\n"
               "sim = ms.load_scene('sheets').with_params(resolution=10).simulation(loops='parallel')\n"
@@ -164,6 +244,20 @@ def test_restart_continues_to_the_bit():
         sim.close()
     x, v, carried = runs[1]
     second = scene.simulation("implicit").set_state(x, v, steps=60, carried=carried).step(40)
+    np.testing.assert_array_equal(runs[0][0], second.positions)
+    np.testing.assert_array_equal(runs[0][1], second.velocities)
+
+
+def test_a_restart_between_skipped_passes_continues_to_the_bit():
+    scene = sheets(8)
+    runs = []
+    for steps in (1500, 1000):
+        sim = scene.simulation("symplectic", dt=1e-4).step(steps)
+        runs.append((sim.positions, sim.velocities, sim.carried_state(), sim._guard.passes))
+        sim.close()
+    x, v, carried = runs[1][:3]
+    assert set(carried) == {"sc_anchor", "sc_free"} and runs[1][3] < 500
+    second = scene.simulation("symplectic", dt=1e-4).set_state(x, v, steps=1000, carried=carried).step(500)
     np.testing.assert_array_equal(runs[0][0], second.positions)
     np.testing.assert_array_equal(runs[0][1], second.velocities)
 

@@ -51,6 +51,11 @@ class Integrator:
         return Config.of(model, settings.precision)
 
     @classmethod
+    def pairs_in_solve(cls, model) -> bool:
+        """Whether self-collision pairs enter this integrator's solve (none by default)."""
+        return False
+
+    @classmethod
     def declare(cls, layout, model, settings):
         """Add the work fields this integrator needs to ``layout`` (a ``device.Layout``)."""
 

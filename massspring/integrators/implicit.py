@@ -7,6 +7,7 @@ import math
 import numpy as np
 import taichi as ti
 
+from massspring import self_collision
 from massspring.device import Config
 from massspring.kernels import cg, divergence, friction
 from massspring.solvers import PRECONDITIONERS, solve
@@ -28,7 +29,8 @@ class ImplicitEuler(Integrator):
     With colliders, contacts are constraints of the solve (``kernels/contact.py``):
     detected in the refresh, friction and released contacts after it
     (``kernels/friction.py``), and positions that would still end inside a collider
-    moved onto its surface when x' is committed.
+    moved onto its surface when x' is committed. With self-collision, the pairs within
+    the thickness at x_n are penalty springs of the solve (``kernels/pair_penalty.py``).
     """
 
     name = "implicit"
@@ -49,7 +51,14 @@ class ImplicitEuler(Integrator):
     def config(cls, model, settings):
         return Config.of(model, settings.precision, fix=settings.definiteness_fix,
                          precond=PRECONDITIONERS[settings.preconditioner].kernel,
-                         contact_filter=model.has_colliders)
+                         contact_filter=model.has_colliders, self_pairs=cls.pairs_in_solve(model))
+
+    @classmethod
+    def pairs_in_solve(cls, model):
+        """Whether self-collision pairs are penalties of Eq. 15 (``kernels/pair_penalty.py``):
+        with self-collision, in the linearised step (the Newton-solved steps leave them
+        to the pass that follows every step)."""
+        return model.has_self_collision and not cls.newton
 
     @classmethod
     def declare(cls, layout, model, settings):
@@ -69,6 +78,8 @@ class ImplicitEuler(Integrator):
             layout.vectors("impulse", real)
             layout.add("stick", ti.i32, "particle", values=np.zeros(model.n_particles))
             layout.vectors("fric", real, values=np.zeros((model.n_particles, 3)))
+        if cls.pairs_in_solve(model):
+            self_collision.declare_solve(layout, model)
         PRECONDITIONERS[settings.preconditioner].declare(layout, model, settings)
 
     @property

@@ -6,7 +6,8 @@ Keys: ``positions``, ``velocities`` (n, 3) float64 (m, m/s); ``springs`` (m, 2) 
 ``fingerprint`` (``Model.fingerprint()``, hex), ``scene`` (the scene's name, "" when
 none was given), ``integrator``, ``triangles`` (t, 3) int (the surface, possibly empty);
 ``carried_<name>`` for each array of ``Simulation.carried_state()`` (the implicit
-step's contact memory), so that a restart continues to the bit.
+step's contact memory, a Newton run's previous state, the self-collision pass's
+anchors), so that a restart continues to the bit.
 """
 
 from __future__ import annotations
@@ -31,7 +32,7 @@ KEYS = {"positions": ("f", ("n", 3)), "velocities": ("f", ("n", 3)), "springs": 
         "scene": ("U", ()), "integrator": ("U", ())}
 CARRIED = "carried_"  # prefix of the keys of Simulation.carried_state()
 TRIANGLES = "triangles"  # the surface, for drawing; (t, 3) integers
-MAX_CARRIED = 8  # carried_<name> members; the implicit integrator's contact memory has 3
+MAX_CARRIED = 8  # carried_<name> members: contact memory 3, a Newton run's previous state 3, self-collision 2
 MAX_MEMBERS = len(KEYS) + 1 + MAX_CARRIED
 HEADER_LIMIT = 10_000  # bytes of a member's .npy header
 ITEM_LIMIT = 8  # bytes of a number
