@@ -8,7 +8,7 @@ process: the median wall time per step of ``--steps`` steps (implicit integrator
 ``--explicit-steps`` (the others: the pass is skipped while every particle stays within
 its free distance, so its cost shows only over many steps), their ratio, the share of
 timed steps that ran the full pass, and the last full pass's pair counts (pairs within
-reach, pairs repelled, particles held back) and whether they fitted its pair list.
+reach, pairs repelled, particles held back) and the pair list's capacity then.
 Without self-collision the step runs the same kernels as a model that never had it.
 
     python benchmarks/self_collision.py                          # 64, 128; implicit, symplectic
@@ -61,7 +61,7 @@ def main(argv=None):
     args = parse_args(argv)
     rows = []
     print(f"{'res':>4s} {'integrator':12s} {'steps':>6s} {'off ms':>9s} {'on ms':>9s} {'ratio':>6s} {'passes':>6s} "
-          f"{'pairs':>8s} {'repelled':>8s} {'held':>6s} {'listed':>6s}")
+          f"{'pairs':>8s} {'repelled':>8s} {'held':>6s} {'capacity':>9s}")
     for res in args.resolutions:
         base = ms.load_scene("drape").with_params(resolution=res)
         spacing = base.params["size"] / (res - 1)
@@ -74,22 +74,23 @@ def main(argv=None):
                 sim = scene.simulation(integrator, dt=dt)
                 sim.step(max(1, int(round(args.warmup / dt))))
                 sims[on] = sim
-            guard = sims[True]._guard
+            before = sims[True].self_collision_stats
             times = {False: [], True: []}
-            passes, counted = guard.passes, guard.steps
             for _ in range(args.repeats):
                 for on in (False, True):
                     start = time.perf_counter()
                     sims[on].step(steps)
                     times[on].append((time.perf_counter() - start) / steps * 1e3)
-            share = (guard.passes - passes) / (guard.steps - counted)
+            stats = sims[True].self_collision_stats
+            share = (stats["passes"] - before["passes"]) / (stats["steps"] - before["steps"])
             off, on = statistics.median(times[False]), statistics.median(times[True])
-            pairs, repelled, held, _, _, listed = guard.last
+            pairs, repelled, held, capacity = (stats[key] for key in ("pairs", "repelled", "held", "capacity"))
             rows.append({"resolution": res, "integrator": integrator, "particles": res * res, "dt": dt,
                          "steps": steps, "off_ms": off, "on_ms": on, "ratio": on / off, "full_passes": share,
-                         "pairs": pairs, "repelled": repelled, "held": held, "listed": listed})
+                         "pairs": pairs, "repelled": repelled, "held": held, "capacity": capacity,
+                         "grown": stats["grown"]})
             print(f"{res:4d} {integrator:12s} {steps:6d} {off:9.3f} {on:9.3f} {on / off:6.2f} {share:6.1%} {pairs:8d} "
-                  f"{repelled:8d} {held:6d} {'yes' if listed else 'no':>6s}", flush=True)
+                  f"{repelled:8d} {held:6d} {capacity:9d}", flush=True)
             for sim in sims.values():
                 sim.close()
     write_json(args.json, {"rows": rows})

@@ -29,7 +29,7 @@ import taichi as ti
 from .constraints import constrain, is_pinned
 from .contact import detect, friction_diagonal, friction_impulse
 from .forces import particle_force, spring_direction, tiny_length
-from .pair_penalty import collect, pair_diagonal, pair_force, pair_row
+from .pair_penalty import pair_diagonal, pair_force, pair_row
 
 
 @ti.func
@@ -148,11 +148,9 @@ def refresh_row(i, dev, cfg: ti.template(), x, v, h, t, mode: ti.template()):
 def refresh(dev, cfg: ti.template(), x, v, h, t, mode: ti.template()):
     """Operator coefficients, diagonal, right-hand side, contact constraints and pointwise
     preconditioner for the state (x, v) at time t (s): two loops, over springs then
-    particles (with ``cfg.self_pairs``, the self-collision pairs' between them,
-    ``pair_penalty.collect``). ``mode``: see ``refresh_row``."""
+    particles (with ``cfg.self_pairs``, the self-collision pairs collected by the pass
+    before, ``kernels/pair_penalty.py``). ``mode``: see ``refresh_row``."""
     spring_coefficients(dev, cfg, x, v, h, mode == NEWTON)
-    if ti.static(cfg.self_pairs):
-        collect(dev, cfg, x, h)
     for i in range(dev.size[0]):
         refresh_row(i, dev, cfg, x, v, h, t, mode)
 

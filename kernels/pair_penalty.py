@@ -13,16 +13,18 @@ semi-definite), is -K = k (w w^T) (x) (n n^T). Eq. 15 then gains
 and stays symmetric positive definite. The self-collision pass still follows the
 step (repulsion of what the solve left approaching, displacement bounds, friction).
 
-The pairs come from the pass's list of the step before (it holds every pair within
-t of x_n when it fitted; a step that skipped the pass moved no pair within t) or from
-``self_collision_list`` at a restart; each is measured again at x_n. ``collect``
-gathers the pairs within t into ``sp_idx``/``sp_w``/``sp_nf`` and builds, per
-particle, its entries (pair, k) in CSR form (``sp_first``, ``sp_entry``), each
-particle's entries sorted by the pair's particles: ``pair_row`` then sums a
-particle's share in one fixed order, so A p is the same bits for any thread count,
-without atomics. If the pass's list overflowed or the pairs overflow ``sp_idx``, no
-pair enters the solve that step (which pairs would fit depends on the threads'
-order), the pass alone handles them, and ``sp_count[1]`` says so.
+``collect`` runs at the end of each full self-collision pass, on the positions the
+step ends at (the next step's x_n), and at a run's start or restart
+(``self_collision_list``): the pass's list then holds every pair within t of them,
+and a step that skips the pass moves no pair within t (nor any particle of a pair
+already within t), so the pairs stay those of x_n. It gathers the pairs within t into
+``sp_idx``/``sp_w``/``sp_nf`` and builds, per particle, its entries (pair, k) in CSR
+form (``sp_first``, ``sp_entry``), each particle's entries sorted by the pair's
+particles: ``pair_row`` then sums a particle's share in one fixed order, so A p is
+the same bits for any thread count, without atomics. If the pairs overflow ``sp_idx``
+(``SOLVE_PAIRS_PER_PARTICLE`` per particle), none enters the solve that step (which
+would fit depends on the threads' order), the pass alone handles them, and
+``sp_count[1]`` says how many there were.
 
 Fields (``massspring/self_collision.py``'s ``declare_solve``; n particles, P pair
 capacity): ``sp_param`` (2,) real: t (m), k (N/m); ``sp_count`` (2,) i32: pairs in the
@@ -35,24 +37,7 @@ solve, pairs left out; ``sp_idx`` (P,) 4-vectors i32; ``sp_w`` (P,) 4-vectors;
 import taichi as ti
 
 from .constraints import is_pinned
-from .self_collision import point_triangle, segment_segment
-
-
-@ti.func
-def measure(dev, cfg: ti.template(), x, idx, kind):
-    """(distance in m, signed weights) of a listed pair at positions x; ``kind`` 1:
-    edge-edge, else point-triangle."""
-    d = ti.cast(0, cfg.real)
-    w = ti.Vector.zero(cfg.real, 4)
-    if kind == 1:
-        dee, s, u = segment_segment(x[idx[0]], x[idx[1]], x[idx[2]], x[idx[3]])
-        d = dee
-        w = ti.Vector([1 - s, s, u - 1, -u], cfg.real)
-    else:
-        dpt, b = point_triangle(x[idx[0]], x[idx[1]], x[idx[2]], x[idx[3]])
-        d = dpt
-        w = ti.Vector([1, -b[0], -b[1], -b[2]], cfg.real)
-    return d, w
+from .proximity import listed_pair
 
 
 @ti.func
@@ -72,37 +57,33 @@ def before(dev, a, b):
 
 
 @ti.func
-def collect(dev, cfg: ti.template(), x, h):
-    """The pairs within t at positions x into the solve's fields, and the per-particle
-    entries (module docstring), for a step of h (s)."""
+def collect(dev, cfg: ti.template(), pl, x, h):
+    """The pairs of the pass's list ``pl`` within t at positions x into the solve's
+    fields, and the per-particle entries (module docstring), for a step of h (s)."""
     n = dev.size[0]
     thick = dev.sp_param[0]
     k = dev.sp_param[1]
     cap = dev.sp_idx.shape[0]
-    listed = dev.sc_tally[0]
     dev.sp_count[0] = 0
     dev.sp_count[1] = 0
     for i in range(n):
         dev.sp_fill[i] = 0
-    if listed <= dev.sc_count[3]:
-        for slot in range(listed):
-            idx = dev.sc_pidx[slot]
-            d, w = measure(dev, cfg, x, idx, dev.sc_pkind[slot])
-            if d < thick:
-                gap = ti.Vector.zero(cfg.real, 3)
-                for c in ti.static(range(4)):
-                    gap += w[c] * x[idx[c]]
-                length = gap.norm()
-                if length > 0:
-                    a = ti.atomic_add(dev.sp_count[0], 1)
-                    if a < cap:
-                        normal = gap / length
-                        dev.sp_idx[a] = idx
-                        dev.sp_w[a] = w
-                        dev.sp_nf[a] = ti.Vector([normal[0], normal[1], normal[2], h * h * k, k * (thick - d)],
-                                                 cfg.real)
-    else:
-        dev.sp_count[1] = -1  # the list overflowed: which pairs it holds depends on the threads
+    for slot in range(dev.sc_tally[0]):
+        idx = pl.pidx[slot]
+        d, w = listed_pair(x, idx, pl.pkind[slot], cfg.real)
+        if d < thick:
+            gap = ti.Vector.zero(cfg.real, 3)
+            for c in ti.static(range(4)):
+                gap += w[c] * x[idx[c]]
+            length = gap.norm()
+            if length > 0:
+                a = ti.atomic_add(dev.sp_count[0], 1)
+                if a < cap:
+                    normal = gap / length
+                    dev.sp_idx[a] = idx
+                    dev.sp_w[a] = w
+                    dev.sp_nf[a] = ti.Vector([normal[0], normal[1], normal[2], h * h * k, k * (thick - d)],
+                                             cfg.real)
     found = dev.sp_count[0]
     if found > cap:
         dev.sp_count[0] = 0

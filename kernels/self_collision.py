@@ -30,7 +30,9 @@ is, else ``self_collision_detect`` and ``self_collision_bound`` run the full pas
    counting sort; a box then meets only boxes starting in 3 x 3 x 3 cells, so the work
    is linear in the mesh size. Narrow phase at x0: exact closest points and distance
    d (``point_triangle``, ``segment_segment``, degenerate primitives included). The
-   pairs go to a list (``sc_pidx``...) while it has room.
+   pairs go to the pair list ``pl`` (its own bundle: ``pidx``, ``pw``, ``pkind``); a
+   pass whose pairs do not fit is undone (``self_collision_restore``) and run again
+   with a list large enough (``massspring/self_collision.py``'s ``Pass``).
 2. Repulsion (in the spirit of Bridson, Fedkiw and Anderson 2002). A pair closer
    than ``thickness`` gets an inelastic normal impulse that stops the approach of its
    closest points over the step and pushes them apart, at most to separate them at
@@ -65,17 +67,21 @@ reads the order within a hash cell.
 
 Fields (``massspring/self_collision.py`` declares them; n particles, t triangles, e
 edges, T cells per table): ``sc_tris`` (t,) int 3-vectors, ``sc_edges`` (e,) int
-2-vectors, ``sc_count`` (t, e, T, pair list capacity), ``sc_start`` and ``sc_anchor`` (n,)
-vec3 m, ``sc_free`` (n,) m, ``sc_scale`` (n,),
+2-vectors, ``sc_count`` (t, e, T), ``sc_start``, ``sc_anchor``, ``sc_end`` (n,) vec3 m,
+``sc_vend`` (n,) vec3 m/s, ``sc_free`` (n,) m, ``sc_scale`` (n,),
 ``sc_dv`` (n,) int64 3-vectors (fixed point, ``SCALE`` per m/s), ``sc_hits`` (n,),
 ``sc_vcell``/``sc_ecell`` (T,), ``sc_vfirst``/``sc_efirst`` (T + 1,), ``sc_vitem``
 (n,), ``sc_eitem`` (e,) int32, ``sc_box`` (10,) f64 (cell span, largest displacement,
-smallest distance, listing margin), ``sc_tally`` (4,) int32.
+smallest distance, listing margin), ``sc_tally`` (4,) int32 (pairs found, pairs
+repelled, particles held back, particles out of their free distance). The pair list
+``pl`` (P pairs): ``pidx`` (P,) int 4-vectors, ``pw`` (P,) 4-vectors, ``pkind`` (P,).
 """
 
 import taichi as ti
 
 from .constraints import is_pinned
+from .pair_penalty import collect
+from .proximity import listed_pair, point_triangle, segment_segment
 
 GAMMA = 0.45  # a particle moves at most this fraction of its nearest pair's distance
 SEPARATION = 0.1  # a repelled pair separates at most at this fraction of its gap per step
@@ -88,85 +94,6 @@ REPEL, PROJECT, BOUND, LIST = 0, 1, 2, 3  # the passes over the pairs
 OFFSET = 0.5  # pairs closer than this fraction of the thickness may not approach at all
 REUSE_BELOW = 0.05  # a step whose particles moved less than this x thickness lists pairs for reuse
 REUSE_MARGIN = 1.5  # ... in boxes grown by this x thickness (unlisted pairs then end > 2 x thickness apart)
-
-
-@ti.func
-def point_segment(p, a, b):
-    """(distance, t): the point a + t (b - a), t in [0, 1], of segment ab closest to p."""
-    ab = b - a
-    length2 = ab.dot(ab)
-    t = p[0] * 0  # of p's precision
-    if length2 > 0:
-        t = ti.min(ti.max((p - a).dot(ab) / length2, 0), 1)
-    return (p - (a + t * ab)).norm(), t
-
-
-@ti.func
-def point_triangle(p, a, b, c):
-    """(distance, weights (wa, wb, wc)): the point wa a + wb b + wc c of triangle abc
-    closest to p (weights >= 0, sum 1). A degenerate triangle is its edges."""
-    d1, t1 = point_segment(p, a, b)
-    d2, t2 = point_segment(p, b, c)
-    d3, t3 = point_segment(p, c, a)
-    best = d1
-    w = ti.Vector([1 - t1, t1, 0 * t1])
-    if d2 < best:
-        best = d2
-        w = ti.Vector([0 * t2, 1 - t2, t2])
-    if d3 < best:
-        best = d3
-        w = ti.Vector([t3, 0 * t3, 1 - t3])
-    ab = b - a
-    ac = c - a
-    ap = p - a
-    d00 = ab.dot(ab)
-    d01 = ab.dot(ac)
-    d11 = ac.dot(ac)
-    den = d00 * d11 - d01 * d01
-    if den > 1e-12 * d00 * d11:  # a triangle with area: the projection, if inside, is closest
-        d20 = ap.dot(ab)
-        d21 = ap.dot(ac)
-        wb = (d11 * d20 - d01 * d21) / den
-        wc = (d00 * d21 - d01 * d20) / den
-        wa = 1 - wb - wc
-        if wa >= 0 and wb >= 0 and wc >= 0:
-            inside = (p - (wa * a + wb * b + wc * c)).norm()
-            if inside < best:
-                best = inside
-                w = ti.Vector([wa, wb, wc])
-    return best, w
-
-
-@ti.func
-def segment_segment(p1, q1, p2, q2):
-    """(distance, s, t): the closest points p1 + s (q1 - p1) and p2 + t (q2 - p2),
-    s, t in [0, 1]. Degenerate and parallel segments included."""
-    d1 = q1 - p1
-    d2 = q2 - p2
-    r = p1 - p2
-    a = d1.dot(d1)
-    e = d2.dot(d2)
-    f = d2.dot(r)
-    s = p1[0] * 0  # of the points' precision
-    t = p1[0] * 0
-    if a > 0 and e > 0:
-        c = d1.dot(r)
-        b = d1.dot(d2)
-        den = a * e - b * b
-        if den > 1e-12 * a * e:  # not parallel
-            s = ti.min(ti.max((b * f - c * e) / den, 0), 1)
-        t = (b * s + f) / e
-        if t < 0:
-            t = 0
-            s = ti.min(ti.max(-c / a, 0), 1)
-        elif t > 1:
-            t = 1
-            s = ti.min(ti.max((b - c) / a, 0), 1)
-    elif a > 0:
-        s = ti.min(ti.max(-d1.dot(r) / a, 0), 1)
-    elif e > 0:
-        t = ti.min(ti.max(f / e, 0), 1)
-    return ((p1 + s * d1) - (p2 + t * d2)).norm(), s, t
 
 
 @ti.func
@@ -231,7 +158,7 @@ def count_sort(dev, cells: ti.template(), first: ti.template(), items: ti.templa
 
 
 @ti.func
-def pair(dev, cfg: ti.template(), state, idx, w, d, h, thickness, mu, ks, sides: ti.template(), phase: ti.template()):
+def pair(dev, cfg: ti.template(), pl, state, idx, w, d, h, thickness, mu, ks, sides: ti.template(), phase: ti.template()):
     """A pair of primitives at distance d (m) at x0: particles ``idx``, weights ``w``
     (side A positive, side B negative; sum w x0 = p - q, from B's closest point q to
     A's p), ``sides``: each particle's side (+1: A, -1: B), ``POINT_TRIANGLE`` or ``EDGE_EDGE``.
@@ -266,10 +193,10 @@ def pair(dev, cfg: ti.template(), state, idx, w, d, h, thickness, mu, ks, sides:
                 ti.atomic_min(dev.sc_scale[idx[k]], 0)
     else:
         slot = ti.atomic_add(dev.sc_tally[0], 1)
-        if slot < dev.sc_count[3]:
-            dev.sc_pidx[slot] = idx
-            dev.sc_pw[slot] = w
-            dev.sc_pkind[slot] = sides[1]  # 1: edge-edge, -1: point-triangle
+        if slot < pl.pidx.shape[0]:
+            pl.pidx[slot] = idx
+            pl.pw[slot] = w
+            pl.pkind[slot] = sides[1]  # 1: edge-edge, -1: point-triangle
         ti.atomic_min(dev.sc_box[8], ti.cast(d, ti.f64))
         if ti.static(phase == REPEL) and d < thickness and length > 0:
             ti.atomic_add(dev.sc_tally[1], 1)
@@ -329,7 +256,7 @@ def overlap(lo_a, hi_a, lo_b, hi_b):
 
 
 @ti.func
-def vertex_candidates(dev, cfg: ti.template(), state, cell, corner, tlo, thi, inverse, size, margin, h, thick, mu, ks,
+def vertex_candidates(dev, cfg: ti.template(), pl, state, cell, corner, tlo, thi, inverse, size, margin, h, thick, mu, ks,
                       phase: ti.template()):
     """Point-triangle pairs of triangle ``corner`` (swept box tlo, thi) with the particles
     whose swept boxes start in ``cell`` and meet it."""
@@ -341,12 +268,12 @@ def vertex_candidates(dev, cfg: ti.template(), state, cell, corner, tlo, thi, in
             if overlap(lo, hi, tlo, thi) and (cell_of(lo, inverse) == cell).all():
                 d, w = point_triangle(dev.sc_start[p], dev.sc_start[corner[0]], dev.sc_start[corner[1]],
                                       dev.sc_start[corner[2]])
-                pair(dev, cfg, state, ti.Vector([p, corner[0], corner[1], corner[2]]),
+                pair(dev, cfg, pl, state, ti.Vector([p, corner[0], corner[1], corner[2]]),
                      ti.Vector([1, -w[0], -w[1], -w[2]], cfg.real), d, h, thick, mu, ks, POINT_TRIANGLE, phase)
 
 
 @ti.func
-def edge_candidates(dev, cfg: ti.template(), state, cell, e, ends, elo, ehi, inverse, size, margin, h, thick, mu, ks,
+def edge_candidates(dev, cfg: ti.template(), pl, state, cell, e, ends, elo, ehi, inverse, size, margin, h, thick, mu, ks,
                     phase: ti.template()):
     """Edge-edge pairs of edge e (``ends``, swept box elo, ehi) with the later edges whose
     swept boxes start in ``cell`` and meet it."""
@@ -359,12 +286,12 @@ def edge_candidates(dev, cfg: ti.template(), state, cell, e, ends, elo, ehi, inv
             if overlap(lo, hi, elo, ehi) and (cell_of(lo, inverse) == cell).all():
                 d, s, u = segment_segment(dev.sc_start[ends[0]], dev.sc_start[ends[1]], dev.sc_start[other[0]],
                                           dev.sc_start[other[1]])
-                pair(dev, cfg, state, ti.Vector([ends[0], ends[1], other[0], other[1]]),
+                pair(dev, cfg, pl, state, ti.Vector([ends[0], ends[1], other[0], other[1]]),
                      ti.Vector([1 - s, s, u - 1, -u], cfg.real), d, h, thick, mu, ks, EDGE_EDGE, phase)
 
 
 @ti.func
-def pairs(dev, cfg: ti.template(), state, tris, edges, span, size, margin, h, thick, mu, ks, phase: ti.template()):
+def pairs(dev, cfg: ti.template(), pl, state, tris, edges, span, size, margin, h, thick, mu, ks, phase: ti.template()):
     """Every point-triangle and edge-edge pair whose swept boxes meet, through ``pair`` in
     ``phase``. Cells are ``span`` (per axis, m: the largest swept edge box), so a box meets
     only boxes starting in the 3 x 3 x 3 cells from its low corner less span to its high
@@ -382,7 +309,7 @@ def pairs(dev, cfg: ti.template(), state, tris, edges, span, size, margin, h, th
         for cx in range(first[0], last[0] + 1):
             for cy in range(first[1], last[1] + 1):
                 for cz in range(first[2], last[2] + 1):
-                    vertex_candidates(dev, cfg, state, ti.Vector([cx, cy, cz]), corner, tlo, thi, inverse, size,
+                    vertex_candidates(dev, cfg, pl, state, ti.Vector([cx, cy, cz]), corner, tlo, thi, inverse, size,
                                       margin, h, thick, mu, ks, phase)
     for e in range(edges):  # edge-edge pairs
         ends = dev.sc_edges[e]
@@ -392,7 +319,7 @@ def pairs(dev, cfg: ti.template(), state, tris, edges, span, size, margin, h, th
         for cx in range(first[0], last[0] + 1):
             for cy in range(first[1], last[1] + 1):
                 for cz in range(first[2], last[2] + 1):
-                    edge_candidates(dev, cfg, state, ti.Vector([cx, cy, cz]), e, ends, elo, ehi, inverse, size,
+                    edge_candidates(dev, cfg, pl, state, ti.Vector([cx, cy, cz]), e, ends, elo, ehi, inverse, size,
                                     margin, h, thick, mu, ks, phase)
 
 
@@ -408,15 +335,15 @@ def clip(dev, cfg: ti.template(), state, i, margin, h):
 
 
 @ti.func
-def listed_pairs(dev, cfg: ti.template(), state, count, thick, phase: ti.template()):
-    """``pair`` in ``phase`` over the first ``count`` pairs of the pair list."""
+def listed_pairs(dev, cfg: ti.template(), pl, state, count, thick, phase: ti.template()):
+    """``pair`` in ``phase`` over the first ``count`` pairs of the pair list ``pl``."""
     for slot in range(count):
-        idx = dev.sc_pidx[slot]
-        w = dev.sc_pw[slot]
-        if dev.sc_pkind[slot] == 1:  # the second particle's side
-            pair(dev, cfg, state, idx, w, 0, 1, thick, 0, 0, EDGE_EDGE, phase)
+        idx = pl.pidx[slot]
+        w = pl.pw[slot]
+        if pl.pkind[slot] == 1:  # the second particle's side
+            pair(dev, cfg, pl, state, idx, w, 0, 1, thick, 0, 0, EDGE_EDGE, phase)
         else:
-            pair(dev, cfg, state, idx, w, 0, 1, thick, 0, 0, POINT_TRIANGLE, phase)
+            pair(dev, cfg, pl, state, idx, w, 0, 1, thick, 0, 0, POINT_TRIANGLE, phase)
 
 
 @ti.kernel
@@ -474,11 +401,12 @@ def broad_phase(dev, cfg: ti.template(), margin):
 
 
 @ti.kernel
-def self_collision_list(dev: ti.template(), cfg: ti.template(), state: ti.template(), thickness: ti.f64,
-                        serial: ti.template()):
-    """List the pairs of the state as it stands (no step: x0 = x, boxes grown by
-    ``thickness``), as a pass would have: every pair within ``thickness`` is listed if
-    the list has room (``kernels/pair_penalty.py`` reads them)."""
+def self_collision_list(dev: ti.template(), cfg: ti.template(), pl: ti.template(), state: ti.template(),
+                        dt: ti.f64, thickness: ti.f64, serial: ti.template()) -> ti.i32:
+    """List the pairs of the state as it stands into ``pl`` (no step: x0 = x, boxes grown
+    by ``thickness``), as a pass would have, so every pair within ``thickness`` is listed;
+    with ``cfg.self_pairs``, the implicit solve's pairs from them (steps of dt, s).
+    Returns the pairs found (more than ``pl`` holds: list again in a larger one)."""
     if ti.static(serial):
         ti.loop_config(serialize=True)
     for i in range(dev.size[0]):
@@ -487,24 +415,39 @@ def self_collision_list(dev: ti.template(), cfg: ti.template(), state: ti.templa
     if ti.static(serial):
         ti.loop_config(serialize=True)
         for _ in range(1):
-            list_pairs(dev, cfg, state, thickness)
+            list_pairs(dev, cfg, pl, state, dt, thickness)
     else:
-        list_pairs(dev, cfg, state, thickness)
+        list_pairs(dev, cfg, pl, state, dt, thickness)
+    return dev.sc_tally[0]
 
 
 @ti.func
-def list_pairs(dev, cfg: ti.template(), state, thickness):
+def list_pairs(dev, cfg: ti.template(), pl, state, dt, thickness):
     thick = ti.cast(thickness, cfg.real)
     span = broad_phase(dev, cfg, thick)
-    pairs(dev, cfg, state, dev.sc_count[0], dev.sc_count[1], span, dev.sc_count[2], thick, 1, thick, 0, 0, LIST)
+    pairs(dev, cfg, pl, state, dev.sc_count[0], dev.sc_count[1], span, dev.sc_count[2], thick, 1, thick, 0, 0, LIST)
+    if ti.static(cfg.self_pairs):
+        if dev.sc_tally[0] <= pl.pidx.shape[0]:
+            collect(dev, cfg, pl, state.x, ti.cast(dt, cfg.real))
+
+
+@ti.kernel
+def self_collision_restore(dev: ti.template(), state: ti.template(), serial: ti.template()):
+    """The state as the step left it, before ``self_collision_detect`` changed it (to run
+    the pass again with a larger pair list)."""
+    if ti.static(serial):
+        ti.loop_config(serialize=True)
+    for i in range(dev.size[0]):
+        state.x[i] = dev.sc_end[i]
+        state.v[i] = dev.sc_vend[i]
 
 
 @ti.func
-def detect(dev, cfg: ti.template(), state, dt, thickness, friction, stiffness):
-    """Steps 1 and 2 of the pass (module docstring): the listing margin, the swept boxes, the hashes, the
-    pairs (listed while the list has room), their repulsion applied within the boxes.
-    Returns (pairs, pairs repelled, 0, the largest displacement in m, the smallest
-    distance of a pair in m, 1 if the pairs fitted the list)."""
+def detect(dev, cfg: ti.template(), pl, state, dt, thickness, friction, stiffness):
+    """Steps 1 and 2 of the pass (module docstring): the listing margin, the swept boxes,
+    the hashes, the pairs (listed in ``pl`` while it has room), their repulsion applied
+    within the boxes. Returns (pairs, pairs repelled, 0, the largest displacement in m,
+    the smallest distance of a pair in m, 1 if the pairs fitted the list)."""
     n = dev.size[0]
     h = ti.cast(dt, cfg.real)
     thick = ti.cast(thickness, cfg.real)
@@ -513,6 +456,7 @@ def detect(dev, cfg: ti.template(), state, dt, thickness, friction, stiffness):
     dev.sc_box[6] = 0.0
     for i in range(n):
         dev.sc_end[i] = state.x[i]
+        dev.sc_vend[i] = state.v[i]
         ti.atomic_max(dev.sc_box[6], ti.cast((state.x[i] - dev.sc_start[i]).norm(), ti.f64))
         dev.sc_dv[i] = ti.Vector.zero(ti.i64, 3)
         dev.sc_hits[i] = 0
@@ -522,7 +466,8 @@ def detect(dev, cfg: ti.template(), state, dt, thickness, friction, stiffness):
     if dev.sc_box[6] < REUSE_BELOW * thickness:
         margin = REUSE_MARGIN * thick
     span = broad_phase(dev, cfg, margin)
-    pairs(dev, cfg, state, dev.sc_count[0], dev.sc_count[1], span, dev.sc_count[2], margin, h, thick, mu, ks, REPEL)
+    pairs(dev, cfg, pl, state, dev.sc_count[0], dev.sc_count[1], span, dev.sc_count[2], margin, h, thick, mu, ks,
+          REPEL)
     for i in range(n):
         hits = dev.sc_hits[i]
         touched = hits > 0
@@ -543,69 +488,45 @@ def detect(dev, cfg: ti.template(), state, dt, thickness, friction, stiffness):
             state.x[i] += h * du
             state.v[i] += du
             clip(dev, cfg, state, i, 0.5 * thick, h)
-    fits = 1 if dev.sc_tally[0] <= dev.sc_count[3] else 0
+    fits = 1 if dev.sc_tally[0] <= pl.pidx.shape[0] else 0
     return ti.Vector([dev.sc_tally[0], dev.sc_tally[1], 0, dev.sc_box[6], dev.sc_box[8], fits], ti.f64)
 
 
 @ti.func
-def distance_now(dev, state, idx, kind):
-    """The distance (m) at the state's positions of a listed pair (particles ``idx``;
-    ``kind`` 1: edge-edge, else point-triangle)."""
-    x0, x1, x2, x3 = state.x[idx[0]], state.x[idx[1]], state.x[idx[2]], state.x[idx[3]]
-    d = x0[0] * 0
-    if kind == 1:
-        ee, _, _ = segment_segment(x0, x1, x2, x3)
-        d = ee
-    else:
-        pt, _ = point_triangle(x0, x1, x2, x3)
-        d = pt
-    return d
-
-
-@ti.func
-def anchor(dev, cfg: ti.template(), state, count, thick, margin, from_list: ti.template()):
+def anchor(dev, cfg: ti.template(), pl, state, count, thick, margin):
     """Step 0 of the pass (module docstring) at the pass's end: anchors at the state's
     positions (and x0 for the next step), free distances GAMMA (d - thickness) over each
     particle's listed pairs, at most GAMMA (2 margin - 2 thickness) (unlisted pairs end
-    more than 2 margin - thickness apart); none if the pairs did not fit the list."""
-    cap = ti.cast(0, cfg.real)
-    if ti.static(from_list):
-        cap = GAMMA * ti.max(2 * margin - 2 * thick, 0)
+    more than 2 margin - thickness apart)."""
+    cap = GAMMA * ti.max(2 * margin - 2 * thick, 0)
     for i in range(dev.size[0]):
         dev.sc_start[i] = state.x[i]
         dev.sc_anchor[i] = state.x[i]
         dev.sc_free[i] = cap
-    if ti.static(from_list):
-        for slot in range(count):
-            idx = dev.sc_pidx[slot]
-            allowed = GAMMA * ti.max(distance_now(dev, state, idx, dev.sc_pkind[slot]) - thick, 0)
-            for k in ti.static(range(4)):
-                ti.atomic_min(dev.sc_free[idx[k]], allowed)
+    for slot in range(count):
+        idx = pl.pidx[slot]
+        d, _ = listed_pair(state.x, idx, pl.pkind[slot], cfg.real)
+        allowed = GAMMA * ti.max(d - thick, 0)
+        for k in ti.static(range(4)):
+            ti.atomic_min(dev.sc_free[idx[k]], allowed)
 
 
 @ti.func
-def bound(dev, cfg: ti.template(), state, dt, thickness, from_list: ti.template()):
-    """Step 3 of the pass (module docstring) over the listed pairs, or (not
-    ``from_list``: the list overflowed) over all pairs found again. Returns the number
-    of particles held back."""
+def bound(dev, cfg: ti.template(), pl, state, dt, thickness):
+    """Step 3 of the pass (module docstring) over the listed pairs, then step 0's anchors
+    and, with ``cfg.self_pairs``, the next implicit solve's pairs. Returns the number of
+    particles held back."""
     n = dev.size[0]
     h = ti.cast(dt, cfg.real)
     thick = ti.cast(thickness, cfg.real)
     margin = ti.cast(dev.sc_box[9], cfg.real)
-    tris = dev.sc_count[0]
-    edges = dev.sc_count[1]
-    size = dev.sc_count[2]
-    span = ti.Vector([dev.sc_box[k] for k in ti.static(range(3))], cfg.real)
     count = dev.sc_tally[0]
     dev.sc_tally[2] = 0
     for i in range(n):
         dev.sc_dv[i] = ti.Vector.zero(ti.i64, 3)
         dev.sc_hits[i] = 0
         dev.sc_scale[i] = 1
-    if ti.static(from_list):
-        listed_pairs(dev, cfg, state, count, thick, PROJECT)
-    else:
-        pairs(dev, cfg, state, tris, edges, span, size, margin, h, thick, 0, 0, PROJECT)
+    listed_pairs(dev, cfg, pl, state, count, thick, PROJECT)
     for i in range(n):
         hits = dev.sc_hits[i]
         if hits > 0:
@@ -613,10 +534,7 @@ def bound(dev, cfg: ti.template(), state, dt, thickness, from_list: ti.template(
             state.x[i] += dx
             state.v[i] += dx / h
             clip(dev, cfg, state, i, 0.5 * thick, h)
-    if ti.static(from_list):
-        listed_pairs(dev, cfg, state, count, thick, BOUND)
-    else:
-        pairs(dev, cfg, state, tris, edges, span, size, margin, h, thick, 0, 0, BOUND)
+    listed_pairs(dev, cfg, pl, state, count, thick, BOUND)
     for i in range(n):
         scale = dev.sc_scale[i]
         if scale < 1 and not is_pinned(i, dev, cfg):
@@ -624,41 +542,43 @@ def bound(dev, cfg: ti.template(), state, dt, thickness, from_list: ti.template(
             state.x[i] = dev.sc_start[i] + dx
             state.v[i] = dx / h
             ti.atomic_add(dev.sc_tally[2], 1)
-    anchor(dev, cfg, state, count, thick, margin, from_list)
+    anchor(dev, cfg, pl, state, count, thick, margin)
+    if ti.static(cfg.self_pairs):
+        collect(dev, cfg, pl, state.x, h)
     return dev.sc_tally[2]
 
 
 @ti.kernel
-def self_collision_detect(dev: ti.template(), cfg: ti.template(), state: ti.template(), dt: ti.f64,
-                          thickness: ti.f64, friction: ti.f64, stiffness: ti.f64,
+def self_collision_detect(dev: ti.template(), cfg: ti.template(), pl: ti.template(), state: ti.template(),
+                          dt: ti.f64, thickness: ti.f64, friction: ti.f64, stiffness: ti.f64,
                           serial: ti.template()) -> ti.types.vector(6, ti.f64):
-    """``detect`` on ``state`` after a step of dt (s) from ``sc_start``: thickness (m),
-    friction (mu), stiffness (N/m); ``serial``: in one serial loop (small models, where
-    a parallel loop's start costs more than its work)."""
+    """``detect`` on ``state`` after a step of dt (s) from ``sc_start``, listing into
+    ``pl``: thickness (m), friction (mu), stiffness (N/m); ``serial``: in one serial loop
+    (small models, where a parallel loop's start costs more than its work)."""
     out = ti.Vector.zero(ti.f64, 6)
     if ti.static(serial):
         ti.loop_config(serialize=True)
         for _ in range(1):
-            result = detect(dev, cfg, state, dt, thickness, friction, stiffness)
+            result = detect(dev, cfg, pl, state, dt, thickness, friction, stiffness)
             out = result
     else:
-        result = detect(dev, cfg, state, dt, thickness, friction, stiffness)
+        result = detect(dev, cfg, pl, state, dt, thickness, friction, stiffness)
         out = result
     return out
 
 
 @ti.kernel
-def self_collision_bound(dev: ti.template(), cfg: ti.template(), state: ti.template(), dt: ti.f64,
-                         thickness: ti.f64, from_list: ti.template(), serial: ti.template()) -> ti.i32:
-    """``bound`` after ``self_collision_detect``; returns the particles held back. (The
-    sweeping variant, ``from_list`` False, is compiled only if a list overflows.)"""
+def self_collision_bound(dev: ti.template(), cfg: ti.template(), pl: ti.template(), state: ti.template(),
+                         dt: ti.f64, thickness: ti.f64, serial: ti.template()) -> ti.i32:
+    """``bound`` after ``self_collision_detect`` (whose pairs fitted ``pl``); returns the
+    particles held back."""
     out = 0
     if ti.static(serial):
         ti.loop_config(serialize=True)
         for _ in range(1):
-            held = bound(dev, cfg, state, dt, thickness, from_list)
+            held = bound(dev, cfg, pl, state, dt, thickness)
             out = held
     else:
-        held = bound(dev, cfg, state, dt, thickness, from_list)
+        held = bound(dev, cfg, pl, state, dt, thickness)
         out = held
     return out

@@ -59,12 +59,13 @@ def mesh_edges(triangles) -> np.ndarray:
     return np.unique(pairs, axis=0) if len(pairs) else np.zeros((0, 2), dtype=np.int64)
 
 
-PAIRS_PER_PARTICLE = 64  # the pair list's capacity per particle (capacity class); beyond it the pass sweeps again
+PAIRS_PER_PARTICLE = 8  # the pair list's first capacity per particle; a pass that finds more grows it
 PAIR_BYTES = 16 + 4 * 8 + 4  # a listed pair: 4 particles, 4 weights (f64), its kind
 # Bytes per particle of the pass's fields (``declare``), for ``memory.run_bytes``: start, anchor, free,
-# end, scale, impulses, hits, hash items (24 + 24 + 8 + 24 + 8 + 24 + 4 + 4); about 2 triangles (12 B)
-# and 3 edges (8 + 4 B each, two hash tables of 8 B per slot, 2 slots per edge); the pair list.
-PASS_BYTES = 120 + 2 * 12 + 3 * (12 + 2 * 2 * 8) + PAIRS_PER_PARTICLE * PAIR_BYTES
+# end, end velocity, scale, impulses, hits, hash items (24 + 24 + 8 + 24 + 24 + 8 + 24 + 4 + 4); about
+# 2 triangles (12 B) and 3 edges (8 + 4 B each, two hash tables of 8 B per slot, 2 slots per edge); the
+# pair list's first capacity.
+PASS_BYTES = 144 + 2 * 12 + 3 * (12 + 2 * 2 * 8) + PAIRS_PER_PARTICLE * PAIR_BYTES
 CARRIED = {"sc_anchor": (np.float64, (3,)), "sc_free": (np.float64, ())}  # what a restart needs of the pass
 
 
@@ -82,15 +83,12 @@ def declare(layout, model):
     size = 2 * edge_cap  # the tables' capacity; the hash uses 2 slots per edge (sc_count[2])
     layout.vectors("sc_tris", ti.i32, tri_cap, values=tris)
     layout.vectors("sc_edges", ti.i32, edge_cap, values=edges, k=2)
-    pairs = PAIRS_PER_PARTICLE * layout.counts["particle"]
-    layout.add("sc_count", ti.i32, 4, values=np.array([len(tris), len(edges), max(2 * len(edges), 16), pairs]))
-    layout.vectors("sc_pidx", ti.i32, pairs, k=4)
-    layout.vectors("sc_pw", layout.real, pairs, k=4)
-    layout.add("sc_pkind", ti.i32, pairs)
+    layout.add("sc_count", ti.i32, 3, values=np.array([len(tris), len(edges), max(2 * len(edges), 16)]))
     layout.vectors("sc_start", layout.real)
     layout.vectors("sc_anchor", layout.real)
     layout.add("sc_free", layout.real, "particle")
     layout.vectors("sc_end", layout.real)
+    layout.vectors("sc_vend", layout.real)
     layout.add("sc_scale", layout.real, "particle")
     layout.vectors("sc_dv", ti.i64)
     layout.add("sc_hits", ti.i32, "particle")
@@ -100,6 +98,23 @@ def declare(layout, model):
         layout.add(f"sc_{table}item", ti.i32, items)
     layout.add("sc_box", ti.f64, 10)
     layout.add("sc_tally", ti.i32, 4)
+
+
+def pair_list(pairs, real):
+    """A pair list for at least ``pairs`` pairs (a capacity class, so lists are pooled and
+    their kernels compiled once per class): a bundle of ``pidx`` (4 particles), ``pw`` (4
+    weights) and ``pkind`` (1: edge-edge, -1: point-triangle). ValueError if it would not
+    fit in memory."""
+    import taichi as ti
+
+    from massspring.device import Layout, capacity
+
+    cap = capacity(pairs, 4096)
+    layout = Layout(0, 0, real)
+    layout.vectors("pidx", ti.i32, cap, k=4)
+    layout.vectors("pw", real, cap, k=4)
+    layout.add("pkind", ti.i32, cap)
+    return layout.allocate()
 
 
 SOLVE_PAIRS_PER_PARTICLE = 16  # capacity of the implicit solve's pairs per particle (``declare_solve``)
@@ -129,43 +144,83 @@ def declare_solve(layout, model):
 
 class Pass:
     """The self-collision pass of one simulation around each step of its integrator
-    (``kernels/self_collision.py``): ``begin(state)`` before the step, ``end(state, dt)``
-    after it; ``serial``: in serial loops, as the integrator runs (``Settings.loops``).
-    ``end`` runs the full pass only when a particle left its free distance of its anchor
-    (step 0 of the kernels' docstring). ``last``: the last full pass's (pairs within
-    reach, pairs repelled, particles held back, the largest displacement in m, the
-    smallest distance of a pair in m, whether the pairs fitted the pair list);
-    ``passes`` and ``steps``: full passes and steps so far."""
+    (``kernels/self_collision.py``): ``begin(state)`` before the step, ``end(state)``
+    after it; steps of ``dt`` (s); ``serial``: in serial loops, as the integrator runs
+    (``Settings.loops``). ``end`` runs the full pass only when a particle left its free
+    distance of its anchor (step 0 of the kernels' docstring). ``last``: the last full
+    pass's (pairs within reach, pairs repelled, particles held back, the largest
+    displacement in m, the smallest distance of a pair in m, the pair list's capacity);
+    ``passes`` and ``steps``: full passes and steps so far; ``left_out``: pairs within
+    the thickness the last pass left out of the implicit solve (beyond its capacity);
+    ``grown``: times the pair list grew (a pass that finds more pairs than it holds is undone and run again with
+    a larger one, so what a step does never depends on the list's size)."""
 
-    def __init__(self, dev, cfg, model, serial):
-        self.dev, self.cfg, self.serial = dev, cfg, serial
+    def __init__(self, dev, cfg, model, serial, dt):
+        self.dev, self.cfg, self.serial, self.dt = dev, cfg, serial, dt
         sc = model.self_collision
         self.parameters = (sc.thickness, sc.friction, sc.repulsion_stiffness(model))
-        self.last = (0, 0, 0, 0.0, math.inf, True)
-        self.passes = self.steps = 0
+        self.list = pair_list(PAIRS_PER_PARTICLE * model.n_particles, cfg.real)
+        self.last = (0, 0, 0, 0.0, math.inf, self.capacity)
+        self.passes = self.steps = self.grown = self.left_out = 0
         self.fresh = True  # x0 and the anchors are not set yet
+
+    @property
+    def capacity(self) -> int:
+        """Pairs the pair list holds."""
+        return self.list.pidx.shape[0]
+
+    def _grow(self, found):
+        from massspring.device import POOL
+
+        POOL.give(self.list)
+        self.list = None
+        self.list = pair_list(found + found // 4, self.cfg.real)
+        self.grown += 1
+
+    def _list(self, state):
+        """List the state's pairs (and the implicit solve's, ``kernels/pair_penalty.py``)."""
+        from massspring.kernels.self_collision import self_collision_list
+
+        found = self_collision_list(self.dev, self.cfg, self.list, state, self.dt, self.parameters[0], self.serial)
+        while found > self.capacity:
+            self._grow(found)
+            found = self_collision_list(self.dev, self.cfg, self.list, state, self.dt, self.parameters[0],
+                                        self.serial)
 
     def begin(self, state):
         if self.fresh:
-            from massspring.kernels.self_collision import self_collision_begin, self_collision_list
+            from massspring.kernels.self_collision import self_collision_begin
 
             if self.cfg.self_pairs:  # the solve's pairs come from the list
-                self_collision_list(self.dev, self.cfg, state, self.parameters[0], self.serial)
+                self._list(state)
             self_collision_begin(self.dev, state, True, self.serial)
             self.fresh = False
 
-    def end(self, state, dt):
+    def end(self, state):
         from massspring.kernels.self_collision import (self_collision_bound, self_collision_check,
-                                                       self_collision_detect)
+                                                       self_collision_detect, self_collision_restore)
 
         self.steps += 1
         if self_collision_check(self.dev, state, self.serial) == 0:
             return
         self.passes += 1
-        out = self_collision_detect(self.dev, self.cfg, state, dt, *self.parameters, self.serial)
-        fits = bool(out[5])
-        held = self_collision_bound(self.dev, self.cfg, state, dt, self.parameters[0], fits, self.serial)
-        self.last = (int(out[0]), int(out[1]), int(held), float(out[3]), float(out[4]), fits)
+        out = self_collision_detect(self.dev, self.cfg, self.list, state, self.dt, *self.parameters, self.serial)
+        while not out[5]:
+            self_collision_restore(self.dev, state, self.serial)
+            self._grow(int(out[0]))
+            out = self_collision_detect(self.dev, self.cfg, self.list, state, self.dt, *self.parameters, self.serial)
+        held = self_collision_bound(self.dev, self.cfg, self.list, state, self.dt, self.parameters[0], self.serial)
+        self.last = (int(out[0]), int(out[1]), int(held), float(out[3]), float(out[4]), self.capacity)
+        if self.cfg.self_pairs:
+            self.left_out = int(self.dev.sp_count[1])
+
+    def release(self):
+        """Hand the pair list back to the pool."""
+        from massspring.device import POOL
+
+        if self.list is not None:
+            POOL.give(self.list)
+            self.list = None
 
     def carried(self) -> dict:
         """The anchors (n, 3) and free distances (n,) in m, for a restart."""
@@ -179,10 +234,8 @@ class Pass:
 
         self.fresh = carried is None
         if carried is not None:
-            from massspring.kernels.self_collision import self_collision_list
-
             if self.cfg.self_pairs:
-                self_collision_list(self.dev, self.cfg, state, self.parameters[0], self.serial)
+                self._list(state)
             state_kernels.load_vectors(self.dev.sc_anchor, carried["sc_anchor"].astype(np.float64))
             state_kernels.load_reals(self.dev.sc_free, carried["sc_free"].astype(np.float64))
             self_collision_begin(self.dev, state, False, self.serial)

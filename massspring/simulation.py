@@ -191,9 +191,9 @@ class Simulation:
         dev = layout.allocate()
         dev.check[None] = self._check
         self._integrator = cls(dev, model, self._settings)
-        self._guard = (self_collision.Pass(dev, self._integrator.cfg, model, self._integrator.serial)
+        self._guard = (self_collision.Pass(dev, self._integrator.cfg, model, self._integrator.serial, dt)
                        if model.has_self_collision else None)
-        self._release = weakref.finalize(self, _release, dev, self._integrator)
+        self._release = weakref.finalize(self, _release, dev, self._integrator, self._guard)
 
     # ------------------------------------------------------------------ settings
 
@@ -274,6 +274,23 @@ class Simulation:
     def newton_iterations(self) -> list:
         """Newton iterations (linear solves) of every step so far (Newton-solved integrators; a copy)."""
         return list(self._newton_iterations)
+
+    @property
+    def self_collision_stats(self) -> dict | None:
+        """The self-collision pass so far (None without self-collision): "steps", "passes"
+        (steps that ran the full pass), "grown" (times its pair list grew) and
+        "capacity" (pairs the list holds); of the last full pass: "pairs" (listed),
+        "repelled" (closer than the thickness), "held" (particles held back),
+        "displacement" (largest, m), "closest" (smallest pair distance, m) and
+        "left_out" (pairs within the thickness left out of the implicit solve because
+        they passed its capacity; 0 if none)."""
+        guard = self._guard
+        if guard is None:
+            return None
+        pairs, repelled, held, displacement, closest, capacity = guard.last
+        return {"steps": guard.steps, "passes": guard.passes, "grown": guard.grown, "capacity": capacity,
+                "pairs": pairs, "repelled": repelled, "held": held, "displacement": displacement,
+                "closest": closest, "left_out": guard.left_out}
 
     @property
     def line_search_cuts(self) -> int:
@@ -366,7 +383,7 @@ class Simulation:
                 self._guard.begin(integrator.state)
             done, code, kinetic = integrator.advance(1)
             if done and self._guard is not None:
-                self._guard.end(integrator.state, self.dt)
+                self._guard.end(integrator.state)
             if not integrator.has_stats:
                 self._steps += done
                 self._raise_if_diverged(code, kinetic)
@@ -428,8 +445,10 @@ class Simulation:
         self._integrator = None
 
 
-def _release(dev, integrator):
+def _release(dev, integrator, guard):
     integrator.release()
+    if guard is not None:
+        guard.release()
     POOL.give(dev)
 
 

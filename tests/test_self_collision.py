@@ -15,7 +15,7 @@ import taichi as ti
 
 import massspring as ms
 from massspring.device import ensure_taichi
-from massspring.kernels import self_collision as kernels
+from massspring.kernels import proximity
 from massspring.self_collision import mesh_edges
 
 from crossings import crossings, pair_distances
@@ -52,7 +52,7 @@ def test_no_crossing_in_any_sampled_frame(integrator, resolution, dt, frames, st
     sim = scene.simulation(integrator, dt=dt)
     counts = frames_crossings(sim, model, frames, steps)
     assert counts == [0] * frames
-    assert sim._guard.last[1] > 0  # pairs closer than the thickness: the upper sheet lies on the lower one
+    assert sim.self_collision_stats["repelled"] > 0  # pairs closer than the thickness: the upper sheet lies on the lower one
 
 
 def shipped(name, resolution, on=True, **params):
@@ -135,7 +135,8 @@ def test_the_pass_keeps_pairs_apart_by_at_least_half_the_thickness():
     scene = sheets()
     sim = scene.simulation("implicit")
     sim.step(200)
-    pairs, repelled, _, reach, closest, _ = sim._guard.last
+    stats = sim.self_collision_stats
+    pairs, repelled, reach, closest = (stats[k] for k in ("pairs", "repelled", "displacement", "closest"))
     assert pairs > 0 and repelled > 0
     assert closest >= 0.5 * scene.self_collision.thickness * (1 - 1e-9)
     assert reach > 0  # the largest displacement of the step
@@ -152,10 +153,10 @@ def test_small_steps_skip_the_pass_only_while_no_pair_comes_within_the_thickness
     sim = scene.simulation("symplectic", dt=1e-4)
     anchor, skipped, close_checked = None, 0, 0
     for step in range(3000):
-        passes = sim._guard.passes
+        passes = sim.self_collision_stats["passes"]
         sim.step(1)
         x = sim.positions
-        if sim._guard.passes > passes:
+        if sim.self_collision_stats["passes"] > passes:
             anchor = x
             continue
         skipped += 1
@@ -166,9 +167,9 @@ def test_small_steps_skip_the_pass_only_while_no_pair_comes_within_the_thickness
         moved = np.any(x[particles[close]] != anchor[particles[close]], axis=(1, 2))
         assert not moved.any(), (step, d[close][moved].min())
         close_checked += int(close.sum())
-    assert 0 < sim._guard.passes < skipped  # most steps skip the pass
+    assert 0 < sim.self_collision_stats["passes"] < skipped  # most steps skip the pass
     assert crossings(sim.positions, model.triangles, edges) == 0
-    assert sim._guard.last[1] > 0  # the upper sheet lies on the lower one
+    assert sim.self_collision_stats["repelled"] > 0  # the upper sheet lies on the lower one
 
 
 @pytest.mark.parametrize("height, lateral", [(0.02, (0.3, 0.25)), (0.01, (0.6, 0.45))])
@@ -216,9 +217,28 @@ def test_a_pair_within_the_thickness_is_a_penalty_of_the_implicit_solve(height, 
     sim = ms.Simulation(model, integrator="implicit", dt=dt, cg_tol=1e-12)
     sim.step()
     assert sim._integrator.dev.sp_count.to_numpy().tolist() == [1, 0]
-    assert sim._guard.last[2] == 0  # the pass after the solve held nothing back
+    assert sim.self_collision_stats["held"] == 0 and sim.self_collision_stats["left_out"] == 0  # the pass after the solve held nothing back
     np.testing.assert_allclose(sim.velocities, expected, rtol=0, atol=1e-8 * np.abs(expected).max())
     np.testing.assert_allclose(sim.positions, x + dt * sim.velocities, rtol=0, atol=1e-14)
+
+
+def test_a_pair_list_that_grows_gives_the_bits_of_one_large_enough(monkeypatch):
+    """A pass that finds more pairs than its list holds is undone and run again with a
+    larger list: the run equals, to the bit, one whose list was large enough from the
+    start."""
+    from massspring import self_collision
+
+    runs = []
+    for per_particle in (self_collision.PAIRS_PER_PARTICLE, 64):
+        monkeypatch.setattr(self_collision, "PAIRS_PER_PARTICLE", per_particle)
+        sim = sheets(16).simulation("implicit").step(100)
+        runs.append((sim.positions, sim.velocities, sim.self_collision_stats["grown"],
+                     sim.self_collision_stats["pairs"]))
+        sim.close()
+    assert runs[0][2] > 0 and runs[1][2] == 0  # the first list grew, the second did not need to
+    assert runs[0][3] > 8 * 512  # more pairs than the first list held
+    np.testing.assert_array_equal(runs[0][0], runs[1][0])
+    np.testing.assert_array_equal(runs[0][1], runs[1][1])
 
 
 def test_one_and_two_threads_give_the_same_bits():
@@ -253,7 +273,7 @@ def test_a_restart_between_skipped_passes_continues_to_the_bit():
     runs = []
     for steps in (1500, 1000):
         sim = scene.simulation("symplectic", dt=1e-4).step(steps)
-        runs.append((sim.positions, sim.velocities, sim.carried_state(), sim._guard.passes))
+        runs.append((sim.positions, sim.velocities, sim.carried_state(), sim.self_collision_stats["passes"]))
         sim.close()
     x, v, carried = runs[1][:3]
     assert set(carried) == {"sc_anchor", "sc_free"} and runs[1][3] < 500
@@ -283,7 +303,7 @@ def _point(p: ti.template(), k, m):
 @ti.kernel
 def _point_triangle(p: ti.types.ndarray(dtype=ti.f64, ndim=2), out: ti.types.ndarray(dtype=ti.f64, ndim=2)):
     for k in range(p.shape[0]):
-        d, w = kernels.point_triangle(_point(p, k, 0), _point(p, k, 1), _point(p, k, 2), _point(p, k, 3))
+        d, w = proximity.point_triangle(_point(p, k, 0), _point(p, k, 1), _point(p, k, 2), _point(p, k, 3))
         out[k, 0] = d
         for m in ti.static(range(3)):
             out[k, 1 + m] = w[m]
@@ -292,7 +312,7 @@ def _point_triangle(p: ti.types.ndarray(dtype=ti.f64, ndim=2), out: ti.types.nda
 @ti.kernel
 def _segment_segment(p: ti.types.ndarray(dtype=ti.f64, ndim=2), out: ti.types.ndarray(dtype=ti.f64, ndim=2)):
     for k in range(p.shape[0]):
-        d, s, t = kernels.segment_segment(_point(p, k, 0), _point(p, k, 1), _point(p, k, 2), _point(p, k, 3))
+        d, s, t = proximity.segment_segment(_point(p, k, 0), _point(p, k, 1), _point(p, k, 2), _point(p, k, 3))
         out[k, 0] = d
         out[k, 1] = s
         out[k, 2] = t
