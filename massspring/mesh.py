@@ -36,7 +36,7 @@ import inspect
 
 import numpy as np
 
-from massspring.model import Model, real_array, real_number
+from massspring.model import MAX_MAGNITUDE, Model, real_array, real_number
 
 # [model] parameters of a mesh scene (``scene/spec.py``) and their defaults; None: not given.
 PARAMETERS = {"mesh": "", "density": None, "mass": None, "stiffness": 1e4, "damping": 0.0, "bend": 0.1,
@@ -123,11 +123,19 @@ def unused_vertices(n, triangles):
     return np.flatnonzero(~used)
 
 
+def _norms(rows):
+    """Euclidean norms of the rows, without overflow where the squares would (rows of
+    cross products of coordinates up to the model's 1e100 reach 1e200)."""
+    scale = np.abs(rows).max(axis=1) if len(rows) else np.zeros(0)
+    safe = np.where(scale > 0, scale, 1.0)
+    return scale * np.linalg.norm(rows / safe[:, None], axis=1)
+
+
 def triangle_areas(vertices, triangles):
     """(t,) areas (m^2) of the triangles."""
     x = np.asarray(vertices, dtype=np.float64)
     a, b, c = (x[triangles[:, i]] for i in range(3))
-    return 0.5 * np.linalg.norm(np.cross(b - a, c - a), axis=1)
+    return 0.5 * _norms(np.cross(b - a, c - a))
 
 
 def corner_areas(vertices, indices, sizes):
@@ -144,8 +152,7 @@ def corner_areas(vertices, indices, sizes):
     before = x[indices[starts + (k - 1) % size]]
     centroid = np.repeat(np.add.reduceat(corner, np.cumsum(sizes) - sizes) / sizes[:, None], sizes, axis=0)
     half = (after - corner) / 2, (centroid - corner), (before - corner) / 2
-    return 0.5 * (np.linalg.norm(np.cross(half[0], half[1]), axis=1) + np.linalg.norm(np.cross(half[1], half[2]),
-                                                                                          axis=1))
+    return 0.5 * (_norms(np.cross(half[0], half[1])) + _norms(np.cross(half[1], half[2])))
 
 
 def lumped_masses(vertices, indices, sizes, density=None, mass=None):
@@ -157,7 +164,12 @@ def lumped_masses(vertices, indices, sizes, density=None, mass=None):
         raise ValueError("density, mass: give one of them, not both")
     share = np.bincount(indices, weights=corner_areas(vertices, indices, sizes), minlength=len(vertices))
     if density is not None:
-        return _positive("density", density) * share
+        masses = _positive("density", density) * share
+        if masses.max(initial=0.0) > MAX_MAGNITUDE:
+            raise ValueError(f"density: {density:g} kg/m^2 times the mesh's cells (up to {share.max():.3g} m^2) gives "
+                             f"masses up to {masses.max():.3g} kg, beyond {MAX_MAGNITUDE:g}: scale the mesh down, "
+                             f"lower the density or give the total mass")
+        return masses
     total = DEFAULT_MASS if mass is None else _positive("mass", mass)
     return total * (share / share.sum())
 

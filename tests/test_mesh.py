@@ -117,6 +117,20 @@ def test_a_polygon_lumps_the_cells_of_its_corners_by_hand():
     assert masses.sum() == pytest.approx(3.0, rel=1e-14)  # the trapezoid's area
 
 
+@pytest.mark.parametrize("scale", [1e80, 5e99])
+def test_a_mesh_at_the_largest_coordinates_lumps_finite_masses(scale, recwarn):
+    """Coordinates up to the model's 1e100: the cells' areas (up to 1e200) come out
+    finite and exact (no squares that overflow, no numpy warning); masses beyond 1e100
+    from a density are refused naming density and saying why."""
+    v = np.array([[0.0, 0, 0], [2, 0, 0], [2, 1, 0], [0, 1, 0]]) * scale
+    masses = ms.Model.from_mesh(v, [[0, 1, 2, 3]], mass=4.0).masses
+    assert masses == pytest.approx([1.0] * 4, rel=1e-14)
+    assert mesh.triangle_areas(v, np.array([[0, 1, 2]])) == pytest.approx([scale * scale], rel=1e-14)
+    with pytest.raises(ValueError, match=r"density: 0.2 kg/m\^2 times the mesh's cells .* beyond 1e\+100"):
+        ms.Model.from_mesh(v, [[0, 1, 2, 3]], density=0.2)
+    assert not [w for w in recwarn if issubclass(w.category, RuntimeWarning)]
+
+
 def test_icosahedron_masses_are_equal_and_sum_to_the_total():
     v, f = icosahedron()
     masses = ms.Model.from_mesh(v, f, mass=2.4).masses
