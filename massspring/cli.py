@@ -21,10 +21,10 @@ from pathlib import Path
 import numpy as np
 
 from massspring import progress, validate
+from massspring.defaults import MAX_STEPS, PRECISIONS
 from massspring.text import format_seconds
 
 EXIT_OK, EXIT_OUTPUT, EXIT_USAGE, EXIT_DIVERGED, EXIT_INTERRUPTED = 0, 1, 2, 3, 130
-MAX_STEPS = 2**62
 
 
 class UsageError(ValueError):
@@ -90,7 +90,7 @@ def add_scene_arguments(p, integrators):
     p.add_argument("scene", help="a built-in scene name (see `massspring scenes`) or a TOML file")
     p.add_argument("--integrator", choices=tuple(integrators), help="time integrator (default: the scene's)")
     p.add_argument("--dt", type=float, help="time step in s (default: the scene's for the integrator)")
-    p.add_argument("--precision", choices=("f64", "f32"), default="f64")
+    p.add_argument("--precision", choices=PRECISIONS, default=PRECISIONS[0])
     p.add_argument("--arch", default="cpu", help=f"Taichi arch: {', '.join(ARCHS)} (default cpu); another "
                    "than the CPU is tried before the run and refused if this machine lacks it")
     p.add_argument("--cg-tol", type=float, help="implicit integrators: CG tolerance relative to the first "

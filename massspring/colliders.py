@@ -30,7 +30,7 @@ from typing import ClassVar
 
 import numpy as np
 
-from massspring.model import real_array, real_number
+from massspring.validate import real_array, real_number
 
 
 def _vector(name, value):

@@ -1,4 +1,5 @@
-"""A Model from a polygon mesh: springs on its edges and across them, lumped masses, pins.
+"""The keyword arguments of a Model from a polygon mesh: springs on its edges and across them, lumped
+masses, pins.
 
 Plain numpy, like the generators in ``scene/generators.py``: vertices (n, 3) float in
 m, faces as vertex indices (0-based). A face with more than three vertices is split
@@ -32,15 +33,15 @@ must belong to a face (else it would have no mass) and no triangle may be degene
 
 from __future__ import annotations
 
-import inspect
 
 import numpy as np
 
-from massspring.model import MAX_MAGNITUDE, Model, real_array, real_number
+from massspring.defaults import GRAVITY
+from massspring.validate import MAX_MAGNITUDE, real_array, real_number
 
 # [model] parameters of a mesh scene (``scene/spec.py``) and their defaults; None: not given.
 PARAMETERS = {"mesh": "", "density": None, "mass": None, "stiffness": 1e4, "damping": 0.0, "bend": 0.1,
-              "shear": 1.0, "fixed": [], "pin_box": None, "gravity": [0.0, 0.0, -9.81]}
+              "shear": 1.0, "fixed": [], "pin_box": None, "gravity": list(GRAVITY)}
 # The types of the parameters whose default does not tell (spec.py checks them).
 TYPES = {"density": float, "mass": float, "fixed": "indices", "pin_box": "box"}
 DEFAULT_MASS = 1.0       # kg, total, when neither density nor mass is given
@@ -241,41 +242,10 @@ def pins_in_box(vertices, pin_box):
 
 
 def mesh_arguments(vertices, faces, *, density=None, mass=None, stiffness=1e4, damping=0.0, bend=0.1, shear=1.0,
-                   fixed=None, pin_box=None, gravity=(0.0, 0.0, -9.81), velocities=None, colliders=(), drag=0.0,
+                   fixed=None, pin_box=None, gravity=GRAVITY, velocities=None, colliders=(), drag=0.0,
                    wind=(0.0, 0.0, 0.0), pin_velocity=None, self_collision=None):
-    """The keyword arguments of :class:`Model` for a mesh (see ``model_from_mesh``)."""
-    x = real_array("vertices", vertices)
-    if x.ndim != 2 or x.shape[1] != 3 or x.shape[0] < 3:
-        raise ValueError(f"vertices: expected shape (n, 3) with n >= 3, got shape {x.shape}")
-    indices, sizes = faces_array(faces, len(x))
-    triangles, _, inner = triangulate(indices, sizes)
-    bad = degenerate_triangles(x, triangles)
-    if bad.size:
-        raise ValueError(f"faces: triangle {bad[0]} = {triangles[bad[0]].tolist()} has zero area")
-    unused = unused_vertices(len(x), triangles)
-    if unused.size:
-        raise ValueError(f"vertices: vertex {unused[0]} belongs to no face (it would have no mass)")
-    factors = {"structural": 1.0, "shear": real_number("shear", shear, 0.0, ">="),
-               "bend": real_number("bend", bend, 0.0, ">=")}
-    families = mesh_springs(triangles, inner)
-    kept = [name for name in factors if factors[name] > 0]
-    factor = np.concatenate([np.full(len(families[name]), factors[name]) for name in kept])
-    pins = [np.asarray(fixed).reshape(-1)] if fixed is not None and np.size(fixed) else []
-    if pin_box is not None:
-        pins.append(pins_in_box(x, pin_box))
-    pins = np.concatenate(pins) if pins else None
-    if pin_velocity is not None and np.shape(pin_velocity) == (3,):  # one velocity for every pin
-        pin_velocity = np.tile(real_array("pin_velocity", pin_velocity), (0 if pins is None else len(pins), 1))
-    return dict(positions=x, springs=np.concatenate([families[name] for name in kept]),
-                masses=lumped_masses(x, indices, sizes, density, mass),
-                stiffness=real_number("stiffness", stiffness, 0.0, ">=") * factor,
-                damping=real_number("damping", damping, 0.0, ">=") * factor, gravity=gravity,
-                fixed=pins, triangles=triangles, velocities=velocities, colliders=colliders, drag=drag, wind=wind,
-                pin_velocity=pin_velocity, self_collision=self_collision)
-
-
-def model_from_mesh(vertices, faces, **parameters) -> Model:
-    """A :class:`Model` of a cloth or shell from a polygon mesh (see the module docstring).
+    """The keyword arguments of :class:`Model` for a cloth or shell from a polygon mesh
+    (see the module docstring); ``Model.from_mesh`` builds it.
 
     Parameters
     ----------
@@ -309,7 +279,31 @@ def model_from_mesh(vertices, faces, **parameters) -> Model:
 
     Bad input raises ValueError naming the argument (and the face or vertex).
     """
-    unknown = sorted(set(parameters) - set(inspect.signature(mesh_arguments).parameters))
-    if unknown:
-        raise TypeError(f"Model.from_mesh() got an unexpected keyword argument {unknown[0]!r}")
-    return Model(**mesh_arguments(vertices, faces, **parameters))
+    x = real_array("vertices", vertices)
+    if x.ndim != 2 or x.shape[1] != 3 or x.shape[0] < 3:
+        raise ValueError(f"vertices: expected shape (n, 3) with n >= 3, got shape {x.shape}")
+    indices, sizes = faces_array(faces, len(x))
+    triangles, _, inner = triangulate(indices, sizes)
+    bad = degenerate_triangles(x, triangles)
+    if bad.size:
+        raise ValueError(f"faces: triangle {bad[0]} = {triangles[bad[0]].tolist()} has zero area")
+    unused = unused_vertices(len(x), triangles)
+    if unused.size:
+        raise ValueError(f"vertices: vertex {unused[0]} belongs to no face (it would have no mass)")
+    factors = {"structural": 1.0, "shear": real_number("shear", shear, 0.0, ">="),
+               "bend": real_number("bend", bend, 0.0, ">=")}
+    families = mesh_springs(triangles, inner)
+    kept = [name for name in factors if factors[name] > 0]
+    factor = np.concatenate([np.full(len(families[name]), factors[name]) for name in kept])
+    pins = [np.asarray(fixed).reshape(-1)] if fixed is not None and np.size(fixed) else []
+    if pin_box is not None:
+        pins.append(pins_in_box(x, pin_box))
+    pins = np.concatenate(pins) if pins else None
+    if pin_velocity is not None and np.shape(pin_velocity) == (3,):  # one velocity for every pin
+        pin_velocity = np.tile(real_array("pin_velocity", pin_velocity), (0 if pins is None else len(pins), 1))
+    return dict(positions=x, springs=np.concatenate([families[name] for name in kept]),
+                masses=lumped_masses(x, indices, sizes, density, mass),
+                stiffness=real_number("stiffness", stiffness, 0.0, ">=") * factor,
+                damping=real_number("damping", damping, 0.0, ">=") * factor, gravity=gravity,
+                fixed=pins, triangles=triangles, velocities=velocities, colliders=colliders, drag=drag, wind=wind,
+                pin_velocity=pin_velocity, self_collision=self_collision)

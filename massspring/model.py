@@ -12,61 +12,22 @@ choice as long as it is consistent.
 from __future__ import annotations
 
 import hashlib
+import inspect
 from dataclasses import dataclass
 
 import numpy as np
+
+from massspring import mesh
+from massspring.defaults import GRAVITY
+from massspring.colliders import MAX_COLLIDERS, Collider
+from massspring.self_collision import SelfCollision
+from massspring.text import brief
+from massspring.validate import MAX_MAGNITUDE, real_array, real_number  # noqa: F401 (MAX_MAGNITUDE: documented here)
 
 
 # The arrays that make up a model's physics (``Model.fingerprint``); ``triangles`` only draw it.
 PHYSICS = ("positions", "springs", "masses", "stiffness", "damping", "rest_lengths", "velocities", "gravity", "fixed",
            "pin_velocity", "drag", "wind")
-
-# Largest magnitude accepted for any input number (and 1 / smallest mass): squares
-# and products of a few inputs, which the kernels form (energies, momenta, b.b in
-# the implicit solve), then stay within the float64 range (1.8e308).
-MAX_MAGNITUDE = 1e100
-
-
-def _describe(value):
-    text = repr(value)
-    return text if len(text) <= 40 else text[:37] + "..."
-
-
-def real_array(name, value):
-    """``value`` as a float64 array of finite real numbers of magnitude <= MAX_MAGNITUDE.
-
-    Refuses what numpy would silently convert: bools, complex numbers (the imaginary
-    part would be dropped), strings of digits, None and other objects.
-    """
-    try:
-        arr = np.asarray(value)
-    except (TypeError, ValueError) as exc:
-        raise ValueError(f"{name}: cannot be read as an array of numbers ({exc})") from None
-    if arr.dtype.kind not in "iuf":
-        what = {"b": "bools", "c": "complex numbers", "U": "strings", "S": "strings"}.get(arr.dtype.kind)
-        raise ValueError(f"{name}: expected real numbers, got " + (what or f"{_describe(value)}"))
-    arr = arr.astype(np.float64)
-    if not np.all(np.isfinite(arr)):
-        bad = np.argwhere(~np.isfinite(arr))[0]
-        raise ValueError(f"{name}: contains a non-finite value (NaN or Inf) at index {tuple(int(b) for b in bad)}")
-    if arr.size and np.abs(arr).max() > MAX_MAGNITUDE:
-        bad = np.unravel_index(int(np.argmax(np.abs(arr))), arr.shape)
-        raise ValueError(f"{name}: {arr[bad]:g} at index {tuple(int(b) for b in bad)} is beyond the accepted "
-                         f"magnitude {MAX_MAGNITUDE:g} (products of such values overflow float64)")
-    return arr
-
-
-def real_number(name, value, low=None, low_text=""):
-    """One real number with ``real_array``'s checks; ``> low`` or ``>= low`` (``low_text``)
-    when ``low`` is given."""
-    arr = real_array(name, value)
-    if arr.ndim != 0:
-        raise ValueError(f"{name}: expected a number, got shape {arr.shape}")
-    out = float(arr)
-    if low is not None and not (out > low if low_text == ">" else out >= low):
-        raise ValueError(f"{name}: must be {low_text} {low:g}, got {out:g}")
-    return out
-
 
 def _per_item(name, value, count, what, low=None, low_text=""):
     """A scalar broadcast to ``count`` items, or an array of shape (count,); every
@@ -154,7 +115,7 @@ class Model:
     self_collision: object
 
     def __init__(self, positions, springs, masses=1.0, stiffness=1e3, damping=0.0,
-                 rest_lengths=None, velocities=None, gravity=(0.0, 0.0, -9.81), fixed=None, triangles=None,
+                 rest_lengths=None, velocities=None, gravity=GRAVITY, fixed=None, triangles=None,
                  colliders=(), drag=0.0, wind=(0.0, 0.0, 0.0), pin_velocity=None, self_collision=None):
         x = real_array("positions", positions)
         if x.ndim != 2 or x.shape[1] != 3 or x.shape[0] < 1:
@@ -210,7 +171,7 @@ class Model:
         tris = _triangles(triangles, n)
         air = real_array("drag", drag)
         if air.shape != () or not air >= 0:
-            raise ValueError(f"drag: expected a number >= 0 (N s/m), got {_describe(drag)}")
+            raise ValueError(f"drag: expected a number >= 0 (N s/m), got {brief(drag)}")
         wind_v = real_array("wind", wind)
         if wind_v.shape != (3,):
             raise ValueError(f"wind: expected 3 components, got shape {wind_v.shape}")
@@ -236,10 +197,11 @@ class Model:
         springs on the diagonals of its quads and larger faces, bending springs across
         its interior edges, masses lumped from the face areas, pins by index or by a
         box; the (fan-triangulated) faces become ``triangles``. Parameters and units:
-        ``massspring.mesh.model_from_mesh``."""
-        from massspring.mesh import model_from_mesh
-
-        return model_from_mesh(vertices, faces, **parameters)
+        ``massspring.mesh.mesh_arguments``."""
+        unknown = sorted(set(parameters) - set(inspect.signature(mesh.mesh_arguments).parameters))
+        if unknown:
+            raise TypeError(f"Model.from_mesh() got an unexpected keyword argument {unknown[0]!r}")
+        return cls(**mesh.mesh_arguments(vertices, faces, **parameters))
 
     def fingerprint(self) -> str:
         """sha256 (hex) of the physics arrays (``PHYSICS``: names, dtypes, shapes and
@@ -361,12 +323,10 @@ def _pin_velocities(pin_velocity, fixed, fixed_idx):
 
 
 def _self_collision(value, triangles):
-    from massspring.self_collision import SelfCollision  # self_collision.py reads this module's checks
-
     if value is None:
         return None
     if not isinstance(value, SelfCollision):
-        raise ValueError(f"self_collision: expected a massspring.SelfCollision or None, got {_describe(value)}")
+        raise ValueError(f"self_collision: expected a massspring.SelfCollision or None, got {brief(value)}")
     if len(triangles) == 0:
         raise ValueError("self_collision: needs the model's triangles (a mesh, a grid or a cloth generator, or "
                          "triangles=...); this model has none")
@@ -374,16 +334,14 @@ def _self_collision(value, triangles):
 
 
 def _colliders(colliders):
-    from massspring.colliders import MAX_COLLIDERS, Collider  # colliders.py reads this module's checks
-
     try:
         items = tuple(colliders)
     except TypeError:
-        raise ValueError(f"colliders: expected a sequence of Plane, Sphere or Box, got {_describe(colliders)}") \
+        raise ValueError(f"colliders: expected a sequence of Plane, Sphere or Box, got {brief(colliders)}") \
             from None
     for k, item in enumerate(items):
         if not isinstance(item, Collider):
-            raise ValueError(f"colliders: item {k} is not a Plane, Sphere or Box: {_describe(item)}")
+            raise ValueError(f"colliders: item {k} is not a Plane, Sphere or Box: {brief(item)}")
     if len(items) > MAX_COLLIDERS:
         raise ValueError(f"colliders: at most {MAX_COLLIDERS}, got {len(items)}")
     return items

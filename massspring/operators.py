@@ -17,6 +17,7 @@ from types import SimpleNamespace
 import numpy as np
 
 from massspring import validate
+from massspring.defaults import PRECISIONS
 from massspring.device import POOL, Config, ensure_taichi, model_layout
 from massspring.kernels import cg, operator
 from massspring.kernels.terms import SpringDamping, Springs
@@ -104,7 +105,7 @@ class SystemOperator:
 
         if not isinstance(model, Model):
             raise ValueError(f"model: expected a massspring.Model, got {type(model).__name__}")
-        validate.choice("precision", precision, ("f64", "f32"))
+        validate.choice("precision", precision, PRECISIONS)
         validate.choice("preconditioner", preconditioner, CHOICES)
         validate.choice("loops", loops, ("serial", "parallel"))
         dt = validate.positive_float("dt", dt)

@@ -22,7 +22,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from massspring.model import real_number
+from massspring.validate import real_number
 
 
 @dataclass(frozen=True)
@@ -174,7 +174,7 @@ class Pass:
 
         POOL.give(self.list)
         self.list = None
-        self.list = pair_list(found + found // 4, self.cfg.real)
+        self.list = pair_list(2 * found, self.cfg.real)  # each size compiles the pass's kernels once: few sizes
         self.grown += 1
 
     def _list(self, state):

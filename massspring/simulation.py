@@ -9,16 +9,17 @@ import numpy as np
 
 from massspring import memory, self_collision, validate
 from massspring.colliders import COLLIDERS
+from massspring.defaults import MAX_STEPS, PRECISIONS
 from massspring.device import ARCHS, CPU_ARCHS, POOL, ensure_taichi, model_layout
 from massspring.errors import DivergenceError, SimulationClosedError
 from massspring.integrators import INTEGRATORS
 from massspring.integrators.newton import NEWTON_MAX_ITER, NEWTON_TOL
 from massspring.kernels import divergence
 from massspring.kernels.terms import active_terms
-from massspring.model import Model, real_array
+from massspring.model import Model
 from massspring.solvers import CHOICES, resolve
+from massspring.validate import real_array
 
-PRECISIONS = ("f64", "f32")
 LOOPS = ("auto", "serial", "parallel")
 # Springs below which serial kernels beat parallel ones on this project's 2-core CPU
 # machine, where a parallel loop's launch costs ~0.05-0.2 ms and two threads give
@@ -347,7 +348,7 @@ class Simulation:
             k = int(wrong[0])
             raise ValueError(f"velocities: particle {int(fixed[k])} is pinned, so its velocity must be its pin "
                              f"velocity {pinned[k].tolist()}, got {arrays['velocities'][fixed[k]].tolist()}")
-        steps = validate.count("steps", steps, low=0, high=2**62)
+        steps = validate.count("steps", steps, low=0, high=MAX_STEPS)
         carried = _check_carried(carried, self._carried_names(integrator), n)
         own = None if carried is None else {k: v for k, v in carried.items() if k not in self_collision.CARRIED}
         integrator.load_state(arrays["positions"], arrays["velocities"], own)
@@ -369,7 +370,7 @@ class Simulation:
         ``time``, ``positions`` and ``velocities`` are those of the step before).
         """
         integrator = self._open()
-        n = validate.count("n", n, low=0, high=2**62)
+        n = validate.count("n", n, low=0, high=MAX_STEPS)
         if not integrator.has_stats and self._guard is None:
             while n:
                 chunk = min(n, STEPS_PER_LAUNCH)
@@ -473,7 +474,7 @@ def run(sim, steps, *, frames=(), on_frame=None, progress=None):
     ``DivergenceError`` or ``KeyboardInterrupt`` propagates with ``sim`` at its last
     good state and every frame up to it delivered. Returns ``steps``.
     """
-    steps = validate.count("steps", steps, low=0, high=2**62)
+    steps = validate.count("steps", steps, low=0, high=MAX_STEPS)
     chunk = max(1, steps // 200)
     pending = iter(frames if on_frame is not None else ())  # read as the run goes: frames may be lazy
     upcoming = next(pending, None)

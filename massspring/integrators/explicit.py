@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 
+from massspring.defaults import FALLBACK_DT
 from massspring.kernels import divergence, euler
 
 from .base import Integrator
@@ -55,4 +56,4 @@ class ExplicitEuler(Integrator):
         """Half the largest dt at which the stiffest mode does not grow (or, if larger,
         at which its energy doubles within a second)."""
         limit = max(prediction.explicit_stable_dt, prediction.explicit_doubling_dt)
-        return 0.5 * limit if math.isfinite(limit) else 1e-2
+        return 0.5 * limit if math.isfinite(limit) else FALLBACK_DT

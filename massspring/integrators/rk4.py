@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 
+from massspring.defaults import FALLBACK_DT
 from massspring.kernels import divergence, rk4
 
 from .base import Integrator
@@ -80,4 +81,4 @@ class RK4(Integrator):
         """Half the dt at which the stiffest mode, with its damping, leaves RK4's stability
         region (``rk4_stable_dt``); 1e-2 s where nothing limits it."""
         limit = rk4_stable_dt(prediction.omega_max, prediction.damping_rate)
-        return 0.5 * limit if math.isfinite(limit) else 1e-2
+        return 0.5 * limit if math.isfinite(limit) else FALLBACK_DT

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import math
 
+from massspring.defaults import FALLBACK_DT
+
 from .explicit import ExplicitEuler
 
 
@@ -21,4 +23,4 @@ class SymplecticEuler(ExplicitEuler):
     def suggest_dt(prediction):
         """Half the predicted stability limit."""
         limit = prediction.symplectic_dt
-        return 0.5 * limit if math.isfinite(limit) else 1e-2
+        return 0.5 * limit if math.isfinite(limit) else FALLBACK_DT

@@ -20,18 +20,20 @@ from __future__ import annotations
 
 import numpy as np
 
+from massspring.defaults import GRAVITY
+
 # name -> {parameter: default}; the default's type is the parameter's type.
 PARAMETERS = {
     "spring": {"length": 1.0, "displacement": 0.1, "mass": 1.0, "stiffness": 100.0,
                "damping": 0.5, "gravity": [0.0, 0.0, 0.0]},
     "chain": {"count": 20, "length": 1.0, "mass": 0.1, "stiffness": 1000.0, "damping": 0.0,
-              "gravity": [0.0, 0.0, -9.81], "mass_ratio": 1.0, "rest_scale": 1.0, "spread": 1.0, "pin": "end"},
+              "gravity": list(GRAVITY), "mass_ratio": 1.0, "rest_scale": 1.0, "spread": 1.0, "pin": "end"},
     "grid": {"resolution": 32, "size": 1.0, "mass": 1.0, "stiffness": 1e4, "damping": 0.0,
-             "shear": 1.0, "bend": 0.1, "pin": "corners", "gravity": [0.0, 0.0, -9.81],
+             "shear": 1.0, "bend": 0.1, "pin": "corners", "gravity": list(GRAVITY),
              "compress": 1.0, "crumple": 0.0, "seed": 0, "upright": False, "layers": 1,
              "spacing": 0.1, "turn": 0.0, "throw": [0.0, 0.0, 0.0]},
     "lattice": {"resolution": 6, "size": 0.5, "mass": 1.0, "stiffness": 2e4, "damping": 0.0,
-                "squash": 0.8, "spin": 2.0, "gravity": [0.0, 0.0, -9.81]},
+                "squash": 0.8, "spin": 2.0, "gravity": list(GRAVITY)},
 }
 
 PIN_CHOICES = ("none", "corners", "edge", "side")

@@ -71,6 +71,7 @@ import numpy as np
 from massspring import memory, mesh, validate
 from massspring import solvers as preconditioners
 from massspring.colliders import COLLIDERS
+from massspring.defaults import GRAVITY
 from massspring.self_collision import PASS_BYTES, SelfCollision
 from massspring.integrators import INTEGRATORS
 from massspring.io.camera import DEFAULT_FRAMING, FRAMINGS, View
@@ -100,7 +101,7 @@ PARTICLE_KEYS = {"positions": "rows", "masses": "numbers", "velocities": "rows",
 SPRING_KEYS = {"pairs": "rows", "stiffness": "numbers", "damping": "numbers", "rest_lengths": "numbers"}
 REQUIRED_KEYS = ("particles.positions", "springs.pairs")
 # The [model] table of a hand-made scene (also what --set changes there).
-HANDMADE_PARAMETERS = {"gravity": [0.0, 0.0, -9.81], "triangles": []}
+HANDMADE_PARAMETERS = {"gravity": list(GRAVITY), "triangles": []}
 HANDMADE_TYPES = {"triangles": "rows"}
 # Model argument -> the key of a hand-made scene that gives it (for error messages).
 HANDMADE_ARGUMENTS = {"positions": "particles.positions", "masses": "particles.masses",

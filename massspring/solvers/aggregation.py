@@ -70,23 +70,6 @@ class Transfer:
     tent_slot: np.ndarray
 
 
-def rest_blocks(model, dt, free):
-    """Level 0's operator at rest, for strength only: per spring the Frobenius norm
-    b = dt kd + dt^2 ks of its block b n n^T (a = 0 unstretched), and per particle
-    the Frobenius norm of A_ii = m I + sum b n n^T (directions at the initial state).
-    Springs touching a pinned particle are left out (those couplings are not solved)."""
-    x, ends = model.positions, model.springs
-    d = x[ends[:, 1]] - x[ends[:, 0]]
-    length = np.linalg.norm(d, axis=1)
-    n = np.divide(d, length[:, None], out=np.zeros_like(d), where=length[:, None] > 0)
-    b = dt * model.damping + dt * dt * model.stiffness
-    keep = free[ends[:, 0]] & free[ends[:, 1]]
-    diag = model.masses[:, None, None] * np.eye(3)
-    for end in (0, 1):
-        np.add.at(diag, ends[keep, end], (b[keep, None, None] * n[keep, :, None] * n[keep, None, :]))
-    return ends[keep], b[keep], np.linalg.norm(diag, axis=(1, 2))
-
-
 def strength_graph(n, pairs, weights, diag_norm, theta=THETA):
     """Symmetric strong neighbours (CSR: rows (n+1,), cols, weights) of n nodes from
     undirected couplings ``pairs`` (k, 2) of Frobenius norm ``weights``; parallel
@@ -373,27 +356,6 @@ def _find(rows, cols, i, j):
 # ----------------------------------------------------------------- numeric (numpy)
 # The same products as the per-step kernels, on numpy arrays: for the setup (the
 # coarse levels' strength at rest) and as the tests' reference.
-
-
-def apply_operator(level, diag, off, x):
-    """A x for a level's operator given by its diagonal blocks (n, b, b) and off-diagonal
-    blocks (entries, b, b) in ``off_rows``/``off_cols``; x (n, b)."""
-    y = np.einsum("nij,nj->ni", diag, x)
-    owner = np.repeat(np.arange(level.n), np.diff(level.off_rows))
-    np.add.at(y, owner, np.einsum("eij,ej->ei", off, x[level.off_cols]))
-    return y
-
-
-def spectral_radius(level, diag, off, steps=20, seed=0):
-    """An estimate of rho(D^-1 A) by power iteration in the D inner product (numpy)."""
-    dinv = np.linalg.inv(diag)
-    x = np.random.default_rng(seed).standard_normal((level.n, diag.shape[1]))
-    rho = 0.0
-    for _ in range(steps):
-        y = np.einsum("nij,nj->ni", dinv, apply_operator(level, diag, off, x))
-        rho = float(np.sqrt(np.sum(y * y) / max(np.sum(x * x), 1e-300)))
-        x = y / max(np.abs(y).max(), 1e-300)
-    return rho
 
 
 def smooth_prolongation(level, diag, off, dinv, scale, tent):
