@@ -36,7 +36,7 @@ that made parallel setup up to 18x slower than serial.
 
 import taichi as ti
 
-from .blocks import BLOCK
+from .blocks import BLOCK, block_count, block_end, ordered_sum
 from .constraints import constrain, is_free, is_pinned, projector
 from .operator import apply_row, diagonal_block
 
@@ -624,14 +624,18 @@ def prolong0(dev: ti.template(), cfg: ti.template(), g: ti.template(), serial: t
 
 @ti.kernel
 def finish0(dev: ti.template(), cfg: ti.template(), serial: ti.template()) -> ti.f64:
-    """z = S x (level 0's cycle output) into ``dev.z``; returns r . z."""
-    total = 0.0
+    """z = S x (level 0's cycle output) into ``dev.z``; returns r . z, summed in fixed
+    blocks (``kernels/blocks.py``: the same bits for any thread count)."""
+    n = dev.size[0]
     loops(serial)
-    for i in range(dev.size[0]):
-        z = constrain(i, dev, cfg, dev.mg_x[i])
-        dev.z[i] = z
-        total += ti.cast(dev.r[i].dot(z), ti.f64)
-    return total
+    for blk in range(block_count(n)):
+        acc = ti.Vector.zero(ti.f64, 3)
+        for i in range(blk * BLOCK, block_end(blk, n)):
+            z = constrain(i, dev, cfg, dev.mg_x[i])
+            dev.z[i] = z
+            acc[0] += ti.cast(dev.r[i].dot(z), ti.f64)
+        dev.partial[blk] = acc
+    return ordered_sum(dev.partial, block_count(n))[0]
 
 
 @ti.func

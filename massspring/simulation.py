@@ -133,9 +133,12 @@ class Simulation:
     arch : Taichi arch name, "cpu" by default; one that cannot start is a ValueError.
     loops : "auto" (default) | "serial" | "parallel"
         Serial kernels (a whole CG solve, or many explicit steps, per launch) or
-        parallel kernels (one launch per phase). Both give the same results to the
-        bit (fixed-block reductions); "auto" picks parallel from ``SERIAL_BELOW``
-        springs on the CPU, and always on other archs.
+        parallel kernels (one launch per phase); "auto" picks parallel from
+        ``SERIAL_BELOW`` springs on the CPU, and always on other archs. Either gives
+        the same bits for any thread count (fixed-block reductions). Between them,
+        explicit, symplectic and RK4 steps agree to the bit and implicit solves to
+        round-off (the two kernels' compilers may contract multiplies and adds
+        differently).
 
     Only what the run needs is allocated and compiled: no CG vectors for the
     explicit integrators, no damping term with kd = 0, no gravity term with g = 0,
