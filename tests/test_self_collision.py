@@ -160,7 +160,7 @@ def test_small_steps_skip_the_pass_only_while_no_pair_comes_within_the_thickness
             anchor = x
             continue
         skipped += 1
-        if step % 5:
+        if step % 20:  # the tests' distances cost about 20 ms a check
             continue
         d, particles = pair_distances(x, model.triangles, edges)
         close = d <= thickness
