@@ -181,10 +181,7 @@ def pair(dev, cfg: ti.template(), pl, state, idx, w, d, h, thickness, mu, ks, si
                 toward = -sides[k] * normal.dot(state.x[i] - dev.sc_start[i])
                 if toward > allowed and not is_pinned(i, dev, cfg):
                     if ti.static(phase == PROJECT):
-                        push = (toward - allowed) * sides[k] * normal
-                        fixed = ti.Vector([ti.cast(ti.round(ti.min(ti.max(push[c], -DV_LIMIT), DV_LIMIT) * SCALE),
-                                                   ti.i64) for c in ti.static(range(3))])
-                        ti.atomic_add(dev.sc_dv[i], fixed)
+                        ti.atomic_add(dev.sc_dv[i], fixed_point((toward - allowed) * sides[k] * normal))
                         ti.atomic_add(dev.sc_hits[i], 1)
                     else:
                         ti.atomic_min(dev.sc_scale[i], allowed / toward)
@@ -220,7 +217,7 @@ def pair(dev, cfg: ti.template(), pl, state, idx, w, d, h, thickness, mu, ks, si
                     change = dvn * normal
                     if vt > 0:
                         change -= ti.min(mu * dvn, vt) / vt * tangential
-                    spread(dev, cfg, idx, w, change / inverse, dev.sc_dv, True)
+                    spread(dev, cfg, idx, w, change / inverse)
                 if ti.static(cfg.self_pairs):  # the friction of the implicit solve's penalty impulse
                     pushed = h * ks * ti.max(gap - h * vn, 0)  # the solve's impulse: its force at x_n + h v
                     for k in ti.static(range(4)):
@@ -229,25 +226,27 @@ def pair(dev, cfg: ti.template(), pl, state, idx, w, d, h, thickness, mu, ks, si
                             weight = pushed * ti.abs(w[k])
                             want = -w[k] / (inverse * dev.mass[i]) * tangential
                             item = ti.Vector([weight * want[0], weight * want[1], weight * want[2], weight])
-                            ti.atomic_add(dev.sp_friction[i], ti.Vector(
-                                [ti.cast(ti.round(ti.min(ti.max(item[c], -DV_LIMIT), DV_LIMIT) * SCALE), ti.i64)
-                                 for c in ti.static(range(4))]))
+                            ti.atomic_add(dev.sp_friction[i], fixed_point(item))
 
 
 @ti.func
-def spread(dev, cfg: ti.template(), idx, w, impulse, into: ti.template(), count: ti.template()):
+def fixed_point(values):
+    """``values`` (a vector, m/s or what sums with them) clipped to +-DV_LIMIT and
+    rounded to int64 units of 1 / SCALE: sums of these are exact in any order."""
+    return ti.Vector([ti.cast(ti.round(ti.min(ti.max(values[c], -DV_LIMIT), DV_LIMIT) * SCALE), ti.i64)
+                      for c in ti.static(range(values.n))])
+
+
+@ti.func
+def spread(dev, cfg: ti.template(), idx, w, impulse):
     """Add a pair's ``impulse`` (N s, on side A; side B gets its opposite) to its free
-    particles' velocity changes in ``into`` (fixed point, by weight and inverse mass);
-    ``count``: and count it in ``sc_hits``."""
+    particles' velocity changes ``sc_dv`` (by weight and inverse mass), counted in
+    ``sc_hits``."""
     for k in ti.static(range(4)):
         i = idx[k]
         if not is_pinned(i, dev, cfg):
-            du = w[k] * impulse / dev.mass[i]
-            fixed = ti.Vector([ti.cast(ti.round(ti.min(ti.max(du[c], -DV_LIMIT), DV_LIMIT) * SCALE), ti.i64)
-                               for c in ti.static(range(3))])
-            ti.atomic_add(into[i], fixed)
-            if ti.static(count):
-                ti.atomic_add(dev.sc_hits[i], 1)
+            ti.atomic_add(dev.sc_dv[i], fixed_point(w[k] * impulse / dev.mass[i]))
+            ti.atomic_add(dev.sc_hits[i], 1)
 
 
 @ti.func
