@@ -39,7 +39,7 @@ b in kg m/s); see ``operator`` for the coefficients.
 import taichi as ti
 
 from .blocks import BLOCK, block_count, block_end, ordered_sum
-from .divergence import OK, check_code, is_finite, state_sums
+from .divergence import OK, is_finite, state_sums, verdict
 from .constraints import constrain, is_free, is_pinned, prescribed
 from .contact import landing, project, total
 from .operator import REFRESHED, apply_row, refresh
@@ -303,9 +303,10 @@ def advance_sums(dev, cfg: ti.template(), xb: ti.template(), h, dt, t):
 @ti.func
 def commit(dev, cfg: ti.template(), xb: ti.template(), h, dt, t, carry: ti.template()):
     """Check the candidate state (``next_position``, v); if it passes, store it (see
-    ``advance_positions``). Returns (check code, kinetic energy) as a float64 2-vector."""
+    ``advance_positions``). Returns its ``divergence.verdict`` (code, kinetic J, bound J)."""
     sums = advance_sums(dev, cfg, xb, h, dt, t)
-    code = check_code(sums, dev.check[None])
+    result = verdict(sums, dev.check[None])
+    code = ti.cast(result[0], ti.i32)
     for i in range(dev.size[0]):
         if code == OK:
             x = next_position(i, dev, cfg, xb, h, dt, t)
@@ -314,35 +315,31 @@ def commit(dev, cfg: ti.template(), xb: ti.template(), h, dt, t, carry: ti.templ
                 dev.vo[i] = dev.keep[i]
             dev.x[i] = x
             dev.keep[i] = dev.v[i]
-    return ti.Vector([code, sums[0]], ti.f64)
+    return result
 
 
 @ti.kernel
 def advance_positions(dev: ti.template(), cfg: ti.template(), xb: ti.template(), h: ti.f64, dt: ti.f64,
-                      t: ti.f64, serial: ti.template(), carry: ti.template()) -> ti.types.vector(2, ti.f64):
+                      t: ti.f64, serial: ti.template(), carry: ti.template()) -> ti.types.vector(3, ti.f64):
     """x_{n+1} = x^ + h v_{n+1} (seed Eq. 9: ``xb`` = ``dev.x``, h = dt) at the step's end
     time t (s), committed only if the new state passes the check.
 
     The first loops reduce ``divergence.state_sums`` of (x_{n+1}, v_{n+1}) without
-    storing anything; if ``divergence.check_code`` accepts it, the last loop stores
+    storing anything; if ``divergence.verdict`` accepts it, the last loop stores
     x_{n+1} and copies v_{n+1} into ``dev.keep``, so ``keep`` always holds the
     velocity of the last accepted state (with ``carry``, the state it replaces goes
     to ``dev.xo``, ``dev.vo``: BDF2's previous step). If the check fails, x_n is
     untouched and the caller restores v_n from ``keep``. ``serial`` serialises the
-    loops. Returns (check code, kinetic energy of the new state).
+    loops. Returns the new state's ``divergence.verdict`` (code, kinetic J, bound J).
     """
     hh = ti.cast(h, cfg.real)
     step = ti.cast(dt, cfg.real)
     end = ti.cast(t, cfg.real)
-    out = ti.Vector.zero(ti.f64, 2)
+    out = ti.Vector.zero(ti.f64, 3)
     if ti.static(serial):
         ti.loop_config(serialize=True)
         for _ in range(1):
-            result = commit(dev, cfg, xb, hh, step, end, carry)
-            out[0] = result[0]
-            out[1] = result[1]
+            out = commit(dev, cfg, xb, hh, step, end, carry)
     else:
-        result = commit(dev, cfg, xb, hh, step, end, carry)
-        out[0] = result[0]
-        out[1] = result[1]
+        out = commit(dev, cfg, xb, hh, step, end, carry)
     return out

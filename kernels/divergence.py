@@ -4,7 +4,7 @@ that write a new state.
 Each stepping kernel reduces, over the new state's particles, the three sums of
 ``state_sums``: kinetic energy sum(m |v|^2 / 2) [J], sum(m g . x) [J] (minus its
 initial value this is the work gravity has done), and sum(|x|^2 + |v|^2), which
-is finite exactly when every position and velocity is. ``check_code`` classifies
+is finite exactly when every position and velocity is. ``verdict`` classifies
 the state against the bound
 
     kinetic <= factor * (base + max(0, sum(m g . x) - gx0))
@@ -46,14 +46,23 @@ def state_sums(x, v, m, g, with_gravity: ti.template()):
 
 
 @ti.func
-def check_code(sums, check):
-    """OK, NONFINITE or RUNAWAY for a new state's summed ``state_sums`` (float64 vec3)
-    against ``check = (base, gx0, factor)``."""
+def verdict(sums, check):
+    """(code, kinetic energy J, bound J) of a new state, a float64 vec3: ``code`` is OK,
+    NONFINITE or RUNAWAY for its summed ``state_sums`` (float64 vec3) against
+    ``check = (base, gx0, factor)``, and ``bound`` the kinetic energy that state was
+    allowed (it depends on the state: gravity's work is measured to its positions)."""
     code = OK
+    bound = check[2] * (check[0] + ti.max(sums[1] - check[1], 0.0))
     if not (is_finite(sums[0]) and is_finite(sums[2])):
         code = NONFINITE
-    else:
-        work = ti.max(sums[1] - check[1], 0.0)
-        if sums[0] > check[2] * (check[0] + work):
-            code = RUNAWAY
-    return code
+    elif sums[0] > bound:
+        code = RUNAWAY
+    return ti.Vector([code, sums[0], bound], ti.f64)
+
+
+def unpack(result):
+    """(code, kinetic J, bound J) as Python numbers from a kernel's ``verdict`` vector."""
+    return int(result[0]), float(result[1]), float(result[2])
+
+
+NONFINITE_VERDICT = (NONFINITE, float("inf"), float("nan"))  # a solve that overflowed before any state

@@ -12,8 +12,8 @@ in a model with colliders, free particles' contact response after the update
 fused with the reduction of the new state's ``divergence.state_sums`` (fixed
 blocks, see ``blocks``).
 
-``euler_step`` runs one step as parallel loops and returns (check code, kinetic
-energy); ``euler_steps`` runs up to ``steps`` steps in one launch with serial
+``euler_step`` runs one step as parallel loops and returns the new state's
+``divergence.verdict``; ``euler_steps`` runs up to ``steps`` steps in one launch with serial
 loops (small systems, where a launch costs more than a step), alternating
 a -> b and b -> a, stopping at the first step whose state fails the check.
 """
@@ -21,7 +21,7 @@ a -> b and b -> a, stopping at the first step whose state fails the check.
 import taichi as ti
 
 from .blocks import block_count, block_end, ordered_sum, BLOCK
-from .divergence import OK, check_code, state_sums
+from .divergence import OK, state_sums, verdict
 from .constraints import is_free, prescribed
 from .contact import respond
 from .forces import particle_force, spring_forces
@@ -64,27 +64,28 @@ def update_particles(dev, cfg: ti.template(), src, dst, h, t, symplectic: ti.tem
 
 @ti.kernel
 def euler_step(dev: ti.template(), cfg: ti.template(), src: ti.template(), dst: ti.template(), dt: ti.f64,
-               t: ti.f64, symplectic: ti.template()) -> ti.types.vector(2, ti.f64):
-    """One step src -> dst from time t (s) with parallel loops; returns (check code, kinetic energy J)."""
+               t: ti.f64, symplectic: ti.template()) -> ti.types.vector(3, ti.f64):
+    """One step src -> dst from time t (s) with parallel loops; returns the new state's
+    ``divergence.verdict`` (code, kinetic energy J, bound J)."""
     h = ti.cast(dt, cfg.real)
     spring_forces(dev, cfg, src.x, src.v, False)
     sums = update_particles(dev, cfg, src, dst, h, ti.cast(t + dt, cfg.real), symplectic)
-    return ti.Vector([check_code(sums, dev.check[None]), sums[0]], ti.f64)
+    return verdict(sums, dev.check[None])
 
 
 @ti.kernel
 def euler_steps(dev: ti.template(), cfg: ti.template(), a: ti.template(), b: ti.template(), dt: ti.f64,
-                t: ti.f64, steps: ti.i32, symplectic: ti.template()) -> ti.types.vector(3, ti.f64):
+                t: ti.f64, steps: ti.i32, symplectic: ti.template()) -> ti.types.vector(4, ti.f64):
     """Up to ``steps`` steps from time t (s) in one launch with serial loops, a -> b, b -> a, ...
 
-    Returns (good steps done k, check code, kinetic energy of the last state
-    computed). The last good state is in ``a`` if k is even, else in ``b``; a
+    Returns (good steps done k, then the ``divergence.verdict`` of the last state
+    computed: code, kinetic energy J, bound J). The last good state is in ``a`` if k is even, else in ``b``; a
     failed state is in the other one.
     """
     h = ti.cast(dt, cfg.real)
     done = 0
     code = OK
-    kinetic = 0.0
+    last = ti.Vector.zero(ti.f64, 3)
     ti.loop_config(serialize=True)
     for _ in range(1):
         while done < steps and code == OK:
@@ -92,13 +93,13 @@ def euler_steps(dev: ti.template(), cfg: ti.template(), a: ti.template(), b: ti.
             if done % 2 == 0:
                 spring_forces(dev, cfg, a.x, a.v, False)
                 even = update_particles(dev, cfg, a, b, h, end, symplectic)
-                kinetic = even[0]
-                code = check_code(even, dev.check[None])
+                last = verdict(even, dev.check[None])
+                code = ti.cast(last[0], ti.i32)
             else:
                 spring_forces(dev, cfg, b.x, b.v, False)
                 odd = update_particles(dev, cfg, b, a, h, end, symplectic)
-                kinetic = odd[0]
-                code = check_code(odd, dev.check[None])
+                last = verdict(odd, dev.check[None])
+                code = ti.cast(last[0], ti.i32)
             if code == OK:
                 done += 1
-    return ti.Vector([done, code, kinetic], ti.f64)
+    return ti.Vector([done, last[0], last[1], last[2]], ti.f64)

@@ -19,7 +19,7 @@ serial loops (as ``euler``).
 import taichi as ti
 
 from .blocks import BLOCK, block_count, block_end, ordered_sum
-from .divergence import OK, check_code, state_sums
+from .divergence import OK, state_sums, verdict
 from .constraints import is_free
 from .contact import respond
 from .forces import particle_force, spring_forces
@@ -71,32 +71,33 @@ def one_step(dev, cfg: ti.template(), src, dst, stage, h, t):
 
 @ti.kernel
 def rk4_step(dev: ti.template(), cfg: ti.template(), src: ti.template(), dst: ti.template(),
-             stage: ti.template(), dt: ti.f64, t: ti.f64) -> ti.types.vector(2, ti.f64):
-    """One step src -> dst from time t (s) with parallel loops; returns (check code, kinetic energy J)."""
+             stage: ti.template(), dt: ti.f64, t: ti.f64) -> ti.types.vector(3, ti.f64):
+    """One step src -> dst from time t (s) with parallel loops; returns the new state's
+    ``divergence.verdict`` (code, kinetic energy J, bound J)."""
     sums = one_step(dev, cfg, src, dst, stage, ti.cast(dt, cfg.real), ti.cast(t + dt, cfg.real))
-    return ti.Vector([check_code(sums, dev.check[None]), sums[0]], ti.f64)
+    return verdict(sums, dev.check[None])
 
 
 @ti.kernel
 def rk4_steps(dev: ti.template(), cfg: ti.template(), a: ti.template(), b: ti.template(), stage: ti.template(),
-              dt: ti.f64, t: ti.f64, steps: ti.i32) -> ti.types.vector(3, ti.f64):
+              dt: ti.f64, t: ti.f64, steps: ti.i32) -> ti.types.vector(4, ti.f64):
     """Up to ``steps`` steps from time t (s) in one launch with serial loops, as ``euler.euler_steps``."""
     h = ti.cast(dt, cfg.real)
     done = 0
     code = OK
-    kinetic = 0.0
+    last = ti.Vector.zero(ti.f64, 3)
     ti.loop_config(serialize=True)
     for _ in range(1):
         while done < steps and code == OK:
             end = ti.cast(t + (done + 1) * dt, cfg.real)
             if done % 2 == 0:
                 even = one_step(dev, cfg, a, b, stage, h, end)
-                kinetic = even[0]
-                code = check_code(even, dev.check[None])
+                last = verdict(even, dev.check[None])
+                code = ti.cast(last[0], ti.i32)
             else:
                 odd = one_step(dev, cfg, b, a, stage, h, end)
-                kinetic = odd[0]
-                code = check_code(odd, dev.check[None])
+                last = verdict(odd, dev.check[None])
+                code = ti.cast(last[0], ti.i32)
             if code == OK:
                 done += 1
-    return ti.Vector([done, code, kinetic], ti.f64)
+    return ti.Vector([done, last[0], last[1], last[2]], ti.f64)

@@ -377,20 +377,20 @@ class Simulation:
         if not integrator.has_stats and self._guard is None:
             while n:
                 chunk = min(n, STEPS_PER_LAUNCH)
-                done, code, kinetic = integrator.advance(chunk)
+                done, check = integrator.advance(chunk)
                 self._steps += done
-                self._raise_if_diverged(code, kinetic)
+                self._raise_if_diverged(check)
                 n -= chunk
             return self
         for _ in range(n):
             if self._guard is not None:
                 self._guard.begin(integrator.state)
-            done, code, kinetic = integrator.advance(1)
+            done, check = integrator.advance(1)
             if done and self._guard is not None:
                 self._guard.end(integrator.state)
             if not integrator.has_stats:
                 self._steps += done
-                self._raise_if_diverged(code, kinetic)
+                self._raise_if_diverged(check)
                 continue
             stats = integrator.stats
             if done:
@@ -400,15 +400,13 @@ class Simulation:
                 if stats.newton_iterations is not None:
                     self._newton_iterations.append(stats.newton_iterations)
                     self._cuts += stats.cuts
-            self._raise_if_diverged(code, kinetic)
+            self._raise_if_diverged(check)
         return self
 
-    def _raise_if_diverged(self, code, kinetic):
+    def _raise_if_diverged(self, check):
+        code, kinetic, bound = check
         if code == divergence.OK:
             return
-        positions = self.positions
-        work = max(0.0, float(np.sum(self._model.masses * (positions @ self._model.gravity))) - self._check[1])
-        bound = self._check[2] * (self._check[0] + work)
         failed = self._steps + 1
         raise DivergenceError(failed, failed * self.dt, divergence.CAUSES[code], kinetic, bound,
                               self.integrator, self.dt)

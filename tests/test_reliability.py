@@ -38,8 +38,8 @@ def finite_probe():
                             divergence.is_finite(-1.0 / zero),                   # -Inf computed
                             divergence.is_finite(zero32 / singles[1]),           # f32 0/0
                             divergence.is_finite(values[0] * 1e300 * 1e300),     # overflow computed
-                            divergence.check_code(ti.Vector([values[1], 0.0, 1.0]),  # a NaN kinetic energy
-                                                  ti.Vector([1.0, 0.0, 100.0])) == divergence.OK],
+                            divergence.verdict(ti.Vector([values[1], 0.0, 1.0]),  # a NaN kinetic energy
+                                                  ti.Vector([1.0, 0.0, 100.0]))[0] == divergence.OK],
                          ti.i32)
 
     def run(given):
@@ -55,7 +55,7 @@ def test_is_finite_in_a_kernel_with_nan_given_and_computed(finite_probe):
     result = finite_probe(given)
     assert list(result[:6]) == [1, 0, 0, 0, 1, 1]       # given: finite, NaN, +Inf, -Inf, denormal, 0
     assert list(result[6:11]) == [0, 0, 0, 0, 0]        # computed NaN, +Inf, -Inf, f32 NaN, overflow
-    assert result[11] == 0                              # check_code of a NaN kinetic energy is not OK
+    assert result[11] == 0                              # the verdict on a NaN kinetic energy is not OK
 
 
 OVERFLOW_SCRIPT = textwrap.dedent("""

@@ -10,7 +10,7 @@ import massspring as ms
 from massspring.analysis import stability
 from massspring.cli import main
 from massspring.scene import load_scene
-from conftest import PATHS, dense_jacobians, free_dofs, simulation
+from conftest import PATHS, dense_jacobians, dense_step, free_dofs, simulation
 
 
 def dense_lambda_max(model, x):
@@ -151,6 +151,28 @@ def test_implicit_rejected_step_restores_previous_state(path):
     again = simulation(scene.model(), path, integrator="implicit", dt=sim.dt, definiteness_fix=False)
     again.step(k - 1)
     assert np.array_equal(sim.positions, again.positions) and np.array_equal(sim.velocities, again.velocities)
+
+
+@pytest.mark.parametrize("path", PATHS)
+def test_implicit_runaway_reports_the_rejected_states_energy_and_bound(path):
+    """``run chain --dt 1``: the error names the rejected state's kinetic energy and the
+    bound that state was held to (gravity's work measured at its own positions), as a
+    dense numpy solve of Eq. 15 from the kept state gives them; so kinetic > bound."""
+    scene = load_scene("chain")
+    model = scene.model()
+    sim = simulation(model, path, integrator="implicit", dt=1.0, cg_tol=1e-10)
+    with pytest.raises(ms.DivergenceError) as info:
+        sim.step(10)
+    exc = info.value
+    assert exc.cause == "runaway" and sim.steps == exc.step - 1
+    v = dense_step(model, 1.0, True, sim.positions, sim.velocities)
+    x = sim.positions + 1.0 * v
+    kinetic = 0.5 * float(np.sum(model.masses * np.sum(v * v, axis=1)))
+    base, gx0, factor = sim.check
+    bound = factor * (base + max(0.0, float(np.sum(model.masses * (x @ model.gravity))) - gx0))
+    assert exc.kinetic == pytest.approx(kinetic, rel=1e-6) and exc.bound == pytest.approx(bound, rel=1e-6)
+    assert exc.kinetic > exc.bound
+    assert f"kinetic energy {kinetic:.3g} J above the bound {bound:.3g} J" in str(exc)
 
 
 def test_nonfinite_state_is_detected():

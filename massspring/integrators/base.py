@@ -62,8 +62,9 @@ class Integrator:
     def advance(self, steps):
         """Up to ``steps`` steps, each checked (``kernels/divergence.py``).
 
-        Returns (good steps done, check code of the first failed step or OK, its
-        kinetic energy in J). A failed step's state is never the current one.
+        Returns (good steps done, ``divergence.verdict`` of the last state computed:
+        (code, kinetic energy J, bound J) with code OK, or that of the first failed
+        step). A failed step's state is never the current one.
         """
         raise NotImplementedError
 

@@ -36,20 +36,20 @@ class ExplicitEuler(Integrator):
         dev, cfg, dt = self.dev, self.cfg, self.settings.dt
         if self.serial:
             result = euler.euler_steps(dev, cfg, self.state, self.spare, dt, self.time, steps, self.symplectic)
-            done, code, kinetic = int(result[0]), int(result[1]), float(result[2])
+            done, check = int(result[0]), divergence.unpack(result[1:])
             if done % 2:
                 self.state, self.spare = self.spare, self.state
             self.steps += done
-            return done, code, kinetic
-        done, code, kinetic = 0, divergence.OK, 0.0
-        while done < steps and code == divergence.OK:
+            return done, check
+        done, check = 0, (divergence.OK, 0.0, 0.0)
+        while done < steps and check[0] == divergence.OK:
             result = euler.euler_step(dev, cfg, self.state, self.spare, dt, self.time, self.symplectic)
-            code, kinetic = int(result[0]), float(result[1])
-            if code == divergence.OK:
+            check = divergence.unpack(result)
+            if check[0] == divergence.OK:
                 self.state, self.spare = self.spare, self.state
                 done += 1
                 self.steps += 1
-        return done, code, kinetic
+        return done, check
 
     @staticmethod
     def suggest_dt(prediction):

@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 import taichi as ti
 
@@ -112,16 +110,16 @@ class ImplicitEuler(Integrator):
                             self.time)
         if self._stats.reason == "non-finite":  # Eq. 15 overflowed: no velocity to step with
             self.dev.v.copy_from(self.dev.keep)
-            return 0, divergence.NONFINITE, math.inf
+            return 0, divergence.NONFINITE_VERDICT
         if self.cfg.contact_filter:
             friction.contact_friction(self.dev, self.cfg, self.time, self.serial)
-        code, kinetic = cg.advance_positions(self.dev, self.cfg, self.dev.x, s.dt, s.dt, (self.steps + 1) * s.dt,
-                                               self.serial, False)
-        code = int(code)
-        if code != divergence.OK:
+        check = divergence.unpack(cg.advance_positions(self.dev, self.cfg, self.dev.x, s.dt, s.dt,
+                                                       (self.steps + 1) * s.dt, self.serial, False))
+        accepted = check[0] == divergence.OK
+        if not accepted:
             self.dev.v.copy_from(self.dev.keep)
-        self.steps += code == divergence.OK
-        return int(code == divergence.OK), code, float(kinetic)
+        self.steps += accepted
+        return int(accepted), check
 
     @staticmethod
     def suggest_dt(prediction):

@@ -129,17 +129,17 @@ class BackwardEuler(ImplicitEuler):
                                   newton_residual=relative[-1], newton_residuals=relative, first_residual=first)
         if reason == "non-finite":  # no velocity to step with
             dev.v.copy_from(dev.keep)
-            return 0, divergence.NONFINITE, math.inf
+            return 0, divergence.NONFINITE_VERDICT
         if cfg.contact_filter:
             friction.contact_friction(dev, cfg, t, serial)
-        code, kinetic = cg.advance_positions(dev, cfg, dev.xb, h, s.dt, (self.steps + 1) * s.dt, serial,
-                                             self.carries)
-        code = int(code)
-        if code != divergence.OK:
+        check = divergence.unpack(cg.advance_positions(dev, cfg, dev.xb, h, s.dt, (self.steps + 1) * s.dt, serial,
+                                                       self.carries))
+        accepted = check[0] == divergence.OK
+        if not accepted:
             dev.v.copy_from(dev.keep)
-        self.steps += code == divergence.OK
-        self.after_step(code == divergence.OK, touching)
-        return int(code == divergence.OK), code, float(kinetic)
+        self.steps += accepted
+        self.after_step(accepted, touching)
+        return int(accepted), check
 
     def after_step(self, accepted, touching):
         """Hook after a step (BDF2 records whether it has a history to use)."""

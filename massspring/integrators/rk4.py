@@ -61,20 +61,20 @@ class RK4(Integrator):
         dev, cfg, dt = self.dev, self.cfg, self.settings.dt
         if self.serial:
             result = rk4.rk4_steps(dev, cfg, self.state, self.spare, self.stage, dt, self.time, steps)
-            done, code, kinetic = int(result[0]), int(result[1]), float(result[2])
+            done, check = int(result[0]), divergence.unpack(result[1:])
             if done % 2:
                 self.state, self.spare = self.spare, self.state
             self.steps += done
-            return done, code, kinetic
-        done, code, kinetic = 0, divergence.OK, 0.0
-        while done < steps and code == divergence.OK:
+            return done, check
+        done, check = 0, (divergence.OK, 0.0, 0.0)
+        while done < steps and check[0] == divergence.OK:
             result = rk4.rk4_step(dev, cfg, self.state, self.spare, self.stage, dt, self.time)
-            code, kinetic = int(result[0]), float(result[1])
-            if code == divergence.OK:
+            check = divergence.unpack(result)
+            if check[0] == divergence.OK:
                 self.state, self.spare = self.spare, self.state
                 done += 1
                 self.steps += 1
-        return done, code, kinetic
+        return done, check
 
     @staticmethod
     def suggest_dt(prediction):
