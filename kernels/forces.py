@@ -28,7 +28,8 @@ def spring_direction(d, real: ti.template()):
     """Unit vector ``n = d/|d|`` and length ``l = |d|``; ``n = 0`` when ``l <= tiny``.
 
     The zero-length rule: a spring with no direction exerts no force and adds no
-    stiffness or damping in that step (it acts again as soon as its ends part).
+    damping in that step, and no stiffness unless its rest length is 0 (it acts
+    again as soon as its ends part).
     """
     length = ti.sqrt(d.dot(d))  # d.norm() adds a default-precision (f64) epsilon
     n = ti.Vector.zero(real, 3)

@@ -36,7 +36,8 @@ from .pair_penalty import pair_diagonal, pair_force, pair_row
 def spring_coefficients(dev, cfg: ti.template(), x, v, h, full: ti.template()):
     """Per spring: ``dev.spring_coef[s] = (n, a, b)`` and ``dev.fs[s]`` = its f - D v
     on the first end (its whole force f with ``full``). A spring of zero length gets
-    n = 0, a = b = 0 and no force."""
+    n = 0 and no force; its terms' (a, b) at n = 0 (only a zero-rest-length spring's
+    a = dt^2 ks is not 0)."""
     if ti.static(cfg.has_springs):
         for s in range(dev.size[1]):
             i = dev.ends[s][0]
@@ -45,11 +46,11 @@ def spring_coefficients(dev, cfg: ti.template(), x, v, h, full: ti.template()):
             a = ti.cast(0, cfg.real)
             b = ti.cast(0, cfg.real)
             t = ti.cast(0, cfg.real)
-            if length > tiny_length(cfg.real):
-                for term in ti.static(cfg.spring_terms):
-                    da, db = term.coefficients(s, dev, n, length, h, cfg.fix)
-                    a += da
-                    b += db
+            for term in ti.static(cfg.spring_terms):
+                da, db = term.coefficients(s, dev, n, length, h, cfg.fix)
+                a += da
+                b += db
+                if length > tiny_length(cfg.real):
                     if ti.static(full):
                         t += term.tension(s, dev, i, j, x, v, n, length)
                     else:

@@ -14,7 +14,7 @@ import numpy as np
 import massspring as ms
 
 PEAK_RSS_LIMIT = 4e9  # bytes: the whole suite, in pytest's process and in any one child process
-ZERO_LENGTH = 1e-12  # f64 zero-length rule: such a spring has no direction, force or stiffness
+ZERO_LENGTH = 1e-12  # f64 zero-length rule: such a spring has no direction or force (stiffness only if l0 = 0)
 
 # Each integrator has two drivers running the same algorithm: serial kernels (one
 # launch for a whole step or solve; chosen for systems below
@@ -100,8 +100,8 @@ def dense_jacobians(model, x, definiteness_fix):
     """K = df/dx (Eq. 13, damping's x-derivative ignored) and D = df/dv (Eq. 14, plus
     -drag I from air drag), 3n x 3n.
 
-    K_ii = ks ((l0/l - 1) I - (l0/l) n n^T) = ks (c I - (1 + c) n n^T), c = l0/l - 1;
-    the definiteness fix uses min(c, 0) for c, i.e. drops the transverse part
+    K_ii = ks ((l0/l - 1) I - (l0/l) n n^T) = ks (c I - (1 + c) n n^T), c = l0/l - 1
+    (-ks I for l0 = 0, also at l = 0); the definiteness fix uses min(c, 0) for c, i.e. drops the transverse part
     c (I - n n^T) of compressed springs and keeps the axial part -ks n n^T.
     """
     n = model.n_particles
@@ -110,11 +110,13 @@ def dense_jacobians(model, x, definiteness_fix):
     eye = np.eye(3)
     for s, (i, j) in enumerate(model.springs):
         nvec, length = spring_geometry(x, i, j)
-        if nvec is None:
-            continue
-        nn = np.outer(nvec, nvec)
         l0, ks, kd = model.rest_lengths[s], model.stiffness[s], model.damping[s]
-        if definiteness_fix:
+        if nvec is None and l0 > 0:
+            continue
+        nn = np.zeros((3, 3)) if nvec is None else np.outer(nvec, nvec)
+        if l0 == 0:  # f_i = ks (x_j - x_i): K_ii = -ks I, with a direction or without
+            kb = -ks * eye
+        elif definiteness_fix:
             c = min(l0 / length - 1.0, 0.0)
             kb = ks * (c * eye - (1.0 + c) * nn)
         else:

@@ -198,8 +198,9 @@ def test_zero_length_springs_stay_finite(integrator, precision, separate, path):
     if integrator == "implicit":  # with the definiteness fix the solve never fails
         assert sim.cg_failures == 0, sim.solver_stats
     if not separate:
-        # Free fall of particles 0..5: a zero-length spring exerts no force and adds
-        # nothing to the implicit matrix (which is then M on these particles).
+        # Free fall of particles 0..5: a zero-length spring exerts no force; in the
+        # implicit matrix only (2, 3)'s l0 = 0 spring adds anything, -ks I acting on
+        # v_2 - v_3, which is 0 here.
         # Explicit: x_k = x_0 + dt sum_{j<k} v_j; symplectic and implicit use v_{j+1}.
         g = -9.81
         s = sum(range(steps)) if integrator == "explicit" else sum(range(1, steps + 1))

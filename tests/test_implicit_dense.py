@@ -97,6 +97,22 @@ def test_implicit_step_matches_dense_solve_with_fix(seed, path):
     assert_far_from_other_variant(sim, model, definiteness_fix=True)
 
 
+@pytest.mark.parametrize("path", PATHS)
+def test_coincident_zero_rest_length_springs_are_stiff_in_the_solve(path):
+    """A zero-rest-length spring is linear, f_i = ks (x_j - x_i): K_ii = -ks I also
+    when its ends coincide and it has no direction. Particles 0-2 start at one point
+    with different velocities, tied by l0 = 0 springs (and 2 to the fixed 3 by one of
+    l0 = 0.5): the step matches the dense solve with those -ks I blocks, and is far
+    from the step a solve without them would give (the pair moving apart freely)."""
+    x = np.array([[0.0, 0.0, 0.0], [0.0, 0.0, 0.0], [0.0, 0.0, 0.0], [0.0, 0.0, 0.5]])
+    v = np.array([[0.3, 0.0, 0.0], [-0.2, 0.1, 0.0], [0.0, 0.0, 0.4], [0.0, 0.0, 0.0]])
+    model = ms.Model(x, [[0, 1], [1, 2], [2, 3]], masses=0.1, stiffness=[400.0, 300.0, 200.0],
+                     damping=0.2, rest_lengths=[0.0, 0.0, 0.5], velocities=v, fixed=[3])
+    sim = check_implicit_step(model, definiteness_fix=True, path=path)
+    free_flight = v[:3] + DT * model.gravity  # what the step was before: no stiffness at coincidence
+    assert np.linalg.norm(sim.velocities[:3] - free_flight) > 0.1 * np.linalg.norm(free_flight)
+
+
 def assert_far_from_other_variant(sim, model, definiteness_fix):
     """The step is much closer to its own reference than the two references are to
     each other: the comparison can tell the fixed from the unfixed matrix."""

@@ -130,9 +130,11 @@ def test_without_fix_strongly_compressed_operator_is_indefinite(seed):
         assert sim.cg_failures == 1
 
 
-def test_zero_length_springs_add_nothing_to_operator():
-    """Springs of length 0 and 1e-13 (<= 1e-12) have no direction: the operator is
-    that of the model without them (numpy assembly skips them, and so must A)."""
+def test_zero_length_springs_in_the_operator():
+    """Springs of length 0 and 1e-13 (<= 1e-12) have no direction. The one of rest
+    length 0.5 adds nothing to A; the one of rest length 0 (f = ks d, linear) adds its
+    dt^2 ks [[I, -I], [-I, I]] blocks all the same. A is that of the model without the
+    two plus those blocks, assembled here by hand."""
     x = np.array([[0.0, 0.0, 0.0], [0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [1.0, 0.0, 1e-13], [0.5, 0.7, 0.2]])
     springs = [[0, 1], [2, 3], [0, 4], [4, 2], [1, 4]]
     kw = dict(masses=[1.0, 2.0, 1.5, 0.7, 1.2], damping=0.5, gravity=(0.0, 0.0, -9.81), fixed=[4])
@@ -140,9 +142,11 @@ def test_zero_length_springs_add_nothing_to_operator():
                      rest_lengths=[0.5, 0.0, 0.6, 0.9, 1.0], **kw)
     without = ms.Model(x, [[0, 4], [4, 2], [1, 4]], stiffness=[100.0, 150.0, 120.0],
                        rest_lengths=[0.6, 0.9, 1.0], **kw)
+    linear = DT * DT * 200.0 * np.kron([[1.0, -1.0], [-1.0, 1.0]], np.eye(3))  # particles 2, 3 (free dofs 6-11)
     for fix in (True, False):
         A = Operator(model, DT, fix).dense()
         A_without = dense_system(without, DT, fix)[0]
+        A_without[6:12, 6:12] += linear
         np.testing.assert_allclose(A, A_without, rtol=0, atol=64 * EPS * np.abs(A).max())
         np.testing.assert_allclose(A, dense_system(model, DT, fix)[0], rtol=0, atol=64 * EPS * np.abs(A).max())
 

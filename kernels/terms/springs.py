@@ -12,6 +12,9 @@ class Springs(SpringTerm):
     K_ii = ks (c I - (1 + c) n n^T), so A gets a = -dt^2 ks c, b = dt^2 ks (1 + c).
     Definiteness fix (Choi & Ko 2002): c -> min(c, 0) in the transverse part
     (a compressed spring's c > 0 makes A indefinite); the along-spring -ks n n^T stays.
+    A zero-rest-length spring (l0 = 0: f_i = ks (x_j - x_i), linear) has K_ii = -ks I
+    at every length, its ends coincident included; any other spring with no direction
+    adds no stiffness (the zero-length rule).
     """
 
     name = "spring"
@@ -37,11 +40,19 @@ class Springs(SpringTerm):
     @staticmethod
     @ti.func
     def coefficients(s, dev, n, length, h, fix: ti.template()):
-        c = dev.l0[s] / length - 1
-        if ti.static(fix):
-            c = ti.min(c, 0)
+        """(a, b); n = 0 when the spring has no direction (``forces.spring_direction``)."""
         k = h * h * dev.ks[s]
-        return -k * c, k * (1 + c)
+        a = k * 0
+        b = k * 0
+        if dev.l0[s] == 0:  # c = -1: K_ii = -ks I at every length, with a direction or without
+            a = k
+        elif n.dot(n) > 0:
+            c = dev.l0[s] / length - 1
+            if ti.static(fix):
+                c = ti.min(c, 0)
+            a = -k * c
+            b = k * (1 + c)
+        return a, b
 
     @staticmethod
     @ti.func
