@@ -5,7 +5,9 @@ Geometry. Each collider kind is a class of ``ti.func``s with its arrays
 ``dev.<kind>_<field>`` (one item per collider of that kind: ``plane_point``,
 ``plane_normal``, ``sphere_center``, ``sphere_radius``, ``box_lower``, ``box_upper``,
 and for every kind ``_velocity`` (m/s), ``_friction``, ``_restitution``).
-``cfg.colliders`` lists the kinds a model has as (kind, count, first), ``first``
+``cfg.colliders`` lists the kinds a model has as (kind, count, first)
+(``massspring.colliders.collider_groups``: each collider class names its kind class
+here as ``kernel``), ``first``
 numbering its colliders among all of the model's (their bits in the implicit step's
 per-particle masks); the kernels unroll both loops (``ti.static``), so a model without
 colliders compiles none of this. ``distance(dev, cfg, k, x, t)`` is the signed
@@ -134,36 +136,9 @@ class BoxKind:
         return d, n
 
 
-KINDS = (PlaneKind, SphereKind, BoxKind)  # the order of massspring.colliders.COLLIDERS
-
-
 def total(cfg):
     """The number of colliders (Python side)."""
     return sum(count for _, count, _ in cfg.colliders)
-
-
-def collider_groups(model) -> tuple:
-    """``cfg.colliders`` of a model: (kind, count, first) for each kind it has."""
-    groups, first = [], 0
-    for kind in KINDS:
-        count = sum(c.kind == kind.name for c in model.colliders)
-        if count:
-            groups.append((kind, count, first))
-            first += count
-    return tuple(groups)
-
-
-def collider_arrays(model) -> dict:
-    """Device arrays of a model's colliders: name -> (count, element shape, values)."""
-    out = {}
-    for kind, count, _ in collider_groups(model):
-        group = [c for c in model.colliders if c.kind == kind.name]
-        fields = dict(kind.arrays(group), velocity=[c.velocity for c in group],
-                      friction=[c.friction for c in group], restitution=[c.restitution for c in group])
-        for field, values in fields.items():
-            element = (3,) if isinstance(values[0], tuple) else ()
-            out[f"{kind.name}_{field}"] = (count, element, values)
-    return out
 
 
 @ti.func

@@ -38,7 +38,7 @@ from taichi.lang import impl
 
 from massspring import memory
 from massspring.kernels.blocks import blocks_for
-from massspring.kernels.contact import collider_arrays, collider_groups
+from massspring.colliders import collider_arrays, collider_groups
 from massspring.kernels.terms import active_terms
 
 REAL = {"f32": ti.f32, "f64": ti.f64}
@@ -111,7 +111,7 @@ class Config:
     (``kernels.terms``); fixed: whether any particle is pinned; fix: the
     definiteness fix (implicit); precond: a pointwise preconditioner class of
     ``kernels.preconditioners`` or None; colliders: (kind, count, first) of each
-    collider kind present (``kernels.contact.collider_groups``); moving_pins: whether
+    collider kind present (``colliders.collider_groups``); moving_pins: whether
     some pin has a velocity; contact_filter: whether contacts are constraints of the
     implicit solve (``kernels/constraints.py``); self_pairs: whether self-collision
     pairs are penalties of the implicit solve (``kernels/pair_penalty.py``).

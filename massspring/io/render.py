@@ -11,9 +11,10 @@ of *all* recorded frames (so nothing leaves the picture), and :func:`export` dra
 each frame and writes the files. A run without a recording pays nothing.
 
 Colliders (``massspring.colliders``) are drawn where they are at each frame's time:
-planes first, as a shaded checkered square under everything else, spheres and boxes
-as shaded triangles (back faces culled) after the parts of the surface behind them
-(``behind_solids``) and before the rest.
+unbounded ones (planes) first, as a shaded checkered square of their ``cells`` under
+everything else, bounded ones (spheres, boxes) as their shaded ``surface`` triangles
+(back faces culled) after the parts of the surface behind them (``behind_solids``)
+and before the rest.
 
 Memory: a recording holds frames x particles x 12 bytes (150 frames of a 32 x 32
 cloth: 1.8 MB); rendered frames are kept as 8-bit palette images (W x H bytes each).
@@ -45,8 +46,6 @@ SOLID = (118, 132, 156)                        # spheres and boxes, before shadi
 GROUND = ((66, 72, 62), (84, 92, 78))           # the two colours of a plane's checkers
 GROUND_CELLS = 12                               # checkers along each side of a drawn plane
 GROUND_EXTENT = 1.6                             # half the side of a drawn plane, in framing radii
-SPHERE_BANDS = (12, 24)                         # latitude and longitude bands of a drawn sphere
-BOX_CELLS = 8                                   # cells along each edge of a drawn box face
 # Diverging map from compression (blue, -1) through neutral grey (0) to extension (red, +1).
 DIVERGING = np.array([(59, 76, 192), (141, 176, 254), (221, 221, 221), (244, 154, 123), (180, 4, 38)],
                      dtype=np.float64)
@@ -207,9 +206,9 @@ class FrameRenderer:
         self.font, _, self.legend_h = layout(size)
         frames = np.asarray(frames)
         times = np.zeros(len(frames)) if times is None else np.asarray(times, dtype=np.float64)
-        solids = [c for c in model.colliders if c.kind != "plane"]
+        solids = [c for c in model.colliders if c.bounded]
         if solids:  # the picture holds the spheres and boxes too, where they are at each frame
-            corners = np.array([[_bounds(c.at(t)) for c in solids] for t in times]).reshape(len(frames), -1, 3)
+            corners = np.array([[c.at(t).corners() for c in solids] for t in times]).reshape(len(frames), -1, 3)
             frames = np.concatenate([frames, corners.astype(frames.dtype)], axis=1)
         self.framing = Framing.fit(view, frames, plot_box(size), framing)
         tris = model.triangles
@@ -325,18 +324,19 @@ class FrameRenderer:
         colliders = [c.at(time) for c in self.model.colliders]
         right, up, toward = framing.view.basis()
         light = _unit(toward + 0.6 * up - 0.3 * right)
-        for plane in (c for c in colliders if c.kind == "plane"):
-            corners, normals, colours = _plane_cells(plane, framing.centre, GROUND_EXTENT * framing.radius)
+        for ground in (c for c in colliders if not c.bounded):
+            corners, normals, parity = ground.cells(framing.centre, GROUND_EXTENT * framing.radius, GROUND_CELLS)
+            colours = np.array(GROUND, dtype=np.float64)[parity]
             shade = 0.45 + 0.55 * np.abs(normals @ light)
             px, _ = framing.pixels(corners)
             uv = self._to_canvas(px)
             rgb = packed(colours * shade[:, None])
             self.gui.triangles(uv[:, 0], uv[:, 1], uv[:, 2], color=rgb)
             self.gui.triangles(uv[:, 0], uv[:, 2], uv[:, 3], color=rgb)
-        solids = [c for c in colliders if c.kind != "plane"]
+        solids = [c for c in colliders if c.bounded]
         if not solids:
             return None
-        parts = [_solid_triangles(c) for c in solids]
+        parts = [c.surface() for c in solids]
         corners = np.concatenate([p[0] for p in parts])
         normals = np.concatenate([p[1] for p in parts])
         if framing.view.projection == "perspective":
@@ -387,7 +387,7 @@ def _eye(framing):
 
 def behind_solids(solids, framing, points):
     """(k,) bool: whether the ray from each of ``points`` (k, 3) towards the camera
-    enters one of the spheres and boxes ``solids`` (as drawn: a box's sharp corners)
+    enters one of the bounded colliders ``solids`` (as drawn: a box's sharp corners)
     ahead of the point. A point on a solid's surface, or inside its drawn shape (by a
     rounded edge), is not behind it."""
     p = np.asarray(points, dtype=np.float64).reshape(-1, 3)
@@ -397,79 +397,9 @@ def behind_solids(solids, framing, points):
     else:
         d = np.broadcast_to(framing.view.basis()[2], p.shape)
     hidden = np.zeros(len(p), dtype=bool)
-    tiny = 1e-9 * framing.radius
     for solid in solids:
-        if solid.kind == "sphere":
-            offset = p - solid.center
-            b = np.einsum("ij,ij->i", offset, d)
-            c = np.einsum("ij,ij->i", offset, offset) - solid.radius ** 2
-            # outside (c > 0), the sphere ahead (b < 0) and the ray meets it (b^2 > c)
-            hidden |= (c > tiny * solid.radius) & (b < 0) & (b * b > c)
-        else:
-            safe = np.where(np.abs(d) > 1e-12, d, 1e-12)
-            t1, t2 = (np.array(solid.lower) - p) / safe, (np.array(solid.upper) - p) / safe
-            near, far = np.minimum(t1, t2).max(axis=1), np.maximum(t1, t2).min(axis=1)
-            hidden |= (near > tiny) & (near <= far)
+        hidden |= solid.hides(p, d, 1e-9 * framing.radius)
     return hidden
-
-
-def _bounds(collider):
-    """The 8 corners (8, 3) of a sphere's or box's bounding box."""
-    if collider.kind == "sphere":
-        lower = np.array(collider.center) - collider.radius
-        upper = np.array(collider.center) + collider.radius
-    else:
-        lower, upper = np.array(collider.lower), np.array(collider.upper)
-    return np.array([[(lower, upper)[i][0], (lower, upper)[j][1], (lower, upper)[k][2]]
-                     for i in (0, 1) for j in (0, 1) for k in (0, 1)])
-
-
-def _plane_cells(plane, centre, half):
-    """A square of the plane, 2 ``half`` wide about the point nearest ``centre``, in
-    GROUND_CELLS^2 checkers: corners (c, 4, 3), their normal (c, 3), colours (c, 3)."""
-    n = np.array(plane.normal)
-    middle = centre - ((centre - np.array(plane.point)) @ n) * n
-    t1 = _unit(np.cross(n, [1.0, 0.0, 0.0] if abs(n[0]) < 0.9 else [0.0, 1.0, 0.0]))
-    t2 = np.cross(n, t1)
-    edges = np.linspace(-half, half, GROUND_CELLS + 1)
-    i, j = np.meshgrid(np.arange(GROUND_CELLS), np.arange(GROUND_CELLS), indexing="ij")
-    i, j = i.ravel(), j.ravel()
-    corner = [middle + np.outer(edges[i + a], t1) + np.outer(edges[j + b], t2) for a, b in ((0, 0), (1, 0),
-                                                                                             (1, 1), (0, 1))]
-    colours = np.array(GROUND, dtype=np.float64)[(i + j) % 2]
-    return np.stack(corner, axis=1), np.tile(n, (len(i), 1)), colours
-
-
-def _solid_triangles(collider):
-    """A sphere or box as triangles: corners (t, 3, 3) and outward normals (t, 3)."""
-    if collider.kind == "sphere":
-        lat, lon = SPHERE_BANDS
-        theta = np.linspace(0.0, np.pi, lat + 1)
-        phi = np.linspace(0.0, 2 * np.pi, lon + 1)
-        points = np.stack(np.meshgrid(theta, phi, indexing="ij"), axis=-1)
-        unit = np.stack([np.sin(points[..., 0]) * np.cos(points[..., 1]),
-                         np.sin(points[..., 0]) * np.sin(points[..., 1]), np.cos(points[..., 0])], axis=-1)
-        quads = np.stack([unit[:-1, :-1], unit[1:, :-1], unit[1:, 1:], unit[:-1, 1:]], axis=2).reshape(-1, 4, 3)
-        tris = np.concatenate([quads[:, [0, 1, 2]], quads[:, [0, 2, 3]]])
-        normals = tris.mean(axis=1)
-        normals /= np.linalg.norm(normals, axis=1, keepdims=True)
-        return np.array(collider.center) + collider.radius * tris, normals
-    lower, upper = np.array(collider.lower), np.array(collider.upper)
-    steps = np.linspace(0.0, 1.0, BOX_CELLS + 1)
-    tris, normals = [], []
-    for axis in range(3):
-        u, v = (axis + 1) % 3, (axis + 2) % 3
-        for side, level in ((-1.0, lower[axis]), (1.0, upper[axis])):
-            a, b = np.meshgrid(lower[u] + steps * (upper[u] - lower[u]), lower[v] + steps * (upper[v] - lower[v]),
-                               indexing="ij")
-            grid = np.zeros(a.shape + (3,))
-            grid[..., axis], grid[..., u], grid[..., v] = level, a, b
-            quads = np.stack([grid[:-1, :-1], grid[1:, :-1], grid[1:, 1:], grid[:-1, 1:]], axis=2).reshape(-1, 4, 3)
-            tris.append(np.concatenate([quads[:, [0, 1, 2]], quads[:, [0, 2, 3]]]))
-            normal = np.zeros(3)
-            normal[axis] = side
-            normals.append(np.tile(normal, (len(tris[-1]), 1)))
-    return np.concatenate(tris), np.concatenate(normals)
 
 
 def to_palette(image):

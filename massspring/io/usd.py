@@ -9,11 +9,11 @@ The stage (Z up, 1 m per unit) holds, under its default prim ``/World``:
   each. ``points`` (m) and ``velocities`` (m/s) are time-sampled at every frame, with
   the ``extent``; USD stores them as float32, so they equal the float64 state to a
   relative 6e-8.
-* ``/World/Colliders/<kind>_<k>``: each collider as a ``UsdGeom`` shape: a plane as a
-  ``Plane`` (its solid side is behind its normal, drawn ``PLANE_SIZE`` times the body's
-  size across), a sphere as a ``Sphere``, a box as a ``Cube`` scaled to its sides (its
-  rounded edges are not drawn); a moving collider's ``xformOp:translate`` is
-  time-sampled with the frames.
+* ``/World/Colliders/<kind>_<k>``: each collider as the ``UsdGeom`` shape of its
+  ``usd_shape``: a plane as a ``Plane`` (its solid side is behind its normal, drawn
+  ``PLANE_SIZE`` times the body's size across), a sphere as a ``Sphere``, a box as a
+  ``Cube`` scaled to its sides (its rounded edges are not drawn); a moving collider's
+  ``xformOp:translate`` (to its ``origin``) is time-sampled with the frames.
 
 Time codes are steps and ``timeCodesPerSecond`` is 1 / dt, so a viewer plays the
 simulated time in real time; the start and end time codes are the first and last
@@ -65,12 +65,11 @@ class StageWriter:
             self.springs.CreateCurveVertexCountsAttr(_integers(np.full(model.n_springs, 2)))
         extent = np.ptp(model.positions, axis=0)
         size = PLANE_SIZE * max(float(np.linalg.norm(extent)), 1e-3)
-        self.colliders = []  # (collider, its prim's translate op, where it is translated to)
+        self.colliders = []  # (collider, its prim's translate op)
         for k, collider in enumerate(model.colliders):
-            make, where = _COLLIDER_PRIMS[collider.kind]
-            translate = make(stage, f"/World/Colliders/{collider.kind}_{k}", collider, size)
-            translate.Set(Gf.Vec3d(*where(collider)))
-            self.colliders.append((collider, translate, where))
+            translate = collider.usd_shape(stage, f"/World/Colliders/{collider.kind}_{k}", size)
+            translate.Set(Gf.Vec3d(*collider.origin()))
+            self.colliders.append((collider, translate))
 
     def add(self, sim):
         """Sample ``sim``'s current state at the time code of its step."""
@@ -83,9 +82,9 @@ class StageWriter:
         self.body.CreateExtentAttr().Set(Vt.Vec3fArray([Gf.Vec3f(*x.min(axis=0)), Gf.Vec3f(*x.max(axis=0))]), time)
         if self.springs is not None:
             self.springs.GetPointsAttr().Set(_vectors(x[self.model.springs].reshape(-1, 3)), time)
-        for collider, translate, where in self.colliders:
+        for collider, translate in self.colliders:
             if collider.moving:
-                translate.Set(Gf.Vec3d(*where(collider.at(sim.time))), time)
+                translate.Set(Gf.Vec3d(*collider.at(sim.time).origin()), time)
         self.steps.append(sim.steps)
 
     def save(self):
@@ -119,41 +118,3 @@ def _integers(array):
 
     return Vt.IntArray.FromNumpy(np.ascontiguousarray(array, dtype=np.int32))
 
-
-def _plane(stage, path, plane, size):
-    from pxr import Gf, UsdGeom
-
-    prim = UsdGeom.Plane.Define(stage, path)
-    prim.CreateAxisAttr(UsdGeom.Tokens.z)
-    prim.CreateWidthAttr(size)
-    prim.CreateLengthAttr(size)
-    prim.CreateDoubleSidedAttr(True)
-    translate = prim.AddTranslateOp()
-    turn = Gf.Rotation(Gf.Vec3d(0.0, 0.0, 1.0), Gf.Vec3d(*plane.normal))  # +z to the normal
-    prim.AddOrientOp().Set(Gf.Quatf(turn.GetQuat()))
-    return translate
-
-
-def _sphere(stage, path, sphere, size):
-    from pxr import Gf, UsdGeom
-
-    prim = UsdGeom.Sphere.Define(stage, path)
-    prim.CreateRadiusAttr(sphere.radius)
-    prim.CreateExtentAttr([Gf.Vec3f(-sphere.radius), Gf.Vec3f(sphere.radius)])
-    return prim.AddTranslateOp()
-
-
-def _box(stage, path, box, size):
-    from pxr import Gf, UsdGeom
-
-    prim = UsdGeom.Cube.Define(stage, path)
-    prim.CreateSizeAttr(1.0)
-    translate = prim.AddTranslateOp()
-    prim.AddScaleOp().Set(Gf.Vec3f(*(np.asarray(box.upper) - np.asarray(box.lower))))
-    return translate
-
-
-# collider kind -> (make: (stage, prim path, collider, plane size) -> the prim's translate op,
-#                   where: collider -> its translation, m)
-_COLLIDER_PRIMS = {"plane": (_plane, lambda c: c.point), "sphere": (_sphere, lambda c: c.center),
-                   "box": (_box, lambda c: (np.asarray(c.lower) + np.asarray(c.upper)) / 2)}
