@@ -129,19 +129,25 @@ def test_stale_temporary_file_of_a_killed_run_is_cleaned(tmp_path, capsys):
 
 
 def test_sigterm_is_handled_like_ctrl_c(tmp_path):
-    out, gif = tmp_path / "state.npz", tmp_path / "run.gif"
+    """SIGTERM once the run has made 100 steps (its exported frame of step 100 is on
+    disk): exit 143, no traceback, and the state file holds the state reached, at least
+    those 100 steps, with the GIF of the frames recorded so far."""
+    out, gif, frames = tmp_path / "state.npz", tmp_path / "run.gif", tmp_path / "frames"
     proc = subprocess.Popen([sys.executable, "-m", "massspring", "run", "cloth", "--steps", "100000", "--quiet",
-                             "--out", str(out), "--gif", str(gif), "--every", "50"],
+                             "--out", str(out), "--gif", str(gif), "--every", "50", "--export", str(frames)],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    time.sleep(6.0)  # past start-up (a few seconds): 100000 implicit steps take minutes
-    assert proc.poll() is None
+    deadline = time.monotonic() + 120
+    while time.monotonic() < deadline and not list(frames.glob("frame_*100.obj")) and proc.poll() is None:
+        time.sleep(0.05)
+    assert proc.poll() is None, "the run ended before it was signalled"
     proc.send_signal(signal.SIGTERM)
     stdout, stderr = proc.communicate(timeout=300)
     assert proc.returncode == 128 + signal.SIGTERM, stderr
     assert "terminated after" in stderr and "Traceback" not in stderr
     data = np.load(out)
-    assert 0 <= int(data["steps"]) < 100000 and np.all(np.isfinite(data["positions"]))
-    assert "steps       " in stdout  # the summary of the state reached
+    assert 100 <= int(data["steps"]) < 100000 and np.all(np.isfinite(data["positions"]))
+    assert f"steps       {int(data['steps'])} " in stdout  # the summary of the state reached
+    assert gif.is_file()
 
 
 def test_misspelt_option_prints_the_verbs_usage(capsys):
