@@ -22,7 +22,7 @@ import numpy as np
 
 from massspring import progress, validate
 from massspring.defaults import MAX_STEPS, PRECISIONS
-from massspring.text import format_seconds
+from massspring.text import clipped, format_seconds
 
 EXIT_OK, EXIT_OUTPUT, EXIT_USAGE, EXIT_DIVERGED, EXIT_INTERRUPTED = 0, 1, 2, 3, 130
 
@@ -39,13 +39,20 @@ class Terminated(KeyboardInterrupt):
         self.signum = signum
 
 
+class Parser(argparse.ArgumentParser):
+    """argparse's parser, its error messages ``clipped`` (a 100 KB argument is not echoed whole)."""
+
+    def error(self, message):
+        super().error(clipped(message))
+
+
 def build_parser():
     from massspring import __version__
     from massspring.integrators import INTEGRATORS
 
-    parser = argparse.ArgumentParser(prog="massspring", description=__doc__.splitlines()[0])
+    parser = Parser(prog="massspring", description=__doc__.splitlines()[0])
     parser.add_argument("--version", action="version", version=f"massspring {__version__}")
-    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND", parser_class=Parser)
     verbs = {}
 
     run = verbs["run"] = sub.add_parser("run", help="run a scene and print a summary")
@@ -775,7 +782,11 @@ def cmd_stability(args):
     model, positions = scene.model(), None
     if args.at > 0:
         settle = scene.simulation("implicit", **options)
-        settle.step(max(1, int(round(args.at / settle.dt))))
+        steps = args.at / settle.dt
+        if not steps <= MAX_STEPS:
+            raise UsageError(f"--at: {args.at:g} s at the implicit dt {format_seconds(settle.dt)} is {steps:.3g} steps, "
+                             f"more than {MAX_STEPS:.3g}")
+        settle.step(max(1, round(steps)))
         positions = settle.positions
         settle.close()
     prediction = stability.predict(model, positions)
@@ -849,6 +860,8 @@ def cmd_sweep(args):
         for name in ("dt", "duration"):
             if getattr(args, name) is not None:
                 validate.positive_float(f"--{name}", getattr(args, name))
+        if args.duration is not None:
+            sweep.check_duration(scene, cases, args.duration, args.integrator, args.dt, "--duration")
         if args.steps is not None and not 1 <= args.steps <= MAX_STEPS:
             raise ValueError(f"--steps: must be within 1..{MAX_STEPS}, got {args.steps}")
         check_writable(args.out, "--out", (".csv",))
@@ -930,7 +943,7 @@ def main(argv=None):
     try:
         return COMMANDS[args.command](args)
     except ValueError as exc:  # SceneError, UsageError and Model/Simulation validation
-        print(f"massspring: error: {exc}", file=sys.stderr)
+        print(f"massspring: error: {clipped(str(exc))}", file=sys.stderr)
         return EXIT_USAGE
     except Terminated as exc:  # SIGTERM outside a run (e.g. while loading)
         return 128 + exc.signum

@@ -26,9 +26,11 @@ a fixed number); values (numpy) fill it at allocation, padded with zeros.
 
 import contextlib
 import io
+import os
 import re
 import subprocess
 import sys
+import tempfile
 from collections import OrderedDict
 from dataclasses import dataclass
 
@@ -63,9 +65,17 @@ def ensure_taichi(arch="cpu", name="arch"):
     if impl.get_runtime().prog is None:
         if arch not in CPU_ARCHS:
             _probe(arch, name)
-        with contextlib.redirect_stdout(io.StringIO()):  # "[Taichi] Starting on arch=..."
-            ti.init(arch=getattr(ti, "cpu" if arch == "cpu" else arch), default_fp=ti.f64,
-                    log_level=ti.ERROR if arch not in CPU_ARCHS else ti.WARN)
+        with tempfile.TemporaryFile() as log:
+            try:
+                with contextlib.redirect_stdout(io.StringIO()), _stderr_to(log):  # "[Taichi] Starting on ..."
+                    ti.init(arch=getattr(ti, "cpu" if arch == "cpu" else arch), default_fp=ti.f64,
+                            log_level=ti.ERROR if arch not in CPU_ARCHS else ti.WARN)
+            except RuntimeError as exc:  # e.g. its memory pool under a low ulimit -v; its own log line dropped
+                reason = str(exc).split("] ", 1)[-1].strip()
+                raise ValueError(f"{name}: Taichi could not start on {arch!r}: {reason} (it reserves about "
+                                 f"{memory.TAICHI_RESERVE / 1e9:.1f} GB of address space; see ulimit -v)") from None
+            log.seek(0)
+            sys.stderr.write(log.read().decode(errors="replace"))  # a start's warnings, as they were
     current = impl.current_cfg().arch
     if arch in CPU_ARCHS:
         accepted = (ti.x64, ti.arm64) if arch == "cpu" else (getattr(ti, arch),)
@@ -73,6 +83,19 @@ def ensure_taichi(arch="cpu", name="arch"):
         accepted = tuple(ti.gpu) if arch == "gpu" else (getattr(ti, arch),)
     if current not in accepted:
         raise ValueError(f"{name}: Taichi already runs on {current.name} in this process; cannot switch to {arch!r}")
+
+
+@contextlib.contextmanager
+def _stderr_to(file):
+    """File descriptor 2 (where Taichi's C++ logs) into ``file`` for the block."""
+    sys.stderr.flush()
+    saved = os.dup(2)
+    os.dup2(file.fileno(), 2)
+    try:
+        yield
+    finally:
+        os.dup2(saved, 2)
+        os.close(saved)
 
 
 def _probe(arch, name):

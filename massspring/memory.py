@@ -18,6 +18,7 @@ scenes; its JSON holds the figures) and applied with ``MARGIN``.
 
 from __future__ import annotations
 
+import math
 import resource
 from pathlib import Path
 
@@ -47,12 +48,21 @@ def run_bytes(particles, springs, solver=None, model_built=False, extra=0) -> fl
     per_particle += extra
     if model_built:
         per_particle, per_spring = per_particle - BUILD_BYTES[0], per_spring - BUILD_BYTES[1]
-    return MARGIN * (per_particle * particles + per_spring * springs) + FIXED
+    return _total(per_particle, particles, per_spring, springs) + FIXED
 
 
 def build_bytes(particles, springs) -> float:
     """Bytes that building a Model of ``particles`` and ``springs`` may take at its peak."""
-    return MARGIN * (BUILD_BYTES[0] * particles + BUILD_BYTES[1] * springs)
+    return _total(BUILD_BYTES[0], particles, BUILD_BYTES[1], springs)
+
+
+def _total(per_particle, particles, per_spring, springs) -> float:
+    """MARGIN x the bytes of ``particles`` and ``springs``; inf for counts beyond a float
+    (a size key of hundreds of digits)."""
+    try:
+        return MARGIN * (per_particle * float(particles) + per_spring * float(springs))
+    except OverflowError:
+        return math.inf
 
 
 def available() -> tuple[float | None, str]:
@@ -70,7 +80,8 @@ def check(need, what):
     not fit in ``available()``."""
     room, name = available()
     if room is not None and need > room:
-        raise MemoryNeedError(f"{what} needs about {need / 1e9:.3g} GB; {max(room, 0) / 1e9:.3g} GB {name}")
+        amount = f"about {need / 1e9:.3g} GB" if math.isfinite(need) else "more bytes than a float can count"
+        raise MemoryNeedError(f"{what} needs {amount}; {max(room, 0) / 1e9:.3g} GB {name}")
 
 
 def _read(path):

@@ -19,7 +19,7 @@ import numpy as np
 
 from massspring import mesh
 from massspring.defaults import GRAVITY
-from massspring.colliders import MAX_COLLIDERS, Collider
+from massspring.colliders import COLLIDERS, MAX_COLLIDERS, Collider
 from massspring.self_collision import SelfCollision
 from massspring.text import brief
 from massspring.validate import MAX_MAGNITUDE, real_array, real_number  # noqa: F401 (MAX_MAGNITUDE: documented here)
@@ -77,7 +77,7 @@ class Model:
     triangles : None or (t, 3) int
         Surface triangles (particle indices) for drawing, and for self-collision
         when it is on (otherwise the physics never reads them). Empty when None.
-    colliders : sequence of ``massspring.Plane``, ``Sphere``, ``Box``
+    colliders : sequence of colliders (``massspring.colliders.COLLIDERS``: ``Plane``, ``Sphere``, ``Box``)
         Obstacles the particles cannot enter (at most 31); stored as a tuple.
     drag : float, N s/m, >= 0
         Linear air drag on every particle: f_i = -drag (v_i - wind).
@@ -334,14 +334,14 @@ def _self_collision(value, triangles):
 
 
 def _colliders(colliders):
+    kinds = " or ".join(cls.__name__ for cls in COLLIDERS.values())
     try:
         items = tuple(colliders)
     except TypeError:
-        raise ValueError(f"colliders: expected a sequence of Plane, Sphere or Box, got {brief(colliders)}") \
-            from None
+        raise ValueError(f"colliders: expected a sequence of {kinds}, got {brief(colliders)}") from None
     for k, item in enumerate(items):
         if not isinstance(item, Collider):
-            raise ValueError(f"colliders: item {k} is not a Plane, Sphere or Box: {brief(item)}")
+            raise ValueError(f"colliders: item {k} is not a {kinds}: {brief(item)}")
     if len(items) > MAX_COLLIDERS:
         raise ValueError(f"colliders: at most {MAX_COLLIDERS}, got {len(items)}")
     return items

@@ -224,3 +224,67 @@ def test_derived_counts_that_overflow_are_refused(tmp_path, capsys):
     one_line_error(capsys, "duration", "steps")
     assert main(["stability", "spring", "--run-duration", "1e308", "--max-steps", "3", "--predict-only",
                  "--out", str(tmp_path / "stab")]) == 0
+
+
+@pytest.mark.parametrize("argv, words", [
+    (["run", "cloth", "--set", "resolution=" + "1" + "0" * 200, "--steps", "1"], ["resolution", "401-digit"]),
+    (["info", "chain", "--set", "count=" + "9" * 400], ["count", "400-digit"]),
+    (["run", "a" * 300, "--steps", "1"], ["scene:", "(302 characters)", "File name too long"]),
+    (["stability", "spring", "--at", "1e308", "--predict-only"], ["--at", "inf steps"]),
+    (["stability", "spring", "--at", "1e20", "--predict-only"], ["--at", "1e+22 steps"]),
+    (["sweep", "spring", "--duration", "1e308", "--vary", "stiffness=1,2", "--yes"], ["--duration", "case 1"]),
+    (["run", "spring", "--size", "x" * 100_000, "--png", "a.png"], ["--size", "characters"]),
+    (["run", "spring", "--integrator", "x" * 100_000], ["--integrator", "characters"]),
+])
+def test_oversized_inputs_are_one_short_line(argv, words, tmp_path, monkeypatch, capsys):
+    """Sizes beyond any float, names longer than a file system takes, durations of more
+    steps than a run may have and 100 KB arguments: exit 2 before any step, on one line
+    of at most about 1,000 characters naming the input."""
+    monkeypatch.chdir(tmp_path)
+    if argv[0] == "sweep":
+        argv = argv + ["--out", str(tmp_path / "s.csv")]
+    try:
+        code = main(argv)
+        err = one_line_error(capsys, *words)
+    except SystemExit as exc:  # argparse's own errors: its usage, then one line
+        code = exc.code
+        err = capsys.readouterr().err
+        assert "Traceback" not in err and all(word in err.splitlines()[-1] for word in words), err
+        err = err.splitlines()[-1]
+    assert code == 2 and len(err) <= 1100
+    assert not (tmp_path / "s.csv").exists()
+
+
+def test_a_nul_byte_in_a_message_is_escaped(tmp_path, capsys):
+    scene = tmp_path / "nul.toml"
+    scene.write_text('integrator = "implicit"\nduration = 1.0\n[model]\nmesh = "a\\u0000b.obj"\n')
+    assert main(["run", str(scene)]) == 2
+    err = one_line_error(capsys, "model.mesh", "a\\x00b.obj")
+    assert "\x00" not in err
+
+
+def test_a_scene_file_beyond_the_size_limit_is_not_read(tmp_path, capsys):
+    from massspring.scene.spec import MAX_SCENE_BYTES
+
+    scene = tmp_path / "big.toml"
+    with open(scene, "wb") as fh:
+        fh.write(b'integrator = "implicit"\nduration = 1.0\n# ' + b"x" * MAX_SCENE_BYTES + b"\n")
+    assert main(["run", str(scene)]) == 2
+    one_line_error(capsys, "big.toml", "more than 64 MB")
+
+
+def test_taichi_that_cannot_start_is_a_clear_error():
+    """Under an address-space limit too small for Taichi's memory pool (about 1.6 GB
+    reserved), starting it fails: exit 2 naming --arch, not Taichi's RuntimeError. On a
+    machine where the run fits it exits 0; never a traceback."""
+    import resource
+
+    def limit():
+        resource.setrlimit(resource.RLIMIT_AS, (1_600_000_000, 1_600_000_000))
+
+    proc = subprocess.run([sys.executable, "-m", "massspring", "run", "spring", "--steps", "1", "--quiet"],
+                          capture_output=True, text=True, timeout=300, preexec_fn=limit)
+    assert "Traceback" not in proc.stderr, proc.stderr
+    assert proc.returncode in (0, 2), proc.stderr
+    if proc.returncode == 2:
+        assert proc.stderr.startswith("massspring: error: ") and proc.stderr.count("\n") == 1, proc.stderr

@@ -141,6 +141,22 @@ def plan(scene, vary, integrator=None, confirm=False, limit=MAX_CASES, option="v
     return [Case(n, tuple(zip(keys, combo))) for n, combo in enumerate(itertools.product(*vary.values()), start=1)]
 
 
+def check_duration(scene, cases, duration, integrator=None, dt=None, option="duration"):
+    """Refuse (ValueError naming ``option``) a ``duration`` (s) that is more than
+    MAX_STEPS steps of some case's dt (the varied one, else ``dt``, else the scene's
+    default for the case's integrator)."""
+    from massspring.defaults import MAX_STEPS
+
+    for case in cases:
+        values = dict(case.values)
+        step = values.get("dt", dt)
+        if step is None:
+            step = scene.default_dt(values.get("integrator", integrator) or scene.integrator)
+        if not duration / step <= MAX_STEPS:
+            raise ValueError(f"{option}: {duration:g} s at dt = {step:.3g} s (case {case.number}) is "
+                             f"{duration / step:.3g} steps, more than {MAX_STEPS:.3g}")
+
+
 def run_case(scene, case, integrator=None, dt=None, duration=None, steps=None, options=None, keep_state=False):
     """Run one case to its end and measure it; never raises for the run's own failure.
 
@@ -266,6 +282,8 @@ def sweep(scene, vary, *, integrator=None, dt=None, duration=None, steps=None, o
         duration = validate.positive_float("duration", duration)
     if dt is not None:
         dt = validate.positive_float("dt", dt)
+    if duration is not None:
+        check_duration(scene, cases, duration, integrator, dt)
     if states is not None:
         states = Path(states)
         if not states.is_dir():

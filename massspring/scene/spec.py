@@ -85,6 +85,7 @@ class SceneError(ValueError):
 
 
 MAX_FLOAT = sys.float_info.max
+MAX_SCENE_BYTES = 64 * 2**20  # a scene file's size limit (a hand-made [particles] table of about a million rows)
 SIZE_KEYS = {"chain": ("count",), "grid": ("resolution",), "lattice": ("resolution",)}
 TOP_KEYS = {"description": str, "integrator": str, "duration": float, "dt": dict, "model": dict,
             "solver": dict, "view": dict, "particles": dict, "springs": dict, "collider": list, "pin": list,
@@ -213,8 +214,8 @@ class Scene:
         elif self.form == "particles":
             size = f"{particles:,} particles and {springs:,} springs"
         else:
-            size = ", ".join(f"{k} = {self.params[k]}" for k in SIZE_KEYS.get(self.generator, ()))
-            size = f"{size} gives {particles:,} particles and {springs:,} springs"
+            keys = ", ".join(f"{k} = {brief(self.params[k])}" for k in SIZE_KEYS.get(self.generator, ()))
+            size = f"{keys or 'the ' + self.generator} gives {_count(particles)} particles and {_count(springs)} springs"
         try:
             memory.check(need, f"model: {size}; {what}")
         except memory.MemoryNeedError as exc:
@@ -305,6 +306,12 @@ class Scene:
         return Simulation(self.model(), integrator=integrator, dt=dt, **options)
 
 
+def _count(n) -> str:
+    """``n`` with thousands separators, or its number of digits when that is long."""
+    text = f"{n:,}"
+    return text if len(text) <= 40 else f"a {len(str(n))}-digit number of"
+
+
 def setting_items(items, option, form):
     """(key, text) of each ``KEY=TEXT`` string of ``option`` (``form``: how to write one),
     checked: a key, an equals sign, each key once, one line."""
@@ -337,14 +344,24 @@ def load_scene(name_or_path) -> Scene:
     path = scenes.get(str(name_or_path))
     if path is None:
         path = Path(name_or_path)
-        if not path.is_file():
-            raise SceneError(f"scene: {str(name_or_path)!r} is neither a built-in scene "
+        try:
+            is_file = path.is_file()
+        except (OSError, ValueError) as exc:  # a name longer than the file system takes, a NUL byte
+            raise SceneError(f"scene: {brief(str(name_or_path))} is neither a built-in scene nor a readable "
+                             f"path ({getattr(exc, 'strerror', None) or exc})") from None
+        if not is_file:
+            raise SceneError(f"scene: {brief(str(name_or_path))} is neither a built-in scene "
                              f"({', '.join(sorted(scenes))}) nor a file")
     source = str(path)
     try:
-        data = tomllib.loads(path.read_text(encoding="utf-8"))
+        with open(path, "rb") as fh:
+            raw = fh.read(MAX_SCENE_BYTES + 1)
+        if len(raw) > MAX_SCENE_BYTES:
+            raise SceneError(f"{source}: more than {MAX_SCENE_BYTES // 2**20} MB, more than a scene file holds "
+                             "(put large meshes in an OBJ file: mesh = \"file.obj\")")
+        data = tomllib.loads(raw.decode("utf-8"))
     except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
-        raise SceneError(f"{source}: not valid TOML: {exc}") from None
+        raise SceneError(f"{source}: not valid TOML: {brief(str(exc), 200)}") from None
     except OSError as exc:
         raise SceneError(f"{source}: cannot be read: {exc.strerror}") from None
     return parse_scene(data, name=path.stem, source=source)
