@@ -1,0 +1,189 @@
+"""Where a multigrid-preconditioned implicit step spends its time, level by level.
+
+For the cloth (``--resolutions``, ks ``--stiffness``, dt 1/60, f64) this runs a few
+implicit steps with ``preconditioner="multigrid"`` and times every kernel launch of
+the preconditioner (``massspring.solvers.multigrid`` drives the cycle and the setup
+level by level from Python; a CPU launch returns when its kernel is done, so wall
+time around each launch is its cost). Each launch is charged to the level whose
+unknowns it works on: level 0 is the particles (matrix-free), level l >= 1 the
+aggregates of level l - 1 (6 unknowns each, 6x6 blocks); the restriction to level
+l counts at level l, the coarsest solve at the last level.
+
+Printed per level, for the cycle (per CG iteration) and for the setup (per step):
+unknowns, stored operator blocks and their bytes (level 0: the per-entry spring
+coefficients it reads instead), visits per cycle (the W-cycle visits each level
+twice per visit of its parent, but the last level once), ms, and
+that time in units of one fine-level matrix-free product, measured in the same
+run as one block-Jacobi CG iteration of the same cloth (its product plus vector
+updates: the unit issue 22 counts in).
+
+    python benchmarks/multigrid_levels.py
+    python benchmarks/multigrid_levels.py --resolutions 128 256 --steps 4
+"""
+
+import argparse
+import collections
+import statistics
+import sys
+import time
+
+import massspring as ms
+from massspring.device import ensure_taichi
+from massspring.io.files import write_json
+from massspring.solvers import multigrid
+import output
+from roofline import cg_seconds_per_iteration
+
+
+def parse_args(argv=None):
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--resolutions", type=int, nargs="+", default=[128, 256])
+    p.add_argument("--stiffness", type=float, default=1e4)
+    p.add_argument("--steps", type=int, default=3, help="timed steps per resolution (after one untimed)")
+    p.add_argument("--repeats", type=int, default=3, help="repeats of the block-Jacobi unit measurement")
+    output.add_json(p, "multigrid_levels")
+    return p.parse_args(argv)
+
+
+class Timer:
+    """Stands in for ``kernels/multigrid.py`` inside ``solvers/multigrid.py``: every
+    kernel call is timed and charged to (phase, level, kernel)."""
+
+    def __init__(self, module, plan):
+        self.module, self.plan = module, plan
+        self.phase = "cycle"
+        self.level_stack = [0]
+        self.seconds = collections.defaultdict(float)
+        self.calls = collections.Counter()
+        last = plan.levels - 1
+        self.ranges = {}
+        for table in ("node_range", "gal_range", "lower_range"):
+            for level, pair in getattr(plan, table, {}).items():
+                self.ranges.setdefault((table, tuple(pair)), level)
+        self.last = last
+
+    def level_of(self, name, args):
+        if name in ("factor_coarsest", "solve_coarsest"):
+            return self.last
+        if name.endswith("0") or name == "fine_inverse":
+            return 0
+        table = {"galerkinc": "gal_range", "mirror": "lower_range"}.get(name, "node_range")
+        ints = [a for a in args if isinstance(a, int) and not isinstance(a, bool)]
+        for a, b in zip(ints, ints[1:]):
+            if (table, (a, b)) in self.ranges:
+                return self.ranges[(table, (a, b))]
+        return self.level_stack[-1]
+
+    def __getattr__(self, name):
+        kernel = getattr(self.module, name)
+        if not callable(kernel):
+            return kernel
+
+        def timed(*args, **kwargs):
+            start = time.perf_counter()
+            result = kernel(*args, **kwargs)
+            key = (self.phase, self.level_of(name, args), name)
+            self.seconds[key] += time.perf_counter() - start
+            self.calls[key] += 1
+            return result
+        return timed
+
+
+def level_table(pre):
+    """Per level: unknowns, stored blocks and bytes of its operator."""
+    levels = pre.hierarchy.levels
+    rows = []
+    for l, level in enumerate(levels):
+        blocks = level.n + len(level.off_cols)
+        block_bytes = 8 * level.bs * level.bs
+        rows.append({"level": l, "nodes": level.n, "unknowns": level.n * level.bs, "blocks": blocks,
+                     "operator_mb": (blocks * block_bytes if l else len(level.off_cols) * (4 + 5 * 8)) / 1e6})
+    return rows
+
+
+def measure(resolution, stiffness, steps, repeats):
+    scene = ms.load_scene("cloth").with_params(resolution=resolution, stiffness=stiffness)
+    sim = scene.simulation(integrator="implicit", dt=1 / 60, preconditioner="multigrid")
+    pre = sim._integrator.preconditioner
+    sim.step(1)  # compile everything
+    timer = Timer(multigrid.mg, pre.plan)
+    original_setup, original_coarse = pre.setup, pre._coarse
+
+    def setup(dt):
+        timer.phase = "setup"
+        try:
+            return original_setup(dt)
+        finally:
+            timer.phase = "cycle"
+
+    def coarse(level, first):
+        timer.level_stack.append(level)
+        try:
+            return original_coarse(level, first)
+        finally:
+            timer.level_stack.pop()
+
+    pre.setup, pre._coarse = setup, coarse
+    multigrid.mg = timer
+    walls, iterations, setups = [], [], []
+    try:
+        for _ in range(steps):
+            start = time.perf_counter()
+            sim.step(1)
+            walls.append(time.perf_counter() - start)
+            iterations.append(sim.solver_stats.iterations)
+            setups.append(sim.solver_stats.setup_s)
+    finally:
+        multigrid.mg = timer.module
+    loops = sim.loops
+    sim.close()
+    unit = cg_seconds_per_iteration(scene, loops, 10, repeats, "f64")
+    cycles = sum(iterations) + steps  # the CG's first z = B r, then one per iteration
+    rows = level_table(pre)
+    for row in rows:
+        l = row["level"]
+        for phase, per in (("cycle", cycles), ("setup", steps)):
+            seconds = sum(t for (p, level, _), t in timer.seconds.items() if p == phase and level == l)
+            row[f"{phase}_ms"] = 1e3 * seconds / per
+            row[f"{phase}_in_products"] = seconds / per / unit
+        visits = sum(c / 2 if name.startswith("cheb_start") else c for (p, level, name), c in timer.calls.items()
+                     if p == "cycle" and level == l and name in ("cheb_start0", "cheb_startc", "solve_coarsest"))
+        row["visits_per_cycle"] = visits / cycles  # a smoothing level smooths twice per visit
+    kernels = {f"{p}/{level}/{name}": 1e3 * t / (cycles if p == "cycle" else steps)
+               for (p, level, name), t in sorted(timer.seconds.items())}
+    return {"resolution": resolution, "particles": sim.model.n_particles, "springs": sim.model.n_springs,
+            "loops": loops, "step_ms": 1e3 * statistics.median(walls), "iterations": iterations,
+            "setup_ms": 1e3 * statistics.median(setups), "unit_ms": 1e3 * unit,
+            "cycle_ms": sum(r["cycle_ms"] for r in rows), "setup_kernels_ms": sum(r["setup_ms"] for r in rows),
+            "levels": rows, "kernels_ms": kernels}
+
+
+def main(argv=None):
+    args = parse_args(argv)
+    ensure_taichi()
+    results = []
+    for resolution in args.resolutions:
+        r = measure(resolution, args.stiffness, args.steps, args.repeats)
+        results.append(r)
+        print(f"\ncloth {resolution}^2 ({r['particles']:,} particles, {r['springs']:,} springs, ks "
+              f"{args.stiffness:g}, {r['loops']} loops): step {r['step_ms']:.1f} ms (median), CG iterations "
+              f"{r['iterations']}, setup {r['setup_ms']:.1f} ms; one block-Jacobi CG iteration "
+              f"(the unit) {r['unit_ms']:.3f} ms")
+        print(f"{'level':>5s} {'unknowns':>9s} {'blocks':>9s} {'MB':>7s} {'visits':>6s} {'cycle ms':>9s} "
+              f"{'products':>8s} {'setup ms':>9s} {'products':>8s}")
+        for row in r["levels"]:
+            print(f"{row['level']:5d} {row['unknowns']:9,d} {row['blocks']:9,d} {row['operator_mb']:7.2f} "
+                  f"{row['visits_per_cycle']:6.0f} {row['cycle_ms']:9.3f} {row['cycle_in_products']:8.1f} "
+                  f"{row['setup_ms']:9.3f} {row['setup_in_products']:8.1f}")
+        print(f"{'all':>5s} {'':>9s} {'':>9s} {'':>7s} {'':>6s} {r['cycle_ms']:9.3f} "
+              f"{r['cycle_ms'] / r['unit_ms']:8.1f} {r['setup_kernels_ms']:9.3f} "
+              f"{r['setup_kernels_ms'] / r['unit_ms']:8.1f}")
+        step_units = r["step_ms"] / r["unit_ms"]
+        print(f"the step costs {step_units:.0f} block-Jacobi CG iterations (issue 22's target: at most 100)")
+    write_json(args.json, {"stiffness": args.stiffness, "dt": 1 / 60, "precision": "f64", "results": results})
+    print(f"wrote {args.json}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

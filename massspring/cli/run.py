@@ -1,0 +1,239 @@
+"""``massspring run``: a scene from start (or a restart) to its end, its summary and its outputs."""
+
+from __future__ import annotations
+
+import math
+import signal
+import sys
+import time
+
+import numpy as np
+
+from massspring import progress
+from massspring.defaults import MAX_STEPS
+from massspring.text import format_seconds
+from massspring.cli.common import (
+    EXIT_DIVERGED, EXIT_INTERRUPTED, EXIT_OK, EXIT_OUTPUT, Terminated, UsageError, main_thread, make_simulation)
+from massspring.cli.pictures import finish_export, finish_pictures, plan_export, plan_frames, plan_pictures
+
+
+def run_steps(args, scene, sim, start_steps=0):
+    """The number of steps of ``run``, checked: --steps, or --duration / dt; neither:
+    what is left of the scene's duration after ``start_steps`` (a restart's)."""
+    if args.steps is not None:
+        if not 0 <= args.steps <= MAX_STEPS:
+            raise UsageError(f"--steps: must be within 0..{MAX_STEPS}, got {args.steps}")
+        return args.steps
+    duration = scene.duration if args.duration is None else args.duration
+    if not (math.isfinite(duration) and duration > 0):
+        raise UsageError(f"--duration: must be a finite number > 0, got {duration:g}")
+    steps = duration / sim.dt
+    if not steps <= MAX_STEPS:  # also an infinite quotient
+        raise UsageError(f"--duration: {duration:g} s at dt = {format_seconds(sim.dt)} is {steps:.3g} steps, "
+                         f"more than {MAX_STEPS:.3g}")
+    if args.duration is None:
+        return max(0, max(1, round(steps)) - start_steps)
+    if steps < 1:
+        raise UsageError(f"--duration: {duration:g} s is shorter than one step (dt = {format_seconds(sim.dt)}); "
+                         "give a longer --duration, a smaller --dt or --steps")
+    return round(steps)
+
+
+def cmd_run(args):
+    from massspring.errors import DivergenceError
+    from massspring.io.files import check_writable
+    from massspring.simulation import run
+
+    scene, sim = make_simulation(args)
+    start_steps = restart(args, scene, sim)
+    steps = run_steps(args, scene, sim, start_steps)
+    if args.out is not None:
+        check_writable(args.out, "--out", (".npz",))
+    frames = plan_frames(args, sim, steps)
+    pictures = plan_pictures(args, scene, sim, steps, frames)
+    export = plan_export(args, scene, sim, steps, frames)  # last: it creates the directory
+    callbacks = [c for c in (pictures.recording.record if pictures else None, export) if c is not None]
+
+    def on_frame(state):
+        for callback in callbacks:
+            callback(state)
+
+    energy0 = sim.energy()
+    start = time.perf_counter()
+    stopped, diverged = None, None
+    try:
+        label = f"run {scene.name} ({sim.integrator}, dt {format_seconds(sim.dt)})"
+        with progress.steps(label, steps, sim.dt, show=not args.quiet and steps > 1) as on_progress:
+            run(sim, steps, frames=frames if callbacks else (), on_frame=on_frame if callbacks else None,
+                progress=on_progress)
+    except KeyboardInterrupt as exc:  # Ctrl-C or SIGTERM: the simulation holds the state reached
+        stopped = exc
+    except DivergenceError as exc:  # the simulation holds the last good state
+        diverged = exc
+    wall = time.perf_counter() - start
+    with LateSignals() as late:  # from here a signal stops the rendering only, never a write
+        if pictures is not None and (diverged or stopped):
+            pictures.recording.record_last(sim)  # the picture ends on the last good state
+        failed = write_outputs(args, scene, sim, start_steps + steps, pictures, late.arrived)
+        if export is not None:
+            failed += finish_export(export, sim, start_steps + steps, diverged, stopped)
+        print_summary(scene, sim, wall, energy0, args.out if args.out and "--out" not in failed else None,
+                      start_steps)
+    done = sim.steps - start_steps
+    if diverged is not None:
+        print(f"massspring: {diverged}; {divergence_hint(sim, diverged)}", file=sys.stderr)
+        return EXIT_DIVERGED
+    if stopped is not None:
+        what = "terminated" if isinstance(stopped, Terminated) else "interrupted"
+        print(f"massspring: {what} after {done} of {steps} steps; the state reached so far "
+              f"{'was written' if args.out and '--out' not in failed else 'is above'}", file=sys.stderr)
+        return 128 + stopped.signum if isinstance(stopped, Terminated) else EXIT_INTERRUPTED
+    if late.signum is not None:  # the run had ended; a signal cut the pictures short
+        print(f"massspring: {'terminated' if late.signum == signal.SIGTERM else 'interrupted'} while writing the "
+              "outputs; what was written is listed above", file=sys.stderr)
+        return 128 + late.signum
+    return EXIT_OUTPUT if failed else EXIT_OK
+
+
+def restart(args, scene, sim):
+    """With --restart, put the saved state into ``sim`` after checking that it belongs to
+    this model and dt; returns the steps it had taken (0 without --restart)."""
+    from massspring.io.state import read_state
+
+    if args.restart is None:
+        return 0
+    try:
+        state = read_state(args.restart, sim.model, f"the model of scene {scene.name!r}")
+    except ValueError as exc:
+        raise UsageError(f"--restart: {exc}") from None
+    model, path = sim.model, args.restart
+    if state.fingerprint != model.fingerprint():
+        raise UsageError(f"--restart: {path} was saved from another model (scene {state.scene!r}, fingerprint "
+                         f"{state.fingerprint[:12]}) than this run's (scene {scene.name!r}, {model.fingerprint()[:12]}):"
+                         f" a different scene file or --set")
+    if state.dt != sim.dt:
+        raise UsageError(f"--restart: {path} was computed with dt = {state.dt!r} s and this run's dt is "
+                         f"{sim.dt!r} s; time is counted in steps of dt, so pass --dt {state.dt!r}")
+    try:
+        carried = state.carried if state.integrator == sim.integrator else None
+        sim.set_state(state.positions, state.velocities, state.steps, carried)
+    except ValueError as exc:
+        raise UsageError(f"--restart: {path}: {exc}") from None
+    return state.steps
+
+
+class LateSignals:
+    """While the outputs are written after a run: SIGINT and SIGTERM are recorded
+    (``signum``, the first) instead of raising, so no file write is cut short; the
+    rendering asks ``arrived()`` between frames and stops."""
+
+    def __init__(self):
+        self.signum, self.previous = None, {}
+
+    def _record(self, signum, frame):
+        self.signum = self.signum or signum
+
+    def arrived(self):
+        return self.signum is not None
+
+    def __enter__(self):
+        if main_thread():
+            for sig in (signal.SIGINT, signal.SIGTERM):
+                self.previous[sig] = signal.signal(sig, self._record)
+        return self
+
+    def __exit__(self, *exc):
+        for sig, handler in self.previous.items():
+            signal.signal(sig, handler)
+
+
+def write_outputs(args, scene, sim, end_step, pictures, stop=None):
+    """Write --out, then the pictures, each on its own: one failing does not stop the
+    others (``end_step``: the step the run was to reach; ``stop()``: true when the
+    rendering should end early). Returns the options whose output failed (each
+    reported on stderr)."""
+    from massspring.io.state import write_state
+
+    failed = []
+    if args.out:
+        try:
+            write_state(sim, args.out, scene.name)
+        except OSError as exc:
+            print(f"massspring: --out: could not write {args.out!r}: {exc.strerror or exc}", file=sys.stderr)
+            failed.append("--out")
+    if pictures is not None:
+        failed += finish_pictures(pictures, scene, sim, end_step, stop)
+    return failed
+
+
+def divergence_hint(sim, exc):
+    """What to try after a divergence, from the integrator and the stability estimate."""
+    from massspring.analysis.stability import predict
+    from massspring.integrators import INTEGRATORS
+
+    if INTEGRATORS[sim.integrator].linear_solver:
+        tips = ["a smaller --dt"]
+        if not sim.definiteness_fix:
+            tips.insert(0, "dropping --no-definiteness-fix")
+        return "try " + " or ".join(tips)
+    try:
+        prediction = predict(sim.model, sim.model.positions)
+    except (ValueError, ArithmeticError):
+        return "try a smaller --dt or --integrator implicit"
+
+    suggested = INTEGRATORS[sim.integrator].suggest_dt(prediction)
+    if suggested >= sim.dt:  # the estimate at the initial state did not hold for this run
+        return (f"try --dt {sim.dt / 4:.3g} (a quarter of this run's; the stability estimate for {sim.integrator} "
+                f"at the initial state, {suggested:.3g} s, did not hold as the state changed) or --integrator "
+                "implicit (no stability limit)")
+    if sim.integrator == "explicit" and not prediction.explicit_stable_dt > 0:
+        return (f"explicit Euler grows at every dt on this scene's undamped stiffest mode; --dt {suggested:.3g} "
+                "keeps that growth under 2x per simulated second, or try --integrator symplectic or implicit")
+    return (f"try --dt {suggested:.3g} (the stability estimate for {sim.integrator} at the initial state) "
+            "or --integrator implicit (no stability limit)")
+
+
+def print_summary(scene, sim, wall, energy0, out, start_steps=0):
+    info = sim.info()
+    energy1 = sim.energy()
+    done = sim.steps - start_steps
+    rate = done / wall if wall > 0 else float("inf")
+    print(f"scene       {scene.name} ({info['particles']} particles, {info['springs']} springs)")
+    print(f"integrator  {sim.integrator}, dt = {format_seconds(sim.dt)}, {sim.precision}")
+    if start_steps:
+        print(f"steps       {done} from the restart at step {start_steps} to step {sim.steps} (t = "
+              f"{start_steps * sim.dt:g} to {sim.time:g} s) in {wall:.2f} s wall, {rate:.1f} steps/s")
+    else:
+        print(f"steps       {sim.steps} ({sim.time:g} s simulated) in {wall:.2f} s wall, {rate:.1f} steps/s")
+    if sim.newton_iterations:
+        newton = np.array(sim.newton_iterations)
+        print(f"Newton      {newton.mean():.2f} iterations/step mean, {newton.max()} max, {sim.line_search_cuts} "
+              f"line-search cut(s), {sim.cg_failures} step(s) not converged (tol {sim.newton_tol:g})")
+    if sim.cg_iterations:
+        its = np.array(sim.cg_iterations)
+        failed = "" if sim.newton_iterations else f", {sim.cg_failures} step(s) not converged"
+        print(f"CG          {its.mean():.1f} iterations/step mean, {its.max()} max{failed} (tol {sim.cg_tol:g}, "
+              f"{sim.preconditioner})")
+        if sim.cg_failures and sim.precision == "f32":
+            print("note        f32 CG stalls where round-off stops the residual, 1e-5 to 1e-4 relative "
+                  "on a cloth at rest: use --cg-tol 1e-3 or --precision f64")
+        if sim.cg_failures and not sim.definiteness_fix:
+            print("note        CG stops when A is indefinite, as compressed springs make it without the "
+                  "definiteness fix: drop --no-definiteness-fix")
+    print("energy      " + format_energy(energy0, energy1))
+    print(f"compiled    terms: {', '.join(info['terms'])}; arrays: {', '.join(info['arrays'])} "
+          f"({info['loops']} loops)")
+    if out:
+        print(f"wrote       {out}")
+
+
+def format_energy(start, end):
+    """Energies (J) at a precision that matches what they mean: each to 4 significant
+    digits, and 0 where it is round-off (below 1e-12 of the largest energy involved)."""
+    scale = max(abs(v) for e in (start, end) for v in e.values()) or 1.0
+
+    def fmt(value):
+        return "0" if abs(value) <= 1e-12 * scale else f"{value:.4g}"
+
+    return (f"start {fmt(start['total'])} J, end {fmt(end['total'])} J (kinetic {fmt(end['kinetic'])}, "
+            f"spring {fmt(end['spring'])}, gravity {fmt(end['gravity'])})")

@@ -1,0 +1,61 @@
+"""``massspring scenes`` and ``massspring info``: the built-in scenes, and what a scene's run would be."""
+
+from __future__ import annotations
+
+
+from massspring.text import format_seconds
+from massspring.cli.common import EXIT_OK, integrator_names, make_simulation
+
+
+def cmd_scenes(args):
+    from massspring.scene import builtin_scenes, load_scene
+
+    names = sorted(builtin_scenes())
+    if not args.markdown:
+        for name in names:
+            print(f"{name:12s} {load_scene(name).description}")
+        return EXIT_OK
+    print("| scene | what | particles | springs | integrator, dt |\n|---|---|---|---|---|")
+    for name in names:
+        scene = load_scene(name)
+        model = scene.model()
+        print(f"| {name} | {scene.description} | {model.n_particles:,} | {model.n_springs:,} | "
+              f"{scene.integrator}, {format_seconds(scene.default_dt())} |")
+    return EXIT_OK
+
+
+def cmd_info(args):
+    scene, sim = make_simulation(args)
+    info = sim.info()
+    print(f"scene       {scene.name}: {scene.description}")
+    params = ", ".join(f"{k}={v}" for k, v in scene.params.items() if k != "mesh")
+    if scene.form == "mesh":
+        print(f"mesh        {scene.params['mesh']}: {params}")
+    elif scene.form == "particles":
+        print(f"model       hand-made ([particles] and [springs]): {params}")
+    else:
+        print(f"generator   {scene.generator}: {params}")
+    print(f"size        {info['particles']} particles, {info['springs']} springs, "
+          f"{sim.model.fixed.size} fixed" + (", moving" if sim.model.has_moving_pins else ""))
+    if sim.model.has_colliders:
+        print("colliders   " + "; ".join(f"{c.kind} (friction {c.friction:g}, restitution {c.restitution:g}"
+                                         + (", moving" if c.moving else "") + ")" for c in sim.model.colliders))
+    if sim.model.has_drag:
+        print(f"air         drag {sim.model.drag:g} N s/m per particle, wind {sim.model.wind.tolist()} m/s")
+    print(f"integrator  {sim.integrator}, dt = {format_seconds(sim.dt)}, precision {sim.precision}; "
+          f"default duration {scene.duration:g} s")
+    print("dt defaults " + ", ".join(f"{k} {format_seconds(scene.default_dt(k))}"
+                                     + ("" if k in scene.dt else " (from the stability estimate)")
+                                     for k in integrator_names()))
+    if info["preconditioner"] is not None:
+        levels = info.get("levels")
+        hierarchy = f" ({len(levels)} levels: {', '.join(f'{n:,}' for n in levels)} unknowns)" if levels else ""
+        if info["newton"]:
+            print(f"newton      until a step changes v by {sim.newton_tol:g} of the step's change, at most "
+                  f"{sim.newton_max_iter} iterations, each a CG solve")
+        print(f"solver      CG to {sim.cg_tol:g} (at most {sim.cg_max_iter:,} iterations), preconditioner "
+              f"{sim.preconditioner}{hierarchy}, definiteness fix {'on' if sim.definiteness_fix else 'off'}")
+    print(f"terms       {', '.join(info['terms'])}")
+    print(f"arrays      {', '.join(info['arrays'])} ({info['bytes'] / 1e6:.2f} MB)")
+    print(f"kernels     {info['loops']} loops")
+    return EXIT_OK
