@@ -205,9 +205,16 @@ def _positive(value):
 
 
 class _Plan:
-    """The hierarchy's index lists made global (coarse levels concatenated: level l's
-    nodes at ``node_range[l]``, its off-diagonal entries after the levels above), and
-    the field declarations of its bundle."""
+    """The hierarchy's index lists made global, for one bundle of fields.
+
+    The coarse levels are stored together: level l's nodes are ``node_range[l]`` of
+    the global node numbering and its off-diagonal blocks follow those of the levels
+    above it. Every per-level index list of ``aggregation.Level`` is shifted by the
+    offsets of the arrays it indexes (nodes, off-diagonal blocks, P blocks, A P blocks,
+    ...) and concatenated over the levels; ``arrays`` holds the results by field name.
+    ``counts`` sizes the value fields; ``gal0_count``, ``gal_range``, ``lower_range``
+    and ``coarsest`` are what ``setup`` passes the kernels per level.
+    """
 
     def __init__(self, hierarchy):
         levels = hierarchy.levels
@@ -216,89 +223,107 @@ class _Plan:
         if self.levels < 2:
             return
         coarse = levels[1:]
-        node_base = np.concatenate([[0], np.cumsum([lv.n for lv in coarse])])
-        off_base = np.concatenate([[0], np.cumsum([len(lv.off_cols) for lv in coarse])])
-        self.node_range = {l: (int(node_base[l - 1]), int(node_base[l])) for l in range(1, self.levels)}
-        total_nodes, total_off = int(node_base[-1]), int(off_base[-1])
-        a = self.arrays
-        f = levels[0]
-        t = f.transfer
-        a["t0_slot"], a["e0_slot"] = t.tent_slot, f.entry_slot
+        self.node_base = _offsets([lv.n for lv in coarse])             # first global node of each coarse level
+        self.off_base = _offsets([len(lv.off_cols) for lv in coarse])  # first off-diagonal block of each
+        self.node_range = {l: (int(self.node_base[l - 1]), int(self.node_base[l])) for l in range(1, self.levels)}
+        self.counts = {"fine": levels[0].n, "nodes": int(self.node_base[-1]), "off": int(self.off_base[-1])}
+        self._fine_transfer(levels[0])
+        self._coarse_operators(levels)
+        self._coarse_transfers(levels)
+        self.coarsest = levels[-1].n * levels[-1].bs
+
+    def _fine_transfer(self, fine):
+        """Level 0 -> 1: P's pattern, A P, the Galerkin products and P^T (level 0's own
+        numbering: nothing to shift)."""
+        t, a = fine.transfer, self.arrays
+        a["t0_slot"], a["e0_slot"] = t.tent_slot, fine.entry_slot
         a["agg0_rows"], a["agg0_members"] = t.member_rows, t.members
         a["p0_rows"], a["p0_cols"] = t.p_rows, t.p_cols
-        a["ap0_rows"] = f.ap_rows
-        a["apt0_rows"], a["apt0_ap"] = f.apt_rows, f.apt_ap
-        a["gal0_rows"], a["gal0_block"], a["gal0_p"], a["gal0_ap"] = f.gal_rows, f.gal_block, f.gal_p, f.gal_ap
-        a["pt0_rows"], a["pt0_block"], a["pt0_fine"] = f.pt_rows, f.pt_block, f.pt_fine
-        self.gal0_count = len(f.gal_block)
-        self.counts = {"p0": len(t.p_cols), "ap0": len(f.ap_cols), "fine": f.n}
-        # coarse operators (pattern from the transfer above each level)
+        a["ap0_rows"] = fine.ap_rows
+        a["apt0_rows"], a["apt0_ap"] = fine.apt_rows, fine.apt_ap
+        a["gal0_rows"], a["gal0_block"], a["gal0_p"], a["gal0_ap"] = (fine.gal_rows, fine.gal_block, fine.gal_p,
+                                                                      fine.gal_ap)
+        a["pt0_rows"], a["pt0_block"], a["pt0_fine"] = fine.pt_rows, fine.pt_block, fine.pt_fine
+        self.gal0_count = len(fine.gal_block)
+        self.counts.update(p0=len(t.p_cols), ap0=len(fine.ap_cols))
+
+    def _coarse_operators(self, levels):
+        """Each coarse level's operator pattern (CSR over global nodes), the transpose of
+        each off-diagonal block, and the lower-triangle blocks ``mirror`` fills in (those
+        the Galerkin products of the level above do not target): ``lower_range[l]``."""
         rows, cols, mirrors, lower = [np.zeros(1, dtype=np.int64)], [], [], []
         self.lower_range = {}
-        for l, lv in enumerate(coarse, start=1):
-            above = levels[l - 1]
-            rows.append(lv.off_rows[1:] + off_base[l - 1])
-            cols.append(lv.off_cols + node_base[l - 1])
-            mirrors.append(above.c_mirror + off_base[l - 1])
+        done = 0
+        for l in range(1, self.levels):
+            level, above = levels[l], levels[l - 1]
+            off, nodes = self.off_base[l - 1], self.node_base[l - 1]
+            rows.append(level.off_rows[1:] + off)
+            cols.append(level.off_cols + nodes)
+            mirrors.append(above.c_mirror + off)
             targeted = above.gal_block[above.gal_block >= 0]
-            low = np.setdiff1d(np.arange(len(lv.off_cols)), targeted) + off_base[l - 1]
-            self.lower_range[l] = (sum(len(x) for x in lower), sum(len(x) for x in lower) + len(low))
-            lower.append(low)
+            untargeted = np.setdiff1d(np.arange(len(level.off_cols)), targeted) + off
+            self.lower_range[l] = (done, done + len(untargeted))
+            done += len(untargeted)
+            lower.append(untargeted)
+        a = self.arrays
         a["c_rows"], a["c_cols"] = np.concatenate(rows), _cat(cols)
         a["c_mirror"], a["lower"] = _cat(mirrors), _cat(lower)
-        # transfers between coarse levels
-        tc_slot = np.full(total_nodes, -1, dtype=np.int64)
-        ec_slot = np.full(total_off, -1, dtype=np.int64)
-        pc_rows, apc_rows, aptc_rows = (np.zeros(total_nodes + 1, dtype=np.int64) for _ in range(3))
-        ptc_rows = np.zeros(total_nodes + 1, dtype=np.int64)
-        aggc_rows = np.zeros(total_nodes + 1, dtype=np.int64)
-        parts = {k: [] for k in ("pc_cols", "aptc_ap", "galc_block", "galc_p", "galc_ap", "ptc_block", "ptc_fine",
-                                 "aggc_members")}
+
+    def _coarse_transfers(self, levels):
+        """Level l -> l + 1 for l >= 1: the same lists as level 0's, shifted to global
+        numbering. CSR row offsets are written at their level's global rows; the P, A P,
+        triple-product, Galerkin-pair, P^T and member lists are concatenated, each
+        level's entries shifted by the sizes of the levels before it (``base``)."""
+        nodes, off = self.counts["nodes"], self.counts["off"]
+        tc_slot = np.full(nodes, -1, dtype=np.int64)
+        ec_slot = np.full(off, -1, dtype=np.int64)
+        csr = {key: np.zeros(nodes + 1, dtype=np.int64) for key in ("pc_rows", "apc_rows", "aptc_rows", "ptc_rows",
+                                                                    "aggc_rows")}
+        parts = {key: [] for key in ("pc_cols", "aptc_ap", "galc_block", "galc_p", "galc_ap", "ptc_block",
+                                     "ptc_fine", "aggc_members")}
         galc_rows = [np.zeros(1, dtype=np.int64)]
-        pc_base = apc_base = trip_base = pair_base = blocks = pt_base = member_base = 0
+        base = dict.fromkeys(("p", "ap", "apt", "gal_pairs", "gal_blocks", "pt", "members"), 0)
         self.gal_range = {}
         for l in range(1, self.levels - 1):
-            lv, tr = levels[l], levels[l].transfer
-            n0, n1 = self.node_range[l]
-            nn0, nn1 = self.node_range[l + 1]
-            tc_slot[n0:n1] = np.where(tr.tent_slot >= 0, tr.tent_slot + pc_base, -1)
-            ec_slot[off_base[l - 1]:off_base[l]] = np.where(lv.entry_slot >= 0, lv.entry_slot + pc_base, -1)
-            pc_rows[n0 + 1:n1 + 1] = tr.p_rows[1:] + pc_base
-            apc_rows[n0 + 1:n1 + 1] = lv.ap_rows[1:] + apc_base
-            aptc_rows[n0 + 1:n1 + 1] = lv.apt_rows[1:] + trip_base
-            ptc_rows[nn0 + 1:nn1 + 1] = lv.pt_rows[1:] + pt_base
-            aggc_rows[nn0 + 1:nn1 + 1] = tr.member_rows[1:] + member_base
-            parts["aggc_members"].append(tr.members + n0)
-            parts["pc_cols"].append(tr.p_cols + nn0)
-            parts["aptc_ap"].append(lv.apt_ap + apc_base)
-            parts["galc_block"].append(np.where(lv.gal_block < 0, lv.gal_block - nn0, lv.gal_block + off_base[l]))
-            parts["galc_p"].append(lv.gal_p + pc_base)
-            parts["galc_ap"].append(lv.gal_ap + apc_base)
-            galc_rows.append(lv.gal_rows[1:] + pair_base)
-            parts["ptc_block"].append(lv.pt_block + pc_base)
-            parts["ptc_fine"].append(lv.pt_fine + n0)
-            self.gal_range[l] = (blocks, blocks + len(lv.gal_block))
-            pc_base += len(tr.p_cols)
-            apc_base += len(lv.ap_cols)
-            trip_base += len(lv.apt_p)
-            pair_base += len(lv.gal_p)
-            blocks += len(lv.gal_block)
-            pt_base += len(lv.pt_block)
-            member_base += len(tr.members)
-        _fill_forward(pc_rows)
-        _fill_forward(apc_rows)
-        _fill_forward(aptc_rows)
-        _fill_forward(ptc_rows)
-        _fill_forward(aggc_rows)
+            level, t = levels[l], levels[l].transfer
+            n0, n1 = self.node_range[l]         # this level's nodes
+            c0, c1 = self.node_range[l + 1]     # the next level's
+            tc_slot[n0:n1] = np.where(t.tent_slot >= 0, t.tent_slot + base["p"], -1)
+            ec_slot[self.off_base[l - 1]:self.off_base[l]] = np.where(level.entry_slot >= 0,
+                                                                      level.entry_slot + base["p"], -1)
+            csr["pc_rows"][n0 + 1:n1 + 1] = t.p_rows[1:] + base["p"]
+            csr["apc_rows"][n0 + 1:n1 + 1] = level.ap_rows[1:] + base["ap"]
+            csr["aptc_rows"][n0 + 1:n1 + 1] = level.apt_rows[1:] + base["apt"]
+            csr["ptc_rows"][c0 + 1:c1 + 1] = level.pt_rows[1:] + base["pt"]
+            csr["aggc_rows"][c0 + 1:c1 + 1] = t.member_rows[1:] + base["members"]
+            parts["aggc_members"].append(t.members + n0)
+            parts["pc_cols"].append(t.p_cols + c0)
+            parts["aptc_ap"].append(level.apt_ap + base["ap"])
+            # a diagonal block (-1 - node) gets the global node, an off-diagonal one the global block
+            parts["galc_block"].append(np.where(level.gal_block < 0, level.gal_block - c0,
+                                                level.gal_block + self.off_base[l]))
+            parts["galc_p"].append(level.gal_p + base["p"])
+            parts["galc_ap"].append(level.gal_ap + base["ap"])
+            galc_rows.append(level.gal_rows[1:] + base["gal_pairs"])
+            parts["ptc_block"].append(level.pt_block + base["p"])
+            parts["ptc_fine"].append(level.pt_fine + n0)
+            self.gal_range[l] = (base["gal_blocks"], base["gal_blocks"] + len(level.gal_block))
+            base["p"] += len(t.p_cols)
+            base["ap"] += len(level.ap_cols)
+            base["apt"] += len(level.apt_p)
+            base["gal_pairs"] += len(level.gal_p)
+            base["gal_blocks"] += len(level.gal_block)
+            base["pt"] += len(level.pt_block)
+            base["members"] += len(t.members)
+        a = self.arrays
+        for key, offsets in csr.items():
+            np.maximum.accumulate(offsets, out=offsets)  # rows of levels without entries continue the last offset
+            a[key] = offsets
         a["tc_slot"], a["ec_slot"] = tc_slot, ec_slot
-        a["aggc_rows"] = aggc_rows
-        a["pc_rows"], a["apc_rows"], a["aptc_rows"], a["ptc_rows"] = pc_rows, apc_rows, aptc_rows, ptc_rows
         for key, values in parts.items():
             a[key] = _cat(values)
         a["galc_rows"] = np.concatenate(galc_rows)
-        self.counts.update(pc=pc_base, apc=apc_base, nodes=total_nodes, off=total_off, gal_blocks=blocks)
-        last = levels[-1]
-        self.coarsest = last.n * last.bs
+        self.counts.update(pc=base["p"], apc=base["ap"], gal_blocks=base["gal_blocks"])
 
     def layout(self, real) -> Layout:
         """Declarations of the hierarchy's fields, sized by capacity classes."""
@@ -336,6 +361,6 @@ def _cat(parts):
     return np.concatenate(parts) if parts else np.zeros(1, dtype=np.int64)
 
 
-def _fill_forward(rows):
-    """CSR offsets of levels without entries continue the previous level's last offset."""
-    np.maximum.accumulate(rows, out=rows)
+def _offsets(sizes):
+    """[0, s0, s0 + s1, ...]: where each of consecutive blocks of ``sizes`` starts (int64)."""
+    return np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64)
