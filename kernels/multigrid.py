@@ -31,7 +31,7 @@ Every kernel takes ``serial`` (a template flag) to run its loops in one thread:
 small systems, where a parallel launch costs more than the work. Each loop
 iteration owns the entries it writes, so updates are written ``a[k] = a[k] + b``:
 ``+=`` on a field compiles to an atomic add, a compare-and-swap loop per f64 entry
-that made parallel setup up to 18x slower than serial.
+that made parallel setup slower than serial.
 """
 
 import taichi as ti

@@ -10,7 +10,7 @@ The global matrix is never formed. Once per step ``refresh`` computes each
 spring's (n, a, b) once into ``dev.spring_coef`` together with the right-hand
 side forces of Eq. 15 into ``dev.fs``, then copies them into adjacency order
 (``dev.coef``: the operator then streams its coefficients in the order it reads
-them instead of looking them up by spring, which measured 1.1-1.7x faster here)
+them instead of looking them up by spring, which ``benchmarks/storage.py`` found faster)
 and forms ``dev.diag`` (d_i) and the right-hand side ``dev.b``. ``apply_row``
 gathers (A p)_i over particle i's entries:
 

@@ -5,10 +5,10 @@ A :class:`Bundle` holds every field one simulation needs as attributes
 a ``ti.template()``, with a :class:`Config` of compile-time switches (precision,
 force terms, pins, preconditioner). A kernel is compiled once per (bundle, config).
 
-Fields, not ndarrays: on this project's 2-core CPU the CG operator ran 1.2-1.5x
-faster on fields (Taichi indexes ndarrays with 32-bit arithmetic and a sign
-extension per element, fields with 64-bit addresses and vector loads), measured
-in one run by ``benchmarks/storage.py``. What fields cost is compilation: a kernel
+Fields, not ndarrays: on this project's 2-core CPU the CG operator ran faster on
+fields (Taichi indexes ndarrays with 32-bit arithmetic and a sign extension per
+element, fields with 64-bit addresses and vector loads), as ``benchmarks/storage.py``
+measures side by side. What fields cost is compilation: a kernel
 compiles again for every new field tree. Two things keep that rare:
 
 * capacity classes: fields are allocated for ``capacity(count)`` items, the next
@@ -317,8 +317,8 @@ def _item(i, field: ti.template(), entry: ti.template(), reals: ti.template(), i
 def _fill(dev: ti.template(), plan: ti.template(), reals: ti.types.ndarray(dtype=ti.f64, ndim=1),
           ints: ti.types.ndarray(dtype=ti.i32, ndim=1)):
     """Store the declared values of a bundle's fields in one launch, one loop per item
-    count. (``from_numpy`` compiles a kernel for every field, and each compiled loop
-    costs ~15 ms here: ~1 s for a new bundle, against ~0.2 s for this kernel.)"""
+    count. (``from_numpy`` compiles a kernel for every field: a new bundle of many
+    fields would compile many loops instead of this one kernel.)"""
     for count, entries in ti.static(plan):
         if ti.static(count == 0):
             for entry in ti.static(entries):

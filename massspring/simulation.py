@@ -22,8 +22,9 @@ from massspring.validate import real_array
 
 LOOPS = ("auto", "serial", "parallel")
 # Springs below which serial kernels beat parallel ones on this project's 2-core CPU
-# machine, where a parallel loop's launch costs ~0.05-0.2 ms and two threads give
-# ~1.3x (benchmarks/switch_point.py). Simulation(loops=...) overrides it.
+# machine, where a parallel loop's launch costs more than two threads save on small
+# models (benchmarks/switch_point.py; benchmarks/results/switch_point.json).
+# Simulation(loops=...) overrides it.
 SERIAL_BELOW = 200_000
 STEPS_PER_LAUNCH = 2**30  # explicit steps per kernel call at most (the count is an int32 there)
 DIVERGENCE_FACTOR = 100.0  # see divergence_check

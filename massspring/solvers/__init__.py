@@ -16,9 +16,8 @@ PRECONDITIONERS = {cls.name: cls for cls in (BlockJacobi, Multigrid, NoPrecondit
 CHOICES = ("auto", *PRECONDITIONERS)  # what the API, scene files and the CLI accept
 
 # "auto" picks multigrid from this many free particles on, block-Jacobi below: between
-# the crossovers of the step time that benchmarks/scaling.py measured (cloth, dt 1/60,
-# f64, 2-core CPU): about 7,000 free particles at ks 1e6 and 12,000 at ks 1e4, where
-# the two differ by under 15% either way.
+# the crossovers of the step time at ks 1e6 and ks 1e4 that benchmarks/scaling.py
+# measures (cloth, dt 1/60, f64; benchmarks/results/scaling.json and the README).
 MULTIGRID_FROM = 10_000
 
 

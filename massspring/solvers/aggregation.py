@@ -28,9 +28,9 @@ spring network resists least, its near-nullspace). Built here, once:
 
 Values change every step (K and D follow the positions, and so do the rotations
 that K resists least): the kernels recompute T, P, A P and P^T A P in these
-patterns. Rotations about the initial geometry instead let the iteration count
-grow as the cloth moves (36 instead of 9-14 at 256^2, ks 1e6, by the third step). Pinned particles have no aggregate and zero
-rows of P: the coarse levels see the free particles only.
+patterns (rotations about the initial geometry instead let the iteration count
+grow as the cloth moves). Pinned particles have no aggregate and zero rows of P:
+the coarse levels see the free particles only.
 """
 
 from __future__ import annotations
