@@ -137,8 +137,8 @@ def measure(resolution, stiffness, steps, repeats):
         multigrid.mg = timer.module
     loops = sim.loops
     sim.close()
-    unit = cg_seconds_per_iteration(scene, loops, 10, repeats, "f64")
-    cycles = sum(iterations) + steps  # the CG's first z = B r, then one per iteration
+    unit = cg_seconds_per_iteration(scene, loops, 40, repeats, "f64")
+    cycles = sum(c for (phase, _, name), c in timer.calls.items() if name == "finish0")  # one per cycle
     rows = level_table(pre)
     for row in rows:
         l = row["level"]
