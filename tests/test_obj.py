@@ -159,6 +159,27 @@ def test_a_line_without_end_is_refused(tmp_path, monkeypatch):
         read_obj(path)
 
 
+def test_a_long_line_is_refused_without_being_read_whole(monkeypatch):
+    """The reader never asks for more than MAX_LINE characters and a line end at once: a
+    200 MB line costs what its first MAX_LINE characters do."""
+    import io
+
+    from massspring.io import obj
+
+    class Recording(io.StringIO):
+        longest = 0
+
+        def readline(self, size=-1):
+            line = super().readline(size)
+            Recording.longest = max(Recording.longest, len(line)) if size >= 0 else 10 ** 9
+            return line
+
+    monkeypatch.setattr(obj, "MAX_LINE", 1000)
+    with pytest.raises(ObjError, match=r"m.obj:5: a line longer than 1,000 characters"):
+        list(obj._logical_lines("m.obj", Recording(TRIANGLE + "f 1 2 3\nv " + "1" * 100_000 + "\n")))
+    assert Recording.longest <= 1002
+
+
 def test_a_file_too_large_to_read_is_refused(tmp_path, monkeypatch):
     from massspring import memory
 

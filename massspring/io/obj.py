@@ -61,7 +61,8 @@ def _logical_lines(path, fh):
     """(first physical line number, text) of each line, ``\\`` continuations joined; a
     line longer than ``MAX_LINE`` characters raises ObjError."""
     pending, start = "", None
-    for number, raw in enumerate(fh, 1):
+    # at most MAX_LINE characters and a line end per read: a longer line is never held whole
+    for number, raw in enumerate(iter(lambda: fh.readline(MAX_LINE + 2), ""), 1):
         text = raw.rstrip("\r\n")
         if start is None:
             start = number
