@@ -17,7 +17,7 @@ from massspring.integrators.newton import NEWTON_MAX_ITER, NEWTON_TOL
 from massspring.kernels import divergence
 from massspring.kernels.terms import active_terms
 from massspring.model import Model
-from massspring.solvers import CHOICES, resolve
+from massspring.solvers import CHOICES, PRECONDITIONERS, resolve
 from massspring.validate import real_array
 
 LOOPS = ("auto", "serial", "parallel")
@@ -135,7 +135,9 @@ class Simulation:
     loops : "auto" (default) | "serial" | "parallel"
         Serial kernels (a whole CG solve, or many explicit steps, per launch) or
         parallel kernels (one launch per phase); "auto" picks parallel from
-        ``SERIAL_BELOW`` springs on the CPU, and always on other archs. Either gives
+        ``SERIAL_BELOW`` springs on the CPU (from the preconditioner's own
+        ``serial_below`` where it has one: multigrid's is lower), and always on other
+        archs. Either gives
         the same bits for any thread count (fixed-block reductions). Between them,
         explicit, symplectic and RK4 steps agree to the bit and implicit solves to
         round-off (the two kernels' compilers may contract multiplies and adds
@@ -168,9 +170,12 @@ class Simulation:
         if precision == "f32":
             _check_f32_range(model)
         ensure_taichi(arch)
-        if loops == "auto":
-            loops = "serial" if model.n_springs < SERIAL_BELOW and arch in CPU_ARCHS else "parallel"
         preconditioner = resolve(preconditioner, model)
+        if loops == "auto":
+            below = SERIAL_BELOW
+            if INTEGRATORS[integrator].linear_solver:
+                below = PRECONDITIONERS[preconditioner].serial_below or SERIAL_BELOW
+            loops = "serial" if model.n_springs < below and arch in CPU_ARCHS else "parallel"
         self._model = model
         self._settings = Settings(integrator, dt, precision, cg_tol, cg_max_iter, bool(definiteness_fix),
                                   preconditioner, arch, loops, newton_tol, newton_max_iter)

@@ -17,6 +17,7 @@ class Preconditioner:
 
     name = ""
     kernel = None
+    serial_below = None  # springs below which loops="auto" runs it serially (None: SERIAL_BELOW)
 
     def __init__(self, dev, model, settings):
         self.dev = dev

@@ -47,6 +47,9 @@ class Multigrid(Preconditioner):
 
     name = "multigrid"
     kernel = None
+    # parallel loops pay from fewer springs than for the other solvers: the crossover of
+    # benchmarks/switch_point.py's multigrid column (results/switch_point_multigrid.json)
+    serial_below = 64_000
 
     @classmethod
     def declare(cls, layout, model, settings):
