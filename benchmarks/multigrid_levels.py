@@ -11,8 +11,8 @@ l counts at level l, the coarsest solve at the last level.
 
 Printed per level, for the cycle (per CG iteration) and for the setup (per step):
 unknowns, stored operator blocks and their bytes (level 0: the per-entry spring
-coefficients it reads instead), visits per cycle (the W-cycle visits each level
-twice per visit of its parent, but the last level once), ms, and
+coefficients it reads instead), visits per cycle (a V-cycle visits each level once; a W-cycle (``W_CYCLE``) visits
+each level twice per visit of its parent, but the last level once), ms, and
 that time in units of one fine-level matrix-free product, measured in the same
 run as one block-Jacobi CG iteration of the same cloth (its product plus vector
 updates: the unit issue 22 counts in).

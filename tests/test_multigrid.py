@@ -262,11 +262,12 @@ def test_two_level_cycle_matches_a_dense_numpy_cycle():
     system.close()
 
 
-@pytest.mark.parametrize("resolution", [12, 40])
-def test_cycle_is_symmetric_and_positive_definite(resolution):
+@pytest.mark.parametrize("resolution, w_cycle", [(12, False), (40, False), (40, True)])
+def test_cycle_is_symmetric_and_positive_definite(resolution, w_cycle, monkeypatch):
     """x . B y = y . B x to round-off and x . B x > 0, on random vectors of the free
-    directions; at 12^2 the cycle is the smoother alone, at 40^2 it has three levels (a
-    W-cycle with Lanczos bounds)."""
+    directions; at 12^2 the cycle is the smoother alone, at 40^2 it has three levels
+    (Lanczos bounds on level 1), as the default V-cycle and as a W-cycle."""
+    monkeypatch.setattr(multigrid, "W_CYCLE", w_cycle)
     model = swinging_cloth(resolution)
     levels = len(aggregation.build(model, DT).levels)
     assert levels == (1 if resolution == 12 else 3)  # 12^2: smoothing alone, no coarse level

@@ -16,9 +16,11 @@ is), with rho an upper bound of the spectral radius of D^-1 A: 2 on level 0 with
 the definiteness fix (then A = M + sum of positive semidefinite spring blocks),
 else the largest block row sum of |D^-1 A|; on coarse levels 1.1 times a
 10-step Lanczos estimate (a row-sum bound is useless there: 6x6 blocks mix
-translation and rotation scales). On every level but the last two the coarse
-problem gets two cycles (a W-cycle: a V-cycle's count grows with the number of
-levels). Constrained (pinned) directions are filtered out of its input and output.
+translation and rotation scales). Each coarse level is visited once per cycle
+(``W_CYCLE = True`` gives every level but the last two a second visit instead;
+``benchmarks/multigrid_cycles.py`` compares the two shapes: the W-cycle saves under
+one CG iteration per step and costs more than that saves). Constrained (pinned)
+directions are filtered out of its input and output.
 """
 
 from __future__ import annotations
@@ -38,7 +40,7 @@ CHEB_RATIO = 30.0   # the smoother targets eigenvalues of D^-1 A in [rho / CHEB_
 OMEGA = 4.0 / 3.0   # prolongation smoothing weight (times 1 / rho)
 LANCZOS_STEPS = 10  # per coarse level and step, for rho(D^-1 A)
 RHO_SAFETY = 1.1    # Lanczos underestimates rho; Chebyshev diverges if rho is too low by ~10%
-W_CYCLE = True      # two coarse cycles on every level but the last two (V grows with levels)
+W_CYCLE = False     # True: two coarse cycles on every level but the last two
 FLOOR = 256         # smallest capacity of the hierarchy's arrays
 
 
@@ -134,7 +136,7 @@ class Multigrid(Preconditioner):
         return float(mg.finish0(dev, cfg, serial))
 
     def _visits(self, level):
-        """The coarse correction from ``level``: one cycle, or two (W) unless it is the last."""
+        """The coarse correction from ``level``: one cycle (two under ``W_CYCLE`` unless it is the last)."""
         self._coarse(level, True)
         if W_CYCLE and level < self.plan.levels - 1:
             self._coarse(level, False)
