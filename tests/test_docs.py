@@ -87,3 +87,22 @@ def test_hand_made_keys_are_listed():
 def test_the_complete_example_is_the_shipped_file():
     block = re.search(r"```toml\n(.*?)```", section("A complete example"), flags=re.S).group(1)
     assert block == (ROOT / "examples" / "my_scene.toml").read_text()
+
+
+def test_the_lists_of_collider_types_and_export_formats_are_the_registries():
+    """Where the docs list every collider type or every export format, the list is
+    exactly the registry's (``colliders.COLLIDERS``, ``io.frames.FORMATS``): a new kind
+    or format cannot be left out of them."""
+    from massspring.io.frames import FORMATS
+
+    readme = (ROOT / "README.md").read_text()
+    types = list(COLLIDERS)
+    quoted = [f'"{t}"' for t in types]
+    assert f"`type = {' | '.join(quoted)}`" in " ".join(readme.split())
+    assert f"`type` one of {', '.join(f'`{q}`' for q in quoted)}," in section("`[[collider]]`")
+    assert f"| {', '.join(f'`{q}`' for q in quoted[:-1])} or `{quoted[-1]}` |" in row(section("`[[collider]]`"), "type")
+    formats = f"--format {'|'.join(FORMATS)}"
+    assert formats in readme and formats in DOCS
+    prose = " ".join(readme[readme.index("`--format`: "):].split())
+    for name in FORMATS:
+        assert f"`{name}`" in prose[:prose.index("`pip install")], name

@@ -384,3 +384,86 @@ def test_a_second_signal_during_the_pictures_keeps_what_was_rendered(tmp_path):
     frames = Image.open(gif).n_frames
     assert 1 <= frames < len(manifest(out)["frames"])
     assert manifest(out)["status"] == "terminated"
+
+
+def first_line(path):
+    try:
+        with open(path) as fh:
+            return fh.readline()
+    except FileNotFoundError:  # replaced between the check and the read
+        return ""
+
+
+class _Killed(BaseException):
+    """Stands for SIGKILL: nothing after it runs, ``finish`` included."""
+
+
+@pytest.mark.parametrize("phase", ["before the rename", "after the rename"])
+@pytest.mark.parametrize("killed_at", [0, 3])
+def test_read_frames_lists_exactly_this_runs_frames_after_a_kill(tmp_path, monkeypatch, phase, killed_at):
+    """An earlier run left frames 0-5 of the same names; a second export is "killed"
+    while writing frame ``killed_at`` (before or after its file is renamed into place,
+    ``finish`` never called): read_frames lists exactly the files this run wrote, the
+    earlier run's frame of that name is never taken for this run's."""
+    out = tmp_path / "e"
+    assert main(["run", "spring", "--steps", "5", "--every", "1", "--quiet", "--export", str(out)]) == 0
+    sim = ms.load_scene("chain").with_params(count=4).simulation(integrator="symplectic")
+    real = frames_io.write_obj_frame
+
+    def writer(path, sim, scene):
+        if sim.steps == killed_at and phase == "before the rename":
+            raise _Killed
+        real(path, sim, scene)
+        if sim.steps == killed_at:
+            raise _Killed
+
+    monkeypatch.setattr(frames_io, "write_obj_frame", writer)
+    export = frames_io.FrameExport(out, "obj", count=6, scene="second")
+    export.prepare()
+    with pytest.raises(_Killed):
+        for _ in range(6):
+            export(sim)
+            sim.step()
+    listed = frames_io.read_frames(out)
+    ours = sorted(p.name for p in out.glob("frame_*.obj") if "massspring second" in first_line(p))
+    written = killed_at + (phase == "after the rename")
+    assert [f["file"] for f in listed] == ours == [f"frame_{k:05d}.obj" for k in range(written)]
+    assert [f["step"] for f in listed] == list(range(written))
+    sim.close()
+
+
+def test_read_frames_after_sigkill_of_a_real_run(tmp_path):
+    """SIGKILL at three moments of a run exporting every step into a directory an earlier
+    run filled with frames of the same names: read_frames lists exactly the frames the
+    killed run wrote (its scene is in each file's first line), in order from frame 0."""
+    out = tmp_path / "e"
+    command = [sys.executable, "-m", "massspring", "run", "{scene}", "--steps", str(10 ** 12), "--every", "1",
+               "--quiet", "--export", str(out)]
+
+    def start(scene):
+        return subprocess.Popen([a.format(scene=scene) for a in command], stdout=subprocess.DEVNULL,
+                                stderr=subprocess.PIPE, text=True)
+
+    def wait_for(frame, scene):
+        path, deadline = out / f"frame_{frame:013d}.obj", time.monotonic() + 60
+        while time.monotonic() < deadline and not (path.exists() and f"massspring {scene}" in first_line(path)):
+            time.sleep(0.01)
+
+    first = start("spring")
+    wait_for(400, "spring")
+    first.send_signal(signal.SIGTERM)
+    assert first.wait(timeout=60) == 143
+    for delay in (0.0, 0.013, 0.029):
+        proc = start("chain")
+        wait_for(100, "chain")
+        time.sleep(delay)
+        proc.kill()
+        proc.wait(timeout=60)
+        listed = [f["file"] for f in frames_io.read_frames(out)]
+        ours = sorted(p.name for p in out.glob("frame_*.obj") if "massspring chain" in first_line(p))
+        assert listed == ours == [f"frame_{k:013d}.obj" for k in range(len(ours))] and len(ours) >= 100
+
+
+def test_read_frames_names_a_directory_that_is_no_export(tmp_path):
+    with pytest.raises(ValueError, match="manifest.json.*not the manifest of an export"):
+        frames_io.read_frames(tmp_path)

@@ -7,6 +7,7 @@ import signal
 import subprocess
 import sys
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -288,3 +289,25 @@ def test_taichi_that_cannot_start_is_a_clear_error():
     assert proc.returncode in (0, 2), proc.stderr
     if proc.returncode == 2:
         assert proc.stderr.startswith("massspring: error: ") and proc.stderr.count("\n") == 1, proc.stderr
+
+
+def test_a_diverging_settling_run_of_stability_at_is_exit_3(tmp_path, capsys):
+    """``stability --at`` first runs the scene's implicit step; at dt = 1 s the chain
+    diverges at step 4 (the state grows past the energy bound): one line naming --at,
+    exit 3, no traceback."""
+    scene = tmp_path / "c.toml"
+    scene.write_text((Path(__file__).parents[1] / "scenes" / "chain.toml").read_text()
+                     .replace("implicit = 0.01", "implicit = 1.0"))
+    assert main(["stability", str(scene), "--at", "20", "--predict-only"]) == 3
+    one_line_error(capsys, "--at 20 s: the settling run: implicit diverged at step 4", "runaway growth")
+
+
+def test_ctrl_c_outside_a_run_is_exit_130_without_a_traceback(monkeypatch, capsys):
+    from massspring import cli
+
+    def interrupted(args):
+        raise KeyboardInterrupt
+
+    monkeypatch.setitem(cli.COMMANDS, "scenes", interrupted)
+    assert main(["scenes"]) == 130
+    one_line_error(capsys, "massspring: interrupted")

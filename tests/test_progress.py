@@ -74,3 +74,14 @@ def test_interactive(tty):
 
     assert progress.interactive(Stream()) is tty
     assert progress.interactive(object()) is False
+
+
+def test_stability_reports_its_settling_run(monkeypatch, capsys):
+    """``stability --at`` runs the implicit integrator first (10^6 steps and more are
+    accepted): it reports progress as ``run`` does."""
+    monkeypatch.setattr(progress, "INTERVAL", 0.01)
+    monkeypatch.setattr(progress, "interactive", lambda stream: False)
+    assert main(["stability", "chain", "--set", "count=5", "--at", "3", "--predict-only"]) == 0
+    steps = [line for line in plain_lines(capsys.readouterr().err) if ": step " in line]
+    assert steps and all(line.startswith("stability chain: settling for --at 3 s (implicit, dt 1/100 s): step ")
+                         and "/300 (" in line for line in steps)

@@ -116,6 +116,9 @@ def main(argv=None):
         return EXIT_USAGE
     except Terminated as exc:  # SIGTERM outside a run (e.g. while loading)
         return 128 + exc.signum
+    except KeyboardInterrupt:  # Ctrl-C outside a run (a run reports its own)
+        print("massspring: interrupted", file=sys.stderr)
+        return EXIT_INTERRUPTED
     except BrokenPipeError:  # output piped into e.g. `head`
         sys.stderr.close()
         return EXIT_OK

@@ -9,7 +9,7 @@ from pathlib import Path
 from massspring import progress
 from massspring.defaults import MAX_STEPS
 from massspring.text import format_seconds
-from massspring.cli.common import EXIT_OK, UsageError, add_cluster_arguments, add_scene_arguments, solver_options
+from massspring.cli.common import EXIT_DIVERGED, EXIT_OK, UsageError, add_cluster_arguments, add_scene_arguments, solver_options
 
 
 def add_stability_arguments(p, integrators):
@@ -28,6 +28,8 @@ def add_stability_arguments(p, integrators):
 def cmd_stability(args):
     from massspring.analysis import cluster, stability
     from massspring.scene import load_scene
+    from massspring.errors import DivergenceError
+    from massspring.simulation import run
 
     for name in ("run_duration", "at"):
         value = getattr(args, name)
@@ -56,7 +58,14 @@ def cmd_stability(args):
         if not steps <= MAX_STEPS:
             raise UsageError(f"--at: {args.at:g} s at the implicit dt {format_seconds(settle.dt)} is {steps:.3g} steps, "
                              f"more than {MAX_STEPS:.3g}")
-        settle.step(max(1, round(steps)))
+        steps = max(1, round(steps))
+        label = f"stability {scene.name}: settling for --at {args.at:g} s (implicit, dt {format_seconds(settle.dt)})"
+        try:
+            with progress.steps(label, steps, settle.dt, show=steps > 1) as on_progress:
+                run(settle, steps, progress=on_progress)
+        except DivergenceError as exc:
+            print(f"massspring: stability {scene.name}: --at {args.at:g} s: the settling run: {exc}", file=sys.stderr)
+            return EXIT_DIVERGED
         positions = settle.positions
         settle.close()
     prediction = stability.predict(model, positions)

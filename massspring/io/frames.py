@@ -20,14 +20,15 @@ its triangles; a model without one (a chain) gets its springs as line elements:
 Frames are named ``frame_00000.EXT``, ``frame_00001.EXT``, ... in the order written
 (at least 5 digits, more for more frames); files of an earlier run in the directory
 are replaced where the names repeat, and otherwise left alone. Every file is written
-to a temporary name and renamed. After each frame's file is in place, one line
-({``file``, ``step``, ``time``}) is appended to ``frames.jsonl``, the journal: a cost
-per frame that does not grow with the run. ``manifest.json`` (and the ``.pvd``) are
-rewritten, atomically, when the run starts, when the frame count reaches a power of
-two and when the run ends, however it ends: then its ``frames`` lists exactly the
-frames of this run on disk; while the run goes (or if the process was killed
-outright) the journal does (all but, after SIGKILL, a frame whose file was renamed
-into place just before), and the manifest lists a prefix of them. A single-file
+to a temporary name and renamed. Before each frame's file is renamed into place (an
+earlier run's file of its name removed first), one line ({``file``, ``step``,
+``time``}) is appended to ``frames.jsonl``, the journal: a cost per frame that does not
+grow with the run. ``manifest.json`` (and the ``.pvd``) are rewritten, atomically, when
+the run starts, when the frame count reaches a power of two and when the run ends,
+however it ends: then its ``frames`` (and the journal) list exactly the frames of this
+run on disk. While the run goes, or if the process was killed outright, the manifest
+lists a prefix of them and the journal all of them, the last perhaps still being
+written; ``read_frames(directory)`` returns exactly those on disk in either case. A single-file
 format (usd) holds its frames in memory and writes its file when the run ends (not
 if the process is killed outright); its manifest lists them from then on. The
 manifest's keys: ``status`` ("running", "complete", "diverged", "interrupted",
@@ -102,6 +103,26 @@ FORMATS = {f.name: f for f in (
                 "massspring.io.usd:StageWriter", "pxr", "usd", single_file=True),
 )}
 DEFAULT_FORMAT = "obj"
+
+
+def read_frames(directory):
+    """The frames (each {``file``, ``step``, ``time``}) of the last export into
+    ``directory`` that are on disk, in order: the manifest's list once its run ended;
+    while the run goes, or if its process was killed outright (SIGKILL), the journal's
+    lines whose file is in place (only the last can be missing: the process was killed
+    while writing it). Raises ValueError naming the file if ``directory`` holds no
+    export's manifest."""
+    directory = Path(directory)
+    try:
+        manifest = json.loads((directory / MANIFEST).read_text())
+        frames, journal = manifest["frames"], manifest["journal"]
+        if manifest["status"] != "running" or journal is None:
+            return frames
+        with open(directory / journal, "rb") as fh:
+            lines = fh.read().split(b"\n")[:-1]  # a line without its newline is not there yet
+        return [f for f in map(json.loads, lines) if (directory / f["file"]).exists()]
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        raise ValueError(f"{str(directory / MANIFEST)!r}: not the manifest of an export ({exc})") from None
 
 
 def check_format(fmt, name="format"):
@@ -186,8 +207,7 @@ class FrameExport:
         self.error = None
         self.last = (None, None)  # (step, time) of the last state seen
         self.journal = None  # the journal's file descriptor while frames are written
-        self.journaled = 0  # frames in the journal
-        self.writing = None  # the frame whose file is being written
+        self.writing = None  # the frame whose file is being written (its journal line is written)
 
     def file_name(self, k):
         record = FORMATS[self.fmt]
@@ -232,13 +252,14 @@ class FrameExport:
                 self.pending.append({"file": file, "step": sim.steps, "time": sim.time})
                 return
             frame, path = {"file": file, "step": sim.steps, "time": sim.time}, self.directory / file
-            # finish lists it if a signal comes once its file is in place; not if an earlier
-            # run's file of that name is there, which cannot be told from it
-            self.writing = None if path.exists() else frame
+            # an earlier run's file of this name goes first, so that after the journal's line
+            # the file is there only if this run wrote it (read_frames relies on that)
+            path.unlink(missing_ok=True)
+            self.writing = frame
+            self._journal(frame)
             record.load()(path, sim, self.scene)
             self.frames.append(frame)
             self.writing = None
-            self._journal()
             if len(self.frames) & (len(self.frames) - 1) == 0:  # a power of two: amortised constant time
                 self._write_manifest("running", "")
         except OSError as exc:
@@ -250,15 +271,14 @@ class FrameExport:
         not be written) and the last good state ``sim`` reached. Returns ``error`` (None
         if every file was written)."""
         self.last = (sim.steps, sim.time)
-        writing = self.writing
-        if writing is not None and writing not in self.frames[-1:] and (self.directory / writing["file"]).exists():
-            self.frames.append(writing)  # a signal came after its file was renamed into place
-        self.writing = None
+        writing, self.writing = self.writing, None
+        if writing is not None and not (self.frames and self.frames[-1] is writing):
+            # a signal came while its file was written: is it in place?
+            if (self.directory / writing["file"]).exists():
+                self.frames.append(writing)
+            else:
+                self._rewrite_journal()
         if self.journal is not None:
-            try:
-                self._journal()  # a signal may have come between a frame's file and its line
-            except OSError as exc:
-                self.error = self.error or f"could not write {str(self.directory / JOURNAL)!r}: {exc.strerror or exc}"
             os.close(self.journal)
             self.journal = None
         if self.writer is not None and self.error is None:
@@ -275,14 +295,24 @@ class FrameExport:
             self.error = self.error or f"could not write {str(self.directory / MANIFEST)!r}: {exc.strerror or exc}"
         return self.error
 
-    def _journal(self):
-        """Append the lines of the frames not yet in the journal, each in one write (a line
-        is never half there); the journal stays open until ``finish``."""
+    def _journal(self, frame):
+        """Append ``frame``'s line to the journal in one write (a line is never half
+        there), before its file is renamed into place; the journal stays open until
+        ``finish``."""
         if self.journal is None:
             self.journal = os.open(self.directory / JOURNAL, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o666)
-        while self.journaled < len(self.frames):
-            os.write(self.journal, (json.dumps(self.frames[self.journaled]) + "\n").encode())
-            self.journaled += 1
+        os.write(self.journal, (json.dumps(frame) + "\n").encode())
+
+    def _rewrite_journal(self):
+        """The journal as ``frames`` (after a frame whose file never came), atomically."""
+        try:
+            if self.journal is not None:
+                os.close(self.journal)
+                self.journal = None
+            with atomic_output(self.directory / JOURNAL) as fh:
+                fh.write("".join(json.dumps(f) + "\n" for f in self.frames).encode())
+        except OSError as exc:
+            self.error = self.error or f"could not write {str(self.directory / JOURNAL)!r}: {exc.strerror or exc}"
 
     def _write_manifest(self, status, message):
         from massspring import __version__
