@@ -8,6 +8,9 @@
   ``LinearOperator`` whose matvec is a Taichi kernel (gather over springs).
 * ``numpy_euler_step``: explicit / symplectic Euler vectorised with NumPy (bincount scatter).
 
+Every iterative peer stops where massspring's CG does: at a residual ||b - A v|| of at
+most ``tol`` times the first one, ||b - A v0|| with v0 = v_n (``first_residual``).
+
 The numpy formulas here are written independently of kernels/ (same equations).
 """
 
@@ -90,8 +93,14 @@ def assemble_system(model, x, v, dt, definiteness_fix=True):
     return matrix, rhs, np.flatnonzero(free)
 
 
+def first_residual(matrix, rhs, x0):
+    """||rhs - matrix x0||: what a CG tolerance is relative to, as in massspring."""
+    return float(np.linalg.norm(rhs - matrix @ x0))
+
+
 def scipy_pcg(matrix, rhs, x0, tol):
-    """SciPy CG with a Jacobi preconditioner; returns (solution, iterations)."""
+    """SciPy CG with a Jacobi preconditioner, to ``tol`` times the first residual;
+    returns (solution, iterations)."""
     import scipy.sparse as sp
     from scipy.sparse.linalg import cg
 
@@ -101,7 +110,8 @@ def scipy_pcg(matrix, rhs, x0, tol):
         count[0] += 1
 
     jacobi = sp.diags(1.0 / matrix.diagonal())
-    sol, info = cg(matrix, rhs, x0=x0, rtol=tol, atol=0.0, M=jacobi, maxiter=100000, callback=callback)
+    sol, info = cg(matrix, rhs, x0=x0, rtol=0.0, atol=tol * first_residual(matrix, rhs, x0), M=jacobi,
+                   maxiter=100000, callback=callback)
     return sol, count[0]
 
 
@@ -135,6 +145,7 @@ class TaichiMatrixFreeCG:
         self.coef = ti.Vector.field(5, real, shape=max(m, 1))
         self.b = ti.field(real, shape=(nparticles, 3))
         self.x = ti.field(real, shape=(nparticles, 3))
+        self.ax = ti.field(real, shape=(nparticles, 3))
         self.offsets.from_numpy(offsets.astype(np.int32))
         if m:
             self.other.from_numpy(other.astype(np.int32))
@@ -172,7 +183,8 @@ class TaichiMatrixFreeCG:
         self.operator._matvec = counted  # to count iterations: MatrixFreeCG does not report them
 
     def solve(self, x, v, dt, tol, definiteness_fix=True):
-        """One Eq. 15 solve at state (x, v); returns ((n, 3) velocity v_{n+1}, iterations)."""
+        """One Eq. 15 solve at state (x, v) from v, to ``tol`` times the first residual;
+        returns ((n, 3) velocity v_{n+1}, iterations)."""
         model = self.model
         n, length, safe = spring_geometry(x, model.springs)
         c = np.where(safe, model.rest_lengths / np.where(safe, length, 1.0) - 1.0, 0.0)
@@ -189,16 +201,17 @@ class TaichiMatrixFreeCG:
         guess[~free] = 0.0
         self.b.from_numpy(rhs)
         self.x.from_numpy(guess)
+        self.operator._matvec(self.x, self.ax)
+        first = np.linalg.norm(rhs - self.ax.to_numpy())
         self.matvecs = 0
-        self.ti.linalg.MatrixFreeCG(self.operator, self.b, self.x, tol=tol * np.linalg.norm(rhs),
-                                    maxiter=100000)
+        self.ti.linalg.MatrixFreeCG(self.operator, self.b, self.x, tol=tol * first, maxiter=100000)
         return self.x.to_numpy(), self.matvecs - 1  # one matvec is the initial residual
 
 
 def pyamg_pcg(matrix, rhs, x0, tol):
     """SciPy CG preconditioned by pyamg's smoothed aggregation on ``matrix`` (3x3 blocks,
     the three translations as near-nullspace, pyamg's defaults otherwise, coarsest level
-    at most 300 unknowns), built here: the caller times assembly + setup + solve, as a
+    at most 300 unknowns), to ``tol`` times the first residual, built here: the caller times assembly + setup + solve, as a
     sparse-matrix code pays them every step. Returns (solution, iterations)."""
     import pyamg
     from scipy.sparse.linalg import cg
@@ -212,8 +225,8 @@ def pyamg_pcg(matrix, rhs, x0, tol):
     def callback(_):
         count[0] += 1
 
-    sol, info = cg(bsr, rhs, x0=x0, rtol=tol, atol=0.0, M=hierarchy.aspreconditioner(cycle="V"), maxiter=20000,
-                   callback=callback)
+    sol, info = cg(bsr, rhs, x0=x0, rtol=0.0, atol=tol * first_residual(matrix, rhs, x0),
+                   M=hierarchy.aspreconditioner(cycle="V"), maxiter=20000, callback=callback)
     return sol, count[0]
 
 
