@@ -3,7 +3,7 @@
 Only public API that every revision since the first release has (``load_scene``,
 ``Scene.with_params``, ``Scene.simulation``, ``Simulation.step``,
 ``solver_stats``, ``preconditioner="block-jacobi"``), so the same file measures old and
-new code: block-Jacobi CG iterations (the default below 10,000 free particles now).
+new code: block-Jacobi CG iterations (the default below ``solvers.MULTIGRID_FROM`` free particles now).
 
     python benchmarks/measure_case.py implicit-128
 """
