@@ -43,6 +43,7 @@ from .divergence import OK, is_finite, state_sums, verdict
 from .constraints import constrain, is_free, is_pinned, prescribed
 from .contact import landing, project, total
 from .operator import REFRESHED, apply_row, refresh
+from .terms import uniform_acceleration
 
 CONVERGED, MAX_ITER, INDEFINITE, STALLED, NONFINITE = 0, 1, 2, 3, 4
 REASONS = ("converged", "max_iter", "indefinite", "stalled", "non-finite")
@@ -289,13 +290,11 @@ def next_position(i, dev, cfg: ti.template(), xb: ti.template(), h, dt, t):
 def advance_sums(dev, cfg: ti.template(), xb: ti.template(), h, dt, t):
     """Summed ``state_sums`` of the candidate state (``next_position``, v), storing nothing."""
     n = dev.size[0]
-    g = ti.Vector.zero(ti.f64, 3)
-    if ti.static(cfg.has_gravity):
-        g = ti.cast(dev.gravity[None], ti.f64)
+    g = uniform_acceleration(dev, cfg)
     for blk in range(block_count(n)):
         acc = ti.Vector.zero(ti.f64, 3)
         for i in range(blk * BLOCK, block_end(blk, n)):
-            acc += state_sums(next_position(i, dev, cfg, xb, h, dt, t), dev.v[i], dev.mass[i], g, cfg.has_gravity)
+            acc += state_sums(next_position(i, dev, cfg, xb, h, dt, t), dev.v[i], dev.mass[i], g, cfg.has_uniform)
         dev.partial[blk] = acc
     return ordered_sum(dev.partial, block_count(n))
 

@@ -32,7 +32,8 @@ integrator.
 
 Implicit (``detect``, fused into ``operator.refresh_row``): at the start of the step
 (x_n, v_n, time t_n) a particle is in contact with a collider if the predicted
-position x_n + dt (v_n + dt g) (collider moved by its velocity) is inside it. Its
+position x_n + dt (v_n + dt a) (a: the sum of the uniform accelerations, gravity
+and any other ``uniform`` term; collider moved by its velocity) is inside it. Its
 velocity along n is then prescribed through the filter of ``constraints``: the
 collider's normal velocity plus e times the normal speed it arrives with
 (restitution). Contacts with several colliders constrain several independent
@@ -48,6 +49,7 @@ import taichi as ti
 
 from .constraints import is_pinned
 from .forces import tiny_length
+from .terms import uniform_acceleration
 
 # A contact normal whose part outside the directions constrained already is shorter
 # than this (|S n|, n a unit vector) adds nothing independent: it is left out.
@@ -246,10 +248,11 @@ def add_direction(S, w, n, u):
 
 @ti.func
 def predicted_velocity(i, dev, cfg: ti.template(), v, h):
-    """v_n + dt g: the velocity a free fall would reach, used to see contacts coming."""
+    """v_n + dt a: the velocity a free fall would reach, used to see contacts coming; a
+    the sum of the uniform accelerations (``terms.uniform_acceleration``)."""
     out = v[i]
-    if ti.static(cfg.has_gravity):
-        out = v[i] + h * dev.gravity[None]
+    if ti.static(cfg.has_uniform):
+        out = v[i] + h * ti.cast(uniform_acceleration(dev, cfg), cfg.real)
     return out
 
 

@@ -25,6 +25,7 @@ from .divergence import OK, state_sums, verdict
 from .constraints import is_free, prescribed
 from .contact import respond
 from .forces import particle_force, spring_forces
+from .terms import uniform_acceleration
 
 
 @ti.func
@@ -32,9 +33,7 @@ def update_particles(dev, cfg: ti.template(), src, dst, h, t, symplectic: ti.tem
     """The per-particle half of a step ending at time ``t`` (after ``spring_forces`` on
     ``src``); returns the new state's summed ``state_sums``."""
     n = dev.size[0]
-    g = ti.Vector.zero(ti.f64, 3)
-    if ti.static(cfg.has_gravity):
-        g = ti.cast(dev.gravity[None], ti.f64)
+    g = uniform_acceleration(dev, cfg)
     for b in range(block_count(n)):
         acc = ti.Vector.zero(ti.f64, 3)
         for i in range(b * BLOCK, block_end(b, n)):
@@ -57,7 +56,7 @@ def update_particles(dev, cfg: ti.template(), src, dst, h, t, symplectic: ti.tem
                 x = x + h * v
             dst.x[i] = x
             dst.v[i] = v
-            acc += state_sums(x, v, dev.mass[i], g, cfg.has_gravity)
+            acc += state_sums(x, v, dev.mass[i], g, cfg.has_uniform)
         dev.partial[b] = acc
     return ordered_sum(dev.partial, block_count(n))
 

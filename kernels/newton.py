@@ -38,6 +38,7 @@ from .constraints import constrain, is_free, prescribed
 from .contact import detect, friction_diagonal, friction_impulse
 from .forces import spring_direction, tiny_length
 from .operator import NEWTON, refresh
+from .terms import uniform_acceleration
 
 
 @ti.func
@@ -87,9 +88,10 @@ def newton_start(dev: ti.template(), cfg: ti.template(), dt: ti.f64, t: ti.f64, 
 @ti.func
 def residual_sums(dev, cfg: ti.template(), h):
     """(||S g||^2, a round-off scale of g squared): the scale sums per particle
-    m (|v| + |v^|) + h m |g| + (|a| + |b|) l / h over its springs (about h ks l: a
-    tension ks (l - l0) is the difference of terms that large), the size of the
-    terms whose difference g is."""
+    m (|v| + |v^|) + h m |u| (u: the sum of the uniform accelerations,
+    ``terms.uniform_acceleration``) + (|a| + |b|) l / h over its springs (about h ks l: a
+    tension ks (l - l0) is the difference of terms that large), the size of the terms
+    whose difference g is."""
     n = dev.size[0]
     for blk in range(block_count(n)):
         acc = ti.Vector.zero(ti.f64, 3)
@@ -100,8 +102,8 @@ def residual_sums(dev, cfg: ti.template(), h):
                     c = dev.coef[e]
                     length = (dev.xk[dev.other[e]] - dev.xk[i]).norm()
                     scale += (ti.abs(c[3]) + ti.abs(c[4])) * length / h
-            if ti.static(cfg.has_gravity):
-                scale += h * dev.mass[i] * dev.gravity[None].norm()
+            if ti.static(cfg.has_uniform):
+                scale += h * dev.mass[i] * ti.cast(uniform_acceleration(dev, cfg), cfg.real).norm()
             r = ti.cast(dev.res[i], ti.f64)
             acc += ti.Vector([r.dot(r), ti.cast(scale, ti.f64) ** 2, 0.0], ti.f64)
         dev.partial[blk] = acc

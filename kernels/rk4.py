@@ -23,6 +23,7 @@ from .divergence import OK, state_sums, verdict
 from .constraints import is_free
 from .contact import respond
 from .forces import particle_force, spring_forces
+from .terms import uniform_acceleration
 
 
 @ti.func
@@ -49,9 +50,7 @@ def one_step(dev, cfg: ti.template(), src, dst, stage, h, t):
             if ti.static(k < 3):
                 stage.x[i] = src.x[i] + offset * h * vt
                 stage.v[i] = src.v[i] + offset * h * a
-    g = ti.Vector.zero(ti.f64, 3)
-    if ti.static(cfg.has_gravity):
-        g = ti.cast(dev.gravity[None], ti.f64)
+    g = uniform_acceleration(dev, cfg)
     for b in range(block_count(n)):
         acc = ti.Vector.zero(ti.f64, 3)
         for i in range(b * BLOCK, block_end(b, n)):
@@ -64,7 +63,7 @@ def one_step(dev, cfg: ti.template(), src, dst, stage, h, t):
                     v = v_out
             dst.x[i] = x
             dst.v[i] = v
-            acc += state_sums(x, v, dev.mass[i], g, cfg.has_gravity)
+            acc += state_sums(x, v, dev.mass[i], g, cfg.has_uniform)
         dev.partial[b] = acc
     return ordered_sum(dev.partial, block_count(n))
 

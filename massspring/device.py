@@ -167,8 +167,14 @@ class Config:
         return self.precond is not None and self.precond.needs_diagonal
 
     @property
-    def has_gravity(self):
-        return any(term.name == "gravity" for term in self.particle_terms)
+    def uniform_terms(self):
+        """The particle terms that are uniform accelerations (``kernels.terms.uniform_acceleration``)."""
+        return tuple(term for term in self.particle_terms if term.uniform)
+
+    @property
+    def has_uniform(self):
+        """Whether a uniform acceleration acts (gravity, or any other ``uniform`` term)."""
+        return len(self.uniform_terms) > 0
 
     @property
     def has_colliders(self):

@@ -1,8 +1,9 @@
 """The static description of a mass-spring system: plain, validated numpy data.
 
-A :class:`Model` never touches Taichi. Everything is checked in the constructor so
-that bad input fails with a ``ValueError`` naming the argument before any kernel
-is compiled or launched.
+A :class:`Model` never touches Taichi (it only reads the force-term registry,
+``kernels.terms``, for its uniform accelerations). Everything is checked in the
+constructor so that bad input fails with a ``ValueError`` naming the argument before
+any kernel is compiled or launched.
 
 Units are SI by convention (m, kg, s, N): positions in m, masses in kg, stiffness
 in N/m, damping in N s/m, gravity in m/s^2. Nothing in the code depends on the
@@ -19,6 +20,7 @@ import numpy as np
 
 from massspring import mesh
 from massspring.defaults import GRAVITY
+from massspring.kernels.terms import uniform_accelerations
 from massspring.colliders import COLLIDERS, MAX_COLLIDERS, Collider
 from massspring.self_collision import SelfCollision
 from massspring.text import brief
@@ -235,6 +237,20 @@ class Model:
         return bool(np.any(self.gravity != 0))
 
     @property
+    def external_acceleration(self) -> np.ndarray:
+        """(3,) m/s^2: the sum of the uniform accelerations (``kernels.terms.uniform_accelerations``:
+        gravity and any other such term), summed from the first (one alone is itself to the bit)."""
+        first, *others = uniform_accelerations(self).values()
+        return sum(others, first)
+
+    def external_work(self, positions) -> float:
+        """sum_i m_i a . x_i (J), a = ``external_acceleration``, for positions (n, 3) m: minus
+        the potential of the uniform forces, so its increase is the work they have done
+        (what the divergence check's bound and ``energy_ratio`` count)."""
+        x = np.asarray(positions, dtype=np.float64)
+        return float(np.sum(self.masses * (x @ self.external_acceleration)))
+
+    @property
     def has_fixed(self) -> bool:
         return self.fixed.size > 0
 
@@ -262,10 +278,12 @@ class Model:
         return mask
 
     def energy(self, positions, velocities) -> dict:
-        """Kinetic, spring and gravitational potential energy (J) of a state.
+        """Kinetic, spring and potential energy of each uniform force (J) of a state, and their total.
 
-        Gravity potential is ``-sum_i m_i g . x_i`` (zero at the origin); fixed
-        particles have zero velocity and constant potential.
+        The keys are "kinetic", "spring", then one per uniform acceleration a
+        (``kernels.terms.uniform_accelerations``: "gravity", ...) for its potential
+        ``-sum_i m_i a . x_i`` (zero at the origin), then "total"; fixed particles have
+        zero velocity and constant potential.
         """
         x = np.asarray(positions, dtype=np.float64)
         v = np.asarray(velocities, dtype=np.float64)
@@ -275,9 +293,13 @@ class Model:
             spring = 0.5 * float(np.sum(self.stiffness * (length - self.rest_lengths) ** 2))
         else:
             spring = 0.0
-        gravity = -float(np.sum(self.masses * (x @ self.gravity)))
-        return {"kinetic": kinetic, "spring": spring, "gravity": gravity,
-                "total": kinetic + spring + gravity}
+        energy = {"kinetic": kinetic, "spring": spring}
+        total = kinetic + spring
+        for name, a in uniform_accelerations(self).items():
+            energy[name] = -float(np.sum(self.masses * (x @ a)))
+            total += energy[name]
+        energy["total"] = total
+        return energy
 
 
 def _fixed_indices(fixed, n):

@@ -72,17 +72,18 @@ def divergence_check(model: Model, factor=DIVERGENCE_FACTOR):
     """The (base, gx0, factor) of the per-step divergence check (kernels/divergence.py).
 
     A state is rejected if a position or velocity is not finite, or if its kinetic
-    energy exceeds ``factor * (base + W)`` with W >= 0 the work gravity has done
-    since the start (sum m g . (x - x0)). ``base`` (J) is the initial kinetic plus
-    spring energy plus a floor, the kinetic energy of the whole mass moving at one
-    scene size per second (size: the diagonal of the initial bounding box, or the
-    longest rest length if larger; 1 m if both are 0) plus the fastest drive: the
-    wind speed, the fastest pin or twice the fastest collider (what the air, a moving
-    pin or a collider can give the particles). Physically kinetic energy never
-    exceeds base - floor + W (springs only store and dampers only dissipate), so
-    ``factor`` = 100 leaves room for the energy error of a stable integrator
-    (symplectic Euler's oscillates by up to ~40x just below its limit) while an
-    unstable mode, growing geometrically, crosses it within a few dozen steps.
+    energy exceeds ``factor * (base + W)`` with W >= 0 the work the uniform forces
+    (gravity and any other ``uniform`` term) have done since the start (sum m a . (x -
+    x0), a = ``Model.external_acceleration``; gx0 is ``Model.external_work`` of x0).
+    ``base`` (J) is the initial kinetic plus spring energy plus a floor, the kinetic
+    energy of the whole mass moving at one scene size per second (size: the diagonal of
+    the initial bounding box, or the longest rest length if larger; 1 m if both are 0)
+    plus the fastest drive: the wind speed, the fastest pin or twice the fastest
+    collider (what the air, a moving pin or a collider can give the particles).
+    Physically kinetic energy never exceeds base - floor + W (springs only store and
+    dampers only dissipate), so ``factor`` = 100 leaves room for the energy error of a
+    stable integrator (symplectic Euler's oscillates by up to ~40x just below its limit)
+    while an unstable mode, growing geometrically, crosses it within a few dozen steps.
     """
     energy = model.energy(model.positions, model.velocities)
     extent = float(np.linalg.norm(np.ptp(model.positions, axis=0)))
@@ -90,7 +91,7 @@ def divergence_check(model: Model, factor=DIVERGENCE_FACTOR):
     drive = max([float(np.linalg.norm(model.wind))] + [float(np.linalg.norm(v)) for v in model.pin_velocity]
                 + [2 * float(np.linalg.norm(c.velocity)) for c in model.colliders])
     floor = 0.5 * float(model.masses.sum()) * (size + drive) ** 2
-    return (energy["kinetic"] + energy["spring"] + floor, -energy["gravity"], float(factor))
+    return (energy["kinetic"] + energy["spring"] + floor, model.external_work(model.positions), float(factor))
 
 
 def default_cg_max_iter(model: Model) -> int:
@@ -418,7 +419,8 @@ class Simulation:
                               self.integrator, self.dt)
 
     def energy(self) -> dict:
-        """Kinetic, spring, gravity and total energy (J) of the current state."""
+        """Kinetic, spring, each uniform force's potential and total energy (J) of the current
+        state (``Model.energy``)."""
         return self._model.energy(self.positions, self.velocities)
 
     def info(self) -> dict:

@@ -23,11 +23,23 @@ conservative force is minus its gradient) or of Rayleigh dissipation
 (``dissipation_change``, W: a damping force is minus its gradient in the
 velocities); the defaults are 0 (a term with neither adds nothing there).
 
+A particle term that is a uniform acceleration a (f_i = m_i a: gravity) sets
+``uniform`` and gives a (``acceleration(dev)`` in kernels, ``model_acceleration(model)``
+on the host). Whatever needs the external acceleration takes the sum over such terms,
+never one of them by name: ``uniform_acceleration`` in the kernels (the divergence
+check's work, the implicit contact prediction, Newton's round-off scale) and
+``uniform_accelerations`` on the host (``Model.energy``, a potential per such term;
+``Model.external_acceleration`` and ``Model.external_work``: the exact reference, the
+check's initial work, the energy ratio). A new one is its module, its entry here and
+its data in ``Model``: nothing that sums them changes.
+
 Data: ``arrays(model)`` maps array names to ``(per, values)``, ``per`` one of
 "spring" (one value per spring), "particle" (per particle), "vector" (one 3-vector
 for the scene) or "scalar". The device bundle holds them in the run's precision
 under those names (``dev.<name>``); 0-D ones are read as ``dev.<name>[None]``.
 """
+
+import taichi as ti
 
 from .damping import SpringDamping
 from .drag import Drag
@@ -40,3 +52,24 @@ TERMS = (Springs, SpringDamping, Gravity, Drag)  # the order forces are summed i
 def active_terms(model) -> tuple:
     """The terms of ``model``, in ``TERMS`` order."""
     return tuple(term for term in TERMS if term.active(model))
+
+
+def uniform_accelerations(model) -> dict:
+    """name -> (3,) acceleration (m/s^2) of every uniform term in ``TERMS``, in that order,
+    active or not (an inactive one's is 0, so the names do not depend on the model)."""
+    return {term.name: term.model_acceleration(model) for term in TERMS
+            if term.kind == "particle" and term.uniform}
+
+
+@ti.func
+def uniform_acceleration(dev, cfg: ti.template()):
+    """a = the sum of the active uniform terms' ``acceleration(dev)`` (``cfg.uniform_terms``;
+    m/s^2, a float64 vec3; 0 without any). Summed from the first term on, so that with
+    one term a is that term's value to the bit."""
+    a = ti.Vector.zero(ti.f64, 3)
+    for k, term in ti.static(enumerate(cfg.uniform_terms)):
+        if ti.static(k == 0):
+            a = ti.cast(term.acceleration(dev), ti.f64)
+        else:
+            a += ti.cast(term.acceleration(dev), ti.f64)
+    return a

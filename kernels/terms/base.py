@@ -31,6 +31,11 @@ class SpringTerm:
 class ParticleTerm:
     kind = "particle"
     name = ""
+    # A uniform acceleration a (f_i = m_i a, one a for every particle: gravity) sets
+    # ``uniform`` and gives a twice: ``acceleration(dev)`` (a ``ti.func``, the run's
+    # precision) and ``model_acceleration(model)`` ((3,) float64). The code that needs the
+    # external acceleration sums them over such terms (``kernels.terms``).
+    uniform = False
 
     @staticmethod
     @ti.func

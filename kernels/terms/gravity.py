@@ -9,6 +9,7 @@ class Gravity(ParticleTerm):
     """f_i = m_i g: ``dev.gravity`` (m/s^2, one vector). Active when g != 0."""
 
     name = "gravity"
+    uniform = True
 
     @staticmethod
     def active(model):
@@ -17,6 +18,15 @@ class Gravity(ParticleTerm):
     @staticmethod
     def arrays(model):
         return {"gravity": ("vector", model.gravity)}
+
+    @staticmethod
+    def model_acceleration(model):
+        return model.gravity
+
+    @staticmethod
+    @ti.func
+    def acceleration(dev):
+        return dev.gravity[None]
 
     @staticmethod
     @ti.func

@@ -74,7 +74,8 @@ def exact_spring(model: Model, times) -> Trajectory | None:
     """The exact continuous motion of a one-spring model, or None if it has none here.
 
     Applies when the model has 2 particles, 1 spring, exactly one of the two fixed
-    (and still), no air and no collider, the free particle's velocity and gravity
+    (and still), no air and no collider, the free particle's velocity and its uniform
+    acceleration (``Model.external_acceleration``: gravity and any other such term)
     along the spring's axis (so the motion stays on the axis), and the spring keeps a
     positive length at every instant.
     """
@@ -89,10 +90,11 @@ def exact_spring(model: Model, times) -> Trajectory | None:
         return None
     axis = d / length
     w0 = float(model.velocities[moving] @ axis)
-    g = float(model.gravity @ axis)
+    external = model.external_acceleration
+    g = float(external @ axis)
     scale = 1e-12
     if np.linalg.norm(model.velocities[moving] - w0 * axis) > scale * (1 + abs(w0)) or \
-            np.linalg.norm(model.gravity - g * axis) > scale * (1 + abs(g)):
+            np.linalg.norm(external - g * axis) > scale * (1 + abs(g)):
         return None
     times = np.asarray(times, dtype=np.float64)
     u, w = damped_oscillator(length - model.rest_lengths[0], w0, model.masses[moving],

@@ -204,14 +204,15 @@ COLUMNS = ("integrator", "definiteness_fix", "dt", "dt_ratio", "relative_to", "o
 
 
 def energy_ratio(model: Model, positions, velocities, check) -> float:
-    """(kinetic + spring energy) / (initial kinetic + spring energy + work done by gravity).
+    """(kinetic + spring energy) / (initial kinetic + spring energy + work done by the
+    uniform forces, ``Model.external_work`` since the start).
 
     1 for an exactly conservative run, below 1 when damped, above 1 when the
     integrator added energy; NaN when the denominator is 0 (nothing to move).
     """
     e0 = model.energy(model.positions, model.velocities)
     e = model.energy(positions, velocities)
-    work = -e["gravity"] - check[1]
+    work = model.external_work(positions) - check[1]
     available = e0["kinetic"] + e0["spring"] + work
     return (e["kinetic"] + e["spring"]) / available if available > 0 else math.nan
 
@@ -392,7 +393,7 @@ def plot(rows, path, title):
     ax.set_xscale("log")
     ax.set_yscale("log")
     ax.set_xlabel("dt / predicted limit")
-    ax.set_ylabel("energy end / (start + gravity work)")
+    ax.set_ylabel("energy end / (start + external work)")
     ax.set_title(title + " (x: diverged, last good state)", fontsize=9)
     ax.grid(True, which="both", linewidth=0.3, alpha=0.5)
     ax.legend(fontsize=7)

@@ -228,12 +228,13 @@ def print_summary(scene, sim, wall, energy0, out, start_steps=0):
 
 
 def format_energy(start, end):
-    """Energies (J) at a precision that matches what they mean: each to 4 significant
-    digits, and 0 where it is round-off (below 1e-12 of the largest energy involved)."""
+    """Energies (J, ``Model.energy``: kinetic, spring, each uniform force's potential, total)
+    at a precision that matches what they mean: each to 4 significant digits, and 0
+    where it is round-off (below 1e-12 of the largest energy involved)."""
     scale = max(abs(v) for e in (start, end) for v in e.values()) or 1.0
 
     def fmt(value):
         return "0" if abs(value) <= 1e-12 * scale else f"{value:.4g}"
 
-    return (f"start {fmt(start['total'])} J, end {fmt(end['total'])} J (kinetic {fmt(end['kinetic'])}, "
-            f"spring {fmt(end['spring'])}, gravity {fmt(end['gravity'])})")
+    parts = ", ".join(f"{name} {fmt(value)}" for name, value in end.items() if name != "total")
+    return f"start {fmt(start['total'])} J, end {fmt(end['total'])} J ({parts})"
