@@ -20,7 +20,8 @@ import numpy as np
 
 from massspring import mesh
 from massspring.defaults import GRAVITY
-from massspring.kernels.terms import uniform_accelerations
+from massspring.kernels import terms
+from massspring.kernels.terms import check_parameters, parameters, uniform_accelerations
 from massspring.colliders import COLLIDERS, MAX_COLLIDERS, Collider
 from massspring.self_collision import SelfCollision
 from massspring.text import brief
@@ -28,6 +29,8 @@ from massspring.validate import MAX_MAGNITUDE, real_array, real_number  # noqa: 
 
 
 # The arrays that make up a model's physics (``Model.fingerprint``); ``triangles`` only draw it.
+# "drag" and "wind" are term parameters kept here, where they were first hashed, so that
+# saved states still restart; a later term's parameters join only when not at their defaults.
 PHYSICS = ("positions", "springs", "masses", "stiffness", "damping", "rest_lengths", "velocities", "gravity", "fixed",
            "pin_velocity", "drag", "wind")
 
@@ -81,11 +84,7 @@ class Model:
         when it is on (otherwise the physics never reads them). Empty when None.
     colliders : sequence of colliders (``massspring.colliders.COLLIDERS``: ``Plane``, ``Sphere``, ``Box``)
         Obstacles the particles cannot enter (at most 31); stored as a tuple.
-    drag : float, N s/m, >= 0
-        Linear air drag on every particle: f_i = -drag (v_i - wind).
-    wind : (3,) float, m/s
-        The air's velocity; non-zero only with drag > 0 (it acts through drag alone).
-    pin_velocity : None or (k, 3) float, m/s
+{term_parameters}    pin_velocity : None or (k, 3) float, m/s
         Kinematic pins: the constant velocity of each pinned particle, one row per
         entry of ``fixed`` in the order given (ascending indices for a mask); zero
         if None. Stored in the order of the stored ``fixed`` (sorted); a pinned
@@ -93,6 +92,10 @@ class Model:
     self_collision : None or ``massspring.SelfCollision``
         Keeps the mesh of ``triangles`` from passing through itself (needs triangles);
         None: off.
+
+    The force terms' own parameters (``kernels.terms.parameters()``: {term_names}) are the
+    keyword arguments listed after ``colliders``, each stored under its name as a float or
+    a read-only (3,) array.
 
     All arrays are stored as read-only float64/int64 copies under the constructor's
     argument names; ``fixed`` is stored as sorted unique indices. Numbers must be
@@ -111,14 +114,12 @@ class Model:
     fixed: np.ndarray
     triangles: np.ndarray
     colliders: tuple
-    drag: float
-    wind: np.ndarray
     pin_velocity: np.ndarray
     self_collision: object
 
     def __init__(self, positions, springs, masses=1.0, stiffness=1e3, damping=0.0,
                  rest_lengths=None, velocities=None, gravity=GRAVITY, fixed=None, triangles=None,
-                 colliders=(), drag=0.0, wind=(0.0, 0.0, 0.0), pin_velocity=None, self_collision=None):
+                 colliders=(), pin_velocity=None, self_collision=None, **term_parameters):
         x = real_array("positions", positions)
         if x.ndim != 2 or x.shape[1] != 3 or x.shape[0] < 1:
             raise ValueError(f"positions: expected shape (n, 3) with n >= 1, got shape {x.shape}")
@@ -171,21 +172,17 @@ class Model:
         pins = _pin_velocities(pin_velocity, fixed, fixed_idx)
         v[fixed_idx] = pins
         tris = _triangles(triangles, n)
-        air = real_array("drag", drag)
-        if air.shape != () or not air >= 0:
-            raise ValueError(f"drag: expected a number >= 0 (N s/m), got {brief(drag)}")
-        wind_v = real_array("wind", wind)
-        if wind_v.shape != (3,):
-            raise ValueError(f"wind: expected 3 components, got shape {wind_v.shape}")
-        if np.any(wind_v != 0) and air == 0:
-            raise ValueError("wind: has no effect without drag (drag = 0): give drag > 0 or no wind")
+        unknown = sorted(set(term_parameters) - set(parameters()))
+        if unknown:
+            raise TypeError(f"Model() got an unexpected keyword argument {unknown[0]!r}")
+        forces = check_parameters(term_parameters)
 
         for name, value in (("positions", x), ("springs", s), ("masses", mass), ("stiffness", ks),
                             ("damping", kd), ("rest_lengths", l0), ("velocities", v),
-                            ("gravity", g), ("fixed", fixed_idx), ("triangles", tris), ("wind", wind_v),
-                            ("pin_velocity", pins)):
+                            ("gravity", g), ("fixed", fixed_idx), ("triangles", tris), ("pin_velocity", pins)):
             object.__setattr__(self, name, _readonly(np.ascontiguousarray(value)))
-        object.__setattr__(self, "drag", float(air))
+        for name, value in forces.items():
+            object.__setattr__(self, name, value)
         object.__setattr__(self, "colliders", _colliders(colliders))
         if self.colliders:
             from massspring.colliders import check_start_outside
@@ -194,13 +191,14 @@ class Model:
         object.__setattr__(self, "self_collision", _self_collision(self_collision, tris))
 
     @classmethod
-    def from_mesh(cls, vertices, faces, **parameters) -> "Model":
+    def from_mesh(cls, vertices, faces, **parameters) -> Model:
         """A cloth or shell from a polygon mesh: structural springs on its edges, shear
         springs on the diagonals of its quads and larger faces, bending springs across
         its interior edges, masses lumped from the face areas, pins by index or by a
         box; the (fan-triangulated) faces become ``triangles``. Parameters and units:
         ``massspring.mesh.mesh_arguments``."""
-        unknown = sorted(set(parameters) - set(inspect.signature(mesh.mesh_arguments).parameters))
+        known = set(inspect.signature(mesh.mesh_arguments).parameters) | set(terms.parameters())
+        unknown = sorted(set(parameters) - known)
         if unknown:
             raise TypeError(f"Model.from_mesh() got an unexpected keyword argument {unknown[0]!r}")
         return cls(**mesh.mesh_arguments(vertices, faces, **parameters))
@@ -213,6 +211,10 @@ class Model:
             arr = np.ascontiguousarray(getattr(self, name))
             digest.update(f"{name}:{arr.dtype.str}:{arr.shape}".encode())
             digest.update(arr.tobytes())
+        for name, parameter in terms.parameters().items():  # a later term's, only when not its default
+            value = getattr(self, name)
+            if name not in PHYSICS and not parameter.is_default(value):
+                digest.update(f"{name}:{np.asarray(value, dtype=np.float64).tobytes().hex()}".encode())
         digest.update(repr(self.colliders).encode())  # frozen dataclasses of floats: repr is exact
         if self.self_collision is not None:  # the triangles then take part in the physics
             digest.update(repr(self.self_collision).encode())
@@ -269,7 +271,12 @@ class Model:
 
     @property
     def has_drag(self) -> bool:
-        return self.drag > 0
+        return terms.Drag.active(self)
+
+    @property
+    def term_parameters(self) -> dict:
+        """name -> value of the force terms' parameters (``kernels.terms.parameters()``)."""
+        return {name: getattr(self, name) for name in parameters()}
 
     def free_mask(self) -> np.ndarray:
         """(n,) bool: True for particles that move."""
@@ -300,6 +307,18 @@ class Model:
             total += energy[name]
         energy["total"] = total
         return energy
+
+
+def _parameter_docs() -> str:
+    lines = []
+    for p in parameters().values():
+        kind = "(3,) float" if p.vector else "float >= 0"
+        lines += [f"    {p.name} : {kind}, {p.unit} (default {p.default!r})", f"        {p.doc}"]
+    return "\n".join(lines) + "\n"
+
+
+Model.__doc__ = Model.__doc__.replace("{term_parameters}", _parameter_docs()).replace(
+    "{term_names}", ", ".join(parameters()))
 
 
 def _fixed_indices(fixed, n):

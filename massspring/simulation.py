@@ -463,8 +463,8 @@ def _release(dev, integrator, guard):
 
 
 def _check_f32_range(model):
-    for name in ("positions", "masses", "stiffness", "damping", "rest_lengths", "velocities", "gravity", "drag",
-                 "wind", "pin_velocity"):
+    for name in ("positions", "masses", "stiffness", "damping", "rest_lengths", "velocities", "gravity",
+                 "pin_velocity", *model.term_parameters):
         values = np.abs(np.asarray(getattr(model, name)))
         if values.size and values.max() > F32_MAX_MAGNITUDE:
             raise ValueError(f"{name}: {values.max():g} is beyond what an f32 run holds "

@@ -45,7 +45,7 @@ def test_top_level_keys_are_listed():
     text = section("Top level")
     for key, kind in spec.TOP_KEYS.items():
         row(text, f"[{key}]" if kind is dict else f"[[{key}]]" if kind is list else key)
-    for key in spec.COMMON_KEYS:
+    for key in spec.common_keys():
         row(section("Keys of every"), key)
     for key in spec.PIN_KEYS:
         row(section("`[[pin]]`"), key)

@@ -4,11 +4,12 @@ needs the external acceleration sums them: the divergence check's work (every st
 kernel, ``Model.external_work``), the implicit contact prediction, Newton's round-off
 scale, ``Model.energy``, ``energy_ratio`` and the exact reference.
 
-The tests register a second uniform acceleration p of their own (``Lift``, by
-patching ``TERMS``; no Model field, no scene key) and check that lift p without
+The tests register a second uniform acceleration p of their own (``Lift``, one class
+with its ``Parameter`` "lift", by patching ``TERMS``) and check that lift p without
 gravity steps to the bit as gravity p without lift, that gravity g with lift p steps
-as gravity g + p to round-off, and that the check's bound, the energy and the contact
-prediction count its work.
+as gravity g + p to round-off, that the check's bound, the energy and the contact
+prediction count its work, and that its parameter reaches ``Model``, ``from_mesh``,
+scene files, ``--set``, the f32 range check and the fingerprint with no edit there.
 """
 
 import numpy as np
@@ -20,7 +21,9 @@ from massspring.analysis.reference import exact_spring
 from massspring.analysis.stability import energy_ratio
 from massspring.cli.run import format_energy
 from massspring.kernels import terms
-from massspring.kernels.terms.base import ParticleTerm
+from massspring.kernels.terms.base import Parameter, ParticleTerm
+from massspring.scene import load_scene
+from massspring.scene.spec import parse_scene
 
 ALL = ("explicit", "symplectic", "implicit", "backward-euler", "bdf2", "rk4")
 IMPLICIT = ("implicit", "backward-euler", "bdf2")
@@ -30,25 +33,24 @@ P = np.array([0.7, -0.3, 1.1])
 
 
 class Lift(ParticleTerm):
-    """f_i = m_i p, p = ``Lift.p`` (m/s^2, a class attribute the test sets before it builds
-    a model's run and reads its energy); active when p != 0. A constant force like
+    """f_i = m_i p, p = ``Model.lift`` (m/s^2); active when p != 0. A constant force like
     gravity: all of it in Eq. 15's right-hand side, potential -m p . x."""
 
     name = "lift"
     uniform = True
-    p = np.zeros(3)
+    parameters = (Parameter("lift", (0.0, 0.0, 0.0), "m/s^2", "A uniform acceleration besides gravity."),)
 
     @staticmethod
     def active(model):
-        return bool(np.any(Lift.p != 0))
+        return bool(np.any(model.lift != 0))
 
     @staticmethod
     def arrays(model):
-        return {"lift": ("vector", Lift.p)}
+        return {"lift": ("vector", model.lift)}
 
     @staticmethod
     def model_acceleration(model):
-        return Lift.p
+        return model.lift
 
     @staticmethod
     @ti.func
@@ -74,32 +76,28 @@ class Lift(ParticleTerm):
 @pytest.fixture
 def lift(monkeypatch):
     """Registers ``Lift`` right after gravity (forces are summed in ``TERMS`` order, so a
-    lift without gravity takes gravity's place); returns a setter of p."""
-    registry = list(terms.TERMS)
+    lift without gravity takes gravity's place); returns the registry without it."""
+    before = terms.TERMS
+    registry = list(before)
     registry.insert(registry.index(terms.Gravity) + 1, Lift)
     monkeypatch.setattr(terms, "TERMS", tuple(registry))
-
-    def set_p(p):
-        monkeypatch.setattr(Lift, "p", np.array(p, dtype=np.float64))
-
-    set_p((0.0, 0.0, 0.0))
-    return set_p
+    return before
 
 
-def chain(gravity, colliders=()):
+def chain(gravity, colliders=(), lift=(0.0, 0.0, 0.0)):
     """A damped 5-particle chain pinned at one end, swinging down from 0.5 m up."""
     x = np.stack([np.linspace(0.0, 1.0, 5), np.zeros(5), np.full(5, 0.5)], axis=1)
     return ms.Model(x, [[k, k + 1] for k in range(4)], masses=0.1, stiffness=400.0, damping=0.5,
                     velocities=np.tile([0.0, 0.3, 0.0], (5, 1)), fixed=[0], colliders=colliders,
-                    gravity=tuple(gravity))
+                    gravity=tuple(gravity), lift=lift)
 
 
-def run_chain(integrator, gravity, contact):
+def run_chain(integrator, gravity, contact, lift=(0.0, 0.0, 0.0)):
     """(positions, velocities, check, cg iterations, energy) after 0.75 s (150 implicit steps
     or 1500 explicit ones)."""
     plane = (ms.Plane((0.0, 0.0, 0.0), (0.0, 0.0, 1.0), friction=0.3),) if contact else ()
     implicit = integrator in IMPLICIT
-    sim = ms.Simulation(chain(gravity, plane), integrator, dt=5e-3 if implicit else 5e-4)
+    sim = ms.Simulation(chain(gravity, plane, lift), integrator, dt=5e-3 if implicit else 5e-4)
     sim.step(150 if implicit else 1500)
     if contact:
         assert sim.positions[:, 2].min() > -1e-6 and sim.positions[-1, 2] < 0.05  # it reached the plane
@@ -115,9 +113,7 @@ def test_lift_alone_steps_as_gravity_to_the_bit(lift, integrator, contact):
     and the line search's potential, and, through the sums, for the divergence check's
     work, the implicit contact prediction (a plane the chain swings onto) and Newton's
     round-off scale: every bit of the run agrees, and so do the energies."""
-    lift(G + P)
-    xl, vl, cl, il, el = run_chain(integrator, (0.0, 0.0, 0.0), contact)
-    lift((0.0, 0.0, 0.0))
+    xl, vl, cl, il, el = run_chain(integrator, (0.0, 0.0, 0.0), contact, lift=G + P)
     xg, vg, cg, ig, eg = run_chain(integrator, G + P, contact)
     assert np.array_equal(xl, xg) and np.array_equal(vl, vg) and cl == cg and il == ig
     assert list(el) == list(eg) == ["kinetic", "spring", "gravity", "lift", "total"]
@@ -129,9 +125,7 @@ def test_lift_alone_steps_as_gravity_to_the_bit(lift, integrator, contact):
 def test_gravity_and_lift_add(lift, integrator, contact):
     """Gravity g with lift p steps as gravity g + p alone, to round-off (m g + m p and
     m (g + p) differ in the last bits)."""
-    lift(P)
-    x2, v2, c2, _, e2 = run_chain(integrator, G, contact)
-    lift((0.0, 0.0, 0.0))
+    x2, v2, c2, _, e2 = run_chain(integrator, G, contact, lift=P)
     x1, v1, c1, _, e1 = run_chain(integrator, G + P, contact)
     np.testing.assert_allclose(x2, x1, rtol=0, atol=1e-9)
     np.testing.assert_allclose(v2, v1, rtol=0, atol=1e-8)
@@ -140,15 +134,15 @@ def test_gravity_and_lift_add(lift, integrator, contact):
     assert e2["total"] == pytest.approx(e1["total"], rel=1e-9, abs=1e-12)
 
 
-def free_particle(gravity=(0.0, 0.0, 0.0)):
+def free_particle(gravity=(0.0, 0.0, 0.0), **lift):
     """Particle 0 (2 kg) free at rest at (0.2, -0.1, 0.3); particle 1 pinned."""
-    return ms.Model([[0.2, -0.1, 0.3], [1.0, 0.0, 0.0]], NO_SPRINGS, masses=[2.0, 1.0], gravity=gravity, fixed=[1])
+    return ms.Model([[0.2, -0.1, 0.3], [1.0, 0.0, 0.0]], NO_SPRINGS, masses=[2.0, 1.0], gravity=gravity, fixed=[1],
+                    **lift)
 
 
 def test_the_host_sums_count_lift(lift):
     """``Model.external_acceleration``, ``external_work``, ``energy`` and the check's gx0."""
-    lift(P)
-    model = free_particle(G)
+    model = free_particle(G, lift=P)
     m, x = model.masses, model.positions
     assert np.array_equal(model.external_acceleration, G + P)
     assert model.external_work(x) == pytest.approx(float(np.sum(m * (x @ (G + P)))), abs=1e-15)
@@ -178,8 +172,7 @@ def test_a_long_lift_does_not_trip_the_divergence_check(lift, integrator):
     """Lift only, 30 s: kinetic energy reaches m (p t)^2 / 2 ~ 1.6e3 J, over 100 times the
     check's base (so over its bound without the lift's work); the kinetic energy is the
     lift's work, and the energy ratio 1."""
-    lift(P)
-    model = free_particle()
+    model = free_particle(lift=P)
     sim = ms.Simulation(model, integrator, dt=1e-2)
     steps = 3000
     sim.step(steps)
@@ -194,9 +187,8 @@ def test_a_long_lift_does_not_trip_the_divergence_check(lift, integrator):
 def test_runaway_is_still_caught_under_lift(lift):
     """The bound grows with the lift's work, not without limit: an explicit spring far
     beyond its stability limit still diverges."""
-    lift((1.0, 0.0, 0.0))
     model = ms.Model([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0]], [[0, 1]], stiffness=1e6, rest_lengths=0.9,
-                     gravity=(0.0, 0.0, 0.0), fixed=[0])
+                     gravity=(0.0, 0.0, 0.0), fixed=[0], lift=(1.0, 0.0, 0.0))
     sim = ms.Simulation(model, "explicit", dt=1e-2)
     with pytest.raises(ms.DivergenceError):
         sim.step(200)
@@ -208,8 +200,7 @@ def test_implicit_contact_prediction_counts_lift(lift, integrator):
     step predicts x + dt (v + dt p), inside the plane, so the contact holds its normal
     velocity to 0 in that very step. A prediction that missed the lift (x + dt v, outside)
     would leave it v = dt p into the plane for a step."""
-    lift((0.0, 0.0, -9.81))
-    model = ms.Model([[0.0, 0.0, 1e-5]], NO_SPRINGS, gravity=(0.0, 0.0, 0.0),
+    model = ms.Model([[0.0, 0.0, 1e-5]], NO_SPRINGS, gravity=(0.0, 0.0, 0.0), lift=(0.0, 0.0, -9.81),
                      colliders=[ms.Plane((0.0, 0.0, 0.0), (0.0, 0.0, 1.0))])
     sim = ms.Simulation(model, integrator, dt=1e-2)
     sim.step()
@@ -221,12 +212,43 @@ def test_exact_spring_reference_counts_lift(lift):
     refuses one off the axis (the motion would leave it)."""
     times = np.linspace(0.1, 1.0, 10)
 
-    def spring(gravity):
+    def spring(gravity, lift=(0.0, 0.0, 0.0)):
         return ms.Model([[0.0, 0.0, 0.0], [0.0, 0.0, -1.1]], [[0, 1]], stiffness=50.0, damping=0.3,
-                        rest_lengths=1.0, fixed=[0], gravity=gravity)
+                        rest_lengths=1.0, fixed=[0], gravity=gravity, lift=lift)
 
     by_gravity = exact_spring(spring(G), times)
-    lift(G)
-    assert np.array_equal(exact_spring(spring((0.0, 0.0, 0.0)), times).positions, by_gravity.positions)
-    lift((1.0, 0.0, 0.0))
-    assert exact_spring(spring((0.0, 0.0, 0.0)), times) is None
+    assert np.array_equal(exact_spring(spring((0.0, 0.0, 0.0), G), times).positions, by_gravity.positions)
+    assert exact_spring(spring((0.0, 0.0, 0.0), (1.0, 0.0, 0.0)), times) is None
+
+
+def test_the_parameter_reaches_model_mesh_and_scenes(lift):
+    """The term's ``Parameter`` is all it takes: ``Model`` and ``from_mesh`` take and check
+    it, every scene form's [model] table and ``--set`` take it (with its default), and a
+    bad value is refused naming it."""
+    assert np.array_equal(free_particle(lift=P).lift, P) and np.array_equal(free_particle().lift, np.zeros(3))
+    assert not free_particle().lift.flags.writeable
+    with pytest.raises(ValueError, match=r"^lift: expected 3 components"):
+        free_particle(lift=(1.0, 2.0))
+    square = ms.Model.from_mesh([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]], [[0, 1, 2, 3]], lift=P)
+    assert np.array_equal(square.lift, P)
+    assert np.array_equal(load_scene("chain").model().lift, np.zeros(3))
+    pushed = load_scene("chain").with_settings([f"lift={P.tolist()}"]).model()
+    assert np.array_equal(pushed.lift, P) and pushed.external_acceleration == pytest.approx(pushed.gravity + P)
+    data = {"description": "t", "integrator": "implicit", "duration": 1.0,
+            "model": {"generator": "chain", "count": 3, "lift": [0.0, 1.0, 0.0]}}
+    assert np.array_equal(parse_scene(data, "t", "t.toml").model().lift, [0.0, 1.0, 0.0])
+    with pytest.raises(ValueError, match=r"--set lift: expected 3 numbers"):
+        load_scene("chain").with_settings(["lift=[1, 2]"])
+
+
+def test_the_parameter_joins_the_fingerprint_only_when_set(lift):
+    """At its default the new parameter leaves the fingerprint as it was before the term
+    existed (saved states still restart); set, it changes it. The f32 range check names it."""
+    with_term, patched = free_particle().fingerprint(), terms.TERMS
+    terms.TERMS = lift  # the registry before Lift
+    without_term = free_particle().fingerprint()
+    terms.TERMS = patched
+    assert with_term == without_term
+    assert free_particle(lift=P).fingerprint() != with_term
+    with pytest.raises(ValueError, match=r"^lift: 1e\+39 is beyond what an f32 run holds"):
+        ms.Simulation(free_particle(lift=(1e39, 0.0, 0.0)), "explicit", dt=1e-2, precision="f32")

@@ -33,6 +33,11 @@ check's work, the implicit contact prediction, Newton's round-off scale) and
 check's initial work, the energy ratio). A new one is its module, its entry here and
 its data in ``Model``: nothing that sums them changes.
 
+Parameters: a term's own Model arguments are ``Parameter`` records in its
+``parameters`` (drag's ``drag`` and ``wind``), with ``check(values)`` refusing a
+combination; ``Model``, ``Model.from_mesh``, scene files, the f32 range check and the
+fingerprint take them from ``parameters()``, so a new term's data needs no edit there.
+
 Data: ``arrays(model)`` maps array names to ``(per, values)``, ``per`` one of
 "spring" (one value per spring), "particle" (per particle), "vector" (one 3-vector
 for the scene) or "scalar". The device bundle holds them in the run's precision
@@ -41,6 +46,7 @@ under those names (``dev.<name>``); 0-D ones are read as ``dev.<name>[None]``.
 
 import taichi as ti
 
+from .base import Parameter
 from .damping import SpringDamping
 from .drag import Drag
 from .gravity import Gravity
@@ -52,6 +58,21 @@ TERMS = (Springs, SpringDamping, Gravity, Drag)  # the order forces are summed i
 def active_terms(model) -> tuple:
     """The terms of ``model``, in ``TERMS`` order."""
     return tuple(term for term in TERMS if term.active(model))
+
+
+def parameters() -> dict:
+    """name -> ``Parameter`` of every term's Model arguments, in ``TERMS`` order."""
+    return {p.name: p for term in TERMS for p in term.parameters}
+
+
+def check_parameters(given) -> dict:
+    """name -> checked value (float or read-only (3,) array) of every term parameter,
+    from ``given`` (name -> value; a missing one takes its default); ValueError naming
+    the parameter. ``given`` must hold no other names."""
+    values = {name: p.check(given.get(name, p.default)) for name, p in parameters().items()}
+    for term in TERMS:
+        term.check({p.name: values[p.name] for p in term.parameters})
+    return values
 
 
 def uniform_accelerations(model) -> dict:

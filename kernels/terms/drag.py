@@ -2,7 +2,7 @@
 
 import taichi as ti
 
-from .base import ParticleTerm
+from .base import Parameter, ParticleTerm
 
 
 class Drag(ParticleTerm):
@@ -15,10 +15,20 @@ class Drag(ParticleTerm):
     """
 
     name = "drag"
+    parameters = (
+        Parameter("drag", 0.0, "N s/m", "Linear air drag on every particle: f_i = -drag (v_i - wind)."),
+        Parameter("wind", (0.0, 0.0, 0.0), "m/s",
+                  "The air's velocity; non-zero only with drag > 0 (it acts through drag alone)."),
+    )
+
+    @staticmethod
+    def check(values):
+        if any(values["wind"] != 0) and values["drag"] == 0:
+            raise ValueError("wind: has no effect without drag (drag = 0): give drag > 0 or no wind")
 
     @staticmethod
     def active(model):
-        return model.has_drag
+        return model.drag > 0
 
     @staticmethod
     def arrays(model):

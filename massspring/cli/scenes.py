@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import numpy as np
 
+from massspring.kernels.terms import active_terms
 from massspring.text import format_seconds
 from massspring.cli.common import EXIT_OK, integrator_names, make_simulation
 
@@ -40,8 +42,10 @@ def cmd_info(args):
     if sim.model.has_colliders:
         print("colliders   " + "; ".join(f"{c.kind} (friction {c.friction:g}, restitution {c.restitution:g}"
                                          + (", moving" if c.moving else "") + ")" for c in sim.model.colliders))
-    if sim.model.has_drag:
-        print(f"air         drag {sim.model.drag:g} N s/m per particle, wind {sim.model.wind.tolist()} m/s")
+    for term in active_terms(sim.model):
+        if term.parameters:
+            print(f"{term.name:<11} " + ", ".join(f"{p.name} {_shown(getattr(sim.model, p.name))} {p.unit}"
+                                                   for p in term.parameters))
     print(f"integrator  {sim.integrator}, dt = {format_seconds(sim.dt)}, precision {sim.precision}; "
           f"default duration {scene.duration:g} s")
     print("dt defaults " + ", ".join(f"{k} {format_seconds(scene.default_dt(k))}"
@@ -59,3 +63,8 @@ def cmd_info(args):
     print(f"arrays      {', '.join(info['arrays'])} ({info['bytes'] / 1e6:.2f} MB)")
     print(f"kernels     {info['loops']} loops")
     return EXIT_OK
+
+
+def _shown(value) -> str:
+    """A term parameter as ``info`` prints it: 0.5, or [2.0, 0.0, 0.0]."""
+    return f"{value:g}" if np.ndim(value) == 0 else str(np.asarray(value).tolist())

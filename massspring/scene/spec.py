@@ -31,7 +31,7 @@ lists every key. A generator scene file looks like::
     projection = "orthographic"      # or "perspective"
     framing = "run"                  # or "follow" (each frame centred), "last" (fit the last frame)
 
-Contact, pins and air (optional; ``COMMON_KEYS`` work with every generator and ``--set``)::
+Contact, pins and air (optional; ``common_keys()`` work with every generator and ``--set``)::
 
     [model]
     drag = 0.05                      # N s/m per particle: f = -drag (v - wind)
@@ -75,6 +75,7 @@ from massspring.defaults import GRAVITY
 from massspring.self_collision import PASS_BYTES, SelfCollision
 from massspring.integrators import INTEGRATORS
 from massspring.io.camera import DEFAULT_FRAMING, FRAMINGS, View
+from massspring.kernels import terms
 from massspring.model import Model
 from massspring.scene import generators
 from massspring.text import brief
@@ -104,15 +105,21 @@ REQUIRED_KEYS = ("particles.positions", "springs.pairs")
 # The [model] table of a hand-made scene (also what --set changes there).
 HANDMADE_PARAMETERS = {"gravity": list(GRAVITY), "triangles": []}
 HANDMADE_TYPES = {"triangles": "rows"}
-# Model argument -> the key of a hand-made scene that gives it (for error messages).
+# Model argument -> the key of a hand-made scene that gives it (for error messages); any
+# other argument is "model.<name>".
 HANDMADE_ARGUMENTS = {"positions": "particles.positions", "masses": "particles.masses",
                       "velocities": "particles.velocities", "fixed": "particles.fixed", "springs": "springs.pairs",
                       "stiffness": "springs.stiffness", "damping": "springs.damping",
-                      "rest_lengths": "springs.rest_lengths", "gravity": "model.gravity",
-                      "triangles": "model.triangles", "drag": "model.drag", "wind": "model.wind",
-                      "pin_velocity": "model.pin_velocity"}
-# [model] keys of every form, applied to the Model arguments it makes: name -> default.
-COMMON_KEYS = {"drag": 0.0, "wind": [0.0, 0.0, 0.0], "pin_velocity": [0.0, 0.0, 0.0]}
+                      "rest_lengths": "springs.rest_lengths"}
+
+
+def common_keys() -> dict:
+    """[model] keys of every form, applied to the Model arguments it makes: name -> default
+    (the force terms' parameters, ``kernels.terms.parameters()``, then the pins' velocity)."""
+    return {**{name: list(p.default) if p.vector else p.default for name, p in terms.parameters().items()},
+            "pin_velocity": [0.0, 0.0, 0.0]}
+
+
 PIN_KEYS = {"index": int, "velocity": list}
 
 
@@ -131,7 +138,7 @@ class Scene:
     the file names; ``view``: the camera of its [view] table (``io.camera.View``, checked
     when the file is loaded); ``framing``: that table's ``framing`` (``io.camera.FRAMINGS``); ``obj_mesh``: the ``io.obj.ObjMesh`` read (mesh form);
     ``tables``: the [particles] and [springs] tables (hand-made form); ``solver``: its
-    [solver] table (checked Simulation arguments); ``common``: the ``COMMON_KEYS``
+    [solver] table (checked Simulation arguments); ``common``: the ``common_keys()``
     (defaults filled in); ``colliders``: its [[collider]] tables as
     ``massspring.Plane``/``Sphere``/``Box``; ``self_collision``: its [self_collision]
     table as a ``massspring.SelfCollision`` (None without one); ``pins``: its [[pin]] tables as
@@ -152,7 +159,7 @@ class Scene:
     form: str = "generator"
     obj_mesh: object = field(default=None, repr=False, compare=False)
     tables: dict = field(default_factory=dict, repr=False)
-    common: dict = field(default_factory=lambda: dict(COMMON_KEYS))
+    common: dict = field(default_factory=common_keys)
     colliders: tuple = ()
     pins: tuple = ()
     self_collision: object = None
@@ -160,13 +167,13 @@ class Scene:
     _suggested: dict = field(default_factory=dict, repr=False, compare=False)
 
     def with_params(self, **overrides) -> "Scene":
-        """A copy with some [model] parameters or ``COMMON_KEYS`` replaced (checked like the
+        """A copy with some [model] parameters or ``common_keys()`` replaced (checked like the
         file's). In a mesh scene, ``density`` replaces ``mass`` and the other way round,
         and a new ``mesh`` path (relative to the working directory) is read at once."""
         params, common = dict(self.params), dict(self.common)
         surface = self.obj_mesh
         for key, value in overrides.items():
-            if key in COMMON_KEYS:
+            if key in common_keys():
                 common[key] = _check_common(key, value, f"{self.source}: model.{key}")
                 continue
             params[key] = _check_param(self._parameters(), key, value, self.source)
@@ -190,7 +197,7 @@ class Scene:
         overrides = {}
         for key, text in setting_items(settings, "--set", "key=value"):
             value = setting_value(text)
-            if key in COMMON_KEYS:
+            if key in common_keys():
                 overrides[key] = _check_common(key, value, f"--set {key}")
             else:
                 overrides[key] = _check_param(self._parameters(), key, value, f"--set {key}")
@@ -239,7 +246,8 @@ class Scene:
             if message.startswith("pin["):
                 raise SceneError(f"{self.source}: {message}") from None
             if self.form == "particles":
-                raise SceneError(f"{self.source}: {HANDMADE_ARGUMENTS.get(name, name)}: {reason}") from None
+                key = HANDMADE_ARGUMENTS.get(name, f"model.{name}")
+                raise SceneError(f"{self.source}: {key}: {reason}") from None
             raise SceneError(f"{self.source}: model.{message}") from None
 
     def _arguments(self) -> dict:
@@ -257,7 +265,7 @@ class Scene:
         """The Model arguments of ``common``, ``pins`` and ``colliders`` for a form's ``args``:
         its pins move with ``pin_velocity``; each [[pin]] pins its particle (one already
         pinned too) with its own velocity."""
-        air = {"drag": self.common["drag"], "wind": self.common["wind"], "colliders": self.colliders,
+        air = {**{name: self.common[name] for name in terms.parameters()}, "colliders": self.colliders,
                "self_collision": self.self_collision}
         if not self.pins and not any(self.common["pin_velocity"]):
             return air  # the form's own pins, left to the Model to check
@@ -414,9 +422,9 @@ def parse_scene(data: dict, name: str, source: str) -> Scene:
     else:
         scene = dataclasses.replace(scene, tables=_handmade_tables(data, source))
     defaults = scene._parameters()
-    params, common = dict(defaults[0]), dict(COMMON_KEYS)
+    params, common = dict(defaults[0]), common_keys()
     for key, value in model.items():
-        if key in COMMON_KEYS:
+        if key in common_keys():
             common[key] = _check_common(key, value, f"{source}: model.{key}")
         else:
             params[key] = _check_param(defaults, key, value, source)
@@ -482,8 +490,8 @@ def _pin(k, table, source):
 
 
 def _check_common(key, value, prefix):
-    """A ``COMMON_KEYS`` value: a finite number >= 0 (drag) or 3 finite numbers."""
-    default = COMMON_KEYS[key]
+    """A ``common_keys()`` value: a finite number >= 0 or 3 finite numbers, as its default is."""
+    default = common_keys()[key]
     if isinstance(default, list):
         out = _numbers(prefix, value, len(default))
     else:
