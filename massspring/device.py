@@ -381,8 +381,22 @@ class Pool:
     def idle(self):
         return len(self._idle)
 
+    def forget(self):
+        """Drop every idle bundle without destroying its fields (for ``reset_taichi``)."""
+        self._idle.clear()
+
 
 POOL = Pool()
+
+
+def reset_taichi():
+    """Stop Taichi in this process (``ti.reset``), freeing every field and compiled kernel,
+    and empty ``POOL``; the next Simulation starts it again (``ensure_taichi``). A
+    Simulation still open becomes unusable. For long-lived processes that run unrelated
+    batches (the test suite resets between test modules to bound its memory)."""
+    POOL.forget()
+    if impl.get_runtime().prog is not None:
+        ti.reset()
 
 
 def model_layout(model, precision) -> "Layout":

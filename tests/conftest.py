@@ -10,8 +10,10 @@ damping force).
 import resource
 
 import numpy as np
+import pytest
 
 import massspring as ms
+from massspring.device import reset_taichi
 
 PEAK_RSS_LIMIT = 4e9  # bytes: the whole suite, in pytest's process and in any one child process
 ZERO_LENGTH = 1e-12  # f64 zero-length rule: such a spring has no direction or force (stiffness only if l0 = 0)
@@ -179,6 +181,15 @@ def dense_step(model, dt, definiteness_fix, x=None, v=None, prescribed=None):
 def peak_rss():
     """(peak resident bytes of this process, of its largest child process so far)."""
     return tuple(resource.getrusage(who).ru_maxrss * 1024 for who in (resource.RUSAGE_SELF, resource.RUSAGE_CHILDREN))
+
+
+@pytest.hookimpl(hookwrapper=True)
+def pytest_runtest_teardown(item, nextitem):
+    """After a module's last test (and its fixtures' teardown), Taichi is reset: the kernels
+    a module compiled for its configurations would otherwise stay in memory to the end."""
+    yield
+    if nextitem is None or nextitem.module is not item.module:
+        reset_taichi()
 
 
 def pytest_sessionfinish(session, exitstatus):
