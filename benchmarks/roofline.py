@@ -18,6 +18,15 @@
 3. Measured spring-iterations per second of each loop kind (serial / parallel) on the
    cloth, from the time of CG iterations alone: (t(2k) - t(k)) / k with the
    iteration limit set to k and 2k, so the per-step set-up cancels.
+4. The explicit and symplectic steps (kernels/euler.py) on the cloth of that size at its
+   own stiffness and dt, with the loops ``Simulation`` picks: minimum bytes per step, counting neighbour reads of x
+   and v as cache hits and each spring force once written and once read back:
+   per spring:   ends 2 x 4 B, ks, l0 (and kd if damped) 1 real each, force 3 reals
+                 written and 3 read, adjacency entries 2 x 4 B;
+   per particle: x, v read and written (12 reals), mass 1 real, offsets 4 B (and the
+                 free flag 4 B with pins).
+   The share is those bytes per second of step time against the triad bandwidth
+   (issue 22's target: at least 50% at 512 x 512).
 
     python benchmarks/roofline.py --help
     python benchmarks/roofline.py --resolution 512
@@ -45,6 +54,7 @@ def parse_args(argv=None):
     p.add_argument("--iterations", type=int, default=40, help="k: CG iterations per timed step")
     p.add_argument("--repeats", type=int, default=5, help="timed runs of each measurement (best/median kept)")
     p.add_argument("--precision", default="f64", choices=["f64", "f32"])
+    p.add_argument("--steps", type=int, default=20, help="explicit steps per timed run (0: skip part 4)")
     output.add_json(p, "roofline")
     return p.parse_args(argv)
 
@@ -84,6 +94,26 @@ def bytes_per_iteration(n, m, real_bytes, fixed, per_entry=False):
     per_particle = (3 + 1) * real_bytes + 4 + 3 * real_bytes + (12 + 9 + 9) * real_bytes + 9 * real_bytes
     per_particle += 4 * bool(fixed)
     return per_spring * m + per_particle * n
+
+
+def bytes_per_explicit_step(n, m, real_bytes, fixed, damped):
+    per_spring = 2 * 4 + (2 + bool(damped)) * real_bytes + 6 * real_bytes + 2 * 4
+    per_particle = 13 * real_bytes + 4 + 4 * bool(fixed)
+    return per_spring * m + per_particle * n
+
+
+def explicit_seconds_per_step(scene, integrator, steps, repeats, precision):
+    sim = scene.simulation(integrator=integrator, precision=precision)  # the scene's dt for it
+    for _ in range(2):  # compile (the second call's state parity compiles again), warm the caches
+        sim.step(steps)
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        sim.step(steps)
+        times.append(time.perf_counter() - t0)
+    loops = sim.loops
+    sim.close()
+    return statistics.median(times) / steps, loops
 
 
 def cg_seconds_per_iteration(scene, loops, k, repeats, precision):
@@ -131,9 +161,25 @@ def main(argv=None):
         rows.append(row)
         print(f"{loops:>8s} {row['ms_per_iteration']:8.3f} {rate / 1e6:8.1f} "
               f"{row['gb_per_s']:6.1f} {row['share_of_bound']:6.0%}", flush=True)
+    explicit = []
+    if args.steps:
+        step_bytes = bytes_per_explicit_step(n, m, real_bytes, model.has_fixed, model.has_damping)
+        print(f"explicit step moves >= {step_bytes / 1e6:.1f} MB ({step_bytes / m:.0f} bytes per spring)")
+        print(f"{'integrator':>10s} {'loops':>8s} {'ms/step':>8s} {'ns/spring':>9s} {'GB/s':>6s} {'share':>6s}")
+        soft = ms.load_scene("cloth").with_params(resolution=args.resolution)  # its [dt] holds at its stiffness
+        for integrator in ("explicit", "symplectic"):
+            seconds, loops = explicit_seconds_per_step(soft, integrator, args.steps, args.repeats, args.precision)
+            row = {"integrator": integrator, "loops": loops, "ms_per_step": 1e3 * seconds,
+                   "ns_per_spring": 1e9 * seconds / m, "gb_per_s": step_bytes / seconds / 1e9,
+                   "share_of_bandwidth": step_bytes / seconds / best}
+            explicit.append(row)
+            print(f"{integrator:>10s} {loops:>8s} {row['ms_per_step']:8.3f} {row['ns_per_spring']:9.2f} "
+                  f"{row['gb_per_s']:6.1f} {row['share_of_bandwidth']:6.0%}", flush=True)
     write_json(args.json, {"triad_bytes_per_s": bandwidth, "resolution": args.resolution, "particles": n,
                            "springs": m, "bytes_per_iteration": moved, "layout_bytes_per_iteration": layout, "bound_spring_iterations_per_s": bound,
-                           "precision": args.precision, "variants": rows})
+                           "precision": args.precision, "variants": rows, "explicit_steps": explicit,
+                           "bytes_per_explicit_step": bytes_per_explicit_step(n, m, real_bytes, model.has_fixed,
+                                                                              model.has_damping)})
     print(f"wrote {args.json}")
     return 0
 
