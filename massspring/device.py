@@ -269,6 +269,7 @@ class Layout:
             tree = builder.finalize()
             bundle = Bundle(fields, self.pairs)
             bundle._tree, bundle._signature, bundle._nbytes = tree, signature, self.nbytes()
+            bundle._program = impl.get_runtime().prog
         plan, reals, ints = self._fill_plan()
         _fill(bundle, plan, reals, ints)
         bundle.n, bundle.m = self.n, self.m
@@ -355,7 +356,8 @@ class Pool:
     """Idle bundles by declaration signature, at most ``budget`` bytes in all.
 
     It holds fields of the process's one Taichi runtime, so there is one pool per
-    process (``POOL``). Destroying a field tree makes Taichi recompile the kernels in
+    process (``POOL``); a bundle made before a ``reset_taichi`` (a Simulation closed or
+    collected after it) is not taken back. Destroying a field tree makes Taichi recompile the kernels in
     use, so idle bundles are kept until the budget is exceeded, oldest out first.
     """
 
@@ -373,6 +375,8 @@ class Pool:
         return None
 
     def give(self, bundle):
+        if bundle._program is not impl.get_runtime().prog:
+            return  # made before a reset_taichi: its fields died with that runtime
         self._idle[id(bundle)] = bundle
         while sum(b._nbytes for b in self._idle.values()) > self.budget:
             _, old = self._idle.popitem(last=False)

@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from massspring.cli import main
+from massspring.integrators import INTEGRATORS
 from massspring.scene import builtin_scenes
 
 
@@ -17,24 +18,38 @@ def run_cli(*args):
     return proc.returncode, proc.stdout, proc.stderr
 
 
-@pytest.mark.parametrize("integrator", ["explicit", "symplectic", "implicit"])
+UNDAMPED_EXPLICIT = pytest.mark.xfail(strict=True, reason=(
+    "stiffchain is undamped, and explicit Euler grows an undamped oscillation at every dt (|1 + i w dt| > 1): "
+    "its point is that explicit Euler's stable dt is out of reach there"))
+
+
+@pytest.mark.parametrize("integrator", sorted(INTEGRATORS))
 @pytest.mark.parametrize("scene", sorted(builtin_scenes()))
-def test_run_every_scene(scene, integrator, tmp_path, capsys):
+def test_run_every_scene(scene, integrator, tmp_path, capsys, request):
+    """Every scene runs with every integrator at its default dt. Integrators with a
+    stability limit run the scene at its own size for 100 steps (a default dt that does
+    not hold fails soon: steps 3 to 96 where they were wrong or cannot hold); the others,
+    whose steps cost more, run 3 steps of a smaller model."""
+    if (scene, integrator) == ("stiffchain", "explicit"):
+        request.applymarker(UNDAMPED_EXPLICIT)
     out = tmp_path / "state.npz"
+    limited = not INTEGRATORS[integrator].linear_solver
     grid = ["--set", "resolution=6"]
-    small = {"cloth": grid, "drape": grid, "tablecloth": grid, "flag": grid, "swing": grid, "sheets": grid,
-             "ledge": grid, "thrown": grid,
-             "cube": ["--set", "resolution=3"], "chain": ["--set", "count=5"],
-             "rope-drop": ["--set", "count=5"]}.get(scene, [])
-    code = main(["run", scene, "--integrator", integrator, "--steps", "3", "--quiet", "--out", str(out), *small])
+    small = {} if limited else {
+        "cloth": grid, "drape": grid, "tablecloth": grid, "flag": grid, "swing": grid, "sheets": grid,
+        "ledge": grid, "thrown": grid, "cube": ["--set", "resolution=3"], "chain": ["--set", "count=5"],
+        "rope-drop": ["--set", "count=5"]}
+    steps = 100 if limited else 3
+    code = main(["run", scene, "--integrator", integrator, "--steps", str(steps), "--quiet", "--out", str(out),
+                 *small.get(scene, [])])
     assert code == 0
     text = capsys.readouterr().out
-    assert "steps       3" in text
-    assert ("CG " in text) == (integrator == "implicit")
+    assert f"steps       {steps}" in text
+    assert ("CG " in text) == INTEGRATORS[integrator].linear_solver
     data = np.load(out)
     assert data["positions"].shape == data["velocities"].shape
     assert np.all(np.isfinite(data["positions"]))
-    assert data["steps"] == 3
+    assert data["steps"] == steps
 
 
 def test_scenes_lists_builtins():

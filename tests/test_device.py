@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 import massspring as ms
-from massspring.device import POOL, capacity
+from massspring.device import POOL, capacity, reset_taichi
 
 
 @pytest.fixture(scope="module")
@@ -107,6 +107,26 @@ for name, resolution, integrator, preconditioner, steps in cases:
     print(hashlib.sha256(sim.positions.tobytes() + sim.velocities.tobytes()).hexdigest(), sum(sim.cg_iterations))
     sim.close()
 """
+
+
+def test_a_simulation_collected_after_a_reset_does_not_return_dead_fields():
+    """``reset_taichi`` frees every field; a Simulation of the old runtime collected after
+    it must not put its bundle back in the pool, where the next run of that size would
+    take it (a use of freed memory: it crashed the process)."""
+    def chain():
+        return ms.Model([[0, 0, 0], [1, 0, 0], [2, 0, 0]], [[0, 1], [1, 2]], fixed=[0])
+
+    old = ms.Simulation(chain(), "implicit", dt=1e-2)
+    old.step(2)
+    reset_taichi()
+    del old
+    gc.collect()
+    assert POOL.idle() == 0
+    runs = [ms.Simulation(chain(), "implicit", dt=1e-2) for _ in range(2)]
+    for sim in runs:
+        sim.step(5)
+    assert np.array_equal(runs[0].positions, runs[1].positions)
+    assert np.all(np.isfinite(runs[0].positions)) and runs[0].positions[2, 2] < 0
 
 
 def test_parallel_results_do_not_depend_on_the_thread_count():
