@@ -9,6 +9,20 @@ each level, the smoothed prolongations P = (I - omega/rho D^-1 A) T, the Galerki
 coarse operators P^T A P and the dense Cholesky factor of the coarsest level. The
 fine level stays matrix-free.
 
+The whole setup runs every step (issue 22; ``benchmarks/multigrid_reuse.py`` measured
+the alternatives, its results in ``benchmarks/results/multigrid_reuse_*.json``). A
+hierarchy kept for later steps with only level 0's D^-1 and rho refreshed
+(``fine_level``) still gives a symmetric positive definite cycle, so CG still meets
+its tolerance: the fine smoother is convergent for the current A and the stale coarse
+cycle enters only as G S P B_c P^T S G^T (G the smoother's error propagation, S the
+constraint filter), positive semidefinite for any symmetric positive semidefinite
+coarse cycle B_c. But the coarse levels carry the soft modes of a stiff, anisotropic
+A whose spring directions turn with the cloth, and a hierarchy one step old multiplies
+CG's iterations on a moving cloth many times over, costing far more than the setup it
+saves; recomputing the Galerkin operators from a stale P (``coarse_operators`` only)
+adds fewer iterations but saves little, since T and P (``prolongation``) are the cheap
+part. Only an undeformed cloth in free fall, whose A does not change, gains.
+
 ``apply`` is one V(NU, NU)-cycle on CG's residual: Chebyshev smoothing of degree
 NU in D^-1 A on [rho / CHEB_RATIO, rho] before and after the coarse correction
 (the same polynomial, so the cycle is symmetric; it is positive definite when A
@@ -78,15 +92,30 @@ class Multigrid(Preconditioner):
 
     # ------------------------------------------------------------------ setup
     def setup(self, dt):
-        dev, cfg, g, plan, serial = self.dev, self.cfg, self.g, self.plan, self.serial
-        bound = mg.fine_inverse(dev, cfg, serial)
-        self.rho[0] = min(2.0, bound) if self.fix else bound
-        if g is None:
+        self.fine_level()
+        if self.g is None:
             return
+        self.prolongation()
+        self.coarse_operators()
+
+    def fine_level(self):
+        """Level 0's D^-1 (``dev.minv``) and rho[0], the bound its smoother needs."""
+        bound = mg.fine_inverse(self.dev, self.cfg, self.serial)
+        self.rho[0] = min(2.0, bound) if self.fix else bound
+
+    def prolongation(self):
+        """The tentative prolongations T of every level at the current positions and
+        level 0's smoothed P (after ``fine_inverse``)."""
+        dev, cfg, g, plan, serial = self.dev, self.cfg, self.g, self.plan, self.serial
         mg.tentative0(dev, cfg, g, plan.node_range[1][1], aggregation.DROP, serial)
         for level in range(1, plan.levels - 1):
             mg.tentativec(cfg, g, *plan.node_range[level + 1], aggregation.DROP, serial)
         mg.smooth_p0(dev, cfg, g, OMEGA / _positive(self.rho[0]), serial)
+
+    def coarse_operators(self):
+        """From level 0's P and the current A: the coarse operators, their D^-1 and rho,
+        the coarse levels' P and the coarsest Cholesky factor."""
+        dev, cfg, g, plan, serial = self.dev, self.cfg, self.g, self.plan, self.serial
         mg.ap0(dev, cfg, g, serial)
         mg.galerkin0(cfg, g, plan.gal0_count, serial)
         last = plan.levels - 1
