@@ -7,6 +7,7 @@ right-hand side keeps the -dt D v term instead of cancelling it against the
 damping force).
 """
 
+import os
 import resource
 
 import numpy as np
@@ -16,6 +17,7 @@ import massspring as ms
 from massspring.device import reset_taichi
 
 PEAK_RSS_LIMIT = 4e9  # bytes: the whole suite, in pytest's process and in any one child process
+RESET_ABOVE = 2e9  # bytes resident after a test module: Taichi is then reset (its kernels and fields freed)
 ZERO_LENGTH = 1e-12  # f64 zero-length rule: such a spring has no direction or force (stiffness only if l0 = 0)
 
 # Each integrator has two drivers running the same algorithm: serial kernels (one
@@ -183,12 +185,22 @@ def peak_rss():
     return tuple(resource.getrusage(who).ru_maxrss * 1024 for who in (resource.RUSAGE_SELF, resource.RUSAGE_CHILDREN))
 
 
+def resident_bytes():
+    """This process's resident memory now (bytes; its peak where /proc is missing)."""
+    try:
+        with open("/proc/self/statm") as statm:
+            return int(statm.read().split()[1]) * os.sysconf("SC_PAGE_SIZE")
+    except OSError:
+        return peak_rss()[0]
+
+
 @pytest.hookimpl(hookwrapper=True)
 def pytest_runtest_teardown(item, nextitem):
-    """After a module's last test (and its fixtures' teardown), Taichi is reset: the kernels
-    a module compiled for its configurations would otherwise stay in memory to the end."""
+    """After a module's last test (and its fixtures' teardown), Taichi is reset if this
+    process holds more than ``RESET_ABOVE``: the kernels compiled for every configuration
+    so far would otherwise stay in memory to the end. Below it, the next modules reuse them."""
     yield
-    if nextitem is None or nextitem.module is not item.module:
+    if (nextitem is None or nextitem.module is not item.module) and resident_bytes() > RESET_ABOVE:
         reset_taichi()
 
 
