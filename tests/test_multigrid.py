@@ -273,16 +273,23 @@ def test_cycle_is_symmetric_and_positive_definite(resolution, w_cycle, monkeypat
     levels = len(aggregation.build(model, DT).levels)
     assert levels == (1 if resolution == 12 else 3)  # 12^2: smoothing alone, no coarse level
     system = SystemOperator(model, DT, preconditioner="multigrid")
-    rng = np.random.default_rng(resolution)
     keep = free_dofs(model).reshape(-1, 3)
-    for _ in range(4):
+    for _, bx in symmetric_positive_definite(system, keep, np.random.default_rng(resolution)):
+        assert np.all(bx[~keep] == 0)
+    system.close()
+
+
+def symmetric_positive_definite(system, keep, rng, count=4):
+    """Yields (x, B x) for ``count`` random x on the free directions ``keep`` ((n, 3)
+    bool), B = ``system.precondition``, after checking x . B y = y . B x to round-off and
+    x . B x > 0 against another random y."""
+    for _ in range(count):
         x, y = rng.normal(size=keep.shape) * keep, rng.normal(size=keep.shape) * keep
         bx, by = system.precondition(x), system.precondition(y)
         scale = np.linalg.norm(x) * np.linalg.norm(by)
         assert abs(np.sum(x * by) - np.sum(y * bx)) <= 1e-12 * scale
         assert np.sum(x * bx) > 0
-        assert np.all(bx[~keep] == 0)
-    system.close()
+        yield x, bx
 
 
 def test_stale_coarse_levels_keep_the_cycle_symmetric_positive_definite():
@@ -298,14 +305,8 @@ def test_stale_coarse_levels_keep_the_cycle_symmetric_positive_definite():
         field.from_numpy(np.pad(values, ((0, field.shape[0] - len(values)), (0, 0))))
     cg.cg_refresh(dev, system._cfg, dev.x, DT, 0.0, operator.LINEARISED)
     mg.fine_level()
-    rng = np.random.default_rng(3)
     keep = free_dofs(late).reshape(-1, 3)
-    for _ in range(4):
-        x, y = rng.normal(size=keep.shape) * keep, rng.normal(size=keep.shape) * keep
-        bx, by = system.precondition(x), system.precondition(y)
-        scale = np.linalg.norm(x) * np.linalg.norm(by)
-        assert abs(np.sum(x * by) - np.sum(y * bx)) <= 1e-12 * scale
-        assert np.sum(x * bx) > 0
+    for x, bx in symmetric_positive_definite(system, keep, np.random.default_rng(3)):
         assert np.abs(bx - fresh.precondition(x)).max() > 1e-3 * np.abs(bx).max()
     system.close()
     fresh.close()
