@@ -166,8 +166,8 @@ def main(argv=None):
         print(f"{loops:>8s} {row['ms_per_iteration']:8.3f} {rate / 1e6:8.1f} "
               f"{row['gb_per_s']:6.1f} {row['share_of_bound']:6.0%}", flush=True)
     explicit = []
+    step_bytes = bytes_per_explicit_step(n, m, real_bytes, model.has_fixed, model.has_damping)
     if args.steps:
-        step_bytes = bytes_per_explicit_step(n, m, real_bytes, model.has_fixed, model.has_damping)
         print(f"explicit step moves >= {step_bytes / 1e6:.1f} MB ({step_bytes / m:.0f} bytes per spring)")
         print(f"{'integrator':>10s} {'loops':>8s} {'ms/step':>8s} {'ns/spring':>9s} {'GB/s':>6s} {'share':>6s}")
         soft = ms.load_scene("cloth").with_params(resolution=args.resolution)  # at the scene's stiffness
@@ -182,8 +182,7 @@ def main(argv=None):
     write_json(args.json, {"triad_bytes_per_s": bandwidth, "resolution": args.resolution, "particles": n,
                            "springs": m, "bytes_per_iteration": moved, "layout_bytes_per_iteration": layout, "bound_spring_iterations_per_s": bound,
                            "precision": args.precision, "variants": rows, "explicit_steps": explicit,
-                           "bytes_per_explicit_step": bytes_per_explicit_step(n, m, real_bytes, model.has_fixed,
-                                                                              model.has_damping)})
+                           "bytes_per_explicit_step": step_bytes})
     print(f"wrote {args.json}")
     return 0
 

@@ -21,7 +21,6 @@ import numpy as np
 from massspring import mesh
 from massspring.defaults import GRAVITY
 from massspring.kernels import terms
-from massspring.kernels.terms import check_parameters, parameters, uniform_accelerations
 from massspring.colliders import COLLIDERS, MAX_COLLIDERS, Collider
 from massspring.self_collision import SelfCollision
 from massspring.text import brief
@@ -172,10 +171,10 @@ class Model:
         pins = _pin_velocities(pin_velocity, fixed, fixed_idx)
         v[fixed_idx] = pins
         tris = _triangles(triangles, n)
-        unknown = sorted(set(term_parameters) - set(parameters()))
+        unknown = sorted(set(term_parameters) - set(terms.parameters()))
         if unknown:
             raise TypeError(f"Model() got an unexpected keyword argument {unknown[0]!r}")
-        forces = check_parameters(term_parameters)
+        forces = terms.check_parameters(term_parameters)
 
         for name, value in (("positions", x), ("springs", s), ("masses", mass), ("stiffness", ks),
                             ("damping", kd), ("rest_lengths", l0), ("velocities", v),
@@ -242,7 +241,7 @@ class Model:
     def external_acceleration(self) -> np.ndarray:
         """(3,) m/s^2: the sum of the uniform accelerations (``kernels.terms.uniform_accelerations``:
         gravity and any other such term), summed from the first (one alone is itself to the bit)."""
-        first, *others = uniform_accelerations(self).values()
+        first, *others = terms.uniform_accelerations(self).values()
         return sum(others, first)
 
     def external_work(self, positions) -> float:
@@ -276,7 +275,7 @@ class Model:
     @property
     def term_parameters(self) -> dict:
         """name -> value of the force terms' parameters (``kernels.terms.parameters()``)."""
-        return {name: getattr(self, name) for name in parameters()}
+        return {name: getattr(self, name) for name in terms.parameters()}
 
     def free_mask(self) -> np.ndarray:
         """(n,) bool: True for particles that move."""
@@ -302,7 +301,7 @@ class Model:
             spring = 0.0
         energy = {"kinetic": kinetic, "spring": spring}
         total = kinetic + spring
-        for name, a in uniform_accelerations(self).items():
+        for name, a in terms.uniform_accelerations(self).items():
             energy[name] = -float(np.sum(self.masses * (x @ a)))
             total += energy[name]
         energy["total"] = total
@@ -311,14 +310,14 @@ class Model:
 
 def _parameter_docs() -> str:
     lines = []
-    for p in parameters().values():
+    for p in terms.parameters().values():
         kind = "(3,) float" if p.vector else "float >= 0"
         lines += [f"    {p.name} : {kind}, {p.unit} (default {p.default!r})", f"        {p.doc}"]
     return "\n".join(lines) + "\n"
 
 
 Model.__doc__ = Model.__doc__.replace("{term_parameters}", _parameter_docs()).replace(
-    "{term_names}", ", ".join(parameters()))
+    "{term_names}", ", ".join(terms.parameters()))
 
 
 def _fixed_indices(fixed, n):

@@ -172,8 +172,9 @@ class Scene:
         and a new ``mesh`` path (relative to the working directory) is read at once."""
         params, common = dict(self.params), dict(self.common)
         surface = self.obj_mesh
+        shared = common_keys()
         for key, value in overrides.items():
-            if key in common_keys():
+            if key in shared:
                 common[key] = _check_common(key, value, f"{self.source}: model.{key}")
                 continue
             params[key] = _check_param(self._parameters(), key, value, self.source)
@@ -194,10 +195,10 @@ class Scene:
     def with_settings(self, settings) -> "Scene":
         """Apply ``key=value`` strings (values parsed as TOML, else taken as strings);
         a key given twice is an error."""
-        overrides = {}
+        overrides, shared = {}, common_keys()
         for key, text in setting_items(settings, "--set", "key=value"):
             value = setting_value(text)
-            if key in common_keys():
+            if key in shared:
                 overrides[key] = _check_common(key, value, f"--set {key}")
             else:
                 overrides[key] = _check_param(self._parameters(), key, value, f"--set {key}")
@@ -424,7 +425,7 @@ def parse_scene(data: dict, name: str, source: str) -> Scene:
     defaults = scene._parameters()
     params, common = dict(defaults[0]), common_keys()
     for key, value in model.items():
-        if key in common_keys():
+        if key in common:
             common[key] = _check_common(key, value, f"{source}: model.{key}")
         else:
             params[key] = _check_param(defaults, key, value, source)
