@@ -22,10 +22,13 @@ from massspring.validate import real_array
 
 LOOPS = ("auto", "serial", "parallel")
 # Springs below which serial kernels beat parallel ones on this project's 2-core CPU
-# machine, where a parallel loop's launch costs more than two threads save on small
-# models (benchmarks/switch_point.py; benchmarks/results/switch_point.json).
-# Simulation(loops=...) overrides it.
-SERIAL_BELOW = 200_000
+# machines, where a parallel loop's launch costs more than two threads save on small
+# models. On the Intel one, symplectic steps and block-Jacobi CG iterations were faster
+# serial up to 880,898 springs and parallel at 1,567,746 (benchmarks/switch_point.py;
+# benchmarks/results/switch_point_intel.json); on the AMD one (an older revision,
+# results/switch_point.json) symplectic steps were faster serial at 390,658 springs
+# and CG iterations faster parallel. Simulation(loops=...) overrides it.
+SERIAL_BELOW = 1_000_000
 STEPS_PER_LAUNCH = 2**30  # explicit steps per kernel call at most (the count is an int32 there)
 DIVERGENCE_FACTOR = 100.0  # see divergence_check
 F32_MAX_MAGNITUDE = 1e18  # model values an f32 run accepts: their squares stay within f32's 3.4e38
