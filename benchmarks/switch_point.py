@@ -7,7 +7,7 @@ steps, per launch) and parallel kernels (one launch per phase), all in one run. 
 default ``simulation.SERIAL_BELOW`` comes from this table.
 
     python benchmarks/switch_point.py --help
-    python benchmarks/switch_point.py --resolutions 16 32 64 128 256
+    python benchmarks/switch_point.py --resolutions 128 256 384 512   # results/switch_point_intel.json
 """
 
 import argparse
@@ -26,7 +26,7 @@ COMBOS = ["serial", "parallel"]
 
 def parse_args(argv=None):
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--resolutions", type=int, nargs="+", default=[16, 32, 64, 128, 256])
+    p.add_argument("--resolutions", type=int, nargs="+", default=[32, 128, 256, 384, 512])
     p.add_argument("--steps", type=int, default=3, help="timed implicit steps (after one warm-up step)")
     p.add_argument("--explicit-steps", type=int, default=200, help="timed symplectic steps per run")
     output.add_json(p, "switch_point")
