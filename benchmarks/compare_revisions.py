@@ -10,7 +10,8 @@ the median over ``--repeats`` processes, and new/base ratios.
 
 Cases (cloth scene, f64): implicit ms per CG iteration at 32, 128, 512 (from two
 solves capped at k and 2k iterations); explicit and symplectic ms per step at 32,
-128, 256 (dt = 2e-4 / res); cold first step (Simulation built, kernels compiled
+128, 256 (dt = 2e-4 / res); multigrid-preconditioned implicit ms per step (setup
+included, dt = 1/60) at 128 and 256; cold first step (Simulation built, kernels compiled
 with an empty Taichi offline cache, one step) of the implicit and symplectic
 32 x 32 cloth.
 
@@ -35,7 +36,8 @@ HERE = Path(__file__).resolve().parent
 ROOT = HERE.parent
 sys.path.insert(0, str(ROOT))
 CASES = ["implicit-32", "implicit-128", "implicit-512", "explicit-32", "explicit-128", "explicit-256",
-         "symplectic-32", "symplectic-128", "symplectic-256", "cold-implicit-32", "cold-symplectic-32"]
+         "symplectic-32", "symplectic-128", "symplectic-256", "multigrid-128", "multigrid-256", "cold-implicit-32",
+         "cold-symplectic-32"]
 
 
 def parse_args(argv=None):

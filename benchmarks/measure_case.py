@@ -4,6 +4,7 @@ Only public API that every revision since the first release has (``load_scene``,
 ``Scene.with_params``, ``Scene.simulation``, ``Simulation.step``,
 ``solver_stats``, ``preconditioner="block-jacobi"``), so the same file measures old and
 new code: block-Jacobi CG iterations (the default below ``solvers.MULTIGRID_FROM`` free particles now).
+The multigrid cases need ``preconditioner="multigrid"``: revisions since it was added.
 
     python benchmarks/measure_case.py implicit-128
 """
@@ -54,6 +55,19 @@ def explicit_ms_per_step(integrator, resolution, repeats=3):
     return 1e3 * statistics.median(times)
 
 
+def multigrid_ms_per_step(resolution, steps=4):
+    """A whole implicit step with the multigrid preconditioner (setup and solve), dt 1/60:
+    the median of ``steps`` steps after two (the flat start's one-iteration solve)."""
+    sim = cloth(resolution).simulation(integrator="implicit", dt=1 / 60, preconditioner="multigrid")
+    sim.step(2)
+    times = []
+    for _ in range(steps):
+        t0 = time.perf_counter()
+        sim.step(1)
+        times.append(time.perf_counter() - t0)
+    return 1e3 * statistics.median(times)
+
+
 def cold_first_step(integrator, resolution):
     """Seconds from building the Simulation to the end of its first step (kernels
     compiled: run with an empty Taichi offline cache)."""
@@ -73,6 +87,8 @@ def main(case):
         value = implicit_ms_per_iteration(resolution)
     elif kind in ("explicit", "symplectic"):
         value = explicit_ms_per_step(kind, resolution)
+    elif kind == "multigrid":
+        value = multigrid_ms_per_step(resolution)
     elif kind.startswith("cold-"):
         value = cold_first_step(kind[len("cold-"):], resolution)
     else:

@@ -382,6 +382,37 @@ def test_iteration_counts_stay_low(resolution, stiffness):
     sim.close()
 
 
+@pytest.mark.parametrize("loops", ["serial", "parallel"])
+def test_one_cycle_per_iteration_and_per_cg_start_that_goes_on(loops, monkeypatch):
+    """CG applies the cycle once per iteration and once after each true-residual
+    restart (``cg_begin``) that it goes on from: the restart that ends a solve, the
+    convergence check, runs no cycle (it ran one, which nothing used, before)."""
+    from massspring.solvers import cg as driver
+
+    counts = {"apply": 0, "begin": 0}
+    apply, begin = multigrid.Multigrid.apply, driver.cg.cg_begin
+
+    def counting_apply(self):
+        counts["apply"] += 1
+        return apply(self)
+
+    def counting_begin(*args):
+        counts["begin"] += 1
+        return begin(*args)
+
+    monkeypatch.setattr(multigrid.Multigrid, "apply", counting_apply)
+    monkeypatch.setattr(driver.cg, "cg_begin", counting_begin)
+    sim = ms.load_scene("cloth").with_params(resolution=16).simulation(integrator="implicit", dt=DT, loops=loops,
+                                                                      preconditioner="multigrid")
+    for _ in range(5):
+        counts.update(apply=0, begin=0)
+        sim.step(1)
+        iterations = sim.solver_stats.iterations
+        assert iterations > 0 and counts["begin"] >= 2, (iterations, counts)
+        assert counts["apply"] == iterations + counts["begin"] - 1, (iterations, counts)
+    sim.close()
+
+
 # ----------------------------------------------------------------------------- choice
 
 

@@ -90,10 +90,18 @@ def solve(dev, cfg, preconditioner, dt, tol, max_iter, serial, t=0.0, x=None, mo
 def _restart(dev, cfg, preconditioner):
     """r = b - A v and p = z = P r; returns (r.z, r.r, b.b)."""
     rz, rr, bb = cg.cg_begin(dev, cfg)
-    if preconditioner.kernel is None and math.isfinite(bb) and bb > 0:
+    if math.isfinite(bb) and bb > 0:
+        rz = _global_direction(dev, cfg, preconditioner, rz)
+    return rz, rr, bb
+
+
+def _global_direction(dev, cfg, preconditioner, rz):
+    """After ``cg_begin``: p = z = P r for a global preconditioner (a pointwise one's
+    ``cg_begin`` did it); returns r.z."""
+    if preconditioner.kernel is None:
         rz = preconditioner.apply()
         cg.cg_direction(dev, cfg, 0.0)
-    return rz, rr, bb
+    return rz
 
 
 def _parallel(dev, cfg, preconditioner, tol, floor, max_iter):
@@ -124,8 +132,10 @@ def _parallel(dev, cfg, preconditioner, tol, floor, max_iter):
             cg.cg_direction(dev, cfg, rz_new / rz)
             rz = rz_new
         if cycle:
-            rz, rr, _ = _restart(dev, cfg, preconditioner)
+            rz, rr, _ = cg.cg_begin(dev, cfg)  # the true residual; P r only if CG goes on
         residual = math.sqrt(max(rr, 0.0) / bb) if math.isfinite(rr) else math.inf
         done, reason, best = cg.exit_rule(math.isfinite(residual), iterations, cycle, residual, tol, best,
                                           reason, max_iter)
+        if not done:
+            rz = _global_direction(dev, cfg, preconditioner, rz)
     return iterations, residual, reason, math.sqrt(bb)
