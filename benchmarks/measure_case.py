@@ -43,29 +43,28 @@ def implicit_ms_per_iteration(resolution, repeats=3):
     return 1e3 * (solve_seconds(2 * k) - solve_seconds(k)) / k
 
 
-def explicit_ms_per_step(integrator, resolution, repeats=3):
-    sim = cloth(resolution).simulation(integrator=integrator, dt=2e-4 / resolution)
+def ms_per_step(sim, steps, runs):
+    """Median over ``runs`` timed calls of ``sim.step(steps)`` of the ms per step, after two
+    untimed steps (compilation, and an implicit flat start's one-iteration solve)."""
     sim.step(2)
-    steps = max(10, int(4e6 / sim.model.n_springs))
     times = []
-    for _ in range(repeats):
+    for _ in range(runs):
         t0 = time.perf_counter()
         sim.step(steps)
         times.append((time.perf_counter() - t0) / steps)
     return 1e3 * statistics.median(times)
 
 
+def explicit_ms_per_step(integrator, resolution, repeats=3):
+    sim = cloth(resolution).simulation(integrator=integrator, dt=2e-4 / resolution)
+    return ms_per_step(sim, max(10, int(4e6 / sim.model.n_springs)), repeats)
+
+
 def multigrid_ms_per_step(resolution, steps=4):
     """A whole implicit step with the multigrid preconditioner (setup and solve), dt 1/60:
-    the median of ``steps`` steps after two (the flat start's one-iteration solve)."""
+    the median of ``steps`` single steps."""
     sim = cloth(resolution).simulation(integrator="implicit", dt=1 / 60, preconditioner="multigrid")
-    sim.step(2)
-    times = []
-    for _ in range(steps):
-        t0 = time.perf_counter()
-        sim.step(1)
-        times.append(time.perf_counter() - t0)
-    return 1e3 * statistics.median(times)
+    return ms_per_step(sim, 1, steps)
 
 
 def cold_first_step(integrator, resolution):
