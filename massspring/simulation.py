@@ -7,7 +7,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from massspring import memory, self_collision, validate
+from massspring import memory, ordering, self_collision, validate
 from massspring.colliders import COLLIDERS
 from massspring.defaults import MAX_STEPS, PRECISIONS
 from massspring.device import ARCHS, CPU_ARCHS, POOL, ensure_taichi, model_layout
@@ -181,6 +181,8 @@ class Simulation:
                 below = PRECONDITIONERS[preconditioner].serial_below or SERIAL_BELOW
             loops = "serial" if model.n_springs < below and arch in CPU_ARCHS else "parallel"
         self._model = model
+        self._order = ordering.plan(model)
+        inner = model if self._order is None else self._order.model
         self._settings = Settings(integrator, dt, precision, cg_tol, cg_max_iter, bool(definiteness_fix),
                                   preconditioner, arch, loops, newton_tol, newton_max_iter)
         self._check = divergence_check(model)
@@ -196,16 +198,16 @@ class Simulation:
                                       extra=cls.extra_bytes + self_collision.PASS_BYTES * model.has_self_collision
                                       + self_collision.SOLVE_BYTES * cls.pairs_in_solve(model)),
                      f"model: {model.n_particles:,} particles and {model.n_springs:,} springs; a run of it ({integrator})")
-        layout = model_layout(model, precision)
-        cls.declare(layout, model, self._settings)
+        layout = model_layout(inner, precision)
+        cls.declare(layout, inner, self._settings)
         if model.has_self_collision:
-            self_collision.declare(layout, model)
+            self_collision.declare(layout, inner)
         self._layout_names = [name for name in layout.decls if name not in ("size", "check", "partial")]
         self._bytes = layout.nbytes()
         dev = layout.allocate()
         dev.check[None] = self._check
-        self._integrator = cls(dev, model, self._settings)
-        self._guard = (self_collision.Pass(dev, self._integrator.cfg, model, self._integrator.serial, dt)
+        self._integrator = cls(dev, inner, self._settings)
+        self._guard = (self_collision.Pass(dev, self._integrator.cfg, inner, self._integrator.serial, dt)
                        if model.has_self_collision else None)
         self._release = weakref.finalize(self, _release, dev, self._integrator, self._guard)
 
@@ -261,13 +263,19 @@ class Simulation:
     def positions(self) -> np.ndarray:
         """(n, 3) float64 copy of the current positions (m)."""
         integrator = self._open()
-        return integrator.state.x.to_numpy()[: self._model.n_particles].astype(np.float64)
+        return self._to_user(integrator.state.x.to_numpy()[: self._model.n_particles].astype(np.float64))
 
     @property
     def velocities(self) -> np.ndarray:
         """(n, 3) float64 copy of the current velocities (m/s)."""
         integrator = self._open()
-        return integrator.state.v.to_numpy()[: self._model.n_particles].astype(np.float64)
+        return self._to_user(integrator.state.v.to_numpy()[: self._model.n_particles].astype(np.float64))
+
+    def _to_user(self, rows):
+        return rows if self._order is None else self._order.to_user(rows)
+
+    def _to_inner(self, rows):
+        return rows if self._order is None else self._order.to_inner(rows)
 
     @property
     def solver_stats(self):
@@ -322,7 +330,7 @@ class Simulation:
         carried = self._open().carried()
         if self._guard is not None:
             carried.update(self._guard.carried())
-        return carried
+        return {name: self._to_user(rows) for name, rows in carried.items()}
 
     def _carried_names(self, integrator) -> dict:
         names = dict(integrator.carried_names())
@@ -363,6 +371,9 @@ class Simulation:
                              f"velocity {pinned[k].tolist()}, got {arrays['velocities'][fixed[k]].tolist()}")
         steps = validate.count("steps", steps, low=0, high=MAX_STEPS)
         carried = _check_carried(carried, self._carried_names(integrator), n)
+        arrays = {name: self._to_inner(rows) for name, rows in arrays.items()}
+        if carried is not None:
+            carried = {name: self._to_inner(rows) for name, rows in carried.items()}
         own = None if carried is None else {k: v for k, v in carried.items() if k not in self_collision.CARRIED}
         integrator.load_state(arrays["positions"], arrays["velocities"], own)
         if self._guard is not None:
@@ -444,7 +455,8 @@ class Simulation:
                "particles": self._model.n_particles, "springs": self._model.n_springs,
                "terms": terms, "arrays": list(self._layout_names), "loops": self.loops,
                "preconditioner": self.preconditioner if integrator.linear_solver else None,
-               "newton": integrator.newton, "bytes": self._bytes}
+               "newton": integrator.newton, "bytes": self._bytes,
+               "order": "given" if self._order is None else "z-order"}
         if integrator.linear_solver:
             extra = integrator.preconditioner.describe()
             out["bytes"] += extra.pop("bytes")

@@ -61,7 +61,9 @@ def cmd_info(args):
               f"{sim.preconditioner}{hierarchy}, definiteness fix {'on' if sim.definiteness_fix else 'off'}")
     print(f"terms       {', '.join(info['terms'])}")
     print(f"arrays      {', '.join(info['arrays'])} ({info['bytes'] / 1e6:.2f} MB)")
-    print(f"kernels     {info['loops']} loops")
+    order = ("particles as given" if info["order"] == "given"
+             else "particles renumbered in Z-order (the given order scatters the springs' accesses)")
+    print(f"kernels     {info['loops']} loops, {order}")
     return EXIT_OK
 
 
