@@ -108,9 +108,15 @@ def plan(model: Model) -> Ordering | None:
     return result
 
 
+def wanted(model: Model) -> bool:
+    """Whether ``plan`` will try to renumber ``model`` (its ``far_share`` is above
+    ``FAR_SHARE``): then a run builds a copy of the model's arrays."""
+    return far_share(model.springs, WINDOW) > FAR_SHARE
+
+
 def _plan(model):
     given = far_share(model.springs, WINDOW)
-    if given <= FAR_SHARE:
+    if given <= FAR_SHARE:  # not wanted
         return None
     particles = morton_order(model.positions)
     inverse = np.empty_like(particles)

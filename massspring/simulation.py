@@ -181,8 +181,6 @@ class Simulation:
                 below = PRECONDITIONERS[preconditioner].serial_below or SERIAL_BELOW
             loops = "serial" if model.n_springs < below and arch in CPU_ARCHS else "parallel"
         self._model = model
-        self._order = ordering.plan(model)
-        inner = model if self._order is None else self._order.model
         self._settings = Settings(integrator, dt, precision, cg_tol, cg_max_iter, bool(definiteness_fix),
                                   preconditioner, arch, loops, newton_tol, newton_max_iter)
         self._check = divergence_check(model)
@@ -194,10 +192,12 @@ class Simulation:
 
         cls = INTEGRATORS[integrator]
         memory.check(memory.run_bytes(model.n_particles, model.n_springs, preconditioner if cls.linear_solver else None,
-                                      model_built=True,
+                                      model_built=not ordering.wanted(model),  # else a renumbered copy
                                       extra=cls.extra_bytes + self_collision.PASS_BYTES * model.has_self_collision
                                       + self_collision.SOLVE_BYTES * cls.pairs_in_solve(model)),
                      f"model: {model.n_particles:,} particles and {model.n_springs:,} springs; a run of it ({integrator})")
+        self._order = ordering.plan(model)
+        inner = model if self._order is None else self._order.model
         layout = model_layout(inner, precision)
         cls.declare(layout, inner, self._settings)
         if model.has_self_collision:

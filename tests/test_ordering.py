@@ -188,3 +188,22 @@ def test_a_scrambled_obj_mesh_keeps_the_files_numbering_at_the_cli(tmp_path, cap
     moved = np.abs(last["grid"] - grid.positions).max()
     assert moved > 1e-9
     assert np.abs(last["scrambled"] - last["grid"][perm]).max() <= 1e-12 * moved
+
+
+def test_the_memory_check_counts_the_renumbered_copy(monkeypatch):
+    """With room for a run of the model but not for a copy of its arrays too, a model
+    that would be renumbered is refused before anything is built; one in good order runs."""
+    from massspring import memory
+
+    grid = cloth(100)
+    model, _ = scrambled(grid, 7)
+    run = memory.run_bytes(grid.n_particles, grid.n_springs, model_built=True)
+    with_copy = memory.run_bytes(grid.n_particles, grid.n_springs, model_built=False)
+    assert with_copy > run
+    monkeypatch.setattr(memory, "available", lambda: ((run + with_copy) / 2, "of memory available"))
+    built = []
+    monkeypatch.setattr(ordering, "renumbered", lambda *args: built.append(args))
+    with pytest.raises(memory.MemoryNeedError, match="model: 10,000 particles"):
+        ms.Simulation(model, integrator="symplectic", dt=1e-6)
+    assert not built
+    ms.Simulation(grid, integrator="symplectic", dt=1e-6).close()
