@@ -1,7 +1,7 @@
 """Particles and springs in a cache-friendly order, chosen once per model.
 
-A spring pass gathers both ends' positions and velocities and scatters forces to
-them; a CG product does the same. When the particles of a spring lie far apart in
+A spring pass reads both ends' positions and velocities, and each particle then
+gathers its springs' forces; a CG product does the same. When the particles of a spring lie far apart in
 memory, or consecutive springs jump across the particle arrays, every spring misses
 the cache: a cloth whose particles came in a scrambled order (a mesh exported by a
 tool that does not keep vertex locality) takes 1.3-4.9x as long per symplectic step
