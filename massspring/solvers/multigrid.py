@@ -29,8 +29,8 @@ NU in D^-1 A on [rho / CHEB_RATIO, rho] before and after the coarse correction
 is), with rho an upper bound of the spectral radius of D^-1 A: 2 on level 0 with
 the definiteness fix (then A = M + sum of positive semidefinite spring blocks),
 else the largest block row sum of |D^-1 A|; on coarse levels 1.1 times a
-10-step Lanczos estimate (a row-sum bound is useless there: 6x6 blocks mix
-translation and rotation scales). Each coarse level is visited once per cycle
+Lanczos estimate of 10 steps or more, until it stops growing (``_lanczos``; a
+row-sum bound is useless there: 6x6 blocks mix translation and rotation scales). Each coarse level is visited once per cycle
 (``W_CYCLE = True`` gives every level but the last two a second visit instead;
 ``benchmarks/multigrid_cycles.py`` compares the two shapes: the W-cycle saves under
 one CG iteration per step and costs more than that saves). Constrained (pinned)
@@ -52,7 +52,9 @@ from massspring.solvers.base import Preconditioner
 NU = 3              # Chebyshev degree of each smoothing (pre and post)
 CHEB_RATIO = 30.0   # the smoother targets eigenvalues of D^-1 A in [rho / CHEB_RATIO, rho]
 OMEGA = 4.0 / 3.0   # prolongation smoothing weight (times 1 / rho)
-LANCZOS_STEPS = 10  # per coarse level and step, for rho(D^-1 A)
+LANCZOS_STEPS = 10  # per coarse level and step, for rho(D^-1 A), at least ...
+LANCZOS_MAX = 30    # ... and at most, while the estimate still grows by LANCZOS_RTOL over 2 steps
+LANCZOS_RTOL = 0.01
 RHO_SAFETY = 1.1    # Lanczos underestimates rho; Chebyshev diverges if rho is too low by ~10%
 W_CYCLE = False     # True: two coarse cycles on every level but the last two
 FLOOR = 256         # smallest capacity of the hierarchy's arrays
@@ -86,6 +88,7 @@ class Multigrid(Preconditioner):
         self.g = layout.allocate() if layout is not None else None
         self.rho = [1.0] * len(self.hierarchy.levels)
         self.factor_failed = 0
+        self.lanczos_steps = []  # Lanczos steps of each coarse level in the last setup
 
     def bind(self, cfg):
         self.cfg = cfg
@@ -116,6 +119,7 @@ class Multigrid(Preconditioner):
         """From level 0's P and the current A: the coarse operators, their D^-1 and rho,
         the coarse levels' P and the coarsest Cholesky factor."""
         dev, cfg, g, plan, serial = self.dev, self.cfg, self.g, self.plan, self.serial
+        self.lanczos_steps = []
         mg.ap0(dev, cfg, g, serial)
         mg.galerkin0(cfg, g, plan.gal0_count, serial)
         last = plan.levels - 1
@@ -134,23 +138,29 @@ class Multigrid(Preconditioner):
             mg.galerkinc(cfg, g, *plan.gal_range[level], serial)
 
     def _lanczos(self, begin, end):
-        """The largest Ritz value of D^-1 A on coarse nodes [begin, end) after LANCZOS_STEPS."""
+        """The largest Ritz value of D^-1 A on coarse nodes [begin, end): after
+        LANCZOS_STEPS steps, and on while it grew by more than LANCZOS_RTOL over the
+        last two (at most LANCZOS_MAX). A top eigenvalue the start vector barely holds
+        shows late: on a swinging 128 x 128 cloth, the 8th step's value was 0.81 of
+        the 20th's and the 10th's 0.97. An estimate that low makes the Chebyshev
+        smoother amplify the top modes: with 7 or 8 steps and no more, CG took 41-692
+        iterations on one step of such cloths instead of 7-15."""
         cfg, g, serial = self.cfg, self.g, self.serial
         beta = math.sqrt(max(mg.lanczos_start(cfg, g, begin, end, serial), 0.0))
-        alphas, betas = [], []
-        for _ in range(LANCZOS_STEPS):
-            if not (math.isfinite(beta) and beta > 0):
-                break
+        alphas, betas, ritz = [], [], {}
+        while len(alphas) < LANCZOS_MAX and math.isfinite(beta) and beta > 0:
             alpha = float(mg.lanczos_apply(cfg, g, begin, end, 1.0 / beta, serial))
             previous = beta if alphas else 0.0
             beta = math.sqrt(max(float(mg.lanczos_next(cfg, g, begin, end, alpha, previous, serial)), 0.0))
             alphas.append(alpha)
             betas.append(beta)
-        if not alphas:
-            return 1.0
-        k = len(alphas)
-        tri = np.diag(alphas) + np.diag(betas[:k - 1], 1) + np.diag(betas[:k - 1], -1)
-        return float(np.linalg.eigvalsh(tri)[-1])
+            k = len(alphas)
+            if k >= LANCZOS_STEPS - 2:
+                ritz[k] = _top_ritz(alphas, betas)
+                if k >= LANCZOS_STEPS and k - 2 in ritz and ritz[k] <= (1.0 + LANCZOS_RTOL) * ritz[k - 2]:
+                    break
+        self.lanczos_steps.append(len(alphas))
+        return _top_ritz(alphas, betas) if alphas else 1.0
 
     # ------------------------------------------------------------------ cycle
     def apply(self):
@@ -232,6 +242,12 @@ def chebyshev(rho, degree=NU, ratio=CHEB_RATIO):
         rh = rh_new
     steps.append((0.0, 0.0))
     return 1.0 / theta, steps
+
+
+def _top_ritz(alphas, betas):
+    """The largest eigenvalue of the Lanczos tridiagonal of ``alphas`` and ``betas``."""
+    k = len(alphas)
+    return float(np.linalg.eigvalsh(np.diag(alphas) + np.diag(betas[:k - 1], 1) + np.diag(betas[:k - 1], -1))[-1])
 
 
 def _positive(value):
