@@ -1,7 +1,9 @@
 """Multigrid cycle shapes side by side: W- or V-cycle, Chebyshev degree, in one run.
 
-Each variant sets ``massspring.solvers.multigrid``'s ``W_CYCLE`` and the smoother
-degree (``chebyshev``'s default, ``NU``) for the whole process, then steps the cloth
+Each variant sets ``massspring.solvers.multigrid``'s ``W_CYCLE``, the smoother
+degree (``chebyshev``'s default, ``NU``) and ``aggregation.FILTER_WEAK`` (False:
+"all couplings", level 0's weak couplings kept in P and the coarse operators) for
+the whole process, then steps the cloth
 (``--resolutions``, ``--stiffness``, dt 1/60, f64, CG tolerance 1e-6) with the
 multigrid-preconditioned implicit step. Variants are interleaved per repeat (the
 first step of each simulation is untimed: it compiles), so drifting load on a
@@ -21,11 +23,13 @@ import time
 import massspring as ms
 from massspring.device import ensure_taichi
 from massspring.io.files import write_json
-from massspring.solvers import multigrid
+from massspring.solvers import aggregation, multigrid
 import output
 
-VARIANTS = {"W, degree 3": (True, 3), "V, degree 3": (False, 3), "W, degree 2": (True, 2),
-            "V, degree 2": (False, 2), "V, degree 4": (False, 4)}
+# name: (W-cycle, Chebyshev degree, level 0's weak couplings left out of the coarse levels)
+VARIANTS = {"W, degree 3": (True, 3, True), "V, degree 3": (False, 3, True), "W, degree 2": (True, 2, True),
+            "V, degree 2": (False, 2, True), "V, degree 4": (False, 4, True),
+            "V, degree 3, all couplings": (False, 3, False)}
 
 
 def parse_args(argv=None):
@@ -40,10 +44,11 @@ def parse_args(argv=None):
 
 
 def run(resolution, stiffness, variant, steps):
-    w_cycle, degree = VARIANTS[variant]
-    saved = multigrid.W_CYCLE, multigrid.chebyshev.__defaults__
+    w_cycle, degree, filter_weak = VARIANTS[variant]
+    saved = multigrid.W_CYCLE, multigrid.chebyshev.__defaults__, aggregation.FILTER_WEAK
     multigrid.W_CYCLE = w_cycle
     multigrid.chebyshev.__defaults__ = (degree, saved[1][1])
+    aggregation.FILTER_WEAK = filter_weak
     try:
         scene = ms.load_scene("cloth").with_params(resolution=resolution, stiffness=stiffness)
         sim = scene.simulation(integrator="implicit", dt=1 / 60, preconditioner="multigrid")
@@ -57,7 +62,7 @@ def run(resolution, stiffness, variant, steps):
         failures = sim.cg_failures
         sim.close()
     finally:
-        multigrid.W_CYCLE, multigrid.chebyshev.__defaults__ = saved
+        multigrid.W_CYCLE, multigrid.chebyshev.__defaults__, aggregation.FILTER_WEAK = saved
     return times, iterations, failures
 
 

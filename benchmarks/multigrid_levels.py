@@ -89,15 +89,17 @@ class Timer:
         return timed
 
 
-def level_table(pre):
-    """Per level: unknowns, stored blocks and bytes of its operator."""
+def level_table(pre, springs):
+    """Per level: unknowns, stored blocks and bytes of its operator (level 0: the
+    coefficients of its ``springs`` that the cycle reads, two entries each)."""
     levels = pre.hierarchy.levels
     rows = []
     for l, level in enumerate(levels):
-        blocks = level.n + len(level.off_cols)
+        off = 2 * springs if l == 0 else len(level.off_cols)
+        blocks = level.n + off
         block_bytes = 8 * level.bs * level.bs
         rows.append({"level": l, "nodes": level.n, "unknowns": level.n * level.bs, "blocks": blocks,
-                     "operator_mb": (blocks * block_bytes if l else len(level.off_cols) * (4 + 5 * 8)) / 1e6})
+                     "operator_mb": (blocks * block_bytes if l else off * (4 + 5 * 8)) / 1e6})
     return rows
 
 
@@ -139,7 +141,7 @@ def measure(resolution, stiffness, steps, repeats):
     sim.close()
     unit = cg_seconds_per_iteration(scene, loops, 40, repeats, "f64")
     cycles = sum(c for (phase, _, name), c in timer.calls.items() if name == "finish0")  # one per cycle
-    rows = level_table(pre)
+    rows = level_table(pre, scene.model().n_springs)
     for row in rows:
         l = row["level"]
         for phase, per in (("cycle", cycles), ("setup", steps)):

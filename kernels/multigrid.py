@@ -14,7 +14,10 @@ Per step (values only, patterns fixed):
 * ``fine_inverse``: D^-1 of level 0 (inverse 3x3 diagonal blocks, zero where pinned);
 * ``smooth_p0`` / ``smooth_pc``: P = T - (omega / rho) D^-1 A T in P's pattern;
 * ``ap0`` / ``apc``: A P; ``galerkin0`` / ``galerkinc``: the upper blocks of P^T (A P),
-  ``mirror``: the lower ones;
+  ``mirror``: the lower ones. On level 0 both take A's kept couplings only
+  (``g.s0_entry``; P's smoothing those flagged in ``g.s0_smooth``) and the diagonal
+  blocks of those (``kept_block``): the weak couplings ``aggregation.filter_fine``
+  leaves out;
 * ``coarse_inverse``: D^-1 of a coarse level (6x6, by Cholesky); ``lanczos_start`` and
   ``lanczos_step``: Lanczos on D^-1 A (self-adjoint in the D inner product) for the
   estimate of rho(D^-1 A) its smoothing uses; ``factor_coarsest``: dense Cholesky of
@@ -38,7 +41,8 @@ import taichi as ti
 
 from .blocks import BLOCK, block_count, block_end, ordered_sum
 from .constraints import constrain, is_free, is_pinned, projector
-from .operator import apply_row, diagonal_block
+from .operator import apply_row, diagonal_block, spring_block
+from .pair_penalty import pair_diagonal
 
 BS = 6  # unknowns per coarse node
 
@@ -275,20 +279,33 @@ def fine_inverse(dev: ti.template(), cfg: ti.template(), serial: ti.template()) 
             row = ti.cast(_inf_norm(inverse @ block), ti.f64)
             if ti.static(cfg.has_springs):
                 for e in range(dev.offsets[i], dev.offsets[i + 1]):
-                    c = dev.coef[e]
-                    n = ti.Vector([c[0], c[1], c[2]], cfg.real)
-                    s = c[3] * ti.Matrix.identity(cfg.real, 3) + c[4] * n.outer_product(n)
-                    row += ti.cast(_inf_norm(inverse @ s), ti.f64)
+                    row += ti.cast(_inf_norm(inverse @ spring_block(dev.coef[e], cfg.real)), ti.f64)
             ti.atomic_max(bound, row)
         dev.minv[i] = inverse
     return bound
 
 
+@ti.func
+def kept_block(i, dev, cfg: ti.template(), g: ti.template(), smoothing: ti.template()):
+    """Level 0's diagonal block with the kept couplings only (``g.s0_entry``; those that
+    smooth P, ``g.s0_smooth``, with ``smoothing``): A_ii less the blocks of the springs
+    left out."""
+    block = dev.diag[i] * ti.Matrix.identity(cfg.real, 3)
+    if ti.static(cfg.has_springs):
+        for k in range(g.s0_rows[i], g.s0_rows[i + 1]):
+            if ti.static(not smoothing) or g.s0_smooth[k] != 0:
+                block += spring_block(dev.coef[g.s0_entry[k]], cfg.real)
+    if ti.static(cfg.self_pairs):
+        block += pair_diagonal(i, dev, cfg)
+    return block
+
+
 @ti.kernel
 def smooth_p0(dev: ti.template(), cfg: ti.template(), g: ti.template(), scale: ti.f64, serial: ti.template()):
-    """Level 0's P = S (T - scale D^+ A T) (scale = omega / rho), row by row: S filters
-    the constrained directions (pins, contact normals) out of P's rows, so that the
-    Galerkin operators P^T A P are those of the filtered operator S A S that CG solves."""
+    """Level 0's P = S (T - scale D^+ A' T) (scale = omega / rho; A' the operator of the kept
+    couplings, ``kept_block``), row by row: S filters the constrained directions (pins,
+    contact normals) out of P's rows, so that the Galerkin operators P^T A' P are those
+    of the filtered operator S A' S."""
     s = ti.cast(scale, cfg.real)
     loops(serial)
     for i in range(dev.size[0]):
@@ -296,18 +313,19 @@ def smooth_p0(dev: ti.template(), cfg: ti.template(), g: ti.template(), scale: t
             g.p0[k] = ti.Matrix.zero(cfg.real, 3, BS)
         slot = g.t0_slot[i]
         if slot >= 0:
-            block = diagonal_block(i, dev, cfg)
+            block = kept_block(i, dev, cfg, g, True)
             g.p0[slot] = g.p0[slot] + block @ g.t0[i]
         if ti.static(cfg.has_springs):
-            for e in range(dev.offsets[i], dev.offsets[i + 1]):
-                target = g.e0_slot[e]
+            for k in range(g.s0_rows[i], g.s0_rows[i + 1]):
+                target = g.e0_slot[k]
                 if target >= 0:
+                    e = g.s0_entry[k]
                     g.p0[target] = g.p0[target] - spring_times(dev.coef[e], g.t0[dev.other[e]], cfg.real)
         for k in range(g.p0_rows[i], g.p0_rows[i + 1]):
             g.p0[k] = -s * (dev.minv[i] @ g.p0[k])
         if slot >= 0:
             g.p0[slot] = g.p0[slot] + g.t0[i]
-        if not is_free(i, dev, cfg):  # P's rows filtered: the coarse levels see S A S, not A
+        if not is_free(i, dev, cfg):  # P's rows filtered: the coarse levels see S A' S
             projection = projector(i, dev, cfg)
             for k in range(g.p0_rows[i], g.p0_rows[i + 1]):
                 g.p0[k] = projection @ g.p0[k]
@@ -323,20 +341,21 @@ def spring_times(c, p, real: ti.template()):
 
 @ti.kernel
 def ap0(dev: ti.template(), cfg: ti.template(), g: ti.template(), serial: ti.template()):
-    """Level 0's A P, row by row: A_ii P_i. then -S_e P_j. for each entry e = (i, j), in
-    the order of ``g.apt0_ap`` (the AP block each product goes to)."""
+    """Level 0's A' P, row by row: A'_ii P_i. then -S_e P_j. for each kept entry e = (i, j),
+    in the order of ``g.apt0_ap`` (the A' P block each product goes to)."""
     loops(serial)
     for i in range(dev.size[0]):
         for k in range(g.ap0_rows[i], g.ap0_rows[i + 1]):
             g.ap0[k] = ti.Matrix.zero(cfg.real, 3, BS)
         t = g.apt0_rows[i]
-        block = diagonal_block(i, dev, cfg)
+        block = kept_block(i, dev, cfg, g, False)
         for k in range(g.p0_rows[i], g.p0_rows[i + 1]):
             target = g.apt0_ap[t]
             g.ap0[target] = g.ap0[target] + block @ g.p0[k]
             t += 1
         if ti.static(cfg.has_springs):
-            for e in range(dev.offsets[i], dev.offsets[i + 1]):
+            for s in range(g.s0_rows[i], g.s0_rows[i + 1]):
+                e = g.s0_entry[s]
                 j = dev.other[e]
                 c = dev.coef[e]
                 for k in range(g.p0_rows[j], g.p0_rows[j + 1]):

@@ -79,14 +79,19 @@ def diagonal_scalar(i, dev, cfg: ti.template(), h):
 
 
 @ti.func
+def spring_block(c, real: ti.template()):
+    """A spring's 3x3 block S = a I + b n n^T from its coefficients c = (n, a, b)."""
+    n = ti.Vector([c[0], c[1], c[2]], real)
+    return c[3] * ti.Matrix.identity(real, 3) + c[4] * n.outer_product(n)
+
+
+@ti.func
 def diagonal_block(i, dev, cfg: ti.template()):
     """The 3x3 block A_ii = d_i I + sum_s (a_s I + b_s n_s n_s^T)."""
     block = dev.diag[i] * ti.Matrix.identity(cfg.real, 3)
     if ti.static(cfg.has_springs):
         for e in range(dev.offsets[i], dev.offsets[i + 1]):
-            c = dev.coef[e]
-            n = ti.Vector([c[0], c[1], c[2]], cfg.real)
-            block += c[3] * ti.Matrix.identity(cfg.real, 3) + c[4] * n.outer_product(n)
+            block += spring_block(dev.coef[e], cfg.real)
     if ti.static(cfg.self_pairs):
         block += pair_diagonal(i, dev, cfg)
     return block

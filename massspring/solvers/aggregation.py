@@ -24,7 +24,18 @@ spring network resists least, its near-nullspace). Built here, once:
 * the patterns of what the per-step kernels (``kernels/multigrid.py``) fill in:
   the smoothed prolongation P = (I - omega/rho D^-1 A) T (row i: the aggregates of i
   and of its neighbours), A P and the Galerkin coarse operator P^T A P, with the
-  index lists that say which block products go where.
+  index lists that say which block products go where;
+* level 0's weak couplings filtered (``FILTER_WEAK``, ``filter_fine``): P is smoothed
+  with A_s, A without its weak couplings (springs and all: A_s,ii = A_ii + sum of the
+  weak A_ij), so row i of P holds the aggregates of i and of its strong neighbours
+  only; the Galerkin product takes A' = A_s plus the weak couplings that add no block
+  to P^T A_s P. On the cloth the weak couplings are the bending springs: at 128 x 128
+  level 1 has 14,280 off-diagonal blocks instead of 35,108, P 44,945 blocks instead
+  of 66,448, and a third of the bending couplings (those that would widen level 1)
+  are left out. Left out entirely (A_s for both), the coarse levels were as sparse,
+  but CG took up to 1.5x the iterations at ks 1e6 (the coarse correction overshoots
+  the modes the bending springs stiffen); with A' it takes the unfiltered counts
+  (``benchmarks/multigrid_cycles.py``, variant "all couplings").
 
 Values change every step (K and D follow the positions, and so do the rotations
 that K resists least): the kernels recompute T, P, A P and P^T A P in these
@@ -44,6 +55,7 @@ COARSE_THETA = 0.0     # on coarser levels, whose summed coupling norms say less
 MAX_COARSE = 600       # unknowns of the coarsest level (solved by dense Cholesky), at most
 MAX_LEVELS = 12
 COARSE_BS = 6          # unknowns per coarse node: 3 translations, 3 rotations
+FILTER_WEAK = True     # level 0's weak couplings are left out of P and of the coarse operators
 DROP = 1e-4            # a candidate whose part orthogonal to the previous ones is below DROP times
                        # its norm is dropped (a zero column of T: the rotation about the axis of
                        # collinear members); its coarse unknown is then idle
@@ -242,7 +254,10 @@ class Level:
       ``gal_p``, ``gal_ap`` whose products P_iI^T (AP)_iJ sum to it;
       ``c_mirror`` (c_off,): the index of each off-diagonal entry's transpose;
     * restriction P^T: ``pt_rows`` (nc+1,), ``pt_block``, ``pt_fine``: per coarse node,
-      P's blocks in its column and their fine nodes.
+      P's blocks in its column and their fine nodes;
+    * level 0 only: ``entry`` (off,), the adjacency entry of each off-diagonal entry
+      (the couplings kept, ``filter_fine``), and ``smooth`` (off,) bool, those that
+      smooth P (None: all).
     """
 
     n: int
@@ -265,6 +280,8 @@ class Level:
     pt_rows: np.ndarray | None = None
     pt_block: np.ndarray | None = None
     pt_fine: np.ndarray | None = None
+    entry: np.ndarray | None = None
+    smooth: np.ndarray | None = None
 
 
 def _csr_offsets(n, rows):
@@ -283,6 +300,8 @@ def link(level):
     agg_j = t.agg[level.off_cols]
     slot = np.full(len(agg_j), -1, dtype=np.int64)
     ok = agg_j >= 0
+    if level.smooth is not None:
+        ok &= level.smooth
     slot[ok] = _find(t.p_rows, t.p_cols, off_owner[ok], agg_j[ok])
     level.entry_slot = slot
     # A P: row i gets A_ii P_i. and A_ij P_j. for every entry; first the pairs (i, source
@@ -373,6 +392,24 @@ def smooth_prolongation(level, diag, off, dinv, scale, tent):
     return p
 
 
+def filtered_operator(level, diag, off, rows):
+    """Level 0's operators after ``filter_fine``, from the full one (``rest_operator``'s
+    ``diag`` (n, 3, 3), ``off`` (2m, 3, 3) over the adjacency entries with offsets
+    ``rows``): the diagonal blocks of the strong couplings alone (P's smoothing), those
+    of the kept couplings and the kept entries' blocks (P^T A' P). A coupling left out
+    takes its spring off the diagonal too: A_ii + A_ij."""
+    owner = np.repeat(np.arange(level.n), np.diff(rows))
+    kept = np.zeros(len(off), dtype=bool)
+    kept[level.entry] = True
+    smooth = np.zeros(len(off), dtype=bool)
+    smooth[level.entry[level.smooth] if level.smooth is not None else level.entry] = True
+    diag_kept = diag.copy()
+    np.add.at(diag_kept, owner[~kept], off[~kept])
+    diag_smooth = diag_kept.copy()
+    np.add.at(diag_smooth, owner[kept & ~smooth], off[kept & ~smooth])
+    return diag_smooth, diag_kept, off[level.entry]
+
+
 def galerkin(level, diag, off, p):
     """The coarse operator P^T A P: (diagonal blocks (nc, 6, 6), off-diagonal blocks)."""
     t = level.transfer
@@ -459,16 +496,73 @@ def coarse_couplings(pairs, weights, diag_norm, agg, count):
     return np.stack([a[between], b[between]], 1), weights[between], diag
 
 
-def build(model, dt, theta=THETA, max_coarse=MAX_COARSE):
+def strong_entries(offsets, other, free, s_rows, s_cols):
+    """Which adjacency entries (of ``other``) are level 0's strong couplings (bool): those
+    in the strength graph ``s_rows``/``s_cols``, and every entry to a pinned particle (it
+    adds nothing off the diagonal, P's rows there being zero, but holds A_ii)."""
+    n = len(offsets) - 1
+    owner = np.repeat(np.arange(n), np.diff(offsets))
+    return _in_pattern(s_rows, s_cols, owner, other) | ~(free[owner] & free[other])
+
+
+def _in_pattern(rows, cols, i, j):
+    """Whether each (i[k], j[k]) is an entry of the CSR pattern ``rows``/``cols`` (sorted
+    columns per row)."""
+    n = max(len(rows) - 1, int(j.max(initial=0)) + 1)
+    keys = np.repeat(np.arange(len(rows) - 1), np.diff(rows)) * n + cols
+    wanted = i.astype(np.int64) * n + j
+    at = np.minimum(np.searchsorted(keys, wanted), max(len(keys) - 1, 0))
+    return (keys[at] == wanted) if len(keys) else np.zeros(len(wanted), dtype=bool)
+
+
+def within_pattern(t, i, k, c_rows, c_cols):
+    """For each entry (i[e], k[e]): whether every coarse pair (I, J), I an aggregate of
+    P's row i and J one of row k (transfer ``t``), is a diagonal (I = J) or in the
+    coarse pattern ``c_rows``/``c_cols``: the coupling A_ik adds no block to P^T A P."""
+    p_len = np.diff(t.p_rows)
+    count = p_len[i] * p_len[k]
+    pair = np.repeat(np.arange(len(i)), count)
+    within = np.arange(count.sum()) - np.repeat(np.cumsum(count) - count, count)
+    width = np.repeat(p_len[k], count)
+    big_i = t.p_cols[t.p_rows[i][pair] + within // np.maximum(width, 1)]
+    big_j = t.p_cols[t.p_rows[k][pair] + within % np.maximum(width, 1)]
+    ok = (big_i == big_j) | _in_pattern(c_rows, c_cols, big_i, big_j)
+    return np.bincount(pair[~ok], minlength=len(i)) == 0
+
+
+def filter_fine(level, free, agg, count, s_rows, s_cols):
+    """Level 0's transfer and index lists with its weak couplings filtered (see the
+    module docstring): P smoothed by the strong couplings alone; P^T A' P with A' the
+    strong couplings and the weak ones that add no coarse block. Sets ``level.entry``
+    (the kept adjacency entries), ``level.smooth`` and the pattern of the kept ones;
+    returns the next level's pattern (that of the strong couplings alone)."""
+    rows, cols = level.off_rows, level.off_cols
+    owner = np.repeat(np.arange(level.n), np.diff(rows))
+    strong = strong_entries(rows, cols, free, s_rows, s_cols)
+    strong_rows = _csr_offsets(level.n, owner[strong])
+    level.transfer = transfer(level.n, level.bs, agg, count, strong_rows, cols[strong])
+    c_rows, c_cols = link(Level(level.n, level.bs, strong_rows, cols[strong], transfer=level.transfer))
+    keep = strong.copy()
+    weak = np.flatnonzero(~strong)
+    keep[weak] = within_pattern(level.transfer, owner[weak], cols[weak], c_rows, c_cols)
+    level.entry = np.flatnonzero(keep)
+    level.smooth = strong[level.entry]
+    level.off_rows, level.off_cols = _csr_offsets(level.n, owner[keep]), cols[keep]
+    return link(level)
+
+
+def build(model, dt, theta=THETA, max_coarse=MAX_COARSE, filter_weak=None):
     """The hierarchy of ``model`` for time step ``dt`` (s): structure only (see the
     module docstring). Coarse levels are aggregated on the coupling graph that the
-    aggregates inherit (summed norms), not on numeric coarse operators."""
+    aggregates inherit (summed norms), not on numeric coarse operators. ``filter_weak``
+    (default ``FILTER_WEAK``): level 0's weak couplings filtered (``filter_fine``)."""
     from massspring.device import adjacency
 
     free = model.free_mask()
     offsets, other, _ = adjacency(model)
     pairs, weights, diag_norm = rest_couplings(model, dt, free)
     level = Level(model.n_particles, 3, offsets.astype(np.int64), other.astype(np.int64))
+    level.entry = np.arange(len(other))
     levels = [level]
     while level.n * level.bs > max_coarse and len(levels) < MAX_LEVELS:
         s_rows, s_cols, s_w = strength_graph(level.n, pairs, weights, diag_norm,
@@ -478,8 +572,11 @@ def build(model, dt, theta=THETA, max_coarse=MAX_COARSE):
             agg[~free] = -1
         if count == 0 or count * COARSE_BS >= 0.8 * level.n * level.bs:
             break  # no useful coarsening
-        level.transfer = transfer(level.n, level.bs, agg, count, level.off_rows, level.off_cols)
-        next_rows, next_cols = link(level)
+        if len(levels) == 1 and (FILTER_WEAK if filter_weak is None else filter_weak):
+            next_rows, next_cols = filter_fine(level, free, agg, count, s_rows, s_cols)
+        else:
+            level.transfer = transfer(level.n, level.bs, agg, count, level.off_rows, level.off_cols)
+            next_rows, next_cols = link(level)
         pairs, weights, diag_norm = coarse_couplings(pairs, weights, diag_norm, agg, count)
         level = Level(count, COARSE_BS, next_rows, next_cols)
         levels.append(level)

@@ -6,8 +6,9 @@ step, after the operator's refresh, ``setup`` recomputes the values in kernels
 (``kernels/multigrid.py``): the tentative prolongations T (translations and
 rotations of each aggregate at the current positions, orthonormalized), D^-1 on
 each level, the smoothed prolongations P = (I - omega/rho D^-1 A) T, the Galerkin
-coarse operators P^T A P and the dense Cholesky factor of the coarsest level. The
-fine level stays matrix-free.
+coarse operators P^T A P and the dense Cholesky factor of the coarsest level (on
+level 0 without the weak couplings that would widen the coarse levels,
+``aggregation.filter_fine``). The fine level stays matrix-free.
 
 The whole setup runs every step (issue 22; ``benchmarks/multigrid_reuse.py`` measured
 the alternatives, its results in ``benchmarks/results/multigrid_reuse_*.json``). A
@@ -287,6 +288,8 @@ class _Plan:
         numbering: nothing to shift)."""
         t, a = fine.transfer, self.arrays
         a["t0_slot"], a["e0_slot"] = t.tent_slot, fine.entry_slot
+        a["s0_rows"], a["s0_entry"] = fine.off_rows, fine.entry
+        a["s0_smooth"] = np.ones(len(fine.entry), dtype=np.int64) if fine.smooth is None else fine.smooth.astype(np.int64)
         a["agg0_rows"], a["agg0_members"] = t.member_rows, t.members
         a["p0_rows"], a["p0_cols"] = t.p_rows, t.p_cols
         a["ap0_rows"] = fine.ap_rows
