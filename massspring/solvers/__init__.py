@@ -17,8 +17,8 @@ CHOICES = ("auto", *PRECONDITIONERS)  # what the API, scene files and the CLI ac
 
 # "auto" picks multigrid from this many free particles on, block-Jacobi below: between
 # the crossovers of the step time at ks 1e6 and ks 1e4 that benchmarks/scaling.py
-# measures (cloth, dt 1/60, f64; benchmarks/results/scaling.json and the README).
-MULTIGRID_FROM = 7_000
+# measures (cloth, dt 1/60, f64; benchmarks/results/scaling_crossover.json and the README).
+MULTIGRID_FROM = 5_000
 
 
 def resolve(name, model) -> str:
