@@ -1,8 +1,8 @@
 """Particles and springs in a cache-friendly order, chosen once per model.
 
 A spring pass reads both ends' positions and velocities, and each particle then
-gathers its springs' forces; a CG product does the same. When the particles of a spring lie far apart in
-memory, or consecutive springs jump across the particle arrays, every spring misses
+gathers its springs' forces; a CG product does the same. When the particles of a
+spring lie far apart in memory, or consecutive springs jump across the particle arrays, every spring misses
 the cache: a cloth whose particles came in a scrambled order (a mesh exported by a
 tool that does not keep vertex locality) takes 1.3-4.9x as long per symplectic step
 as the same cloth in grid order (``benchmarks/ordering.py``).
@@ -84,8 +84,7 @@ def renumbered(model: Model, particles, springs) -> Model:
     spring k being spring ``springs[k]`` (both permutations, int arrays); every array
     that holds particle indices (springs, fixed, triangles) is mapped to the new
     numbering, pin velocities follow their pins."""
-    inverse = np.empty_like(particles)
-    inverse[particles] = np.arange(len(particles))
+    inverse = _inverse(particles)
     return Model(model.positions[particles], inverse[model.springs][springs], masses=model.masses[particles],
                  stiffness=model.stiffness[springs], damping=model.damping[springs],
                  rest_lengths=model.rest_lengths[springs], velocities=model.velocities[particles],
@@ -111,16 +110,26 @@ def plan(model: Model) -> Ordering | None:
 def wanted(model: Model) -> bool:
     """Whether ``plan`` will try to renumber ``model`` (its ``far_share`` is above
     ``FAR_SHARE``): then a run builds a copy of the model's arrays."""
-    return far_share(model.springs, WINDOW) > FAR_SHARE
+    return _poor(far_share(model.springs, WINDOW))
+
+
+def _poor(share):
+    return share > FAR_SHARE
+
+
+def _inverse(permutation):
+    """The inverse of a permutation (int array)."""
+    inverse = np.empty_like(permutation)
+    inverse[permutation] = np.arange(len(permutation))
+    return inverse
 
 
 def _plan(model):
     given = far_share(model.springs, WINDOW)
-    if given <= FAR_SHARE:  # not wanted
+    if not _poor(given):
         return None
     particles = morton_order(model.positions)
-    inverse = np.empty_like(particles)
-    inverse[particles] = np.arange(len(particles))
+    inverse = _inverse(particles)
     ends = inverse[model.springs]
     low, high = np.minimum(ends[:, 0], ends[:, 1]), np.maximum(ends[:, 0], ends[:, 1])
     springs = np.argsort(low * len(particles) + high, kind="stable")

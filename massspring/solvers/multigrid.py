@@ -31,7 +31,8 @@ is), with rho an upper bound of the spectral radius of D^-1 A: 2 on level 0 with
 the definiteness fix (then A = M + sum of positive semidefinite spring blocks),
 else the largest block row sum of |D^-1 A|; on coarse levels 1.1 times a
 Lanczos estimate of 10 steps or more, until it stops growing (``_lanczos``; a
-row-sum bound is useless there: 6x6 blocks mix translation and rotation scales). Each coarse level is visited once per cycle
+row-sum bound is useless there: 6x6 blocks mix translation and rotation scales).
+Each coarse level is visited once per cycle
 (``W_CYCLE = True`` gives every level but the last two a second visit instead;
 ``benchmarks/multigrid_cycles.py`` compares the two shapes: the W-cycle saves under
 one CG iteration per step and costs more than that saves). Constrained (pinned)
@@ -145,7 +146,9 @@ class Multigrid(Preconditioner):
         shows late: on a swinging 128 x 128 cloth, the 8th step's value was 0.81 of
         the 20th's and the 10th's 0.97. An estimate that low makes the Chebyshev
         smoother amplify the top modes: with 7 or 8 steps and no more, CG took 41-692
-        iterations on one step of such cloths instead of 7-15."""
+        iterations on one step of such cloths instead of 7-15 (with every coupling in
+        the coarse levels; since level 0's weak ones are filtered the cliff sits lower,
+        at 3-4 steps: ``test_lanczos_goes_on_while_its_estimate_grows``)."""
         cfg, g, serial = self.cfg, self.g, self.serial
         beta = math.sqrt(max(mg.lanczos_start(cfg, g, begin, end, serial), 0.0))
         alphas, betas, ritz = [], [], {}
@@ -161,7 +164,9 @@ class Multigrid(Preconditioner):
                 if k >= LANCZOS_STEPS and k - 2 in ritz and ritz[k] <= (1.0 + LANCZOS_RTOL) * ritz[k - 2]:
                     break
         self.lanczos_steps.append(len(alphas))
-        return _top_ritz(alphas, betas) if alphas else 1.0
+        if not alphas:
+            return 1.0
+        return ritz[len(alphas)] if len(alphas) in ritz else _top_ritz(alphas, betas)
 
     # ------------------------------------------------------------------ cycle
     def apply(self):
@@ -289,7 +294,8 @@ class _Plan:
         t, a = fine.transfer, self.arrays
         a["t0_slot"], a["e0_slot"] = t.tent_slot, fine.entry_slot
         a["s0_rows"], a["s0_entry"] = fine.off_rows, fine.entry
-        a["s0_smooth"] = np.ones(len(fine.entry), dtype=np.int64) if fine.smooth is None else fine.smooth.astype(np.int64)
+        smooth = np.ones(len(fine.entry), dtype=bool) if fine.smooth is None else fine.smooth
+        a["s0_smooth"] = smooth.astype(np.int64)
         a["agg0_rows"], a["agg0_members"] = t.member_rows, t.members
         a["p0_rows"], a["p0_cols"] = t.p_rows, t.p_cols
         a["ap0_rows"] = fine.ap_rows
