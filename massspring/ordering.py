@@ -2,10 +2,11 @@
 
 A spring pass reads both ends' positions and velocities, and each particle then
 gathers its springs' forces; a CG product does the same. When the particles of a
-spring lie far apart in memory, or consecutive springs jump across the particle arrays, every spring misses
-the cache: a cloth whose particles came in a scrambled order (a mesh exported by a
-tool that does not keep vertex locality) takes 1.3-4.9x as long per symplectic step
-as the same cloth in grid order (``benchmarks/ordering.py``).
+spring lie far apart in memory, or consecutive springs jump across the particle
+arrays, every spring misses the cache: a cloth whose particles came in a scrambled
+order (a mesh exported by a tool that does not keep vertex locality) takes 1.3-4.9x
+as long per symplectic step as the same cloth in grid order
+(``benchmarks/ordering.py``).
 
 ``plan`` measures the model's order (``far_share``) and, when it is poor, builds a
 copy of the model in Z-order (Morton order) of the initial positions, with the

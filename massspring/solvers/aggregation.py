@@ -304,48 +304,18 @@ def link(level):
         ok &= level.smooth
     slot[ok] = _find(t.p_rows, t.p_cols, off_owner[ok], agg_j[ok])
     level.entry_slot = slot
-    # A P: row i gets A_ii P_i. and A_ij P_j. for every entry; first the pairs (i, source
-    # entry, P block) in row order, then their AP columns
-    p_len = np.diff(t.p_rows)
-    src_node = np.concatenate([np.arange(nf), level.off_cols])          # whose P row
-    src_entry = np.concatenate([np.full(nf, -1), np.arange(len(level.off_cols))])
-    src_owner = np.concatenate([np.arange(nf), off_owner])
-    counts = p_len[src_node]
-    owner = np.repeat(src_owner, counts)
-    entry = np.repeat(src_entry, counts)
-    first = np.repeat(t.p_rows[src_node], counts)
-    within = np.arange(counts.sum()) - np.repeat(np.cumsum(counts) - counts, counts)
-    p_block = first + within
-    order = np.argsort(owner, kind="stable")
-    owner, entry, p_block = owner[order], entry[order], p_block[order]
-    ap_rows, ap_cols, ap_index = csr_union(nf, owner, t.p_cols[p_block])
+    owner, entry, p_block, (ap_rows, ap_cols, ap_index) = _ap_pattern(level)
     level.ap_rows, level.ap_cols = ap_rows, ap_cols
     level.apt_rows = _csr_offsets(nf, owner)
     level.apt_entry, level.apt_p, level.apt_ap = entry, p_block, ap_index
-    # P^T A P: pairs (P block (i, I), AP block (i, J)) for every fine i, I <= J
-    np_i, nap_i = p_len, np.diff(ap_rows)
-    pairs_per_row = np_i * nap_i
-    row = np.repeat(np.arange(nf), pairs_per_row)
-    start = np.repeat(np.cumsum(pairs_per_row) - pairs_per_row, pairs_per_row)
-    k = np.arange(pairs_per_row.sum()) - start
-    width = np.repeat(nap_i, pairs_per_row)
-    p_of = t.p_rows[row] + k // np.maximum(width, 1)
-    ap_of = ap_rows[row] + k % np.maximum(width, 1)
-    big_i, big_j = t.p_cols[p_of], ap_cols[ap_of]
-    upper = big_i <= big_j
-    p_of, ap_of, big_i, big_j = p_of[upper], ap_of[upper], big_i[upper], big_j[upper]
+    p_of, ap_of, big_i, big_j = _galerkin_pairs(t, ap_rows, ap_cols)
     # the next level's off-diagonal pattern (both triangles) and its entry of each pair
+    pairs, order, c_off_rows, c_off_cols = _next_pattern(big_i, big_j, nc)
     offd = big_i != big_j
-    pairs = np.unique(big_i[offd] * nc + big_j[offd])
-    lo, hi = pairs // nc, pairs % nc
-    all_rows = np.concatenate([lo, hi])
-    all_cols = np.concatenate([hi, lo])
-    order = np.lexsort((all_cols, all_rows))
-    c_off_rows, c_off_cols = _csr_offsets(nc, all_rows), all_cols[order]
     position = np.empty(len(order), dtype=np.int64)
     position[order] = np.arange(len(order))
-    upper_entry = position[:len(lo)]                                   # entry (I, J), I < J
-    lower_entry = position[len(lo):]                                   # entry (J, I)
+    upper_entry = position[:len(pairs)]                                # entry (I, J), I < J
+    lower_entry = position[len(pairs):]                                # entry (J, I)
     mirror = np.empty(len(order), dtype=np.int64)
     mirror[upper_entry] = lower_entry
     mirror[lower_entry] = upper_entry
@@ -358,18 +328,82 @@ def link(level):
     level.gal_block = targets
     level.gal_rows = np.concatenate([starts, [len(block)]]).astype(np.int64)
     # restriction: P^T by coarse node
-    p_owner = np.repeat(np.arange(nf), p_len)
+    p_owner = np.repeat(np.arange(nf), np.diff(t.p_rows))
     order = np.argsort(t.p_cols, kind="stable")
     level.pt_rows = _csr_offsets(nc, t.p_cols)
     level.pt_block, level.pt_fine = order, p_owner[order]
     return c_off_rows, c_off_cols
 
 
+def _ap_pattern(level):
+    """A P's products, row i getting A_ii P_i. and A_ij P_j. for every entry: per product
+    (in row order) its row, source entry (-1: the diagonal block) and P block; and A P's
+    pattern from ``csr_union`` (offsets, cols, each product's block)."""
+    t, nf = level.transfer, level.transfer.nf
+    off_owner = np.repeat(np.arange(nf), np.diff(level.off_rows))
+    src_node = np.concatenate([np.arange(nf), level.off_cols])          # whose P row
+    src_entry = np.concatenate([np.full(nf, -1), np.arange(len(level.off_cols))])
+    src_owner = np.concatenate([np.arange(nf), off_owner])
+    which, p_block = _ranges(t.p_rows[src_node], np.diff(t.p_rows)[src_node])
+    order = np.argsort(src_owner[which], kind="stable")
+    owner, entry, p_block = src_owner[which][order], src_entry[which][order], p_block[order]
+    return owner, entry, p_block, csr_union(nf, owner, t.p_cols[p_block])
+
+
+def _galerkin_pairs(t, ap_rows, ap_cols):
+    """P^T A P's products: the pairs (P block (i, I), AP block (i, J)) of every fine row
+    i with I <= J, as (P block, AP block, I, J)."""
+    _, p_of, ap_of = _cartesian(t.p_rows[:-1], np.diff(t.p_rows), ap_rows[:-1], np.diff(ap_rows))
+    big_i, big_j = t.p_cols[p_of], ap_cols[ap_of]
+    upper = big_i <= big_j
+    return p_of[upper], ap_of[upper], big_i[upper], big_j[upper]
+
+
+def coarse_pattern(level):
+    """The next level's off-diagonal pattern (offsets, cols; both triangles) that
+    ``link`` returns, without filling ``level``'s index lists."""
+    _, _, _, (ap_rows, ap_cols, _) = _ap_pattern(level)
+    _, _, big_i, big_j = _galerkin_pairs(level.transfer, ap_rows, ap_cols)
+    return _next_pattern(big_i, big_j, level.transfer.nc)[2:]
+
+
+def _next_pattern(big_i, big_j, nc):
+    """From P^T A P's pairs (I, J), I <= J: the off-diagonal ones as sorted unique keys
+    I * nc + J; the sorting order of their entries (I, J) then (J, I); and the pattern
+    of both triangles (offsets, cols)."""
+    offd = big_i != big_j
+    pairs = np.unique(big_i[offd] * nc + big_j[offd])
+    rows = np.concatenate([pairs // nc, pairs % nc])
+    cols = np.concatenate([pairs % nc, pairs // nc])
+    order = np.lexsort((cols, rows))
+    return pairs, order, _csr_offsets(nc, rows), cols[order]
+
+
+def _ranges(start, length):
+    """For ranges [start[k], start[k] + length[k]): each member's range k and index."""
+    which = np.repeat(np.arange(len(start)), length)
+    within = np.arange(len(which)) - np.repeat(np.cumsum(length) - length, length)
+    return which, start[which] + within
+
+
+def _cartesian(a_start, a_len, b_start, b_len):
+    """For each k, all pairs (a, b) of [a_start[k], +a_len[k]) x [b_start[k], +b_len[k]),
+    a-major: each pair's k, a and b."""
+    which, flat = _ranges(np.zeros_like(a_start), a_len * b_len)
+    width = np.maximum(b_len[which], 1)
+    return which, a_start[which] + flat // width, b_start[which] + flat % width
+
+
+def _keys(rows, cols, width):
+    """One sortable int64 key per entry of the CSR pattern ``rows``/``cols`` (sorted
+    columns per row; columns below ``width``): row * width + col, ascending."""
+    return np.repeat(np.arange(len(rows) - 1, dtype=np.int64), np.diff(rows)) * width + cols
+
+
 def _find(rows, cols, i, j):
     """Index in a CSR pattern (sorted columns per row) of the entries (i[k], j[k]), all present."""
     width = int(cols.max()) + 1
-    keys = np.repeat(np.arange(len(rows) - 1), np.diff(rows)) * width + cols
-    return np.searchsorted(keys, i * width + j)
+    return np.searchsorted(_keys(rows, cols, width), i * width + j)
 
 
 # ----------------------------------------------------------------- numeric (numpy)
@@ -509,7 +543,7 @@ def _in_pattern(rows, cols, i, j):
     """Whether each (i[k], j[k]) is an entry of the CSR pattern ``rows``/``cols`` (sorted
     columns per row)."""
     n = max(len(rows) - 1, int(j.max(initial=0)) + 1)
-    keys = np.repeat(np.arange(len(rows) - 1), np.diff(rows)) * n + cols
+    keys = _keys(rows, cols, n)
     wanted = i.astype(np.int64) * n + j
     at = np.minimum(np.searchsorted(keys, wanted), max(len(keys) - 1, 0))
     return (keys[at] == wanted) if len(keys) else np.zeros(len(wanted), dtype=bool)
@@ -520,12 +554,8 @@ def within_pattern(t, i, k, c_rows, c_cols):
     P's row i and J one of row k (transfer ``t``), is a diagonal (I = J) or in the
     coarse pattern ``c_rows``/``c_cols``: the coupling A_ik adds no block to P^T A P."""
     p_len = np.diff(t.p_rows)
-    count = p_len[i] * p_len[k]
-    pair = np.repeat(np.arange(len(i)), count)
-    within = np.arange(count.sum()) - np.repeat(np.cumsum(count) - count, count)
-    width = np.repeat(p_len[k], count)
-    big_i = t.p_cols[t.p_rows[i][pair] + within // np.maximum(width, 1)]
-    big_j = t.p_cols[t.p_rows[k][pair] + within % np.maximum(width, 1)]
+    pair, p_i, p_k = _cartesian(t.p_rows[i], p_len[i], t.p_rows[k], p_len[k])
+    big_i, big_j = t.p_cols[p_i], t.p_cols[p_k]
     ok = (big_i == big_j) | _in_pattern(c_rows, c_cols, big_i, big_j)
     return np.bincount(pair[~ok], minlength=len(i)) == 0
 
@@ -541,7 +571,7 @@ def filter_fine(level, free, agg, count, s_rows, s_cols):
     strong = strong_entries(rows, cols, free, s_rows, s_cols)
     strong_rows = _csr_offsets(level.n, owner[strong])
     level.transfer = transfer(level.n, level.bs, agg, count, strong_rows, cols[strong])
-    c_rows, c_cols = link(Level(level.n, level.bs, strong_rows, cols[strong], transfer=level.transfer))
+    c_rows, c_cols = coarse_pattern(Level(level.n, level.bs, strong_rows, cols[strong], transfer=level.transfer))
     keep = strong.copy()
     weak = np.flatnonzero(~strong)
     keep[weak] = within_pattern(level.transfer, owner[weak], cols[weak], c_rows, c_cols)
