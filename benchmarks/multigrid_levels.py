@@ -9,6 +9,10 @@ unknowns it works on: level 0 is the particles (matrix-free), level l >= 1 the
 aggregates of level l - 1 (6 unknowns each, 6x6 blocks); the restriction to level
 l counts at level l, the coarsest solve at the last level.
 
+Then the step's cost in that unit, the issue's measure: ``--repeats`` pairs of one
+multigrid step (untimed kernels) and one unit sample, interleaved so that the
+machine's drift hits both alike; the median of the pairs' ratios and their range.
+
 Printed per level, for the cycle (per CG iteration) and for the setup (per step):
 unknowns, stored operator blocks and their bytes (level 0: the per-entry spring
 coefficients it reads instead), visits per cycle (a V-cycle visits each level once; a W-cycle (``W_CYCLE``) visits
@@ -32,7 +36,7 @@ from massspring.device import ensure_taichi
 from massspring.io.files import write_json
 from massspring.solvers import multigrid
 import output
-from roofline import cg_seconds_per_iteration
+from roofline import IterationTimer
 
 
 def parse_args(argv=None):
@@ -40,7 +44,8 @@ def parse_args(argv=None):
     p.add_argument("--resolutions", type=int, nargs="+", default=[128, 256])
     p.add_argument("--stiffness", type=float, default=1e4)
     p.add_argument("--steps", type=int, default=3, help="timed steps per resolution (after one untimed)")
-    p.add_argument("--repeats", type=int, default=3, help="repeats of the block-Jacobi unit measurement")
+    p.add_argument("--repeats", type=int, default=7,
+                   help="interleaved pairs of a multigrid step and a block-Jacobi unit sample")
     output.add_json(p, "multigrid_levels")
     return p.parse_args(argv)
 
@@ -127,19 +132,19 @@ def measure(resolution, stiffness, steps, repeats):
 
     pre.setup, pre._coarse = setup, coarse
     multigrid.mg = timer
-    walls, iterations, setups = [], [], []
+    iterations, setups = [], []
     try:
         for _ in range(steps):
-            start = time.perf_counter()
             sim.step(1)
-            walls.append(time.perf_counter() - start)
             iterations.append(sim.solver_stats.iterations)
             setups.append(sim.solver_stats.setup_s)
     finally:
         multigrid.mg = timer.module
+        pre.setup, pre._coarse = original_setup, original_coarse
+    pairs = interleaved(sim, IterationTimer(scene, sim.loops, 40, "f64"), repeats)
     loops = sim.loops
     sim.close()
-    unit = cg_seconds_per_iteration(scene, loops, 40, repeats, "f64")
+    unit = statistics.median(pairs["unit_s"])
     cycles = sum(c for (phase, _, name), c in timer.calls.items() if name == "finish0")  # one per cycle
     rows = level_table(pre, scene.model().n_springs)
     for row in rows:
@@ -154,10 +159,29 @@ def measure(resolution, stiffness, steps, repeats):
     kernels = {f"{p}/{level}/{name}": 1e3 * t / (cycles if p == "cycle" else steps)
                for (p, level, name), t in sorted(timer.seconds.items())}
     return {"resolution": resolution, "particles": sim.model.n_particles, "springs": sim.model.n_springs,
-            "loops": loops, "step_ms": 1e3 * statistics.median(walls), "iterations": iterations,
+            "loops": loops, "step_ms": 1e3 * statistics.median(pairs["step_s"]), "iterations": iterations,
+            "step_in_units": statistics.median(pairs["ratio"]), "step_in_units_range": [min(pairs["ratio"]), max(pairs["ratio"])],
+            "interleaved": pairs,
             "setup_ms": 1e3 * statistics.median(setups), "unit_ms": 1e3 * unit,
             "cycle_ms": sum(r["cycle_ms"] for r in rows), "setup_kernels_ms": sum(r["setup_ms"] for r in rows),
             "levels": rows, "kernels_ms": kernels}
+
+
+def interleaved(sim, unit, repeats):
+    """``repeats`` pairs: one step of ``sim`` (s, CG iterations), then one sample of the
+    ``IterationTimer`` ``unit``; each pair's ratio step / unit."""
+    pairs = {"step_s": [], "iterations": [], "unit_s": [], "ratio": []}
+    try:
+        for _ in range(repeats):
+            start = time.perf_counter()
+            sim.step(1)
+            pairs["step_s"].append(time.perf_counter() - start)
+            pairs["iterations"].append(sim.solver_stats.iterations)
+            pairs["unit_s"].append(unit.sample())
+            pairs["ratio"].append(pairs["step_s"][-1] / pairs["unit_s"][-1])
+    finally:
+        unit.close()
+    return pairs
 
 
 def main(argv=None):
@@ -168,9 +192,8 @@ def main(argv=None):
         r = measure(resolution, args.stiffness, args.steps, args.repeats)
         results.append(r)
         print(f"\ncloth {resolution}^2 ({r['particles']:,} particles, {r['springs']:,} springs, ks "
-              f"{args.stiffness:g}, {r['loops']} loops): step {r['step_ms']:.1f} ms (median), CG iterations "
-              f"{r['iterations']}, setup {r['setup_ms']:.1f} ms; one block-Jacobi CG iteration "
-              f"(the unit) {r['unit_ms']:.3f} ms")
+              f"{args.stiffness:g}, {r['loops']} loops): CG iterations {r['iterations']}, setup "
+              f"{r['setup_ms']:.1f} ms (median)")
         print(f"{'level':>5s} {'unknowns':>9s} {'blocks':>9s} {'MB':>7s} {'visits':>6s} {'cycle ms':>9s} "
               f"{'products':>8s} {'setup ms':>9s} {'products':>8s}")
         for row in r["levels"]:
@@ -180,8 +203,11 @@ def main(argv=None):
         print(f"{'all':>5s} {'':>9s} {'':>9s} {'':>7s} {'':>6s} {r['cycle_ms']:9.3f} "
               f"{r['cycle_ms'] / r['unit_ms']:8.1f} {r['setup_kernels_ms']:9.3f} "
               f"{r['setup_kernels_ms'] / r['unit_ms']:8.1f}")
-        step_units = r["step_ms"] / r["unit_ms"]
-        print(f"the step costs {step_units:.0f} block-Jacobi CG iterations (issue 22's target: at most 100)")
+        low, high = r["step_in_units_range"]
+        print(f"interleaved ({args.repeats} pairs, medians): step {r['step_ms']:.1f} ms (CG iterations "
+              f"{r['interleaved']['iterations']}), one block-Jacobi CG iteration (the unit) {r['unit_ms']:.3f} ms; "
+              f"the step costs {r['step_in_units']:.0f} block-Jacobi CG iterations (pairs: {low:.0f}-{high:.0f}; "
+              f"issue 22's target: at most 100)")
     write_json(args.json, {"stiffness": args.stiffness, "dt": 1 / 60, "precision": "f64", "results": results})
     print(f"wrote {args.json}")
     return 0

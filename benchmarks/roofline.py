@@ -120,21 +120,40 @@ def explicit_seconds_per_step(scene, integrator, steps, repeats, precision):
     return statistics.median(times) / steps, loops
 
 
-def cg_seconds_per_iteration(scene, loops, k, repeats, precision):
-    def timed_step(limit):
-        sim = scene.simulation(integrator="implicit", dt=1 / 60, cg_max_iter=limit, loops=loops,
-                               precision=precision, preconditioner="block-jacobi")
-        sim.step(1)  # compile, and leave the flat start behind
-        times = []
-        for _ in range(repeats):
+class IterationTimer:
+    """Seconds of one block-Jacobi CG iteration of ``scene``: two simulations whose CG
+    stops after k and 2k iterations, each stepped once to compile and leave the flat
+    start behind; ``sample()`` times one step of each, the difference over k."""
+
+    def __init__(self, scene, loops, k, precision):
+        self.k = k
+        self.sims = [scene.simulation(integrator="implicit", dt=1 / 60, cg_max_iter=limit, loops=loops,
+                                      precision=precision, preconditioner="block-jacobi")
+                     for limit in (k, 2 * k)]
+        for sim in self.sims:
+            sim.step(1)
+
+    def sample(self):
+        seconds = []
+        for sim, limit in zip(self.sims, (self.k, 2 * self.k)):
             t0 = time.perf_counter()
             sim.step(1)
-            times.append(time.perf_counter() - t0)
+            seconds.append(time.perf_counter() - t0)
             assert sim.solver_stats.iterations == limit, sim.solver_stats
-        sim.close()
-        return statistics.median(times)
+        return (seconds[1] - seconds[0]) / self.k
 
-    return (timed_step(2 * k) - timed_step(k)) / k
+    def close(self):
+        for sim in self.sims:
+            sim.close()
+
+
+def cg_seconds_per_iteration(scene, loops, k, repeats, precision):
+    """The median of ``repeats`` samples of ``IterationTimer``."""
+    timer = IterationTimer(scene, loops, k, precision)
+    try:
+        return statistics.median([timer.sample() for _ in range(repeats)])
+    finally:
+        timer.close()
 
 
 def main(argv=None):
