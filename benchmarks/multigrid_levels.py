@@ -15,11 +15,12 @@ machine's drift hits both alike; the median of the pairs' ratios and their range
 
 Printed per level, for the cycle (per CG iteration) and for the setup (per step):
 unknowns, stored operator blocks and their bytes (level 0: the per-entry spring
-coefficients it reads instead), visits per cycle (a V-cycle visits each level once; a W-cycle (``W_CYCLE``) visits
-each level twice per visit of its parent, but the last level once), ms, and
-that time in units of one fine-level matrix-free product, measured in the same
-run as one block-Jacobi CG iteration of the same cloth (its product plus vector
-updates: the unit issue 22 counts in).
+coefficients it reads instead), visits per cycle (a V-cycle visits each level once;
+a W-cycle (``W_CYCLE``) visits each level twice per visit of its parent, but the last
+level once), ms, that time in units of one fine-level matrix-free product, measured
+in the same run as one block-Jacobi CG iteration of the same cloth (its product plus
+vector updates: the unit issue 22 counts in), and kernel launches (each costs about
+0.1 ms with parallel loops on this project's machines, ``launch_cost.py``).
 
     python benchmarks/multigrid_levels.py
     python benchmarks/multigrid_levels.py --resolutions 128 256 --steps 4
@@ -152,6 +153,8 @@ def measure(resolution, stiffness, steps, repeats):
         for phase, per in (("cycle", cycles), ("setup", steps)):
             seconds = sum(t for (p, level, _), t in timer.seconds.items() if p == phase and level == l)
             row[f"{phase}_ms"] = 1e3 * seconds / per
+            row[f"{phase}_launches"] = sum(c for (p, level, _), c in timer.calls.items()
+                                           if p == phase and level == l) / per
             row[f"{phase}_in_products"] = seconds / per / unit
         visits = sum(c / 2 if name.startswith("cheb_start") else c for (p, level, name), c in timer.calls.items()
                      if p == "cycle" and level == l and name in ("cheb_start0", "cheb_startc", "solve_coarsest"))
@@ -195,14 +198,16 @@ def main(argv=None):
               f"{args.stiffness:g}, {r['loops']} loops): CG iterations {r['iterations']}, setup "
               f"{r['setup_ms']:.1f} ms (median)")
         print(f"{'level':>5s} {'unknowns':>9s} {'blocks':>9s} {'MB':>7s} {'visits':>6s} {'cycle ms':>9s} "
-              f"{'products':>8s} {'setup ms':>9s} {'products':>8s}")
+              f"{'products':>8s} {'launches':>8s} {'setup ms':>9s} {'products':>8s} {'launches':>8s}")
         for row in r["levels"]:
             print(f"{row['level']:5d} {row['unknowns']:9,d} {row['blocks']:9,d} {row['operator_mb']:7.2f} "
                   f"{row['visits_per_cycle']:6.0f} {row['cycle_ms']:9.3f} {row['cycle_in_products']:8.1f} "
-                  f"{row['setup_ms']:9.3f} {row['setup_in_products']:8.1f}")
+                  f"{row['cycle_launches']:8.1f} {row['setup_ms']:9.3f} {row['setup_in_products']:8.1f} "
+                  f"{row['setup_launches']:8.1f}")
         print(f"{'all':>5s} {'':>9s} {'':>9s} {'':>7s} {'':>6s} {r['cycle_ms']:9.3f} "
-              f"{r['cycle_ms'] / r['unit_ms']:8.1f} {r['setup_kernels_ms']:9.3f} "
-              f"{r['setup_kernels_ms'] / r['unit_ms']:8.1f}")
+              f"{r['cycle_ms'] / r['unit_ms']:8.1f} {sum(x['cycle_launches'] for x in r['levels']):8.1f} "
+              f"{r['setup_kernels_ms']:9.3f} {r['setup_kernels_ms'] / r['unit_ms']:8.1f} "
+              f"{sum(x['setup_launches'] for x in r['levels']):8.1f}")
         low, high = r["step_in_units_range"]
         print(f"interleaved ({args.repeats} pairs, medians): step {r['step_ms']:.1f} ms (CG iterations "
               f"{r['interleaved']['iterations']}), one block-Jacobi CG iteration (the unit) {r['unit_ms']:.3f} ms; "
