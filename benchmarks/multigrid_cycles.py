@@ -28,7 +28,7 @@ import output
 
 # name: (W-cycle, Chebyshev degree, level 0's weak couplings left out of the coarse levels)
 VARIANTS = {"W, degree 3": (True, 3, True), "V, degree 3": (False, 3, True), "W, degree 2": (True, 2, True),
-            "V, degree 2": (False, 2, True), "V, degree 4": (False, 4, True),
+            "V, degree 2": (False, 2, True), "V, degree 4": (False, 4, True), "V, degree 5": (False, 5, True),
             "V, degree 3, all couplings": (False, 3, False)}
 
 

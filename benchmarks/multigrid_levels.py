@@ -146,7 +146,7 @@ def measure(resolution, stiffness, steps, repeats):
     loops = sim.loops
     sim.close()
     unit = statistics.median(pairs["unit_s"])
-    cycles = sum(c for (phase, _, name), c in timer.calls.items() if name == "finish0")  # one per cycle
+    cycles = sum(c for (phase, _, name), c in timer.calls.items() if name == "up0")  # one per cycle
     rows = level_table(pre, scene.model().n_springs)
     for row in rows:
         l = row["level"]
@@ -156,9 +156,9 @@ def measure(resolution, stiffness, steps, repeats):
             row[f"{phase}_launches"] = sum(c for (p, level, _), c in timer.calls.items()
                                            if p == phase and level == l) / per
             row[f"{phase}_in_products"] = seconds / per / unit
-        visits = sum(c / 2 if name.startswith("cheb_start") else c for (p, level, name), c in timer.calls.items()
-                     if p == "cycle" and level == l and name in ("cheb_start0", "cheb_startc", "solve_coarsest"))
-        row["visits_per_cycle"] = visits / cycles  # a smoothing level smooths twice per visit
+        visits = sum(c for (p, level, name), c in timer.calls.items()
+                     if p == "cycle" and level == l and name in ("down0", "downc", "solve_coarsest"))
+        row["visits_per_cycle"] = visits / cycles
     kernels = {f"{p}/{level}/{name}": 1e3 * t / (cycles if p == "cycle" else steps)
                for (p, level, name), t in sorted(timer.seconds.items())}
     return {"resolution": resolution, "particles": sim.model.n_particles, "springs": sim.model.n_springs,

@@ -18,16 +18,16 @@ Per step (values only, patterns fixed):
   (``g.s0_entry``; P's smoothing those flagged in ``g.s0_smooth``) and the diagonal
   blocks of those (``kept_block``): the weak couplings ``aggregation.filter_fine``
   leaves out;
-* ``coarse_inverse``: D^-1 of a coarse level (6x6, by Cholesky); ``lanczos_start`` and
-  ``lanczos_step``: Lanczos on D^-1 A (self-adjoint in the D inner product) for the
-  estimate of rho(D^-1 A) its smoothing uses; ``factor_coarsest``: dense Cholesky of
-  the last level.
+* ``coarse_inverse``: D^-1 of a coarse level (6x6, by Cholesky); ``lanczos_start``,
+  ``lanczos_apply`` and ``lanczos_next``: Lanczos on D^-1 A (self-adjoint in the D
+  inner product) for the estimate of rho(D^-1 A) its smoothing uses;
+  ``factor_coarsest``: dense Cholesky of the last level.
 
 Per CG iteration, the V(nu, nu)-cycle: Chebyshev smoothing in D^-1 A on
-[rho / CHEB_RATIO, rho] (``cheb_start0``/``cheb_step0`` on level 0, ``..c`` on coarse
-levels), restriction P^T, the coarse cycle, prolongation P, the same smoothing
-again (so the cycle is a symmetric positive definite preconditioner), and the
-direct solve on the coarsest level. On level 0 every vector is filtered by the
+[rho / CHEB_RATIO, rho] and the restriction P^T (``down0`` on level 0, ``downc`` on
+coarse levels), the coarse cycle, the prolongation P and the same smoothing again
+(``up0``, ``upc``; so the cycle is a symmetric positive definite preconditioner),
+and the direct solve on the coarsest level (``solve_coarsest``). On level 0 every vector is filtered by the
 constraints (``constraints.constrain``): z = S V(S r).
 
 Every kernel takes ``serial`` (a template flag) to run its loops in one thread:
@@ -583,10 +583,19 @@ def factor_coarsest(cfg: ti.template(), g: ti.template(), base: ti.i32, nodes: t
 
 
 # -------------------------------------------------------------------------- cycle
+# One kernel per level and direction: ``down0``/``downc`` (pre-smoothing, then the
+# restriction to the next level), ``up0``/``upc`` (the prolongation, then
+# post-smoothing): 7 launches per cycle of 4 levels instead of 32. Each phase is
+# still its own parallel loop (a pass over the level), but the launch's own cost
+# (Python arguments, runtime context) is paid once per level and direction.
+
+MAX_DEGREE = 8  # Chebyshev degrees the cycle kernels take
+COEF = ti.types.vector(1 + 2 * MAX_DEGREE, ti.f64)  # 1 / theta, then (c1, c2) per step
+COEF_ZERO = (0.0,) * (1 + 2 * MAX_DEGREE)
 
 
-@ti.kernel
-def cheb_start0(dev: ti.template(), cfg: ti.template(), first: ti.template(), inv_theta: ti.f64,
+@ti.func
+def cheb_start0(dev: ti.template(), cfg: ti.template(), first: ti.template(), inv_theta,
                 serial: ti.template()):
     """Level 0, start of a smoothing: with ``first`` the pre-smoothing from x = 0 (residual =
     the input r); else the post-smoothing from the current x (residual = r - A x). Then
@@ -603,9 +612,9 @@ def cheb_start0(dev: ti.template(), cfg: ti.template(), first: ti.template(), in
         dev.mg_d[i] = constrain(i, dev, cfg, it * (dev.minv[i] @ res))
 
 
-@ti.kernel
-def cheb_step0(dev: ti.template(), cfg: ti.template(), src: ti.template(), dst: ti.template(), c1: ti.f64,
-               c2: ti.f64, last: ti.template(), serial: ti.template()):
+@ti.func
+def cheb_step0(dev: ti.template(), cfg: ti.template(), src: ti.template(), dst: ti.template(), c1, c2,
+               last: ti.template(), serial: ti.template()):
     """Level 0, one Chebyshev step: x += d, res -= A d, d' = c1 d + c2 D^-1 res (into ``dst``)."""
     a = ti.cast(c1, cfg.real)
     b = ti.cast(c2, cfg.real)
@@ -619,32 +628,46 @@ def cheb_step0(dev: ti.template(), cfg: ti.template(), src: ti.template(), dst: 
             dst[i] = a * d + constrain(i, dev, cfg, b * (dev.minv[i] @ res))
 
 
-@ti.kernel
-def restrict0(dev: ti.template(), cfg: ti.template(), g: ti.template(), nodes: ti.i32, serial: ti.template()):
-    """Level 1's right-hand side c_b = P0^T res (level 0's smoothed residual)."""
-    loops(serial)
-    for node in range(nodes):
-        acc = ti.Vector.zero(cfg.real, BS)
-        for k in range(g.pt0_rows[node], g.pt0_rows[node + 1]):
-            acc += block_t_vector(g.p0, g.pt0_block[k], dev.mg_res[g.pt0_fine[k]], cfg.real)
-        g.c_b[node] = acc
+@ti.func
+def smooth0(dev: ti.template(), cfg: ti.template(), first: ti.template(), coef, degree: ti.template(),
+            serial: ti.template()):
+    """Level 0's Chebyshev smoothing of ``degree`` steps with coefficients ``coef``
+    (``COEF``), the directions alternating between ``dev.mg_d`` and ``dev.mg_d2``."""
+    cheb_start0(dev, cfg, first, coef[0], serial)
+    for k in ti.static(range(degree)):
+        cheb_step0(dev, cfg, ti.static((dev.mg_d, dev.mg_d2)[k % 2]), ti.static((dev.mg_d2, dev.mg_d)[k % 2]),
+                   coef[1 + 2 * k], coef[2 + 2 * k], k == degree - 1, serial)
 
 
 @ti.kernel
-def prolong0(dev: ti.template(), cfg: ti.template(), g: ti.template(), serial: ti.template()):
-    """Level 0's x += P0 e (e: level 1's solution in ``g.c_x``), filtered."""
-    loops(serial)
-    for i in range(dev.size[0]):
-        acc = ti.Vector.zero(cfg.real, 3)
-        for k in range(g.p0_rows[i], g.p0_rows[i + 1]):
-            acc += g.p0[k] @ g.c_x[g.p0_cols[k]]
-        dev.mg_x[i] = dev.mg_x[i] + constrain(i, dev, cfg, acc)
+def down0(dev: ti.template(), cfg: ti.template(), g: ti.template(), coef: COEF, degree: ti.template(),
+          coarse: ti.template(), nodes: ti.i32, serial: ti.template()):
+    """Level 0's pre-smoothing from x = 0, then (``coarse``) level 1's right-hand side
+    c_b = P0^T res on its ``nodes`` nodes."""
+    smooth0(dev, cfg, True, coef, degree, serial)
+    if ti.static(coarse):
+        loops(serial)
+        for node in range(nodes):
+            acc = ti.Vector.zero(cfg.real, BS)
+            for k in range(g.pt0_rows[node], g.pt0_rows[node + 1]):
+                acc += block_t_vector(g.p0, g.pt0_block[k], dev.mg_res[g.pt0_fine[k]], cfg.real)
+            g.c_b[node] = acc
 
 
 @ti.kernel
-def finish0(dev: ti.template(), cfg: ti.template(), serial: ti.template()) -> ti.f64:
-    """z = S x (level 0's cycle output) into ``dev.z``; returns r . z, summed in fixed
-    blocks (``kernels/blocks.py``: the same bits for any thread count)."""
+def up0(dev: ti.template(), cfg: ti.template(), g: ti.template(), coef: COEF, degree: ti.template(),
+        coarse: ti.template(), serial: ti.template()) -> ti.f64:
+    """(``coarse``) level 0's x += P0 e (e: level 1's solution in ``g.c_x``), filtered;
+    the post-smoothing; z = S x (the cycle's output) into ``dev.z``. Returns r . z,
+    summed in fixed blocks (``kernels/blocks.py``: the same bits for any thread count)."""
+    if ti.static(coarse):
+        loops(serial)
+        for i in range(dev.size[0]):
+            acc = ti.Vector.zero(cfg.real, 3)
+            for k in range(g.p0_rows[i], g.p0_rows[i + 1]):
+                acc += g.p0[k] @ g.c_x[g.p0_cols[k]]
+            dev.mg_x[i] = dev.mg_x[i] + constrain(i, dev, cfg, acc)
+    smooth0(dev, cfg, False, coef, degree, serial)
     n = dev.size[0]
     loops(serial)
     for blk in range(block_count(n)):
@@ -666,9 +689,9 @@ def coarse_row(g, node, x: ti.template(), real: ti.template()):
     return out
 
 
-@ti.kernel
-def cheb_startc(cfg: ti.template(), g: ti.template(), begin: ti.i32, end: ti.i32, first: ti.template(),
-                inv_theta: ti.f64, serial: ti.template()):
+@ti.func
+def cheb_startc(cfg: ti.template(), g: ti.template(), begin, end, first: ti.template(), inv_theta,
+                serial: ti.template()):
     """A coarse level's start of smoothing (as ``cheb_start0``), nodes [begin, end); input ``g.c_b``."""
     it = ti.cast(inv_theta, cfg.real)
     loops(serial)
@@ -682,9 +705,9 @@ def cheb_startc(cfg: ti.template(), g: ti.template(), begin: ti.i32, end: ti.i32
         g.c_d[node] = it * block_vector(g.c_dinv, node, res, cfg.real)
 
 
-@ti.kernel
-def cheb_stepc(cfg: ti.template(), g: ti.template(), src: ti.template(), dst: ti.template(), begin: ti.i32,
-               end: ti.i32, c1: ti.f64, c2: ti.f64, last: ti.template(), serial: ti.template()):
+@ti.func
+def cheb_stepc(cfg: ti.template(), g: ti.template(), src: ti.template(), dst: ti.template(), begin, end,
+               c1, c2, last: ti.template(), serial: ti.template()):
     """A coarse level's Chebyshev step (as ``cheb_step0``), nodes [begin, end)."""
     a = ti.cast(c1, cfg.real)
     b = ti.cast(c2, cfg.real)
@@ -698,11 +721,25 @@ def cheb_stepc(cfg: ti.template(), g: ti.template(), src: ti.template(), dst: ti
             dst[node] = a * d + b * block_vector(g.c_dinv, node, res, cfg.real)
 
 
+@ti.func
+def smoothc(cfg: ti.template(), g: ti.template(), begin, end, first: ti.template(), coef,
+            degree: ti.template(), serial: ti.template()):
+    """A coarse level's smoothing (as ``smooth0``), directions in ``g.c_d`` and ``g.c_d2``."""
+    cheb_startc(cfg, g, begin, end, first, coef[0], serial)
+    for k in ti.static(range(degree)):
+        cheb_stepc(cfg, g, ti.static((g.c_d, g.c_d2)[k % 2]), ti.static((g.c_d2, g.c_d)[k % 2]), begin, end,
+                   coef[1 + 2 * k], coef[2 + 2 * k], k == degree - 1, serial)
+
+
 @ti.kernel
-def restrictc(cfg: ti.template(), g: ti.template(), begin: ti.i32, end: ti.i32, serial: ti.template()):
-    """The next level's c_b = P^T res, its nodes [begin, end) (global indices)."""
+def downc(cfg: ti.template(), g: ti.template(), begin: ti.i32, end: ti.i32, first: ti.template(), coef: COEF,
+          degree: ti.template(), next_begin: ti.i32, next_end: ti.i32, serial: ti.template()):
+    """A coarse level's pre-smoothing, nodes [begin, end): from x = 0 (``first``), else
+    from the current ``c_x``; then the next level's c_b = P^T res, its nodes
+    [next_begin, next_end) (global indices)."""
+    smoothc(cfg, g, begin, end, first, coef, degree, serial)
     loops(serial)
-    for node in range(begin, end):
+    for node in range(next_begin, next_end):
         acc = ti.Vector.zero(cfg.real, BS)
         for k in range(g.ptc_rows[node], g.ptc_rows[node + 1]):
             acc += block_t_vector(g.pc, g.ptc_block[k], g.c_res[g.ptc_fine[k]], cfg.real)
@@ -710,14 +747,17 @@ def restrictc(cfg: ti.template(), g: ti.template(), begin: ti.i32, end: ti.i32, 
 
 
 @ti.kernel
-def prolongc(cfg: ti.template(), g: ti.template(), begin: ti.i32, end: ti.i32, serial: ti.template()):
-    """x += P e on a coarse level, nodes [begin, end) (global); e: the next level's c_x."""
+def upc(cfg: ti.template(), g: ti.template(), begin: ti.i32, end: ti.i32, coef: COEF, degree: ti.template(),
+        serial: ti.template()):
+    """x += P e on a coarse level, nodes [begin, end) (global; e: the next level's c_x),
+    then its post-smoothing."""
     loops(serial)
     for node in range(begin, end):
         acc = ti.Vector.zero(cfg.real, BS)
         for k in range(g.pc_rows[node], g.pc_rows[node + 1]):
             acc += block_vector(g.pc, k, g.c_x[g.pc_cols[k]], cfg.real)
         g.c_x[node] = g.c_x[node] + acc
+    smoothc(cfg, g, begin, end, False, coef, degree, serial)
 
 
 @ti.kernel

@@ -89,6 +89,7 @@ class Multigrid(Preconditioner):
         self.nbytes = layout.nbytes() if layout is not None else 0
         self.g = layout.allocate() if layout is not None else None
         self.rho = [1.0] * len(self.hierarchy.levels)
+        self.cheb = [None] * len(self.hierarchy.levels)  # (coefficients, degree): ``_set_rho``
         self.factor_failed = 0
         self.lanczos_steps = []  # Lanczos steps of each coarse level in the last setup
 
@@ -106,7 +107,14 @@ class Multigrid(Preconditioner):
     def fine_level(self):
         """Level 0's D^-1 (``dev.minv``) and rho[0], the bound its smoother needs."""
         bound = mg.fine_inverse(self.dev, self.cfg, self.serial)
-        self.rho[0] = min(2.0, bound) if self.fix else bound
+        self._set_rho(0, min(2.0, bound) if self.fix else bound)
+
+    def _set_rho(self, level, rho):
+        """rho of ``level`` and the Chebyshev coefficients of its smoothing (``chebyshev``)."""
+        self.rho[level] = rho
+        inv_theta, steps = chebyshev(rho)
+        coef = [inv_theta] + [c for step in steps for c in step]
+        self.cheb[level] = (coef + [0.0] * (len(mg.COEF_ZERO) - len(coef)), len(steps))
 
     def prolongation(self):
         """The tentative prolongations T of every level at the current positions and
@@ -134,7 +142,7 @@ class Multigrid(Preconditioner):
                 self.factor_failed = int(mg.factor_coarsest(cfg, g, nodes[0], nodes[1] - nodes[0]))
                 break
             mg.coarse_inverse(cfg, g, nodes[0], nodes[1], serial)
-            self.rho[level] = RHO_SAFETY * self._lanczos(nodes[0], nodes[1])
+            self._set_rho(level, RHO_SAFETY * self._lanczos(nodes[0], nodes[1]))
             mg.smooth_pc(cfg, g, nodes[0], nodes[1], OMEGA / _positive(self.rho[level]), serial)
             mg.apc(cfg, g, nodes[0], nodes[1], serial)
             mg.galerkinc(cfg, g, *plan.gal_range[level], serial)
@@ -172,13 +180,12 @@ class Multigrid(Preconditioner):
     def apply(self):
         """z = B r (one V-cycle) into ``dev.z`` from ``dev.r``; returns r . z."""
         dev, cfg, g, serial = self.dev, self.cfg, self.g, self.serial
-        self._smooth0(True)
-        if g is not None:
-            mg.restrict0(dev, cfg, g, self.plan.node_range[1][1], serial)
+        coarse = g is not None
+        coef, degree = self.cheb[0]
+        mg.down0(dev, cfg, g, coef, degree, coarse, self.plan.node_range[1][1] if coarse else 0, serial)
+        if coarse:
             self._visits(1)
-            mg.prolong0(dev, cfg, g, serial)
-        self._smooth0(False)
-        return float(mg.finish0(dev, cfg, serial))
+        return float(mg.up0(dev, cfg, g, coef, degree, coarse, serial))
 
     def _visits(self, level):
         """The coarse correction from ``level``: one cycle (two under ``W_CYCLE`` unless it is the last)."""
@@ -194,32 +201,10 @@ class Multigrid(Preconditioner):
         if level == plan.levels - 1:
             mg.solve_coarsest(cfg, g, begin, end - begin)
             return
-        self._smoothc(level, first)
-        mg.restrictc(cfg, g, *plan.node_range[level + 1], serial)
+        coef, degree = self.cheb[level]
+        mg.downc(cfg, g, begin, end, first, coef, degree, *plan.node_range[level + 1], serial)
         self._visits(level + 1)
-        mg.prolongc(cfg, g, begin, end, serial)
-        self._smoothc(level, False)
-
-    def _smooth0(self, first):
-        dev, cfg, serial = self.dev, self.cfg, self.serial
-        steps = chebyshev(self.rho[0])
-        mg.cheb_start0(dev, cfg, first, steps[0], serial)
-        src, dst = dev.mg_d, dev.mg_d2
-        for k, (c1, c2) in enumerate(steps[1]):
-            last = k == len(steps[1]) - 1
-            mg.cheb_step0(dev, cfg, src, dst, c1, c2, last, serial)
-            src, dst = dst, src
-
-    def _smoothc(self, level, first):
-        cfg, g, serial = self.cfg, self.g, self.serial
-        begin, end = self.plan.node_range[level]
-        steps = chebyshev(self.rho[level])
-        mg.cheb_startc(cfg, g, begin, end, first, steps[0], serial)
-        src, dst = g.c_d, g.c_d2
-        for k, (c1, c2) in enumerate(steps[1]):
-            last = k == len(steps[1]) - 1
-            mg.cheb_stepc(cfg, g, src, dst, begin, end, c1, c2, last, serial)
-            src, dst = dst, src
+        mg.upc(cfg, g, begin, end, coef, degree, serial)
 
     def release(self):
         if self.g is not None:
