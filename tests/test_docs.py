@@ -95,14 +95,16 @@ def test_the_lists_of_collider_types_and_export_formats_are_the_registries():
     or format cannot be left out of them."""
     from massspring.io.frames import FORMATS
 
-    readme = (ROOT / "README.md").read_text()
+    contact = (ROOT / "docs" / "contact.md").read_text()
+    command_line = (ROOT / "docs" / "command-line.md").read_text()
+    export = (ROOT / "docs" / "export.md").read_text()
     types = list(COLLIDERS)
     quoted = [f'"{t}"' for t in types]
-    assert f"`type = {' | '.join(quoted)}`" in " ".join(readme.split())
+    assert f"`type = {' | '.join(quoted)}`" in " ".join(contact.split())
     assert f"`type` one of {', '.join(f'`{q}`' for q in quoted)}," in section("`[[collider]]`")
     assert f"| {', '.join(f'`{q}`' for q in quoted[:-1])} or `{quoted[-1]}` |" in row(section("`[[collider]]`"), "type")
     formats = f"--format {'|'.join(FORMATS)}"
-    assert formats in readme and formats in DOCS
-    prose = " ".join(readme[readme.index("`--format`: "):].split())
+    assert formats in command_line and formats in DOCS
+    prose = " ".join(export[export.index("`--format`: "):].split())
     for name in FORMATS:
         assert f"`{name}`" in prose[:prose.index("`pip install")], name
