@@ -39,7 +39,7 @@ of ks (8e-6) is below what f32 can tell apart here.
 
     python benchmarks/explicit_step.py --help
     python benchmarks/explicit_step.py --resolutions 32 64 128 --steps 200
-    python benchmarks/explicit_step.py --precision f32 f64     # the README's table
+    python benchmarks/explicit_step.py --precision f32 f64     # the table of docs/performance.md
 
 (plot_performance.py tabulates every row with its precision and plots the f32 ones.)
 """

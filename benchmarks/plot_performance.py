@@ -1,9 +1,9 @@
-"""The README's performance figure and tables, from the benchmarks' JSON results.
+"""The performance figure and tables, from the benchmarks' JSON results.
 
 Reads benchmarks/results/{implicit_step,explicit_step,scaling,roofline}.json
-(written by the scripts of the same names), prints the README's markdown tables
+(written by the scripts of the same names), prints the markdown tables of docs/performance.md
 and draws the figure, by default into benchmarks/out/ (docs/performance.png is the
-README's: pass --png docs/performance.png to replace it; needs matplotlib: pip install
+one docs/performance.md shows: pass --png docs/performance.png to replace it; needs matplotlib: pip install
 "massspring[plot]").
 
     python benchmarks/plot_performance.py --help
@@ -22,7 +22,8 @@ def parse_args(argv=None):
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--results", default="benchmarks/results", help="folder of the benchmarks' JSON files")
     p.add_argument("--png", default=str(output.OUT / "performance.png"),
-                   help="the figure (default benchmarks/out/performance.png; the README shows docs/performance.png)")
+                   help="the figure (default benchmarks/out/performance.png; docs/performance.md shows "
+                        "docs/performance.png)")
     return p.parse_args(argv)
 
 

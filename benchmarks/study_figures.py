@@ -1,9 +1,9 @@
-"""Regenerate the README's "Which integrator?" figures: the work-precision study of
+"""Regenerate the figures of docs/stability-and-study.md: the work-precision study of
 the cloth and chain scenes at their default sizes (``massspring study`` defaults).
 
 Writes study_<scene>.png (work-precision plots; into benchmarks/out/ unless --docs docs,
-which replaces the README's) and each study's runs.csv,
-runs.json and summary.json under --out, and prints the Markdown table the README
+which replaces the committed ones) and each study's runs.csv,
+runs.json and summary.json under --out, and prints the Markdown table docs/stability-and-study.md
 shows: measured orders and, for target errors 1e-2 and 1e-4, the cheapest run.
 
     python benchmarks/study_figures.py                 # cloth and chain, a few minutes each
@@ -25,7 +25,7 @@ def parse_args(argv=None):
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--scenes", nargs="+", default=["cloth", "chain"])
     p.add_argument("--docs", default=str(output.OUT), help="where the PNGs go (default benchmarks/out/; "
-                   "the README shows those in docs/)")
+                   "docs/stability-and-study.md shows those)")
     p.add_argument("--out", default="study-figures", help="where the CSV/JSON of each study go")
     return p.parse_args(argv)
 

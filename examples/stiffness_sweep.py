@@ -11,7 +11,7 @@ corners, falls and swings; the stiffer it is, the less it stretches (strain ~ 1/
 
 The command line runs such sweeps without code, on several processes if asked:
 ``massspring sweep cloth --vary stiffness=1e2,1e3,1e4 --out sweep.csv --plot sweep.png --metric max_strain``
-(README, Running many cases).
+(docs/sweeps.md).
 """
 
 import argparse

@@ -5,6 +5,10 @@ the driver switch.
 Nothing here uses the package's kernels or its algebraic shortcuts (the dense
 right-hand side keeps the -dt D v term instead of cancelling it against the
 damping force).
+
+Two tiers: ``python -m pytest`` runs the fast tier (every module and public option,
+sampled matrices); ``python -m pytest --all`` also runs the tests marked ``full``
+(every scene x integrator, long runs, clusters, memory probes). CI runs ``--all``.
 """
 
 import os
@@ -16,7 +20,7 @@ import pytest
 import massspring as ms
 from massspring.device import reset_taichi
 
-PEAK_RSS_LIMIT = 4e9  # bytes: the whole suite, in pytest's process and in any one child process
+PEAK_RSS_LIMIT = 3e9  # bytes: the whole suite, in pytest's process and in any one child process
 RESET_ABOVE = 2e9  # bytes resident after a test module: Taichi is then reset (its kernels and fields freed)
 ZERO_LENGTH = 1e-12  # f64 zero-length rule: such a spring has no direction or force (stiffness only if l0 = 0)
 
@@ -26,6 +30,68 @@ ZERO_LENGTH = 1e-12  # f64 zero-length rule: such a spring has no direction or f
 # parallel kernels (one launch per phase; large systems). Tests run both on small
 # systems through Simulation's ``loops`` option.
 PATHS = ("serial", "parallel")
+
+
+def pytest_addoption(parser):
+    parser.addoption("--all", action="store_true", default=False,
+                     help="run the full suite (what CI runs): also the tests marked 'full'")
+
+
+def pytest_configure(config):
+    config.addinivalue_line("markers", "full: in the full suite only (python -m pytest --all), not the fast tier")
+
+
+# The fast tier's sample of the matrices no test samples by hand: the cases of these
+# integrators (the cheapest to compile of each family) and of the serial driver; a test
+# function with none of them keeps its first case.
+FAST_SAMPLE = {"integrator": ("symplectic", "implicit"), "path": ("serial",)}
+
+
+def fast_tier(items):
+    """The items of the fast tier: none marked ``full``; of a function none of whose cases
+    is marked ``full`` (not sampled by hand), the cases whose ``FAST_SAMPLE`` parameters
+    take sampled values, or its first case if none do."""
+    by_function = {}
+    for item in items:
+        by_function.setdefault(getattr(item, "function", item), []).append(item)
+    keep = set()
+    for cases in by_function.values():
+        marked = [item for item in cases if item.get_closest_marker("full")]
+        if marked:
+            keep.update(id(item) for item in cases if item not in marked)
+            continue
+        sampled = [item for item in cases
+                   if all(value in FAST_SAMPLE[name] for name, value in
+                          getattr(getattr(item, "callspec", None), "params", {}).items() if name in FAST_SAMPLE)]
+        keep.update(id(item) for item in sampled or cases[:1])
+    return [item for item in items if id(item) in keep]
+
+
+def pytest_collection_modifyitems(config, items):
+    """Without ``--all``, the fast tier (``fast_tier``); the rest deselected."""
+    if config.getoption("--all"):
+        return
+    keep = fast_tier(items)
+    if len(keep) < len(items):
+        kept = set(map(id, keep))
+        config.hook.pytest_deselected(items=[item for item in items if id(item) not in kept])
+        items[:] = keep
+
+
+FULL = pytest.mark.full
+
+
+def sampled(cases, fast):
+    """``cases`` (tuples or values) as pytest params, those not in ``fast`` marked ``full``:
+    the fast tier runs a sample of a matrix, the full suite all of it."""
+    fast = set(fast)
+    out = []
+    for case in cases:
+        values = case.values if hasattr(case, "values") else case if isinstance(case, tuple) else (case,)
+        marks = list(case.marks) if hasattr(case, "marks") else []
+        key = values if len(values) > 1 else values[0]
+        out.append(pytest.param(*values, marks=marks if key in fast else [*marks, FULL], id=getattr(case, "id", None)))
+    return out
 
 
 def one_line_error(capsys, *words):
@@ -210,7 +276,11 @@ def pytest_sessionfinish(session, exitstatus):
         session.exitstatus = 1
 
 
-def pytest_terminal_summary(terminalreporter):
+def pytest_terminal_summary(terminalreporter, config):
+    if not config.getoption("--all"):
+        left = len(terminalreporter.stats.get("deselected", []))
+        terminalreporter.write_line(f"fast tier: {left} tests of the full suite not run (python -m pytest --all runs "
+                                    f"everything)")
     own, child = peak_rss()
     over = max(own, child) > PEAK_RSS_LIMIT
     terminalreporter.write_line(f"peak RSS: {own / 1e9:.2f} GB in pytest, {child / 1e9:.2f} GB in its largest child "

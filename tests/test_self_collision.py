@@ -87,7 +87,7 @@ def test_a_fast_sheet_does_not_tunnel_through_a_resting_one(integrator, dt, spee
     ("ledge", 24, "implicit", 12, 60)])
 def test_the_shipped_scenes_never_cross(name, resolution, integrator, frames, steps):
     """``ledge`` at its shipped size: without the pass the cloth that slid off lies on the
-    ground through itself (91 crossings from 1 s on, README), with it never."""
+    ground through itself (91 crossings from 1 s on, docs/self-collision.md), with it never."""
     scene = shipped(name, resolution)
     model = scene.model()
     assert frames_crossings(scene.simulation(integrator), model, frames, steps) == [0] * frames

@@ -18,7 +18,7 @@ from massspring.analysis import sweep
 from massspring.cli import main
 from massspring.io.state import read_state
 
-from conftest import one_line_error
+from conftest import FULL, one_line_error
 
 
 def chain(count=5):
@@ -217,6 +217,7 @@ def client():
                 proc.wait()
 
 
+@FULL
 def test_a_cluster_gives_the_serial_rows_to_the_bit_and_resumes(client, tmp_path):
     vary = {"stiffness": [1e2, 1e3], "integrator": ["implicit", "bdf2", "symplectic"]}
     here = sweep.sweep(chain(), vary, steps=20)
@@ -233,6 +234,7 @@ def test_a_cluster_gives_the_serial_rows_to_the_bit_and_resumes(client, tmp_path
     assert [r["energy"] for r in again] == [r["energy"] for r in here]
 
 
+@FULL
 def test_a_case_whose_worker_is_killed_is_run_again(client):
     pids = list(client.run(os.getpid).values())
     killed = []
@@ -259,6 +261,7 @@ def test_cli_runs_on_local_workers(tmp_path, capsys):
     assert [r["status"] for r in read_rows(out)] == ["ok", "ok"]
 
 
+@FULL
 def test_stability_ladder_and_study_on_a_cluster_equal_the_serial_ones(client):
     from massspring.analysis import stability, study
 

@@ -17,7 +17,7 @@ CHOICES = ("auto", *PRECONDITIONERS)  # what the API, scene files and the CLI ac
 
 # "auto" picks multigrid from this many free particles on, block-Jacobi below: between
 # the crossovers of the step time at ks 1e6 and ks 1e4 that benchmarks/scaling.py
-# measures (cloth, dt 1/60, f64; benchmarks/results/scaling_crossover.json and the README).
+# measures (cloth, dt 1/60, f64; benchmarks/results/scaling_crossover.json and docs/performance.md).
 MULTIGRID_FROM = 5_000
 
 
