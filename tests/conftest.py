@@ -22,6 +22,8 @@ from massspring.device import reset_taichi
 
 PEAK_RSS_LIMIT = 3e9  # bytes: the whole suite, in pytest's process and in any one child process
 RESET_ABOVE = 2e9  # bytes resident after a test module: Taichi is then reset (its kernels and fields freed)
+WORKER_RESET_ABOVE = 1.2e9  # the same in each of pytest-xdist's worker processes, whose peaks add up
+WORKERS_MAX = 4  # -n auto (the default, pyproject's addopts): one worker per core, at most this many
 ZERO_LENGTH = 1e-12  # f64 zero-length rule: such a spring has no direction or force (stiffness only if l0 = 0)
 
 # Each integrator has two drivers running the same algorithm: serial kernels (one
@@ -39,6 +41,7 @@ def pytest_addoption(parser):
 
 def pytest_configure(config):
     config.addinivalue_line("markers", "full: in the full suite only (python -m pytest --all), not the fast tier")
+    config.addinivalue_line("markers", "fast_sample(**values): the parameter values of the cases the fast tier runs")
 
 
 # The fast tier's sample of the matrices no test samples by hand: the cases of these
@@ -49,8 +52,9 @@ FAST_SAMPLE = {"integrator": ("symplectic", "implicit"), "path": ("serial",)}
 
 def fast_tier(items):
     """The items of the fast tier: none marked ``full``; of a function none of whose cases
-    is marked ``full`` (not sampled by hand), the cases whose ``FAST_SAMPLE`` parameters
-    take sampled values, or its first case if none do."""
+    is marked ``full`` (not sampled by hand), the cases whose parameters take the values
+    its ``fast_sample`` mark names (``@pytest.mark.fast_sample(integrator=["implicit"])``),
+    or else those ``FAST_SAMPLE`` names, or its first case if none do."""
     by_function = {}
     for item in items:
         by_function.setdefault(getattr(item, "function", item), []).append(item)
@@ -60,9 +64,11 @@ def fast_tier(items):
         if marked:
             keep.update(id(item) for item in cases if item not in marked)
             continue
+        chosen = cases[0].get_closest_marker("fast_sample")
+        sample = chosen.kwargs if chosen else FAST_SAMPLE
         sampled = [item for item in cases
-                   if all(value in FAST_SAMPLE[name] for name, value in
-                          getattr(getattr(item, "callspec", None), "params", {}).items() if name in FAST_SAMPLE)]
+                   if all(value in sample[name] for name, value in
+                          getattr(getattr(item, "callspec", None), "params", {}).items() if name in sample)]
         keep.update(id(item) for item in sampled or cases[:1])
     return [item for item in items if id(item) in keep]
 
@@ -266,23 +272,49 @@ def pytest_runtest_teardown(item, nextitem):
     process holds more than ``RESET_ABOVE``: the kernels compiled for every configuration
     so far would otherwise stay in memory to the end. Below it, the next modules reuse them."""
     yield
-    if (nextitem is None or nextitem.module is not item.module) and resident_bytes() > RESET_ABOVE:
+    limit = WORKER_RESET_ABOVE if os.environ.get("PYTEST_XDIST_WORKER") else RESET_ABOVE
+    if (nextitem is None or nextitem.module is not item.module) and resident_bytes() > limit:
         reset_taichi()
 
 
+def pytest_xdist_auto_num_workers(config):
+    """``-n auto``: one worker process per core, at most ``WORKERS_MAX`` (each compiles
+    its own kernels and holds its own Taichi memory)."""
+    return max(1, min(os.cpu_count() or 1, WORKERS_MAX))
+
+
+WORKER_PEAKS = []  # (own, largest child) peak bytes of each finished xdist worker
+
+
+@pytest.hookimpl(optionalhook=True)
+def pytest_testnodedown(node, error):
+    WORKER_PEAKS.append(getattr(node, "workeroutput", {}).get("peak_rss", (0, 0)))
+
+
+def suite_peaks():
+    """(peak bytes of pytest and its workers added up, of the largest child process of any)."""
+    own, child = peak_rss()
+    return own + sum(peak[0] for peak in WORKER_PEAKS), max([child, *(peak[1] for peak in WORKER_PEAKS)])
+
+
 def pytest_sessionfinish(session, exitstatus):
-    """A suite whose peak memory passed ``PEAK_RSS_LIMIT`` fails, whatever its tests said."""
-    if max(peak_rss()) > PEAK_RSS_LIMIT and session.exitstatus == 0:
+    """A suite whose peak memory passed ``PEAK_RSS_LIMIT`` fails, whatever its tests said
+    (an xdist worker hands its peaks to the controller, which adds them up)."""
+    workeroutput = getattr(session.config, "workeroutput", None)
+    if workeroutput is not None:
+        workeroutput["peak_rss"] = peak_rss()
+    elif max(suite_peaks()) > PEAK_RSS_LIMIT and session.exitstatus == 0:
         session.exitstatus = 1
 
 
 def pytest_terminal_summary(terminalreporter, config):
-    if not config.getoption("--all"):
-        left = len(terminalreporter.stats.get("deselected", []))
+    left = len(terminalreporter.stats.get("deselected", []))
+    if not config.getoption("--all") and left:
         terminalreporter.write_line(f"fast tier: {left} tests of the full suite not run (python -m pytest --all runs "
                                     f"everything)")
-    own, child = peak_rss()
+    own, child = suite_peaks()
     over = max(own, child) > PEAK_RSS_LIMIT
-    terminalreporter.write_line(f"peak RSS: {own / 1e9:.2f} GB in pytest, {child / 1e9:.2f} GB in its largest child "
-                                f"process (limit {PEAK_RSS_LIMIT / 1e9:g} GB){': OVER THE LIMIT' if over else ''}",
+    workers = f" and its {len(WORKER_PEAKS)} workers added up" if WORKER_PEAKS else ""
+    terminalreporter.write_line(f"peak RSS: {own / 1e9:.2f} GB in pytest{workers}, {child / 1e9:.2f} GB in the largest "
+                                f"child process (limit {PEAK_RSS_LIMIT / 1e9:g} GB){': OVER THE LIMIT' if over else ''}",
                                 red=over)

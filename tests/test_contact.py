@@ -107,6 +107,7 @@ def test_friction_threshold_on_a_tilted_plane(integrator, ratio):
     assert G * math.sin(theta) > 10 * a
 
 
+@pytest.mark.fast_sample(integrator=["symplectic"])
 @pytest.mark.parametrize("integrator", INTEGRATORS)
 @pytest.mark.parametrize("collider", [
     ms.Plane((0, 0, 0), (0, 0, 1), velocity=(0, 0, 0.5)),
@@ -138,6 +139,7 @@ def test_friction_drags_a_particle_along_a_moving_plane(integrator):
     assert abs(sim.positions[0, 2]) <= 1e-12
 
 
+@pytest.mark.fast_sample(integrator=["symplectic"])
 @pytest.mark.parametrize("integrator", INTEGRATORS)
 def test_particle_held_in_a_corner_by_wind(integrator):
     """Gravity and wind push a particle into the corner between the ground and a box's side
@@ -167,6 +169,7 @@ def cloth(resolution=8, height=0.5, colliders=(), size=1.0, **kw):
 DT = {"explicit": 5e-4, "symplectic": 5e-4, "rk4": 5e-4, "implicit": 1e-2, "backward-euler": 1e-2, "bdf2": 1e-2}
 
 
+@pytest.mark.fast_sample(integrator=["symplectic"])
 @pytest.mark.parametrize("integrator", INTEGRATORS)
 @pytest.mark.parametrize("ratio", [0.9, 1.5])
 def test_cloth_on_a_tilted_plane_sticks_or_slides_as_a_whole(integrator, ratio):

@@ -174,6 +174,7 @@ def test_the_readme_is_a_short_front_door():
     assert linked == set(DOCS), set(DOCS) ^ linked
 
 
+@pytest.mark.full
 def test_compressed_without_the_fix_fails_as_the_readme_says():
     """What holds on any CPU: the compressed cloth's Eq. 15 is indefinite without the fix
     and definite with it (a dense numpy eigenvalue check, independent of the kernels);
@@ -230,6 +231,7 @@ def test_scene_files_the_readme_runs_exist():
         assert (ROOT / name).is_file(), name
 
 
+@pytest.mark.full
 def test_the_wind_example_blows_the_cloth_without_tearing_it():
     """docs/contact.md's `--set drag=... --set wind=...` line: over 1 s the cloth moves
     downwind of where it hangs without wind, its springs stretched as the page says."""

@@ -43,6 +43,7 @@ def test_the_counter_sees_the_sheets_pass_through_each_other_without_self_collis
     assert max(counts) > 20, counts
 
 
+@pytest.mark.fast_sample(integrator=["symplectic"])
 @pytest.mark.parametrize("integrator, resolution, dt, frames, steps", [
     ("implicit", 10, None, 6, 40), ("backward-euler", 10, None, 4, 50), ("bdf2", 10, None, 4, 50),
     ("symplectic", 8, 1e-4, 3, 1000), ("explicit", 8, 1e-4, 3, 1000), ("rk4", 8, 2e-4, 3, 500)])

@@ -122,6 +122,7 @@ def refused(path, *words, model=None):
     return message
 
 
+@pytest.mark.fast_sample(scene=["chain"])
 @pytest.mark.parametrize("scene, params", [("chain", {"count": 5}), ("drape", {"resolution": 4})])
 def test_round_trip_is_bitwise(scene, params, tmp_path):
     sim = ms.load_scene(scene).with_params(**params).simulation("implicit")

@@ -171,6 +171,7 @@ def test_chain_reference_agrees_with_half_its_dt(chain_study, tmp_path):
     assert "PASS" in report.report(chain_study)
 
 
+@pytest.mark.full
 def test_reference_check_failure_is_reported(tmp_path):
     """A ratio no RK4 can meet: the check fails after its halvings, and says so."""
     s = study.run_study(tiny_chain(), duration=0.01, integrators=["symplectic"],
@@ -186,6 +187,7 @@ def test_reference_check_failure_is_reported(tmp_path):
 # ---- divergence -------------------------------------------------------------
 
 
+@pytest.mark.full
 def test_diverged_runs_are_marked_and_not_fitted(tmp_path):
     """Explicit Euler far above its stable dt on the chain blows up; it must be marked,
     carry no error or time, and leave the fitted slope to the good runs."""
@@ -273,6 +275,7 @@ def test_implicit_runs_get_a_line_per_preconditioner(tmp_path):
         study.run_study(tiny_chain(), preconditioners=["amg"])
 
 
+@pytest.mark.full
 def test_rk4_cache_tells_air_pins_and_colliders_apart(tmp_path):
     """A cached reference is only reused for the same physics: drag, moving pins or a
     collider make another entry (and a different trajectory); the exact spring solution
@@ -298,6 +301,7 @@ def test_rk4_cache_tells_air_pins_and_colliders_apart(tmp_path):
     assert reference.exact_spring(dragged, [0.1]) is None
 
 
+@pytest.mark.full
 def test_newton_integrators_get_a_line_per_newton_tolerance(tmp_path):
     """backward-euler and bdf2 run at each of newton_tols (not cg_tols), recorded per run and
     in the lines' names; bdf2's error falls about 4x per halving of dt, backward Euler's 2x."""

@@ -158,6 +158,7 @@ def test_cli_bad_input_exits_2_naming_it(argv, words, tmp_path, capsys, monkeypa
     assert not (tmp_path / "s.csv").exists()
 
 
+@FULL
 def test_sigterm_keeps_every_finished_row_and_a_rerun_finishes(tmp_path):
     out = tmp_path / "s.csv"
     args = [sys.executable, "-m", "massspring", "sweep", "cloth", "--set", "resolution=16", "--integrator",

@@ -106,6 +106,7 @@ def run_chain(integrator, gravity, contact, lift=(0.0, 0.0, 0.0)):
     return state
 
 
+@pytest.mark.fast_sample(contact=[False], integrator=["symplectic"])
 @pytest.mark.parametrize("integrator", ALL)
 @pytest.mark.parametrize("contact", [False, True], ids=["free", "plane"])
 def test_lift_alone_steps_as_gravity_to_the_bit(lift, integrator, contact):
@@ -120,6 +121,7 @@ def test_lift_alone_steps_as_gravity_to_the_bit(lift, integrator, contact):
     assert el["lift"] == eg["gravity"] and el["total"] == eg["total"] and el["gravity"] == eg["lift"] == 0
 
 
+@pytest.mark.fast_sample(contact=[False], integrator=["symplectic"])
 @pytest.mark.parametrize("integrator", ALL)
 @pytest.mark.parametrize("contact", [False, True], ids=["free", "plane"])
 def test_gravity_and_lift_add(lift, integrator, contact):
@@ -167,6 +169,7 @@ def test_with_gravity_alone_the_sums_are_gravity_to_the_bit():
     assert sim._integrator.cfg.uniform_terms == (terms.Gravity,)
 
 
+@pytest.mark.fast_sample(integrator=["symplectic"])
 @pytest.mark.parametrize("integrator", ALL)
 def test_a_long_lift_does_not_trip_the_divergence_check(lift, integrator):
     """Lift only, 30 s: kinetic energy reaches m (p t)^2 / 2 ~ 1.6e3 J, over 100 times the
