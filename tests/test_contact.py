@@ -196,6 +196,7 @@ def test_cloth_on_a_tilted_plane_sticks_or_slides_as_a_whole(integrator, ratio):
         assert abs(speed - 0.5 * a) <= G * dt, (speed, 0.5 * a)
 
 
+@pytest.mark.fast_sample(integrator=["symplectic"])
 @pytest.mark.parametrize("integrator", INTEGRATORS)
 def test_cloth_drapes_over_a_sphere(integrator):
     """After 2 s the cloth rests on the sphere: no vertex deeper inside than 1e-3 of the
@@ -215,6 +216,7 @@ def test_cloth_drapes_over_a_sphere(integrator):
     assert np.abs(sim.velocities).max() < 0.05  # settled
 
 
+@pytest.mark.fast_sample(integrator=["symplectic"])
 @pytest.mark.parametrize("integrator", INTEGRATORS)
 @pytest.mark.parametrize("mu", [0.8, 0.0])
 def test_cloth_bends_over_a_box_edge(integrator, mu):
@@ -251,6 +253,7 @@ def test_particle_rests_on_a_rounded_box_edge(integrator):
     assert np.abs(sim.velocities).max() <= G * 1e-3
 
 
+@pytest.mark.full
 def test_stiff_contact_at_large_dt_stays_bounded_or_diverges_cleanly():
     """A very stiff cloth (1e6 N/m) dropped flat on the ground: the implicit step at
     dt = 0.05 never lets a particle below it and ends (2 s) in the exact resting state,
@@ -276,6 +279,7 @@ def test_stiff_contact_at_large_dt_stays_bounded_or_diverges_cleanly():
     assert sim.positions[:, 2].min() >= -1e-9
 
 
+@pytest.mark.fast_sample(integrator=["explicit"])
 @pytest.mark.parametrize("integrator", ["explicit", "implicit", "rk4"])
 def test_serial_and_parallel_drivers_agree_with_colliders(integrator):
     model = cloth(resolution=6, colliders=[ms.Plane((0, 0, -0.35), (0, 0, 1), friction=0.5),

@@ -129,6 +129,7 @@ def test_stale_temporary_file_of_a_killed_run_is_cleaned(tmp_path, capsys):
         assert not stale.exists() and mine.exists() and gif.is_file()
 
 
+@pytest.mark.full
 def test_sigterm_is_handled_like_ctrl_c(tmp_path):
     """SIGTERM once the run has made 100 steps (its exported frame of step 100 is on
     disk): exit 143, no traceback, and the state file holds the state reached, at least

@@ -260,6 +260,7 @@ def test_grid_upright_side_pin_and_chain_without_pin():
         generators.chain(**dict(generators.PARAMETERS["chain"], pin="middle"))
 
 
+@pytest.mark.full
 def test_rope_drop_lands_on_the_ball_and_slides_off():
     """What rope-drop's description says, at its defaults: particles rest on the ball
     after the fall (0.6 s), none from 1.5 s on."""

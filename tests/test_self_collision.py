@@ -43,7 +43,7 @@ def test_the_counter_sees_the_sheets_pass_through_each_other_without_self_collis
     assert max(counts) > 20, counts
 
 
-@pytest.mark.fast_sample(integrator=["symplectic"])
+@pytest.mark.full
 @pytest.mark.parametrize("integrator, resolution, dt, frames, steps", [
     ("implicit", 10, None, 6, 40), ("backward-euler", 10, None, 4, 50), ("bdf2", 10, None, 4, 50),
     ("symplectic", 8, 1e-4, 3, 1000), ("explicit", 8, 1e-4, 3, 1000), ("rk4", 8, 2e-4, 3, 500)])
@@ -61,6 +61,7 @@ def shipped(name, resolution, on=True, **params):
     return dataclasses.replace(scene, self_collision=scene.self_collision if on else None)
 
 
+@pytest.mark.full
 @pytest.mark.parametrize("integrator, dt, speed", [("implicit", None, 15.0), ("symplectic", 1e-3, 100.0),
                                                    ("backward-euler", None, 15.0)])
 def test_a_fast_sheet_does_not_tunnel_through_a_resting_one(integrator, dt, speed):
@@ -83,6 +84,7 @@ def test_a_fast_sheet_does_not_tunnel_through_a_resting_one(integrator, dt, spee
         sim.close()
 
 
+@pytest.mark.fast_sample(integrator=["symplectic"])
 @pytest.mark.parametrize("name, resolution, integrator, frames, steps", [
     ("thrown", 10, "implicit", 4, 30), ("thrown", 8, "symplectic", 3, 1000), ("thrown", 8, "bdf2", 4, 30),
     ("ledge", 24, "implicit", 12, 60)])
@@ -117,6 +119,7 @@ def slide_on_tilted_sheet(theta_deg, mu, duration=0.5, dt=1 / 240, thickness=0.0
     return float(moved @ [0, -np.cos(angle), -np.sin(angle)]), float(moved @ turn[:, 2])
 
 
+@pytest.mark.full
 @pytest.mark.parametrize("theta, mu", [(20, 0.5), (45, 0.5), (20, 0.0)])
 def test_friction_between_sheets_follows_coulomb(theta, mu):
     """A sheet on a tilted sheet sticks below tan theta = mu (creeps under 5 mm in 0.5 s)
