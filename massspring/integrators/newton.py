@@ -60,9 +60,14 @@ class BackwardEuler(ImplicitEuler):
         if model.has_colliders:
             layout.vectors("carrier", real)
 
-    def step_size(self) -> float:
-        """h of (*) in ``kernels/newton.py`` for the next step."""
+    def step_size(self, touching) -> float:
+        """h of (*) in ``kernels/newton.py`` for the step being taken (``touching``: its
+        particles in contact)."""
         return self.settings.dt
+
+    def finish(self, h, touching):
+        """Turn the solution v of (*) into the step's velocity, with ``dev.xb`` and h such
+        that x' = x^ + h v' (``cg.advance_positions``); backward Euler's are already so."""
 
     def base_is_bdf2(self) -> bool:
         return False
@@ -72,12 +77,12 @@ class BackwardEuler(ImplicitEuler):
         assert steps == 1
         s = self.settings
         dev, cfg, serial, eps = self.dev, self.cfg, self.serial, EPS64 if s.precision == "f64" else EPS32
-        h, t = self.step_size(), self.time
+        t = self.time
         touching = newton.newton_start(dev, cfg, s.dt, t, self.base_is_bdf2(), serial)
         if touching and self.base_is_bdf2():  # contact breaks the history: a backward-Euler step
             self.ready = False
-            h = self.step_size()
             newton.newton_start(dev, cfg, s.dt, t, False, serial)
+        h = self.step_size(touching)
         g2, scale2, _, _ = newton.newton_refresh(dev, cfg, h, t, serial)
         first = norm = math.sqrt(g2)
         norms = [norm]
@@ -132,6 +137,7 @@ class BackwardEuler(ImplicitEuler):
             return 0, divergence.NONFINITE_VERDICT
         if cfg.contact_filter:
             friction.contact_friction(dev, cfg, t, serial)
+        self.finish(h, touching)
         check = divergence.unpack(cg.advance_positions(dev, cfg, dev.xb, h, s.dt, (self.steps + 1) * s.dt, serial,
                                                        self.carries))
         accepted = check[0] == divergence.OK
@@ -174,7 +180,7 @@ class BDF2(BackwardEuler):
     def base_is_bdf2(self):
         return self.ready
 
-    def step_size(self):
+    def step_size(self, touching):
         return 2.0 * self.settings.dt / 3.0 if self.ready else self.settings.dt
 
     def after_step(self, accepted, touching):
