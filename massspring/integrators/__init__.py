@@ -9,10 +9,12 @@ default time step from a stability prediction (``suggest_dt``) for scenes whose
 from .base import Integrator
 from .explicit import ExplicitEuler
 from .implicit import ImplicitEuler
+from .midpoint import Midpoint
 from .newton import BDF2, BackwardEuler
 from .rk4 import RK4
 from .symplectic import SymplecticEuler
 
-INTEGRATORS = {cls.name: cls for cls in (ExplicitEuler, SymplecticEuler, ImplicitEuler, BackwardEuler, BDF2, RK4)}
+INTEGRATORS = {cls.name: cls for cls in (ExplicitEuler, SymplecticEuler, ImplicitEuler, BackwardEuler, BDF2, Midpoint,
+                                         RK4)}
 
 __all__ = ["INTEGRATORS", "Integrator"]
