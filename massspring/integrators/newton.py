@@ -11,7 +11,8 @@ from massspring.kernels import state as state_kernels
 from massspring.solvers import SolverStats, solve
 from massspring.solvers.cg import EPS32, EPS64, ROUNDOFF
 
-from .implicit import ImplicitEuler
+from .implicit import LINEAR_OPTIONS, ImplicitEuler
+from .options import Option
 
 NEWTON_TOL = 1e-3  # default newton_tol: a full Newton step this small relative to the step's velocity change ends it
 NEWTON_MAX_ITER = 50  # default newton_max_iter: linear solves per step
@@ -20,6 +21,13 @@ MAX_CUTS = 12  # halvings of a line search before it takes the shortest step tri
 ETA_FIRST = 1e-2  # CG tolerance of the first linear solve of a step (relative to its first residual)
 ETA_MAX = 0.1  # loosest CG tolerance of a later solve
 GOLDEN = (1 + 5**0.5) / 2  # safeguard exponent of Eisenstat and Walker's first choice
+NEWTON = "takes no Newton iterations"
+NEWTON_OPTIONS = (
+    Option("newton_tol", "fraction", NEWTON_TOL, "Newton stops when a full Newton step changes the velocities by "
+           "at most this fraction of the step's velocity change (kinetic-energy norm)", NEWTON,
+           sweep=(1e-3, 1e-6)),
+    Option("newton_max_iter", "count", NEWTON_MAX_ITER, "Newton iterations (linear solves) per step at most", NEWTON),
+)
 
 
 class BackwardEuler(ImplicitEuler):
@@ -47,6 +55,8 @@ class BackwardEuler(ImplicitEuler):
     order = 1
     description = "backward Euler solved by Newton's method with a line search (CG per iteration)"
     newton = True
+    options = LINEAR_OPTIONS + NEWTON_OPTIONS
+    swept = "newton_tol"
     carries = False  # whether a step's commit keeps the state it replaces (BDF2's history)
     ladder_without_fix = False
     extra_bytes = 7 * 24  # xb, vb, xk, vk, dir, res and a contact's carrier: f64 3-vectors
