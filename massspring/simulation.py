@@ -38,6 +38,7 @@ F32_MAX_MAGNITUDE = 1e18  # model values an f32 run accepts: their squares stay 
 # then every integrator's solver options (``integrators.OPTIONS``).
 Settings = make_dataclass("Settings", [(name, object) for name in
                                        ("integrator", "dt", "precision", "arch", "loops", *OPTIONS)], frozen=True)
+Settings.__module__ = __name__  # where pickle finds it
 
 
 def _check_carried(carried, names, n):
