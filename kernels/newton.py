@@ -1,11 +1,13 @@
 """Newton's method for the nonlinear implicit steps (``massspring/integrators/newton.py``).
 
-Backward Euler and BDF2 both solve, for the new velocity v,
+Backward Euler, BDF2 and implicit midpoint all solve, for a velocity v,
 
     g(v) = M (v - v^) - h f(x^ + h v, v) - F(v) = 0                       (*)
 
 with a base state (x^, v^) and a step h: (x_n, v_n) and dt for backward Euler,
-(4/3 x_n - 1/3 x_{n-1}, 4/3 v_n - 1/3 v_{n-1}) and 2 dt / 3 for BDF2; F is the
+(4/3 x_n - 1/3 x_{n-1}, 4/3 v_n - 1/3 v_{n-1}) and 2 dt / 3 for BDF2, (x_n, v_n) and
+dt / 2 for implicit midpoint, whose v is the midpoint velocity (v_n + v_{n+1}) / 2
+(``midpoint_finish`` makes the step from it); F is the
 friction of contacts (linear in v, ``contact.friction_diagonal``, ``friction_impulse``),
 and the directions prescribed by pins and contacts are held (contacts detected once,
 at the step's start, as the linearised step detects them). Newton starts from v = v^;
@@ -240,3 +242,14 @@ def newton_trial(dev: ti.template(), cfg: ti.template(), h: ti.f64, alpha: ti.f6
         for k in ti.static(range(3)):
             out[k] = sums[k]
     return out
+
+
+@ti.kernel
+def midpoint_finish(dev: ti.template(), cfg: ti.template(), h: ti.f64):
+    """Implicit midpoint's step from the solution w = ``dev.v`` of (*) with h = dt / 2 and
+    the base (x_n, v_n): v' = 2 w - v_n (v_n = ``dev.keep``) and x^ = x_n + h v_n in
+    ``dev.xb``, so that x' = x^ + h v' = x_n + dt w (``cg.advance_positions``)."""
+    hh = ti.cast(h, cfg.real)
+    for i in range(dev.size[0]):
+        dev.xb[i] = dev.xb[i] + hh * dev.keep[i]
+        dev.v[i] = 2 * dev.v[i] - dev.keep[i]

@@ -2,8 +2,9 @@
 
 from __future__ import annotations
 
+import textwrap
 import weakref
-from dataclasses import dataclass
+from dataclasses import make_dataclass
 
 import numpy as np
 
@@ -12,12 +13,11 @@ from massspring.colliders import COLLIDERS
 from massspring.defaults import MAX_STEPS, PRECISIONS
 from massspring.device import ARCHS, CPU_ARCHS, POOL, ensure_taichi, model_layout
 from massspring.errors import DivergenceError, SimulationClosedError
-from massspring.integrators import INTEGRATORS
-from massspring.integrators.newton import NEWTON_MAX_ITER, NEWTON_TOL
+from massspring.integrators import INTEGRATORS, OPTIONS, takers
 from massspring.kernels import divergence
 from massspring.kernels.terms import active_terms
 from massspring.model import Model
-from massspring.solvers import CHOICES, PRECONDITIONERS, resolve
+from massspring.solvers import PRECONDITIONERS, resolve
 from massspring.validate import real_array
 
 LOOPS = ("auto", "serial", "parallel")
@@ -34,21 +34,11 @@ DIVERGENCE_FACTOR = 100.0  # see divergence_check
 F32_MAX_MAGNITUDE = 1e18  # model values an f32 run accepts: their squares stay within f32's 3.4e38
 
 
-@dataclass(frozen=True)
-class Settings:
-    """A simulation's settings (see ``Simulation``), fixed at construction."""
-
-    integrator: str
-    dt: float
-    precision: str
-    cg_tol: float
-    cg_max_iter: int
-    definiteness_fix: bool
-    preconditioner: str
-    arch: str
-    loops: str
-    newton_tol: float
-    newton_max_iter: int
+# A simulation's settings (see ``Simulation``), fixed at construction: the run's own,
+# then every integrator's solver options (``integrators.OPTIONS``).
+Settings = make_dataclass("Settings", [(name, object) for name in
+                                       ("integrator", "dt", "precision", "arch", "loops", *OPTIONS)], frozen=True)
+Settings.__module__ = __name__  # where pickle finds it
 
 
 def _check_carried(carried, names, n):
@@ -109,33 +99,11 @@ class Simulation:
     Parameters
     ----------
     model : Model
-    integrator : "explicit" | "symplectic" | "implicit" | "backward-euler" | "bdf2" | "rk4"
+    integrator : {integrators}
         (``integrators.INTEGRATORS``)
     dt : float, s, > 0
     precision : "f64" (default) | "f32"
-    cg_tol : float in (0, 1)
-        Implicit integrators: CG's relative tolerance on the true residual
-        ||b - A v|| / ||b - A v_n||, relative to the first residual of its warm start
-        (for "implicit", the right-hand side of Eq. 15's velocity-change form), so
-        that a step is solved relative to the change it makes. For "backward-euler"
-        and "bdf2" it is the tightest tolerance of a Newton iteration's solve.
-    cg_max_iter : int or None
-        Implicit integrators: iteration limit per solve; None means ``default_cg_max_iter``.
-    newton_tol : float in (0, 1)
-        "backward-euler", "bdf2": Newton stops when a full Newton step changes the
-        velocities by at most newton_tol times the step's own velocity change (in the
-        kinetic-energy norm; see ``integrators/newton.py``).
-    newton_max_iter : int
-        "backward-euler", "bdf2": Newton iterations (linear solves) per step at most.
-    definiteness_fix : bool
-        Implicit only: clamp the transverse stiffness of compressed springs so that
-        the system stays positive definite (see kernels/terms/springs.py).
-    preconditioner : "auto" (default) | "block-jacobi" | "multigrid" | "none"
-        Implicit only: the CG's preconditioner (``solvers.PRECONDITIONERS``). "auto"
-        picks multigrid from ``solvers.MULTIGRID_FROM`` free particles on (where it
-        is faster; its iteration count stays flat with resolution) and block-Jacobi
-        below; ``preconditioner`` then reports the one picked.
-    arch : Taichi arch name, "cpu" by default; one that cannot start is a ValueError.
+{options}    arch : Taichi arch name, "cpu" by default; one that cannot start is a ValueError.
     loops : "auto" (default) | "serial" | "parallel"
         Serial kernels (a whole CG solve, or many explicit steps, per launch) or
         parallel kernels (one launch per phase); "auto" picks parallel from
@@ -156,19 +124,22 @@ class Simulation:
     ``SimulationClosedError``.
     """
 
-    def __init__(self, model, integrator="implicit", dt=1e-2, precision="f64", cg_tol=1e-6,
-                 cg_max_iter=None, definiteness_fix=True, preconditioner="auto", arch="cpu",
-                 loops="auto", newton_tol=NEWTON_TOL, newton_max_iter=NEWTON_MAX_ITER):
+    def __init__(self, model, integrator="implicit", dt=1e-2, precision="f64", arch="cpu", loops="auto",
+                 **options):
         if not isinstance(model, Model):
             raise ValueError(f"model: expected a massspring.Model, got {type(model).__name__}")
+        unknown = sorted(set(options) - set(OPTIONS))
+        if unknown:
+            raise TypeError(f"Simulation: unexpected keyword argument {unknown[0]!r} (solver options: "
+                            f"{', '.join(OPTIONS)})")
         validate.choice("integrator", integrator, tuple(INTEGRATORS))
         validate.choice("precision", precision, PRECISIONS)
         dt = validate.positive_float("dt", dt)
-        cg_tol = validate.fraction("cg_tol", cg_tol)
-        cg_max_iter = default_cg_max_iter(model) if cg_max_iter is None else validate.count("cg_max_iter", cg_max_iter)
-        newton_tol = validate.fraction("newton_tol", newton_tol)
-        newton_max_iter = validate.count("newton_max_iter", newton_max_iter)
-        validate.choice("preconditioner", preconditioner, CHOICES)
+        options = {name: option.default if options.get(name) is None else option.check(options[name])
+                   for name, option in OPTIONS.items()}
+        if options["cg_max_iter"] is None:
+            options["cg_max_iter"] = default_cg_max_iter(model)
+        preconditioner = options["preconditioner"]
         validate.choice("loops", loops, LOOPS)
         validate.choice("arch", arch, ARCHS)
         if precision == "f32":
@@ -181,8 +152,8 @@ class Simulation:
                 below = PRECONDITIONERS[preconditioner].serial_below or SERIAL_BELOW
             loops = "serial" if model.n_springs < below and arch in CPU_ARCHS else "parallel"
         self._model = model
-        self._settings = Settings(integrator, dt, precision, cg_tol, cg_max_iter, bool(definiteness_fix),
-                                  preconditioner, arch, loops, newton_tol, newton_max_iter)
+        options["preconditioner"] = preconditioner
+        self._settings = Settings(integrator, dt, precision, arch, loops, **options)
         self._check = divergence_check(model)
         self._steps = 0
         self._cg_iterations = []
@@ -195,7 +166,8 @@ class Simulation:
                                       model_built=not ordering.wanted(model),  # else a renumbered copy
                                       extra=cls.extra_bytes + self_collision.PASS_BYTES * model.has_self_collision
                                       + self_collision.SOLVE_BYTES * cls.pairs_in_solve(model)),
-                     f"model: {model.n_particles:,} particles and {model.n_springs:,} springs; a run of it ({integrator})")
+                     f"model: {model.n_particles:,} particles and {model.n_springs:,} springs; "
+                     f"a run of it ({integrator})")
         self._order = ordering.plan(model)
         inner = model if self._order is None else self._order.model
         layout = model_layout(inner, precision)
@@ -224,14 +196,9 @@ class Simulation:
     integrator = property(lambda self: self._settings.integrator, doc="Integrator name.")
     dt = property(lambda self: self._settings.dt, doc="Time step (s).")
     precision = property(lambda self: self._settings.precision, doc='"f64" or "f32".')
-    cg_tol = property(lambda self: self._settings.cg_tol, doc="Implicit: relative CG tolerance.")
-    cg_max_iter = property(lambda self: self._settings.cg_max_iter, doc="Implicit: CG iteration limit per step.")
-    definiteness_fix = property(lambda self: self._settings.definiteness_fix, doc="Implicit: definiteness fix.")
-    newton_tol = property(lambda self: self._settings.newton_tol, doc="Newton-solved: relative Newton tolerance.")
-    newton_max_iter = property(lambda self: self._settings.newton_max_iter, doc="Newton-solved: iterations per step.")
-    preconditioner = property(lambda self: self._settings.preconditioner, doc="Implicit: preconditioner name.")
     arch = property(lambda self: self._settings.arch, doc="Taichi arch.")
     loops = property(lambda self: self._settings.loops, doc='"serial" or "parallel" (resolved from "auto").')
+    # and a read-only property per solver option (integrators.OPTIONS), set below the class
 
     @property
     def check(self) -> tuple:
@@ -456,6 +423,7 @@ class Simulation:
                "terms": terms, "arrays": list(self._layout_names), "loops": self.loops,
                "preconditioner": self.preconditioner if integrator.linear_solver else None,
                "newton": integrator.newton, "bytes": self._bytes,
+               "options": {option.name: getattr(self._settings, option.name) for option in integrator.options},
                "order": "given" if self._order is None else "z-order"}
         if integrator.linear_solver:
             extra = integrator.preconditioner.describe()
@@ -468,6 +436,30 @@ class Simulation:
         collection). Idempotent; any other call afterwards raises ``SimulationClosedError``."""
         self._release()
         self._integrator = None
+
+
+def _option_property(option):
+    return property(lambda self: getattr(self._settings, option.name),
+                    doc=f"{', '.join(takers(option.name))}: {option.doc}.")
+
+
+for _option in OPTIONS.values():
+    setattr(Simulation, _option.name, _option_property(_option))
+
+
+def _option_docs() -> str:
+    """The solver options' lines of ``Simulation``'s docstring."""
+    lines = []
+    for option in OPTIONS.values():
+        values = " | ".join(f'"{c}"' for c in option.choices) if option.kind == "choice" else option.bounds
+        lines.append(f"    {option.name} : {values}, default {option.described_default()}")
+        lines += textwrap.wrap(f"{', '.join(takers(option.name))}: {option.doc}.", 84, initial_indent=" " * 8,
+                               subsequent_indent=" " * 8)
+    return "\n".join(lines) + "\n"
+
+
+Simulation.__doc__ = Simulation.__doc__.replace("{options}", _option_docs()).replace(
+    "{integrators}", " | ".join(f'"{name}"' for name in INTEGRATORS))
 
 
 def _release(dev, integrator, guard):

@@ -11,7 +11,7 @@ import pytest
 
 from massspring import mesh, solvers
 from massspring.colliders import COLLIDERS
-from massspring.integrators import INTEGRATORS
+from massspring.integrators import INTEGRATORS, OPTIONS, takers
 from massspring.scene import generators, spec
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -59,6 +59,21 @@ def test_top_level_keys_are_listed():
     for key in spec.SOLVER_KEYS:
         row(section("`[solver]`"), key)
     assert f"{solvers.MULTIGRID_FROM:,} free particles" in row(section("`[solver]`"), "preconditioner")
+
+
+def solver_row(option):
+    """docs/scenes.md's row of a solver option, made from its record (integrators.OPTIONS)."""
+    kind = ("string: " + ", ".join(f'`"{c}"`' for c in option.choices)) if option.choices else option.bounds
+    shown_default = shown(option.default) if option.kind == "choice" else option.described_default()
+    default = option.default_text or f"`{shown_default}`"
+    doc = option.doc.replace("``", "`")
+    return f"| `{option.name}` | {kind} | {default} | | {', '.join(takers(option.name))}: {doc} |"
+
+
+@pytest.mark.parametrize("name", list(OPTIONS))
+def test_solver_rows_follow_from_the_option_records(name):
+    assert row(section("`[solver]`"), name) == solver_row(OPTIONS[name])
+    assert f"`{OPTIONS[name].flag}`" in section("`[solver]`")
 
 
 @pytest.mark.parametrize("name", sorted(generators.PARAMETERS))

@@ -1,4 +1,4 @@
-"""Backward Euler and BDF2 solved by Newton's method (massspring/integrators/newton.py).
+"""Backward Euler, BDF2 and implicit midpoint solved by Newton's method (massspring/integrators/newton.py).
 
 References: the backward-Euler equations M (v1 - v0) = dt f(x0 + dt v1, v1) with an
 independent numpy force (conftest.numpy_forces); the order of accuracy against an RK4
@@ -15,7 +15,7 @@ import massspring as ms
 from massspring.scene import load_scene
 from conftest import PATHS, numpy_forces, random_system, simulation
 
-NEWTON = ("backward-euler", "bdf2")
+NEWTON = ("backward-euler", "bdf2", "midpoint")
 
 
 def free_rows(model):

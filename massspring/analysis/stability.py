@@ -196,7 +196,7 @@ def predict(model: Model, positions=None, iterations=40) -> Prediction:
 # Ladder: integrator, definiteness fix, the prediction its dt is relative to, multiples
 # (each integrator's ``ladder``; the symplectic one first: its limit is the reference).
 LADDER = tuple((name, fix, *cls.ladder)
-               for name, cls in sorted(INTEGRATORS.items(), key=lambda item: item[0] != "symplectic")
+               for name, cls in sorted(INTEGRATORS.items(), key=lambda item: not item[1].limit_reference)
                if cls.ladder for fix in ((True, False) if cls.ladder_without_fix else (True,)))
 COLUMNS = ("integrator", "definiteness_fix", "dt", "dt_ratio", "relative_to", "outcome", "steps",
            "simulated_time", "energy_ratio", "max_strain", "cg_iterations_mean", "cg_iterations_max",

@@ -40,11 +40,11 @@ from massspring import solvers, validate
 from massspring.analysis import cluster, reference
 from massspring.analysis.fits import TARGETS, cheapest, fit_orders
 from massspring.errors import DivergenceError
-from massspring.integrators import INTEGRATORS
+from massspring.integrators import INTEGRATORS, OPTIONS, Integrator
 from massspring.simulation import Simulation
 
-DEFAULT_CG_TOLS = (1e-2, 1e-4, 1e-6)
-DEFAULT_NEWTON_TOLS = (1e-3, 1e-6)
+DEFAULT_CG_TOLS = OPTIONS["cg_tol"].sweep
+DEFAULT_NEWTON_TOLS = OPTIONS["newton_tol"].sweep
 DEFAULT_RUNGS = 7            # dt values per line: 2^6 = 64, about 2 decades
 DEFAULT_DURATION_FRACTION = 0.1  # of the scene's duration (see default_duration)
 MAX_REFERENCE_STEPS = 1e9  # steps of the RK4 reference at its starting dt
@@ -157,24 +157,21 @@ def dt_ladder(top, interval, rungs=DEFAULT_RUNGS) -> list:
 
 def ladder_tops(scene, model, integrators, duration) -> dict:
     """The largest dt (s) of each integrator's ladder, from the stability prediction
-    (``massspring.stability.predict``, at the initial state) with a 10% margin:
-
-    * explicit: 0.9 x the largest dt at which the stiffest mode does not grow, or, if
-      larger, at which its energy doubles in one second (there is no stable dt without damping);
-    * symplectic: 0.9 x its predicted stability limit;
-    * implicit: the scene's default dt (it has no stability limit);
-
-    and at most ``duration`` / 10 (s), so that every run has at least 10 steps.
+    (``massspring.stability.predict``, at the initial state) with a 10% margin: 0.9 x the
+    integrator's ``stability_limit`` (explicit: the largest dt at which the stiffest mode
+    does not grow, or, if larger, at which its energy doubles in one second; symplectic:
+    its predicted limit); for an integrator without one (the implicit ones, RK4), the
+    scene's default dt; and at most ``duration`` / 10 (s), so that every run has at least 10 steps.
     """
     from massspring.analysis import stability
 
     tops = {name: scene.default_dt(name) for name in integrators}
-    if "explicit" in tops or "symplectic" in tops:
+    limited = [name for name in tops if INTEGRATORS[name].stability_limit is not Integrator.stability_limit]
+    if limited:
         pred = stability.predict(model)
-        limits = {"explicit": max(pred.explicit_stable_dt, pred.explicit_doubling_dt),
-                  "symplectic": pred.symplectic_dt}
-        for name, limit in limits.items():
-            if name in tops and math.isfinite(limit) and limit > 0:
+        for name in limited:
+            limit = INTEGRATORS[name].stability_limit(pred)
+            if math.isfinite(limit) and limit > 0:
                 tops[name] = 0.9 * limit
     return {name: min(top, duration / 10) for name, top in tops.items()}
 
@@ -241,7 +238,7 @@ def run_study(scene, *, integrators=DEFAULT_INTEGRATORS, duration=None, rungs=DE
     tasks = [("reference", (model, times, dt, cache, use_cache)) for dt in reference_dts]
     for name in integrators:
         cls = INTEGRATORS[name]
-        tols = [{"newton_tol": t} for t in newton_tols] if cls.newton else [{"cg_tol": t} for t in cg_tols]
+        tols = [{cls.swept: t} for t in {"cg_tol": cg_tols, "newton_tol": newton_tols}.get(cls.swept, ())]
         for pre in (preconditioners if cls.linear_solver else [None]):
             for tol in (tols if cls.linear_solver else [{}]):
                 for dt in ladders[name]:

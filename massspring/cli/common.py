@@ -24,8 +24,7 @@ class Terminated(KeyboardInterrupt):
 
 def add_scene_arguments(p, integrators):
     from massspring.device import ARCHS
-    from massspring.integrators.newton import NEWTON_MAX_ITER, NEWTON_TOL
-    from massspring.solvers import CHOICES, MULTIGRID_FROM
+    from massspring.integrators import OPTIONS
 
     p.add_argument("scene", help="a built-in scene name (see `massspring scenes`) or a TOML file")
     p.add_argument("--integrator", choices=tuple(integrators), help="time integrator (default: the scene's)")
@@ -33,31 +32,31 @@ def add_scene_arguments(p, integrators):
     p.add_argument("--precision", choices=PRECISIONS, default=PRECISIONS[0])
     p.add_argument("--arch", default="cpu", help=f"Taichi arch: {', '.join(ARCHS)} (default cpu); another "
                    "than the CPU is tried before the run and refused if this machine lacks it")
-    p.add_argument("--cg-tol", type=float, help="implicit integrators: CG tolerance relative to the first "
-                   "residual of each solve (backward-euler, bdf2: the tightest) (default: the scene's "
-                   "[solver], else 1e-6)")
-    p.add_argument("--cg-max-iter", type=int, help="implicit integrators: CG iteration limit per solve "
-                   "(default: the scene's [solver], else 3 x free particles, at least 100)")
-    p.add_argument("--newton-tol", type=float, help="backward-euler, bdf2: Newton stops when a full Newton "
-                   "step changes the velocities by at most this fraction of the step's velocity change "
-                   f"(default: the scene's [solver], else {NEWTON_TOL:g})")
-    p.add_argument("--newton-max-iter", type=int, help="backward-euler, bdf2: Newton iterations per step at "
-                   f"most (default: the scene's [solver], else {NEWTON_MAX_ITER})")
-    p.add_argument("--preconditioner", choices=CHOICES,
-                   help="implicit integrators: the CG's preconditioner (default: the scene's [solver], else "
-                   f"auto: multigrid from {MULTIGRID_FROM:,} free particles, block-jacobi below)")
-    p.add_argument("--no-definiteness-fix", action="store_true",
-                   help="implicit integrators: use the stiffness of Eq. 13 as written (indefinite when springs "
-                   "are compressed)")
+    for option in OPTIONS.values():
+        add_option_flag(p, option)
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                    help="override a scene model parameter, e.g. --set resolution=64, "
                    "--set gravity=[0,0,-1.62] or --set drag=0.005 (TOML values; repeatable)")
 
 
+def add_option_flag(p, option):
+    """The flag of a solver option (``integrators.options.Option``): --cg-tol, --no-definiteness-fix."""
+    from massspring.integrators import takers
+
+    help = f"{', '.join(takers(option.name))}: {option.doc}"
+    if option.kind == "switch":
+        p.add_argument(option.flag, dest=option.name, action="store_const", const=not option.default,
+                       help=f"{help} ({'off' if option.default else 'on'}; default: the scene's [solver], else "
+                       f"{'on' if option.default else 'off'})")
+        return
+    p.add_argument(option.flag, dest=option.name, type=option.type, choices=option.choices or None,
+                   help=f"{help} (default: the scene's [solver], else {option.described_default()})")
+
+
 def make_simulation(args):
     """Scene + options -> (scene, Simulation); raises ValueError on bad input before any kernel runs."""
     from massspring.device import ensure_taichi
-    from massspring.integrators import INTEGRATORS
+    from massspring.integrators import INTEGRATORS, OPTIONS, takers
     from massspring.scene import load_scene
 
     scene = load_scene(args.scene).with_settings(args.set)
@@ -69,13 +68,15 @@ def make_simulation(args):
     except ValueError as exc:
         raise UsageError(str(exc)) from None
     integrator = args.integrator or scene.integrator
-    for flags, needs, lacks in ((SOLVER_OPTIONS, "linear_solver", "solves no linear system"),
-                                (NEWTON_OPTIONS, "newton", "takes no Newton iterations")):
-        given = [option for option, key in flags.items() if key in options]
-        if given and not getattr(INTEGRATORS[integrator], needs):
-            raise UsageError(f"{'/'.join(given)}: {integrator} {lacks}; "
-                             f"{'these options are' if len(given) > 1 else 'this option is'} for "
-                             + ", ".join(k for k, cls in INTEGRATORS.items() if getattr(cls, needs)))
+    taken = {option.name for option in INTEGRATORS[integrator].options}
+    refused = {}  # what the integrator lacks -> the flags given for it
+    for name in options:
+        if name not in taken:
+            refused.setdefault(OPTIONS[name].lacking, []).append(name)
+    for lacks, names in refused.items():
+        raise UsageError(f"{'/'.join(OPTIONS[n].flag for n in names)}: {integrator} {lacks}; "
+                         f"{'these options are' if len(names) > 1 else 'this option is'} for "
+                         + ", ".join(takers(names[0])))
     with progress.phase(f"{args.command} {scene.name}: building the model and the simulation",
                         show=not getattr(args, "quiet", False)):
         sim = scene.simulation(integrator=args.integrator, dt=args.dt, precision=args.precision, arch=args.arch,
@@ -83,34 +84,21 @@ def make_simulation(args):
     return scene, sim
 
 
-# The implicit solver's command-line options -> Simulation arguments.
-SOLVER_OPTIONS = {"--cg-tol": "cg_tol", "--cg-max-iter": "cg_max_iter", "--preconditioner": "preconditioner",
-                  "--no-definiteness-fix": "definiteness_fix"}
-
-
-NEWTON_OPTIONS = {"--newton-tol": "newton_tol", "--newton-max-iter": "newton_max_iter"}
-
-
 def solver_options(args):
-    """The implicit solver's options given on the command line, checked (UsageError
-    naming the option); the scene's [solver] table (``Scene.simulation``) supplies the
-    others."""
+    """The solver options given on the command line (``integrators.OPTIONS``), checked
+    (UsageError naming the flag); the scene's [solver] table (``Scene.simulation``)
+    supplies the others."""
+    from massspring.integrators import OPTIONS
+
     options = {}
-    try:
-        if args.cg_tol is not None:
-            options["cg_tol"] = validate.fraction("--cg-tol", args.cg_tol)
-        if args.cg_max_iter is not None:
-            options["cg_max_iter"] = validate.count("--cg-max-iter", args.cg_max_iter)
-        if args.newton_tol is not None:
-            options["newton_tol"] = validate.fraction("--newton-tol", args.newton_tol)
-        if args.newton_max_iter is not None:
-            options["newton_max_iter"] = validate.count("--newton-max-iter", args.newton_max_iter)
-    except ValueError as exc:
-        raise UsageError(str(exc)) from None
-    if args.preconditioner is not None:
-        options["preconditioner"] = args.preconditioner
-    if getattr(args, "no_definiteness_fix", False):
-        options["definiteness_fix"] = False
+    for name, option in OPTIONS.items():
+        value = getattr(args, name, None)
+        if value is None:
+            continue
+        try:
+            options[name] = option.check(value, option.flag)
+        except ValueError as exc:
+            raise UsageError(str(exc)) from None
     return options
 
 

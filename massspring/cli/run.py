@@ -186,9 +186,11 @@ def divergence_hint(sim, exc):
         return (f"try --dt {sim.dt / 4:.3g} (a quarter of this run's; the stability estimate for {sim.integrator} "
                 f"at the initial state, {suggested:.3g} s, did not hold as the state changed) or --integrator "
                 "implicit (no stability limit)")
-    if sim.integrator == "explicit" and not prediction.explicit_stable_dt > 0:
-        return (f"explicit Euler grows at every dt on this scene's undamped stiffest mode; --dt {suggested:.3g} "
-                "keeps that growth under 2x per simulated second, or try --integrator symplectic or implicit")
+    if INTEGRATORS[sim.integrator].grows_undamped and not prediction.explicit_stable_dt > 0:
+        stable = [name for name, cls in INTEGRATORS.items() if cls.limit_reference or cls.linear_solver]
+        stable = ", ".join(stable[:-1]) + " or " + stable[-1]
+        return (f"{sim.integrator} grows at every dt on this scene's undamped stiffest mode; --dt {suggested:.3g} "
+                f"keeps that growth under 2x per simulated second, or try --integrator {stable}")
     return (f"try --dt {suggested:.3g} (the stability estimate for {sim.integrator} at the initial state) "
             "or --integrator implicit (no stability limit)")
 

@@ -51,20 +51,24 @@ def cmd_info(args):
     print("dt defaults " + ", ".join(f"{k} {format_seconds(scene.default_dt(k))}"
                                      + ("" if k in scene.dt else " (from the stability estimate)")
                                      for k in integrator_names()))
-    if info["preconditioner"] is not None:
+    if info["options"]:
         levels = info.get("levels")
         hierarchy = f" ({len(levels)} levels: {', '.join(f'{n:,}' for n in levels)} unknowns)" if levels else ""
-        if info["newton"]:
-            print(f"newton      until a step changes v by {sim.newton_tol:g} of the step's change, at most "
-                  f"{sim.newton_max_iter} iterations, each a CG solve")
-        print(f"solver      CG to {sim.cg_tol:g} (at most {sim.cg_max_iter:,} iterations), preconditioner "
-              f"{sim.preconditioner}{hierarchy}, definiteness fix {'on' if sim.definiteness_fix else 'off'}")
+        print("options     " + ", ".join(f"{name} {_option_value(value)}" + (hierarchy * (name == "preconditioner"))
+                                          for name, value in info["options"].items()))
     print(f"terms       {', '.join(info['terms'])}")
     print(f"arrays      {', '.join(info['arrays'])} ({info['bytes'] / 1e6:.2f} MB)")
     order = ("particles as given" if info["order"] == "given"
              else "particles renumbered in Z-order (the given order scatters the springs' accesses)")
     print(f"kernels     {info['loops']} loops, {order}")
     return EXIT_OK
+
+
+def _option_value(value) -> str:
+    """A solver option's value as a scene file's [solver] table writes it."""
+    if isinstance(value, bool):
+        return str(value).lower()
+    return f"{value:g}" if isinstance(value, float) else f"{value}"
 
 
 def _shown(value) -> str:

@@ -39,7 +39,7 @@ def cmd_stability(args):
                              f"{'>= 0' if name == 'at' else '> 0'}, got {value}")
     if not 1 <= args.max_steps <= MAX_STEPS:
         raise UsageError(f"--max-steps: must be within 1..{MAX_STEPS}, got {args.max_steps}")
-    if args.integrator or args.dt is not None or args.no_definiteness_fix:
+    if args.integrator or args.dt is not None or args.definiteness_fix is not None:
         raise UsageError("--integrator/--dt/--no-definiteness-fix: the ladder runs every integrator "
                          "at its own dts, implicit with the fix on and off")
     try:

@@ -3,16 +3,28 @@
 An integrator is a subclass of :class:`base.Integrator`: it declares the fields it
 needs (``declare``), advances the simulation's bundle (``advance``), and suggests a
 default time step from a stability prediction (``suggest_dt``) for scenes whose
-``[dt]`` table does not name it. Adding one means a module here and an entry below.
+``[dt]`` table does not name it; its solver's options are ``options.Option`` records
+(``OPTIONS``). Adding one means a module here and an entry below.
 """
 
 from .base import Integrator
 from .explicit import ExplicitEuler
 from .implicit import ImplicitEuler
+from .midpoint import Midpoint
 from .newton import BDF2, BackwardEuler
 from .rk4 import RK4
 from .symplectic import SymplecticEuler
 
-INTEGRATORS = {cls.name: cls for cls in (ExplicitEuler, SymplecticEuler, ImplicitEuler, BackwardEuler, BDF2, RK4)}
+INTEGRATORS = {cls.name: cls for cls in (ExplicitEuler, SymplecticEuler, ImplicitEuler, BackwardEuler, BDF2, Midpoint,
+                                         RK4)}
 
-__all__ = ["INTEGRATORS", "Integrator"]
+# Every integrator's solver options (``options.Option``), by name, in the registry's order.
+OPTIONS = {option.name: option for cls in INTEGRATORS.values() for option in cls.options}
+
+
+def takers(option: str) -> tuple:
+    """The names of the integrators that take ``option``."""
+    return tuple(name for name, cls in INTEGRATORS.items() if any(o.name == option for o in cls.options))
+
+
+__all__ = ["INTEGRATORS", "OPTIONS", "Integrator", "takers"]

@@ -15,8 +15,10 @@ class Integrator:
     ``description`` (one line for the CLI), ``has_stats`` (steps one at a time,
     each with solver statistics), ``linear_solver`` (solves a linear system each step
     with CG and a preconditioner), ``newton`` (solves nonlinear equations each step by
-    Newton's method: takes ``newton_tol`` and ``newton_max_iter``), ``ladder`` and
-    ``ladder_without_fix`` (its rows of ``analysis.stability``'s ladder). ``serial`` (from
+    Newton's method: takes ``newton_tol`` and ``newton_max_iter``), ``swept``,
+``grows_undamped``, ``limit_reference`` (see below), ``ladder`` and
+    ``ladder_without_fix`` (its rows of ``analysis.stability``'s ladder), ``options`` (its
+solver's options, ``options.Option`` records: ``integrators.OPTIONS``). ``serial`` (from
     ``settings.loops``):
     run whole steps or solves in one launch with serial loops (small systems), else
     one parallel launch per phase.
@@ -31,6 +33,10 @@ class Integrator:
     ladder = None  # stability ladder: (the Prediction attribute dt is relative to, multiples), None: none
     extra_bytes = 0  # bytes per particle beyond the linearised step's (memory.run_bytes)
     ladder_without_fix = False  # also run the ladder without the definiteness fix
+    options = ()  # options.Option records: the solver's Simulation arguments (none by default)
+    swept = None  # the option the study sweeps (a tolerance: its Option.sweep), None: none
+    grows_undamped = False  # unstable for undamped oscillation at every dt (damping alone can make it stable)
+    limit_reference = False  # its measured stability limit is what the others' ladders are relative to
 
     def __init__(self, dev, model, settings):
         self.dev = dev
@@ -93,6 +99,13 @@ class Integrator:
     @property
     def stats(self):
         """The last step's solver outcome (implicit integrators), else None."""
+        return None
+
+    @staticmethod
+    def stability_limit(prediction):
+        """The largest dt (s) the prediction (``analysis.stability.Prediction``) lets this
+        integrator take (inf: none), or None if it has no such limit (the study then starts
+        its ladder at the scene's dt)."""
         return None
 
     @staticmethod

@@ -23,6 +23,7 @@ class ExplicitEuler(Integrator):
     order = 1
     description = "explicit Euler: x' = x + dt v, v' = v + dt f(x, v)/m"
     symplectic = False
+    grows_undamped = True
 
     def __init__(self, dev, model, settings):
         super().__init__(dev, model, settings)
@@ -52,8 +53,13 @@ class ExplicitEuler(Integrator):
         return done, check
 
     @staticmethod
-    def suggest_dt(prediction):
-        """Half the largest dt at which the stiffest mode does not grow (or, if larger,
-        at which its energy doubles within a second)."""
-        limit = max(prediction.explicit_stable_dt, prediction.explicit_doubling_dt)
+    def stability_limit(prediction):
+        """The largest dt at which the stiffest mode does not grow (or, if larger, at which
+        its energy doubles within a second)."""
+        return max(prediction.explicit_stable_dt, prediction.explicit_doubling_dt)
+
+    @classmethod
+    def suggest_dt(cls, prediction):
+        """Half ``stability_limit``."""
+        limit = cls.stability_limit(prediction)
         return 0.5 * limit if math.isfinite(limit) else FALLBACK_DT

@@ -8,9 +8,26 @@ import taichi as ti
 from massspring import self_collision
 from massspring.device import Config
 from massspring.kernels import cg, divergence, friction
-from massspring.solvers import PRECONDITIONERS, solve
+from massspring.solvers import CHOICES, MULTIGRID_FROM, PRECONDITIONERS, solve
 
 from .base import Integrator
+from .options import Option
+
+LINEAR_SOLVER = "solves no linear system"
+LINEAR_OPTIONS = (
+    Option("preconditioner", "choice", "auto", "the CG's preconditioner (``solvers.PRECONDITIONERS``); \"auto\" "
+           f"picks multigrid from {MULTIGRID_FROM:,} free particles on (its iteration count stays flat with "
+           "resolution), block-Jacobi below; the Simulation's ``preconditioner`` reports the one picked",
+           LINEAR_SOLVER, choices=CHOICES),
+    Option("cg_tol", "fraction", 1e-6, "CG's relative tolerance on the true residual ‖b − A v‖, relative to the "
+           "first residual of its warm start (for the linearised step, the right-hand side of Eq. 15's "
+           "velocity-change form); for a Newton-solved integrator, the tightest tolerance of an iteration's solve",
+           LINEAR_SOLVER, sweep=(1e-2, 1e-4, 1e-6)),
+    Option("cg_max_iter", "count", None, "CG iterations per solve at most", LINEAR_SOLVER,
+           default_text="3 × free particles, at least 100"),
+    Option("definiteness_fix", "switch", True, "clamp the transverse stiffness of compressed springs so that "
+           "the system stays positive definite (see kernels/terms/springs.py)", LINEAR_SOLVER),
+)
 
 
 class ImplicitEuler(Integrator):
@@ -38,6 +55,8 @@ class ImplicitEuler(Integrator):
     linear_solver = True
     ladder = ("symplectic_dt", (1.0, 10.0, 100.0, 1000.0))
     ladder_without_fix = True
+    options = LINEAR_OPTIONS
+    swept = "cg_tol"
 
     def __init__(self, dev, model, settings):
         super().__init__(dev, model, settings)

@@ -11,7 +11,8 @@ from massspring.kernels import state as state_kernels
 from massspring.solvers import SolverStats, solve
 from massspring.solvers.cg import EPS32, EPS64, ROUNDOFF
 
-from .implicit import ImplicitEuler
+from .implicit import LINEAR_OPTIONS, ImplicitEuler
+from .options import Option
 
 NEWTON_TOL = 1e-3  # default newton_tol: a full Newton step this small relative to the step's velocity change ends it
 NEWTON_MAX_ITER = 50  # default newton_max_iter: linear solves per step
@@ -20,6 +21,13 @@ MAX_CUTS = 12  # halvings of a line search before it takes the shortest step tri
 ETA_FIRST = 1e-2  # CG tolerance of the first linear solve of a step (relative to its first residual)
 ETA_MAX = 0.1  # loosest CG tolerance of a later solve
 GOLDEN = (1 + 5**0.5) / 2  # safeguard exponent of Eisenstat and Walker's first choice
+NEWTON = "takes no Newton iterations"
+NEWTON_OPTIONS = (
+    Option("newton_tol", "fraction", NEWTON_TOL, "Newton stops when a full Newton step changes the velocities by "
+           "at most this fraction of the step's velocity change (kinetic-energy norm)", NEWTON,
+           sweep=(1e-3, 1e-6)),
+    Option("newton_max_iter", "count", NEWTON_MAX_ITER, "Newton iterations (linear solves) per step at most", NEWTON),
+)
 
 
 class BackwardEuler(ImplicitEuler):
@@ -47,6 +55,8 @@ class BackwardEuler(ImplicitEuler):
     order = 1
     description = "backward Euler solved by Newton's method with a line search (CG per iteration)"
     newton = True
+    options = LINEAR_OPTIONS + NEWTON_OPTIONS
+    swept = "newton_tol"
     carries = False  # whether a step's commit keeps the state it replaces (BDF2's history)
     ladder_without_fix = False
     extra_bytes = 7 * 24  # xb, vb, xk, vk, dir, res and a contact's carrier: f64 3-vectors
@@ -60,9 +70,14 @@ class BackwardEuler(ImplicitEuler):
         if model.has_colliders:
             layout.vectors("carrier", real)
 
-    def step_size(self) -> float:
-        """h of (*) in ``kernels/newton.py`` for the next step."""
+    def step_size(self, touching) -> float:
+        """h of (*) in ``kernels/newton.py`` for the step being taken (``touching``: its
+        particles in contact)."""
         return self.settings.dt
+
+    def finish(self, h, touching):
+        """Turn the solution v of (*) into the step's velocity, with ``dev.xb`` and h such
+        that x' = x^ + h v' (``cg.advance_positions``); backward Euler's are already so."""
 
     def base_is_bdf2(self) -> bool:
         return False
@@ -72,12 +87,12 @@ class BackwardEuler(ImplicitEuler):
         assert steps == 1
         s = self.settings
         dev, cfg, serial, eps = self.dev, self.cfg, self.serial, EPS64 if s.precision == "f64" else EPS32
-        h, t = self.step_size(), self.time
+        t = self.time
         touching = newton.newton_start(dev, cfg, s.dt, t, self.base_is_bdf2(), serial)
         if touching and self.base_is_bdf2():  # contact breaks the history: a backward-Euler step
             self.ready = False
-            h = self.step_size()
             newton.newton_start(dev, cfg, s.dt, t, False, serial)
+        h = self.step_size(touching)
         g2, scale2, _, _ = newton.newton_refresh(dev, cfg, h, t, serial)
         first = norm = math.sqrt(g2)
         norms = [norm]
@@ -132,6 +147,7 @@ class BackwardEuler(ImplicitEuler):
             return 0, divergence.NONFINITE_VERDICT
         if cfg.contact_filter:
             friction.contact_friction(dev, cfg, t, serial)
+        self.finish(h, touching)
         check = divergence.unpack(cg.advance_positions(dev, cfg, dev.xb, h, s.dt, (self.steps + 1) * s.dt, serial,
                                                        self.carries))
         accepted = check[0] == divergence.OK
@@ -174,7 +190,7 @@ class BDF2(BackwardEuler):
     def base_is_bdf2(self):
         return self.ready
 
-    def step_size(self):
+    def step_size(self, touching):
         return 2.0 * self.settings.dt / 3.0 if self.ready else self.settings.dt
 
     def after_step(self, accepted, touching):

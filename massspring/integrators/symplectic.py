@@ -2,10 +2,6 @@
 
 from __future__ import annotations
 
-import math
-
-from massspring.defaults import FALLBACK_DT
-
 from .explicit import ExplicitEuler
 
 
@@ -18,9 +14,10 @@ class SymplecticEuler(ExplicitEuler):
     description = "symplectic Euler: v' = v + dt f(x, v)/m, x' = x + dt v'"
     symplectic = True
     ladder = ("symplectic_dt", (0.5, 0.9, 1.1, 1.5, 3.0))
+    grows_undamped = False
+    limit_reference = True
 
     @staticmethod
-    def suggest_dt(prediction):
-        """Half the predicted stability limit."""
-        limit = prediction.symplectic_dt
-        return 0.5 * limit if math.isfinite(limit) else FALLBACK_DT
+    def stability_limit(prediction):
+        """The predicted stability limit."""
+        return prediction.symplectic_dt

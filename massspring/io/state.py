@@ -32,12 +32,13 @@ KEYS = {"positions": ("f", ("n", 3)), "velocities": ("f", ("n", 3)), "springs": 
         "scene": ("U", ()), "integrator": ("U", ())}
 CARRIED = "carried_"  # prefix of the keys of Simulation.carried_state()
 TRIANGLES = "triangles"  # the surface, for drawing; (t, 3) integers
-MAX_CARRIED = 8  # carried_<name> members: contact memory 3, a Newton run's previous state 3, self-collision 2
-MAX_MEMBERS = len(KEYS) + 1 + MAX_CARRIED
 HEADER_LIMIT = 10_000  # bytes of a member's .npy header
 ITEM_LIMIT = 8  # bytes of a number
 STRING_LIMIT = 4096  # characters of fingerprint, scene and integrator
-DIRECTORY_LIMIT = MAX_MEMBERS * 1_000  # bytes of the zip's central directory
+# Bytes of the zip's central directory: its only bound on the count of carried_<name>
+# members (an entry takes 46 bytes and twice its name, at most 2 x 77: about 300 members;
+# what a run carries today, at most 8, takes about 1,000 bytes).
+DIRECTORY_LIMIT = 64 * 1024
 MEMBER_OVERHEAD = HEADER_LIMIT + 1_000  # bytes of a member besides its data: zip headers, .npy header
 COMPRESSION_NAMES = {1: "Shrink", 6: "Implode", 9: "Deflate64", 12: "BZIP2", 14: "LZMA", 93: "Zstandard",
                      98: "PPMd", 99: "AES encryption"}
@@ -88,12 +89,15 @@ def read_state(path, model=None, model_name="this run's model") -> State:
     memory available:
 
     1. ``path`` is a regular file (never opened if it is a FIFO or device, which could
-       block or never end); with ``model``, no larger than a state of ``model`` stored
-       uncompressed (``_file_limit``);
-    2. the zip's end record: a central directory of at most ``DIRECTORY_LIMIT`` bytes;
-    3. the zip directory: every member ``<key>.npy`` with a key of ``KEYS``,
-       ``triangles`` or ``carried_<name>`` (at most ``MAX_CARRIED``), each once,
-       stored or deflated, not encrypted; every key of ``KEYS`` present;
+       block or never end);
+    2. the zip's end record: a central directory of at most ``DIRECTORY_LIMIT`` bytes
+       (which bounds the count of members; the format itself puts none on the
+       ``carried_<name>`` ones);
+    3. the zip directory: with ``model``, the file no larger than a state of ``model``
+       with as many carried members as the directory lists, stored uncompressed
+       (``_file_limit``); every member ``<key>.npy`` with a key of ``KEYS``,
+       ``triangles`` or ``carried_<name>`` (any count), each once, stored or deflated,
+       not encrypted; every key of ``KEYS`` present;
     4. each member's .npy header (format 1.0 or 2.0): a plain dtype of the key's kind
        (numbers of at most 8 bytes, strings of at most ``STRING_LIMIT`` characters; no
        Python objects, so no pickles), a data size equal to the member's uncompressed
@@ -106,9 +110,11 @@ def read_state(path, model=None, model_name="this run's model") -> State:
        ``steps`` >= 0, ``dt`` > 0.
     """
     try:
-        with _open_regular_file(path, model, model_name) as fh:
+        with _open_regular_file(path) as fh:
             _check_end_record(path, fh)
             with zipfile.ZipFile(fh) as archive:
+                carried = sum(info.filename.startswith(CARRIED) for info in archive.infolist())
+                _check_size(path, fh, model, model_name, carried)
                 members = _check_directory(path, archive)
                 headers = {key: _check_header(path, archive, info, key) for key, info in members.items()}
                 _check_shapes(path, headers, model, model_name)
@@ -123,9 +129,9 @@ def read_state(path, model=None, model_name="this run's model") -> State:
     return _check_values(path, arrays)
 
 
-def _open_regular_file(path, model, model_name):
-    """``path`` opened for reading once ``os.stat`` shows a regular file no larger than
-    a state of ``model`` (step 1); the opened file is checked to be that same file."""
+def _open_regular_file(path):
+    """``path`` opened for reading once ``os.stat`` shows a regular file (step 1); the
+    opened file is checked to be that same file."""
     try:
         before = os.stat(path)
     except OSError as exc:
@@ -133,9 +139,6 @@ def _open_regular_file(path, model, model_name):
     if not stat.S_ISREG(before.st_mode):
         raise ValueError(f"{path}: not a regular file but {_file_kind(before.st_mode)}; a state file is "
                          "one written by --out or --export")
-    if model is not None and before.st_size > _file_limit(model):
-        raise ValueError(f"{path}: {before.st_size:,} bytes, more than a state file of {model_name} takes "
-                         f"(at most {_file_limit(model):,} bytes)")
     fd = os.open(path, os.O_RDONLY | getattr(os, "O_NONBLOCK", 0))
     after = os.fstat(fd)
     if (after.st_dev, after.st_ino) != (before.st_dev, before.st_ino) or after.st_size != before.st_size:
@@ -152,7 +155,7 @@ def _check_end_record(path, fh):
         raise zipfile.BadZipFile("no zip directory at its end")
     if end[zipfile._ECD_SIZE] > DIRECTORY_LIMIT:
         raise ValueError(f"{path}: its zip directory takes {end[zipfile._ECD_SIZE]:,} bytes; a state file's "
-                         f"{MAX_MEMBERS} members at most take {DIRECTORY_LIMIT:,}")
+                         f"members at most take {DIRECTORY_LIMIT:,}")
 
 
 def _check_directory(path, archive):
@@ -172,9 +175,6 @@ def _check_directory(path, archive):
         if info.flag_bits & 0x61:
             raise ValueError(f"{path}: {key}: encrypted or patched, which a state file never is")
         members[key] = info
-    carried = [key for key in members if key.startswith(CARRIED)]
-    if len(carried) > MAX_CARRIED:
-        raise ValueError(f"{path}: {carried[MAX_CARRIED]}: more than {MAX_CARRIED} {CARRIED}<name> members")
     for key in KEYS:
         if key not in members:
             raise ValueError(f"{path}: {key}: missing (not a state file written by this version of massspring)")
@@ -280,11 +280,21 @@ def _check_values(path, arrays) -> State:
                  carried or None)
 
 
-def _file_limit(model):
-    """Bytes of the largest state file of ``model``: every array at its largest, stored."""
+def _check_size(path, fh, model, model_name, carried):
+    """With ``model``, the file no larger than a state of ``model`` with ``carried``
+    carried_<name> members (``_file_limit``; step 3)."""
+    size = os.fstat(fh.fileno()).st_size
+    if model is not None and size > _file_limit(model, carried):
+        raise ValueError(f"{path}: {size:,} bytes, more than a state file of {model_name} takes "
+                         f"(at most {_file_limit(model, carried):,} bytes)")
+
+
+def _file_limit(model, carried):
+    """Bytes of the largest state file of ``model`` with ``carried`` carried_<name> members:
+    every array at its largest (a carried one 3 numbers per particle), stored."""
     n, m, t = model.n_particles, model.n_springs, len(model.triangles)
-    data = ITEM_LIMIT * (2 * 3 * n + 2 * m + 3 * t + MAX_CARRIED * 3 * n + 3) + 3 * 4 * STRING_LIMIT
-    return int(1.01 * data) + MAX_MEMBERS * MEMBER_OVERHEAD + DIRECTORY_LIMIT
+    data = ITEM_LIMIT * (2 * 3 * n + 2 * m + 3 * t + carried * 3 * n + 3) + 3 * 4 * STRING_LIMIT
+    return int(1.01 * data) + (len(KEYS) + 1 + carried) * MEMBER_OVERHEAD + DIRECTORY_LIMIT
 
 
 def _file_kind(mode):

@@ -19,11 +19,11 @@ lists every key. A generator scene file looks like::
     generator = "grid"               # one of generators.GENERATORS
     resolution = 32                  # generator parameters; see generators.PARAMETERS
 
-    [solver]                         # optional: implicit integrator's solver (Simulation arguments)
+    [solver]                         # optional: solver options (integrators.OPTIONS; Simulation arguments)
     preconditioner = "auto"          # or "block-jacobi", "multigrid", "none"
     cg_tol = 1e-6                    # CG tolerance, relative to the first residual of each solve
-    newton_tol = 1e-3                # backward-euler, bdf2: Newton tolerance (see Simulation)
-    newton_max_iter = 50             # backward-euler, bdf2: Newton iterations per step at most
+    newton_tol = 1e-3                # Newton-solved integrators: Newton tolerance (see Simulation)
+    newton_max_iter = 50             # Newton-solved integrators: Newton iterations per step at most
 
     [view]                           # optional: camera of GIF/PNG pictures (io.camera.View)
     azimuth = -60.0                  # degrees about +z, 0 = looking from +x
@@ -73,7 +73,7 @@ from massspring import solvers as preconditioners
 from massspring.colliders import COLLIDERS
 from massspring.defaults import GRAVITY
 from massspring.self_collision import PASS_BYTES, SelfCollision
-from massspring.integrators import INTEGRATORS
+from massspring.integrators import INTEGRATORS, OPTIONS
 from massspring.io.camera import DEFAULT_FRAMING, FRAMINGS, View
 from massspring.kernels import terms
 from massspring.model import Model
@@ -91,10 +91,9 @@ SIZE_KEYS = {"chain": ("count",), "grid": ("resolution",), "lattice": ("resoluti
 TOP_KEYS = {"description": str, "integrator": str, "duration": float, "dt": dict, "model": dict,
             "solver": dict, "view": dict, "particles": dict, "springs": dict, "collider": list, "pin": list,
             "self_collision": dict}
-# [solver]: Simulation arguments of the implicit integrator a scene may set (the CLI's
-# options and the API's arguments override them).
-SOLVER_KEYS = {"preconditioner": str, "cg_tol": float, "cg_max_iter": int, "definiteness_fix": bool,
-               "newton_tol": float, "newton_max_iter": int}
+# [solver]: the integrators' solver options a scene may set (``integrators.OPTIONS``; the
+# CLI's options and the API's arguments override them).
+SOLVER_KEYS = {name: option.type for name, option in OPTIONS.items()}
 VIEW_KEYS = {"azimuth": float, "elevation": float, "projection": str, "framing": str}
 FORMS = ("generator", "mesh", "particles")
 # Hand-made scenes: key -> what it holds ("rows": a list of lists of numbers, "numbers": one
@@ -516,24 +515,16 @@ def _numbers(prefix, value, count):
 
 
 def _solver(data, source):
-    """The [solver] table, its keys known and values valid."""
-    from massspring.solvers import CHOICES
-
+    """The [solver] table, its keys known and values valid (``integrators.OPTIONS``)."""
     solver = dict(data.get("solver", {}))
     for key, value in solver.items():
         if key not in SOLVER_KEYS:
             raise SceneError(f"{source}: solver.{key}: unknown key (expected {', '.join(SOLVER_KEYS)})")
         _check_type(f"solver.{key}", value, SOLVER_KEYS[key], source)
-    if solver.get("preconditioner", "auto") not in CHOICES:
-        raise SceneError(f"{source}: solver.preconditioner: unknown value {solver['preconditioner']!r} "
-                         f"(expected {', '.join(CHOICES)})")
-    for key in ("cg_tol", "newton_tol"):
-        tol = solver.get(key, 0.5)
-        if not (math.isfinite(tol) and 0 < tol < 1):
-            raise SceneError(f"{source}: solver.{key}: must be in (0, 1), got {tol}")
-    for key in ("cg_max_iter", "newton_max_iter"):
-        if solver.get(key, 1) < 1:
-            raise SceneError(f"{source}: solver.{key}: must be >= 1, got {solver[key]}")
+        try:
+            OPTIONS[key].check(value, f"solver.{key}")
+        except ValueError as exc:
+            raise SceneError(f"{source}: {exc}") from None
     return solver
 
 
