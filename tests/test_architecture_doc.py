@@ -62,7 +62,7 @@ def known_names():
 
 
 def is_path(span):
-    return "/" in span and " " not in span and not span.startswith(("-", "[")) or span.endswith((".py", ".md", ".toml"))
+    return " " not in span and ("/" in span and not span.startswith(("-", "[")) or span.endswith((".py", ".md", ".toml")))
 
 
 def exists(path):
