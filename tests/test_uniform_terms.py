@@ -8,8 +8,9 @@ The tests register a second uniform acceleration p of their own (``Lift``, a ter
 its ``Parameter`` "lift", its ``ti.func``s in ``LiftKernel``, by patching ``TERMS``) and
 check that lift p without gravity steps to the bit as gravity p without lift, that
 gravity g with lift p steps as gravity g + p to round-off, that the check's bound, the
-energy and the contact prediction count its work, and that its parameter reaches ``Model``, ``from_mesh``,
-scene files, ``--set``, the f32 range check and the fingerprint with no edit there.
+energy and the contact prediction count its work, and that its parameter reaches
+``Model``, ``from_mesh``, scene files, ``--set``, the f32 range check and the
+fingerprint with no edit there.
 """
 
 import numpy as np
