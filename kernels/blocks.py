@@ -23,11 +23,6 @@ import taichi as ti
 BLOCK = 256  # particles per block
 
 
-def blocks_for(n: int) -> int:
-    """Number of blocks for ``n`` particles (Python side, to size ``partial``)."""
-    return max(1, -(-int(n) // BLOCK))
-
-
 @ti.func
 def block_count(n):
     return (n + BLOCK - 1) // BLOCK

@@ -41,7 +41,7 @@ import taichi as ti
 from .blocks import BLOCK, block_count, block_end, ordered_sum
 from .divergence import OK, is_finite, state_sums, verdict
 from .constraints import constrain, is_free, is_pinned, prescribed
-from .contact import landing, project, total
+from .contact import landing, project
 from .operator import REFRESHED, apply_row, refresh
 from .terms import uniform_acceleration
 
@@ -281,7 +281,7 @@ def next_position(i, dev, cfg: ti.template(), xb: ti.template(), h, dt, t):
     if ti.static(cfg.has_colliders):
         if not is_pinned(i, dev, cfg):
             back = landing(i, dev, cfg, dev.x[i], t - dt)
-            moved = project(dev, cfg, x - back, t, ti.static(total(cfg)))
+            moved = project(dev, cfg, x - back, t, ti.static(cfg.collider_count))
             x = moved
     return x
 

@@ -65,10 +65,6 @@ class PlaneKind:
     name = "plane"
 
     @staticmethod
-    def arrays(colliders):
-        return {"point": [c.point for c in colliders], "normal": [c.normal for c in colliders]}
-
-    @staticmethod
     @ti.func
     def distance(dev, cfg: ti.template(), k, x, t):
         n = dev.plane_normal[k]
@@ -80,10 +76,6 @@ class SphereKind:
     (+z at the centre itself)."""
 
     name = "sphere"
-
-    @staticmethod
-    def arrays(colliders):
-        return {"center": [c.center for c in colliders], "radius": [c.radius for c in colliders]}
 
     @staticmethod
     @ti.func
@@ -106,11 +98,6 @@ class BoxKind:
     particle resting on a sharp edge may go round it either way."""
 
     name = "box"
-
-    @staticmethod
-    def arrays(colliders):
-        return {"lower": [c.lower for c in colliders], "upper": [c.upper for c in colliders],
-                "radius": [c.radius for c in colliders]}
 
     @staticmethod
     @ti.func
@@ -136,11 +123,6 @@ class BoxKind:
                     n[c] = side[c]
             n = n * (ti.cast(1, cfg.real) / ti.sqrt(n.dot(n)))
         return d, n
-
-
-def total(cfg):
-    """The number of colliders (Python side)."""
-    return sum(count for _, count, _ in cfg.colliders)
 
 
 @ti.func

@@ -62,9 +62,4 @@ def verdict(sums, check):
     return ti.Vector([code, sums[0], bound], ti.f64)
 
 
-def unpack(result):
-    """(code, kinetic J, bound J) as Python numbers from a kernel's ``verdict`` vector."""
-    return int(result[0]), float(result[1]), float(result[2])
-
-
 NONFINITE_VERDICT = (NONFINITE, float("inf"), float("nan"))  # a solve that overflowed before any state

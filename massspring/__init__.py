@@ -17,6 +17,7 @@ if not os.path.isdir(os.path.join(os.path.dirname(__file__), "kernels")) and os.
 # Taichi prints a banner on import; keep the CLI's stdout clean (set it to 1 to see it).
 os.environ.setdefault("ENABLE_TAICHI_HEADER_PRINT", "0")
 
+from massspring.defaults import VERSION  # noqa: E402
 from massspring.errors import DivergenceError, SimulationClosedError  # noqa: E402
 from massspring.model import Model  # noqa: E402
 from massspring.colliders import Box, Plane, Sphere  # noqa: E402
@@ -27,4 +28,4 @@ from massspring.analysis.sweep import sweep  # noqa: E402
 
 __all__ = ["Model", "Plane", "Sphere", "Box", "SelfCollision", "Simulation", "run", "Scene", "SceneError", "load_scene",
            "sweep", "DivergenceError", "SimulationClosedError"]
-__version__ = "0.2.0"
+__version__ = VERSION

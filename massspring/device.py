@@ -39,9 +39,10 @@ import taichi as ti
 from taichi.lang import impl
 
 from massspring import memory
-from massspring.kernels.blocks import blocks_for
+from massspring.kernels.blocks import BLOCK
+from massspring.kernels.fill import fill
 from massspring.colliders import collider_arrays, collider_groups
-from massspring.kernels.terms import active_terms
+from massspring.terms import active_terms
 
 REAL = {"f32": ti.f32, "f64": ti.f64}
 _NUMPY = {ti.f32: np.float32, ti.f64: np.float64, ti.i32: np.int32, ti.i64: np.int64}
@@ -130,10 +131,10 @@ class Config:
     """Compile-time switches of a simulation's kernels (hashed by value: equal
     configs share compiled kernels).
 
-    real: ti.f32 or ti.f64; spring_terms, particle_terms: the active force terms
-    (``kernels.terms``); fixed: whether any particle is pinned; fix: the
-    definiteness fix (implicit); precond: a pointwise preconditioner class of
-    ``kernels.preconditioners`` or None; colliders: (kind, count, first) of each
+    real: ti.f32 or ti.f64; spring_terms, particle_terms: the kernel classes
+    (``kernels.terms``) of the active force terms (``terms.active_terms``); fixed:
+    whether any particle is pinned; fix: the definiteness fix (implicit); precond: a
+    pointwise preconditioner class of ``kernels.preconditioners`` or None; colliders: (kind, count, first) of each
     collider kind present (``colliders.collider_groups``); moving_pins: whether
     some pin has a velocity; contact_filter: whether contacts are constraints of the
     implicit solve (``kernels/constraints.py``); self_pairs: whether self-collision
@@ -180,11 +181,16 @@ class Config:
     def has_colliders(self):
         return len(self.colliders) > 0
 
+    @property
+    def collider_count(self):
+        """The number of colliders, all kinds."""
+        return sum(count for _, count, _ in self.colliders)
+
     @classmethod
     def of(cls, model, precision, **switches):
         terms = active_terms(model)
-        return cls(REAL[precision], tuple(t for t in terms if t.kind == "spring"),
-                   tuple(t for t in terms if t.kind == "particle"), model.has_fixed,
+        return cls(REAL[precision], tuple(t.kernel for t in terms if t.kind == "spring"),
+                   tuple(t.kernel for t in terms if t.kind == "particle"), model.has_fixed,
                    colliders=collider_groups(model), moving_pins=model.has_moving_pins, **switches)
 
 
@@ -225,7 +231,7 @@ class Layout:
         self.n, self.m, self.real = int(n), int(m), real
         self.counts = {"particle": capacity(n, PARTICLE_FLOOR), "spring": capacity(m, SPRING_FLOOR)}
         self.counts["entry"] = 2 * self.counts["spring"]
-        self.counts["block"] = blocks_for(self.counts["particle"])
+        self.counts["block"] = -(-self.counts["particle"] // BLOCK)  # kernels/blocks.py's sums
         self.decls = OrderedDict()
         self.pairs = {}
 
@@ -271,13 +277,13 @@ class Layout:
             bundle._tree, bundle._signature, bundle._nbytes = tree, signature, self.nbytes()
             bundle._program = impl.get_runtime().prog
         plan, reals, ints = self._fill_plan()
-        _fill(bundle, plan, reals, ints)
+        fill(bundle, plan, reals, ints)
         bundle.n, bundle.m = self.n, self.m
         return bundle
 
 
     def _fill_plan(self):
-        """The ``_fill`` of this layout: a plan and two buffers (float64 and int32 numpy
+        """What ``kernels.fill`` takes for this layout: a plan and two buffers (float64 and int32 numpy
         arrays, passed to the kernel as they are) holding every declared value. The plan groups the fields with values
         by how many items they get (one loop each; 0 for 0-D fields); per field: name,
         whether it is an integer field, where its values start in their buffer, its
@@ -297,45 +303,6 @@ class Layout:
         buffers = [np.ascontiguousarray(np.concatenate(parts) if parts else np.zeros(1), dtype=dtype)
                    for parts, dtype in zip(chunks, (np.float64, np.int32))]
         return tuple((count, tuple(entries)) for count, entries in groups.items()), buffers[0], buffers[1]
-
-
-@ti.func
-def _element(source: ti.template(), base, element: ti.template(), dtype: ti.template()):
-    """Item of ``element`` shape starting at ``source[base]``, cast to ``dtype``."""
-    if ti.static(len(element) == 0):
-        return ti.cast(source[base], dtype)
-    elif ti.static(len(element) == 1):
-        return ti.Vector([ti.cast(source[base + c], dtype) for c in ti.static(range(element[0]))], dtype)
-    else:
-        return ti.Matrix([[ti.cast(source[base + r * element[1] + c], dtype) for c in ti.static(range(element[1]))]
-                          for r in ti.static(range(element[0]))], dtype)
-
-
-@ti.func
-def _item(i, field: ti.template(), entry: ti.template(), reals: ti.template(), ints: ti.template()):
-    """Item i of one plan entry, read from its buffer."""
-    if ti.static(entry[1]):
-        return _element(ints, entry[2] + i * entry[4], entry[3], field.dtype)
-    else:
-        return _element(reals, entry[2] + i * entry[4], entry[3], field.dtype)
-
-
-@ti.kernel
-def _fill(dev: ti.template(), plan: ti.template(), reals: ti.types.ndarray(dtype=ti.f64, ndim=1),
-          ints: ti.types.ndarray(dtype=ti.i32, ndim=1)):
-    """Store the declared values of a bundle's fields in one launch, one loop per item
-    count. (``from_numpy`` compiles a kernel for every field: a new bundle of many
-    fields would compile many loops instead of this one kernel.)"""
-    for count, entries in ti.static(plan):
-        if ti.static(count == 0):
-            for entry in ti.static(entries):
-                ti.static(getattr(dev, entry[0]))[None] = _item(0, ti.static(getattr(dev, entry[0])), entry,
-                                                                 reals, ints)
-        else:
-            for i in range(count):
-                for entry in ti.static(entries):
-                    field = ti.static(getattr(dev, entry[0]))
-                    field[i] = _item(i, field, entry, reals, ints)
 
 
 def _place(builder, dtype, shape, element):
@@ -391,6 +358,11 @@ class Pool:
 
 
 POOL = Pool()
+
+
+def read_verdict(result) -> tuple:
+    """(code, kinetic J, bound J) as Python numbers from a kernel's ``divergence.verdict`` vector."""
+    return int(result[0]), float(result[1]), float(result[2])
 
 
 def reset_taichi():

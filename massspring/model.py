@@ -1,9 +1,10 @@
 """The static description of a mass-spring system: plain, validated numpy data.
 
-A :class:`Model` never touches Taichi (it only reads the force-term registry,
-``kernels.terms``, for its uniform accelerations). Everything is checked in the
-constructor so that bad input fails with a ``ValueError`` naming the argument before
-any kernel is compiled or launched.
+A :class:`Model` compiles no kernel and allocates no field: it reads the force terms'
+host side (``massspring.terms``) for its parameters and uniform accelerations. (Those
+terms and the colliders name their classes of ``ti.func``s, so importing this module
+imports Taichi.) Everything is checked in the constructor so that bad input fails with
+a ``ValueError`` naming the argument before any kernel is compiled or launched.
 
 Units are SI by convention (m, kg, s, N): positions in m, masses in kg, stiffness
 in N/m, damping in N s/m, gravity in m/s^2. Nothing in the code depends on the
@@ -20,7 +21,7 @@ import numpy as np
 
 from massspring import mesh
 from massspring.defaults import GRAVITY
-from massspring.kernels import terms
+from massspring import terms
 from massspring.colliders import COLLIDERS, MAX_COLLIDERS, Collider
 from massspring.self_collision import SelfCollision
 from massspring.text import brief
@@ -92,7 +93,7 @@ class Model:
         Keeps the mesh of ``triangles`` from passing through itself (needs triangles);
         None: off.
 
-    The force terms' own parameters (``kernels.terms.parameters()``: {term_names}) are the
+    The force terms' own parameters (``terms.parameters()``: {term_names}) are the
     keyword arguments listed after ``colliders``, each stored under its name as a float or
     a read-only (3,) array.
 
@@ -239,7 +240,7 @@ class Model:
 
     @property
     def external_acceleration(self) -> np.ndarray:
-        """(3,) m/s^2: the sum of the uniform accelerations (``kernels.terms.uniform_accelerations``:
+        """(3,) m/s^2: the sum of the uniform accelerations (``terms.uniform_accelerations``:
         gravity and any other such term), summed from the first (one alone is itself to the bit)."""
         first, *others = terms.uniform_accelerations(self).values()
         return sum(others, first)
@@ -274,7 +275,7 @@ class Model:
 
     @property
     def term_parameters(self) -> dict:
-        """name -> value of the force terms' parameters (``kernels.terms.parameters()``)."""
+        """name -> value of the force terms' parameters (``terms.parameters()``)."""
         return {name: getattr(self, name) for name in terms.parameters()}
 
     def free_mask(self) -> np.ndarray:
@@ -287,7 +288,7 @@ class Model:
         """Kinetic, spring and potential energy of each uniform force (J) of a state, and their total.
 
         The keys are "kinetic", "spring", then one per uniform acceleration a
-        (``kernels.terms.uniform_accelerations``: "gravity", ...) for its potential
+        (``terms.uniform_accelerations``: "gravity", ...) for its potential
         ``-sum_i m_i a . x_i`` (zero at the origin), then "total"; fixed particles have
         zero velocity and constant potential.
         """

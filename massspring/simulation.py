@@ -15,7 +15,7 @@ from massspring.device import ARCHS, CPU_ARCHS, POOL, ensure_taichi, model_layou
 from massspring.errors import DivergenceError, SimulationClosedError
 from massspring.integrators import INTEGRATORS, OPTIONS, takers
 from massspring.kernels import divergence
-from massspring.kernels.terms import active_terms
+from massspring.terms import active_terms
 from massspring.model import Model
 from massspring.solvers import PRECONDITIONERS, resolve
 from massspring.validate import real_array

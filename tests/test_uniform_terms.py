@@ -1,15 +1,16 @@
 """The uniform-acceleration seam: nothing but the term registry tells which forces are
-uniform accelerations (``uniform`` terms of ``kernels.terms``), and everything that
+uniform accelerations (``uniform`` terms of ``massspring.terms``), and everything that
 needs the external acceleration sums them: the divergence check's work (every stepping
 kernel, ``Model.external_work``), the implicit contact prediction, Newton's round-off
 scale, ``Model.energy``, ``energy_ratio`` and the exact reference.
 
-The tests register a second uniform acceleration p of their own (``Lift``, one class
-with its ``Parameter`` "lift", by patching ``TERMS``) and check that lift p without
-gravity steps to the bit as gravity p without lift, that gravity g with lift p steps
-as gravity g + p to round-off, that the check's bound, the energy and the contact
-prediction count its work, and that its parameter reaches ``Model``, ``from_mesh``,
-scene files, ``--set``, the f32 range check and the fingerprint with no edit there.
+The tests register a second uniform acceleration p of their own (``Lift``, a term with
+its ``Parameter`` "lift", its ``ti.func``s in ``LiftKernel``, by patching ``TERMS``) and
+check that lift p without gravity steps to the bit as gravity p without lift, that
+gravity g with lift p steps as gravity g + p to round-off, that the check's bound, the
+energy and the contact prediction count its work, and that its parameter reaches
+``Model``, ``from_mesh``, scene files, ``--set``, the f32 range check and the
+fingerprint with no edit there.
 """
 
 import numpy as np
@@ -20,8 +21,9 @@ import massspring as ms
 from massspring.analysis.reference import exact_spring
 from massspring.analysis.stability import energy_ratio
 from massspring.cli.run import format_energy
-from massspring.kernels import terms
-from massspring.kernels.terms.base import Parameter, ParticleTerm
+from massspring import terms
+from massspring.kernels.terms import ParticleTerm
+from massspring.terms import Parameter, Term
 from massspring.scene import load_scene
 from massspring.scene.spec import parse_scene
 
@@ -32,25 +34,12 @@ G = np.array([0.0, 0.0, -9.81])
 P = np.array([0.7, -0.3, 1.1])
 
 
-class Lift(ParticleTerm):
-    """f_i = m_i p, p = ``Model.lift`` (m/s^2); active when p != 0. A constant force like
-    gravity: all of it in Eq. 15's right-hand side, potential -m p . x."""
+class LiftKernel(ParticleTerm):
+    """f_i = m_i p, p = ``dev.lift`` (m/s^2). A constant force like gravity: all of it in
+    Eq. 15's right-hand side, potential -m p . x."""
 
     name = "lift"
     uniform = True
-    parameters = (Parameter("lift", (0.0, 0.0, 0.0), "m/s^2", "A uniform acceleration besides gravity."),)
-
-    @staticmethod
-    def active(model):
-        return bool(np.any(model.lift != 0))
-
-    @staticmethod
-    def arrays(model):
-        return {"lift": ("vector", model.lift)}
-
-    @staticmethod
-    def model_acceleration(model):
-        return model.lift
 
     @staticmethod
     @ti.func
@@ -71,6 +60,25 @@ class Lift(ParticleTerm):
     @ti.func
     def potential_change(i, dev, dx):
         return -dev.mass[i] * dev.lift[None].dot(dx)
+
+
+class Lift(Term):
+    """p = ``Model.lift`` (m/s^2); active when p != 0."""
+
+    kernel = LiftKernel
+    parameters = (Parameter("lift", (0.0, 0.0, 0.0), "m/s^2", "A uniform acceleration besides gravity."),)
+
+    @staticmethod
+    def active(model):
+        return bool(np.any(model.lift != 0))
+
+    @staticmethod
+    def arrays(model):
+        return {"lift": ("vector", model.lift)}
+
+    @staticmethod
+    def model_acceleration(model):
+        return model.lift
 
 
 @pytest.fixture
@@ -166,7 +174,7 @@ def test_with_gravity_alone_the_sums_are_gravity_to_the_bit():
     assert model.external_work(x) == -model.energy(x, model.velocities)["gravity"]
     assert list(model.energy(x, model.velocities)) == ["kinetic", "spring", "gravity", "total"]
     sim = ms.Simulation(model, "implicit", dt=1e-2)
-    assert sim._integrator.cfg.uniform_terms == (terms.Gravity,)
+    assert sim._integrator.cfg.uniform_terms == (terms.Gravity.kernel,)
 
 
 @pytest.mark.fast_sample(integrator=["symplectic"])

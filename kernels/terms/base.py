@@ -1,56 +1,12 @@
-"""Defaults of the two kinds of force term (see ``kernels.terms``), and the record of a
-Model parameter that a term declares."""
+"""Defaults of the two kinds of force term (see ``kernels.terms``)."""
 
-from dataclasses import dataclass
-
-import numpy as np
 import taichi as ti
-
-from massspring.text import brief
-from massspring.validate import real_array
-
-
-@dataclass(frozen=True)
-class Parameter:
-    """A Model argument of a force term: a number >= 0 (``default`` a float) or a
-    3-vector (``default`` a 3-tuple), in ``unit``. ``Model``, ``Model.from_mesh``, scene
-    files (a key of every form's [model] table and ``--set``), the f32 range check and the
-    fingerprint take it from here; ``doc`` is its line in ``Model``'s docstring."""
-
-    name: str
-    default: float | tuple
-    unit: str
-    doc: str
-
-    @property
-    def vector(self) -> bool:
-        return isinstance(self.default, tuple)
-
-    def check(self, value):
-        """``value`` as a float >= 0 or a read-only (3,) float64 array; ValueError naming the parameter."""
-        arr = real_array(self.name, value)
-        if self.vector:
-            if arr.shape != (3,):
-                raise ValueError(f"{self.name}: expected 3 components, got shape {arr.shape}")
-            arr = np.array(arr, dtype=np.float64)
-            arr.setflags(write=False)
-            return arr
-        if arr.shape != () or not arr >= 0:
-            raise ValueError(f"{self.name}: expected a number >= 0 ({self.unit}), got {brief(value)}")
-        return float(arr)
-
-    def is_default(self, value) -> bool:
-        return bool(np.all(np.asarray(value) == np.asarray(self.default)))
 
 
 class SpringTerm:
     kind = "spring"
     name = ""
-    parameters = ()  # Parameter records: the term's own Model arguments
-
-    @staticmethod
-    def check(values):
-        """Refuse (ValueError) a combination of the term's checked ``values`` (name -> value)."""
+    uniform = False
 
     @staticmethod
     @ti.func
@@ -76,12 +32,9 @@ class SpringTerm:
 class ParticleTerm:
     kind = "particle"
     name = ""
-    parameters = ()  # Parameter records: the term's own Model arguments
-    check = SpringTerm.check
     # A uniform acceleration a (f_i = m_i a, one a for every particle: gravity) sets
-    # ``uniform`` and gives a twice: ``acceleration(dev)`` (a ``ti.func``, the run's
-    # precision) and ``model_acceleration(model)`` ((3,) float64). The code that needs the
-    # external acceleration sums them over such terms (``kernels.terms``).
+    # ``uniform`` and gives a as ``acceleration(dev)`` (a ``ti.func``, the run's precision);
+    # its host side gives it as ``model_acceleration(model)`` (``massspring.terms``).
     uniform = False
 
     @staticmethod

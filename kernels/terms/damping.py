@@ -10,18 +10,9 @@ class SpringDamping(SpringTerm):
 
     D_ii = -kd n n^T (Eq. 14), so A gets b = dt kd. In Eq. 15's right-hand side
     the damping force is exactly D v, so f - D v gets nothing from this term.
-    Active when any spring has kd > 0.
     """
 
     name = "damping"
-
-    @staticmethod
-    def active(model):
-        return model.has_damping
-
-    @staticmethod
-    def arrays(model):
-        return {"kd": ("spring", model.damping)}
 
     @staticmethod
     @ti.func

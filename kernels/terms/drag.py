@@ -2,7 +2,7 @@
 
 import taichi as ti
 
-from .base import Parameter, ParticleTerm
+from .base import ParticleTerm
 
 
 class Drag(ParticleTerm):
@@ -11,28 +11,9 @@ class Drag(ParticleTerm):
     Its Jacobian is D_ii = -drag I (Eq. 14's counterpart), so A gets dt drag on the
     diagonal, and its share of Eq. 15's f - D v is -drag (v - wind) + drag v = drag wind.
     A single particle under gravity reaches the terminal velocity m g / drag + wind.
-    Active when drag > 0.
     """
 
     name = "drag"
-    parameters = (
-        Parameter("drag", 0.0, "N s/m", "Linear air drag on every particle: f_i = -drag (v_i - wind)."),
-        Parameter("wind", (0.0, 0.0, 0.0), "m/s",
-                  "The air's velocity; non-zero only with drag > 0 (it acts through drag alone)."),
-    )
-
-    @staticmethod
-    def check(values):
-        if any(values["wind"] != 0) and values["drag"] == 0:
-            raise ValueError("wind: has no effect without drag (drag = 0): give drag > 0 or no wind")
-
-    @staticmethod
-    def active(model):
-        return model.drag > 0
-
-    @staticmethod
-    def arrays(model):
-        return {"drag": ("scalar", model.drag), "wind": ("vector", model.wind)}
 
     @staticmethod
     @ti.func

@@ -6,22 +6,10 @@ from .base import ParticleTerm
 
 
 class Gravity(ParticleTerm):
-    """f_i = m_i g: ``dev.gravity`` (m/s^2, one vector). Active when g != 0."""
+    """f_i = m_i g: ``dev.gravity`` (m/s^2, one vector)."""
 
     name = "gravity"
     uniform = True
-
-    @staticmethod
-    def active(model):
-        return model.has_gravity
-
-    @staticmethod
-    def arrays(model):
-        return {"gravity": ("vector", model.gravity)}
-
-    @staticmethod
-    def model_acceleration(model):
-        return model.gravity
 
     @staticmethod
     @ti.func

@@ -20,14 +20,6 @@ class Springs(SpringTerm):
     name = "spring"
 
     @staticmethod
-    def active(model):
-        return model.n_springs > 0
-
-    @staticmethod
-    def arrays(model):
-        return {"ks": ("spring", model.stiffness), "l0": ("spring", model.rest_lengths)}
-
-    @staticmethod
     @ti.func
     def tension(s, dev, i, j, x, v, n, length):
         return dev.ks[s] * (length - dev.l0[s])

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from massspring.kernels.terms import active_terms
+from massspring.terms import active_terms
 from massspring.text import format_seconds
 from massspring.cli.common import EXIT_OK, integrator_names, make_simulation
 

@@ -59,8 +59,8 @@ def collider_arrays(model) -> dict:
         group = [c for c in model.colliders if isinstance(c, cls)]
         if not group:
             continue
-        fields = dict(cls.kernel.arrays(group), velocity=[c.velocity for c in group],
-                      friction=[c.friction for c in group], restitution=[c.restitution for c in group])
+        fields = {name: [getattr(c, name) for c in group]
+                  for name in (*cls.ARRAYS, "velocity", "friction", "restitution")}
         for field, values in fields.items():
             element = (3,) if isinstance(values[0], tuple) else ()
             out[f"{cls.kind}_{field}"] = (len(group), element, values)

@@ -32,7 +32,8 @@ class Collider:
 
     Each kind sets ``kernel`` (its class of ``ti.func``s in ``kernels/contact.py``,
     whose ``name`` is the kind's: ``kind``), ``GEOMETRY`` (the names of its position
-    fields, moved by ``velocity * t``) and ``bounded``, and gives ``signed_distance``,
+    fields, moved by ``velocity * t``), ``ARRAYS`` (the fields the kernel class reads, as
+    ``dev.<kind>_<field>``) and ``bounded``, and gives ``signed_distance``,
     ``usd_shape`` and ``origin``; a bounded kind is drawn from ``corners``, ``surface``
     and ``hides``, an unbounded one as a ground of ``cells``.
     """
@@ -43,6 +44,7 @@ class Collider:
     kernel: ClassVar[type] = None
     kind: ClassVar[str] = ""
     GEOMETRY: ClassVar[tuple] = ()
+    ARRAYS: ClassVar[tuple] = ()
     bounded: ClassVar[bool] = True
 
     def __init_subclass__(cls, **kwargs):

@@ -34,6 +34,7 @@ class Box(Collider):
     radius: float = 0.0
     kernel: ClassVar[type] = BoxKind
     GEOMETRY: ClassVar[tuple] = ("lower", "upper")
+    ARRAYS: ClassVar[tuple] = ("lower", "upper", "radius")
 
     def __post_init__(self):
         object.__setattr__(self, "lower", vector("lower", self.lower))

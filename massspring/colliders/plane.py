@@ -21,6 +21,7 @@ class Plane(Collider):
     normal: tuple
     kernel: ClassVar[type] = PlaneKind
     GEOMETRY: ClassVar[tuple] = ("point",)
+    ARRAYS: ClassVar[tuple] = ("point", "normal")
     bounded: ClassVar[bool] = False
 
     def __post_init__(self):

@@ -23,6 +23,7 @@ class Sphere(Collider):
     radius: float
     kernel: ClassVar[type] = SphereKind
     GEOMETRY: ClassVar[tuple] = ("center",)
+    ARRAYS: ClassVar[tuple] = ("center", "radius")
 
     def __post_init__(self):
         object.__setattr__(self, "center", vector("center", self.center))

@@ -5,6 +5,7 @@ from __future__ import annotations
 import math
 
 from massspring.defaults import FALLBACK_DT
+from massspring.device import read_verdict
 from massspring.kernels import divergence, euler
 
 from .base import Integrator
@@ -37,7 +38,7 @@ class ExplicitEuler(Integrator):
         dev, cfg, dt = self.dev, self.cfg, self.settings.dt
         if self.serial:
             result = euler.euler_steps(dev, cfg, self.state, self.spare, dt, self.time, steps, self.symplectic)
-            done, check = int(result[0]), divergence.unpack(result[1:])
+            done, check = int(result[0]), read_verdict(result[1:])
             if done % 2:
                 self.state, self.spare = self.spare, self.state
             self.steps += done
@@ -45,7 +46,7 @@ class ExplicitEuler(Integrator):
         done, check = 0, (divergence.OK, 0.0, 0.0)
         while done < steps and check[0] == divergence.OK:
             result = euler.euler_step(dev, cfg, self.state, self.spare, dt, self.time, self.symplectic)
-            check = divergence.unpack(result)
+            check = read_verdict(result)
             if check[0] == divergence.OK:
                 self.state, self.spare = self.spare, self.state
                 done += 1

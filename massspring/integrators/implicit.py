@@ -6,7 +6,7 @@ import numpy as np
 import taichi as ti
 
 from massspring import self_collision
-from massspring.device import Config
+from massspring.device import Config, read_verdict
 from massspring.kernels import cg, divergence, friction
 from massspring.solvers import CHOICES, MULTIGRID_FROM, PRECONDITIONERS, solve
 
@@ -132,7 +132,7 @@ class ImplicitEuler(Integrator):
             return 0, divergence.NONFINITE_VERDICT
         if self.cfg.contact_filter:
             friction.contact_friction(self.dev, self.cfg, self.time, self.serial)
-        check = divergence.unpack(cg.advance_positions(self.dev, self.cfg, self.dev.x, s.dt, s.dt,
+        check = read_verdict(cg.advance_positions(self.dev, self.cfg, self.dev.x, s.dt, s.dt,
                                                        (self.steps + 1) * s.dt, self.serial, False))
         accepted = check[0] == divergence.OK
         if not accepted:

@@ -6,6 +6,7 @@ import math
 
 import numpy as np
 
+from massspring.device import read_verdict
 from massspring.kernels import cg, divergence, friction, newton, operator
 from massspring.kernels import state as state_kernels
 from massspring.solvers import SolverStats, solve
@@ -148,7 +149,7 @@ class BackwardEuler(ImplicitEuler):
         if cfg.contact_filter:
             friction.contact_friction(dev, cfg, t, serial)
         self.finish(h, touching)
-        check = divergence.unpack(cg.advance_positions(dev, cfg, dev.xb, h, s.dt, (self.steps + 1) * s.dt, serial,
+        check = read_verdict(cg.advance_positions(dev, cfg, dev.xb, h, s.dt, (self.steps + 1) * s.dt, serial,
                                                        self.carries))
         accepted = check[0] == divergence.OK
         if not accepted:

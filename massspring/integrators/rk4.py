@@ -5,6 +5,7 @@ from __future__ import annotations
 import math
 
 from massspring.defaults import FALLBACK_DT
+from massspring.device import read_verdict
 from massspring.kernels import divergence, rk4
 
 from .base import Integrator
@@ -61,7 +62,7 @@ class RK4(Integrator):
         dev, cfg, dt = self.dev, self.cfg, self.settings.dt
         if self.serial:
             result = rk4.rk4_steps(dev, cfg, self.state, self.spare, self.stage, dt, self.time, steps)
-            done, check = int(result[0]), divergence.unpack(result[1:])
+            done, check = int(result[0]), read_verdict(result[1:])
             if done % 2:
                 self.state, self.spare = self.spare, self.state
             self.steps += done
@@ -69,7 +70,7 @@ class RK4(Integrator):
         done, check = 0, (divergence.OK, 0.0, 0.0)
         while done < steps and check[0] == divergence.OK:
             result = rk4.rk4_step(dev, cfg, self.state, self.spare, self.stage, dt, self.time)
-            check = divergence.unpack(result)
+            check = read_verdict(result)
             if check[0] == divergence.OK:
                 self.state, self.spare = self.spare, self.state
                 done += 1

@@ -51,6 +51,7 @@ from xml.sax.saxutils import quoteattr
 
 import numpy as np
 
+from massspring.defaults import VERSION
 from massspring.io.files import atomic_output, atomic_path, check_writable, write_json
 from massspring.io.obj import write_obj
 from massspring.io.state import write_state
@@ -315,14 +316,12 @@ class FrameExport:
             self.error = self.error or f"could not write {str(self.directory / JOURNAL)!r}: {exc.strerror or exc}"
 
     def _write_manifest(self, status, message):
-        from massspring import __version__
-
         record = FORMATS[self.fmt]
         if record.index is not None and self.frames:
             record.load("index")(self.directory / record.index_name, self.frames)
         step, time = self.last
         write_json(self.directory / MANIFEST, {
-            "massspring": __version__, "status": status, "message": message, "format": self.fmt, **self.info,
+            "massspring": VERSION, "status": status, "message": message, "format": self.fmt, **self.info,
             "last_step": step, "last_time": time, "series": record.series,
             "journal": None if record.single_file else JOURNAL, "frames": self.frames})
 

@@ -27,6 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
+from massspring.defaults import VERSION
 from massspring.io.files import atomic_path
 
 PLANE_SIZE = 4.0  # a drawn plane's side, in lengths of the body's initial bounding box diagonal
@@ -40,8 +41,6 @@ class StageWriter:
     def __init__(self, path, sim, scene=""):
         from pxr import Gf, Usd, UsdGeom
 
-        from massspring import __version__
-
         self.path, self.model, self.steps = Path(path), sim.model, []
         stage = self.stage = Usd.Stage.CreateInMemory()
         UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.z)
@@ -49,7 +48,7 @@ class StageWriter:
         stage.SetTimeCodesPerSecond(1.0 / sim.dt)
         stage.SetFramesPerSecond(1.0 / sim.dt)
         stage.SetDefaultPrim(UsdGeom.Xform.Define(stage, "/World").GetPrim())
-        stage.GetRootLayer().customLayerData = {"massspring": __version__, "scene": str(scene), "dt": float(sim.dt)}
+        stage.GetRootLayer().customLayerData = {"massspring": VERSION, "scene": str(scene), "dt": float(sim.dt)}
         model = self.model
         if len(model.triangles):
             self.body = UsdGeom.Mesh.Define(stage, "/World/Body")

@@ -75,7 +75,7 @@ from massspring.defaults import GRAVITY
 from massspring.self_collision import PASS_BYTES, SelfCollision
 from massspring.integrators import INTEGRATORS, OPTIONS
 from massspring.io.camera import DEFAULT_FRAMING, FRAMINGS, View
-from massspring.kernels import terms
+from massspring import terms
 from massspring.model import Model
 from massspring.scene import generators
 from massspring.text import brief
@@ -114,7 +114,7 @@ HANDMADE_ARGUMENTS = {"positions": "particles.positions", "masses": "particles.m
 
 def common_keys() -> dict:
     """[model] keys of every form, applied to the Model arguments it makes: name -> default
-    (the force terms' parameters, ``kernels.terms.parameters()``, then the pins' velocity)."""
+    (the force terms' parameters, ``terms.parameters()``, then the pins' velocity)."""
     return {**{name: list(p.default) if p.vector else p.default for name, p in terms.parameters().items()},
             "pin_velocity": [0.0, 0.0, 0.0]}
 
