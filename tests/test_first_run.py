@@ -180,6 +180,7 @@ def test_summary_prints_round_off_as_zero(capsys):
     assert "gravity 0)" in energy and "e-2" not in energy and "-0" not in energy
 
 
+@pytest.mark.full
 def test_f32_kernels_compile_without_precision_warnings(tmp_path):
     """Taichi warns on every implicit f64 -> f32 conversion when it compiles a kernel
     (once per kernel, then cached): an f32 run must print none. Fresh process, cache off."""

@@ -215,6 +215,7 @@ def test_composite_tentative_prolongation_spans_rigid_motions_of_coarse_aggregat
     system.close()
 
 
+@pytest.mark.full
 def test_collinear_aggregates_leave_idle_unknowns_and_a_positive_cycle():
     """A straight chain: every aggregate is collinear, so the rotation about the chain
     is no candidate (a zero column of T, a zero row of R) on every level; those coarse
@@ -315,6 +316,7 @@ def test_two_level_cycle_matches_a_dense_numpy_cycle():
     system.close()
 
 
+@pytest.mark.fast_sample(resolution=[12])
 @pytest.mark.parametrize("resolution, w_cycle", [(12, False), (40, False), (40, True)])
 def test_cycle_is_symmetric_and_positive_definite(resolution, w_cycle, monkeypatch):
     """x . B y = y . B x to round-off and x . B x > 0, on random vectors of the free
@@ -344,6 +346,7 @@ def symmetric_positive_definite(system, keep, rng, count=4):
         yield x, bx
 
 
+@pytest.mark.full
 def test_stale_coarse_levels_keep_the_cycle_symmetric_positive_definite():
     """The module docstring's claim for a hierarchy kept across steps: set up at one state
     of a swinging 40^2 cloth, then the operator refreshed at a state four steps later with
@@ -367,6 +370,7 @@ def test_stale_coarse_levels_keep_the_cycle_symmetric_positive_definite():
 # -------------------------------------------------------------------------------- solves
 
 
+@pytest.mark.fast_sample(scene_name=["cloth", "stiffcloth"])
 @pytest.mark.parametrize("scene_name, params", [
     ("cloth", {"resolution": 20}), ("stiffcloth", {"resolution": 20}), ("compressed", {"resolution": 20}),
     ("crumpled", {"resolution": 20}), ("cube", {"resolution": 5}), ("chain", {"count": 80}),
@@ -391,6 +395,7 @@ def test_multigrid_solves_eq15_as_block_jacobi_does(scene_name, params):
         assert sum(its_mg) < sum(its_bj)
 
 
+@pytest.mark.full
 @pytest.mark.parametrize("friction", [0.0, 0.5])
 def test_multigrid_with_every_particle_in_contact(friction):
     """A 32 x 32 cloth (three levels) lying on a plane and, in the middle, on the cap of a

@@ -93,6 +93,7 @@ def strongly_compressed(seed):
 BIG_DT = 0.1
 
 
+@pytest.mark.fast_sample(seed=[0])
 @pytest.mark.parametrize("seed", range(3))
 def test_definiteness_fix_gives_positive_definite_operator(seed):
     model = strongly_compressed(seed)
@@ -111,6 +112,7 @@ def test_definiteness_fix_gives_positive_definite_operator(seed):
         assert sim.solver_stats.converged, (path, sim.solver_stats)
 
 
+@pytest.mark.fast_sample(seed=[0])
 @pytest.mark.parametrize("seed", range(3))
 def test_without_fix_strongly_compressed_operator_is_indefinite(seed):
     """The counterpart: the same systems without the fix have a negative eigenvalue,

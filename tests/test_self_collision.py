@@ -35,6 +35,7 @@ def frames_crossings(sim, model, frames, steps):
     return out
 
 
+@pytest.mark.full
 def test_the_counter_sees_the_sheets_pass_through_each_other_without_self_collision():
     scene = sheets(on=False)
     model = scene.model()
@@ -135,6 +136,7 @@ def test_friction_between_sheets_follows_coulomb(theta, mu):
     assert abs(normal) < 0.01
 
 
+@pytest.mark.full
 def test_the_pass_keeps_pairs_apart_by_at_least_half_the_thickness():
     scene = sheets()
     sim = scene.simulation("implicit")
@@ -146,6 +148,7 @@ def test_the_pass_keeps_pairs_apart_by_at_least_half_the_thickness():
     assert reach > 0  # the largest displacement of the step
 
 
+@pytest.mark.full
 def test_small_steps_skip_the_pass_only_while_no_pair_comes_within_the_thickness():
     """A step that skips the pass (every particle within its free distance of where the
     last full pass left it) may not bring a pair within the thickness, checked with the
@@ -176,6 +179,7 @@ def test_small_steps_skip_the_pass_only_while_no_pair_comes_within_the_thickness
     assert sim.self_collision_stats["repelled"] > 0  # the upper sheet lies on the lower one
 
 
+@pytest.mark.fast_sample(height=[0.02])
 @pytest.mark.parametrize("height, lateral", [(0.02, (0.3, 0.25)), (0.01, (0.6, 0.45))])
 def test_a_pair_within_the_thickness_is_a_penalty_of_the_implicit_solve(height, lateral):
     """One linearised implicit step of a triangle (springs on its edges) and a particle
@@ -226,6 +230,7 @@ def test_a_pair_within_the_thickness_is_a_penalty_of_the_implicit_solve(height, 
     np.testing.assert_allclose(sim.positions, x + dt * sim.velocities, rtol=0, atol=1e-14)
 
 
+@pytest.mark.full
 def test_a_pair_list_that_grows_gives_the_bits_of_one_large_enough(monkeypatch):
     """A pass that finds more pairs than its list holds is undone and run again with a
     larger list: the run equals, to the bit, one whose list was large enough from the
@@ -245,6 +250,7 @@ def test_a_pair_list_that_grows_gives_the_bits_of_one_large_enough(monkeypatch):
     np.testing.assert_array_equal(runs[0][1], runs[1][1])
 
 
+@pytest.mark.full
 def test_one_and_two_threads_give_the_same_bits():
     script = ("import hashlib, massspring as ms\n"
               "sim = ms.load_scene('sheets').with_params(resolution=10).simulation(loops='parallel')\n"
@@ -286,6 +292,7 @@ def test_a_restart_between_skipped_passes_continues_to_the_bit():
     np.testing.assert_array_equal(runs[0][1], second.velocities)
 
 
+@pytest.mark.full
 def test_tablecloth_as_shipped_keeps_self_collision_and_a_sampled_start_has_no_crossing():
     scene = ms.load_scene("tablecloth")
     assert scene.self_collision is not None

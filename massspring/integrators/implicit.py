@@ -15,9 +15,9 @@ from .options import Option
 
 LINEAR_SOLVER = "solves no linear system"
 LINEAR_OPTIONS = (
-    Option("preconditioner", "choice", "auto", "the CG's preconditioner (``solvers.PRECONDITIONERS``); \"auto\" "
+    Option("preconditioner", "choice", "auto", "the CG's preconditioner (`solvers.PRECONDITIONERS`); \"auto\" "
            f"picks multigrid from {MULTIGRID_FROM:,} free particles on (its iteration count stays flat with "
-           "resolution), block-Jacobi below; the Simulation's ``preconditioner`` reports the one picked",
+           "resolution), block-Jacobi below; the Simulation's `preconditioner` reports the one picked",
            LINEAR_SOLVER, choices=CHOICES),
     Option("cg_tol", "fraction", 1e-6, "CG's relative tolerance on the true residual ‖b − A v‖, relative to the "
            "first residual of its warm start (for the linearised step, the right-hand side of Eq. 15's "
