@@ -13,7 +13,7 @@ from massspring.colliders import COLLIDERS
 from massspring.defaults import MAX_STEPS, PRECISIONS
 from massspring.device import ARCHS, CPU_ARCHS, POOL, ensure_taichi, model_layout
 from massspring.errors import DivergenceError, SimulationClosedError
-from massspring.integrators import INTEGRATORS, OPTIONS, takers
+from massspring.integrators import DEFAULT, INTEGRATORS, OPTIONS, takers
 from massspring.kernels import divergence
 from massspring.terms import active_terms
 from massspring.model import Model
@@ -124,7 +124,7 @@ class Simulation:
     ``SimulationClosedError``.
     """
 
-    def __init__(self, model, integrator="implicit", dt=1e-2, precision="f64", arch="cpu", loops="auto",
+    def __init__(self, model, integrator=DEFAULT, dt=1e-2, precision="f64", arch="cpu", loops="auto",
                  **options):
         if not isinstance(model, Model):
             raise ValueError(f"model: expected a massspring.Model, got {type(model).__name__}")

@@ -22,6 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from massspring import validate
+from massspring.integrators import REFERENCE
 from massspring.io.files import atomic_output
 from massspring.model import Model
 
@@ -164,7 +165,7 @@ def rk4(model: Model, times, dt, cache=None, use_cache=True) -> Trajectory:
             with np.load(path) as data:
                 positions, velocities = data["positions"], data["velocities"]
             if positions.shape == velocities.shape == (times.size, model.n_particles, 3):
-                return Trajectory(times, positions, velocities, "rk4", dt)
+                return Trajectory(times, positions, velocities, REFERENCE, dt)
         except (OSError, ValueError, KeyError):
             pass  # unreadable: recompute and overwrite
     positions, velocities = _integrate(model, counts, dt)
@@ -172,13 +173,13 @@ def rk4(model: Model, times, dt, cache=None, use_cache=True) -> Trajectory:
         path.parent.mkdir(parents=True, exist_ok=True)
         with atomic_output(path) as fh:
             np.savez(fh, times=times, positions=positions, velocities=velocities, dt=dt)
-    return Trajectory(times, positions, velocities, "rk4", dt)
+    return Trajectory(times, positions, velocities, REFERENCE, dt)
 
 
 def _integrate(model, counts, dt):
     from massspring.simulation import Simulation
 
-    sim = Simulation(model, integrator="rk4", dt=dt, precision="f64")
+    sim = Simulation(model, integrator=REFERENCE, dt=dt, precision="f64")
     positions, velocities = [], []
     for count in counts:
         sim.step(int(count - sim.steps))

@@ -169,7 +169,7 @@ def write_outputs(args, scene, sim, end_step, pictures, stop=None):
 def divergence_hint(sim, exc):
     """What to try after a divergence, from the integrator and the stability estimate."""
     from massspring.analysis.stability import predict
-    from massspring.integrators import INTEGRATORS
+    from massspring.integrators import DEFAULT, INTEGRATORS
 
     if INTEGRATORS[sim.integrator].linear_solver:
         tips = ["a smaller --dt"]
@@ -179,20 +179,20 @@ def divergence_hint(sim, exc):
     try:
         prediction = predict(sim.model, sim.model.positions)
     except (ValueError, ArithmeticError):
-        return "try a smaller --dt or --integrator implicit"
+        return f"try a smaller --dt or --integrator {DEFAULT}"
 
     suggested = INTEGRATORS[sim.integrator].suggest_dt(prediction)
     if suggested >= sim.dt:  # the estimate at the initial state did not hold for this run
         return (f"try --dt {sim.dt / 4:.3g} (a quarter of this run's; the stability estimate for {sim.integrator} "
                 f"at the initial state, {suggested:.3g} s, did not hold as the state changed) or --integrator "
-                "implicit (no stability limit)")
+                f"{DEFAULT} (no stability limit)")
     if INTEGRATORS[sim.integrator].grows_undamped and not prediction.explicit_stable_dt > 0:
         stable = [name for name, cls in INTEGRATORS.items() if cls.limit_reference or cls.linear_solver]
         stable = ", ".join(stable[:-1]) + " or " + stable[-1]
         return (f"{sim.integrator} grows at every dt on this scene's undamped stiffest mode; --dt {suggested:.3g} "
                 f"keeps that growth under 2x per simulated second, or try --integrator {stable}")
     return (f"try --dt {suggested:.3g} (the stability estimate for {sim.integrator} at the initial state) "
-            "or --integrator implicit (no stability limit)")
+            f"or --integrator {DEFAULT} (no stability limit)")
 
 
 def print_summary(scene, sim, wall, energy0, out, start_steps=0):

@@ -8,6 +8,7 @@ from pathlib import Path
 
 from massspring import progress
 from massspring.defaults import MAX_STEPS
+from massspring.integrators import DEFAULT
 from massspring.text import format_seconds
 from massspring.cli.common import EXIT_DIVERGED, EXIT_OK, UsageError, add_cluster_arguments, add_scene_arguments, solver_options
 
@@ -53,13 +54,13 @@ def cmd_stability(args):
     options = dict(precision=args.precision, **solver_options(args))
     model, positions = scene.model(), None
     if args.at > 0:
-        settle = scene.simulation("implicit", **options)
+        settle = scene.simulation(DEFAULT, **options)
         steps = args.at / settle.dt
         if not steps <= MAX_STEPS:
-            raise UsageError(f"--at: {args.at:g} s at the implicit dt {format_seconds(settle.dt)} is {steps:.3g} steps, "
+            raise UsageError(f"--at: {args.at:g} s at the {DEFAULT} dt {format_seconds(settle.dt)} is {steps:.3g} steps, "
                              f"more than {MAX_STEPS:.3g}")
         steps = max(1, round(steps))
-        label = f"stability {scene.name}: settling for --at {args.at:g} s (implicit, dt {format_seconds(settle.dt)})"
+        label = f"stability {scene.name}: settling for --at {args.at:g} s ({DEFAULT}, dt {format_seconds(settle.dt)})"
         try:
             with progress.steps(label, steps, settle.dt, show=steps > 1) as on_progress:
                 run(settle, steps, progress=on_progress)

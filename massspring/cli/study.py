@@ -9,12 +9,14 @@ from massspring.cli.pictures import _number
 
 
 def add_study_arguments(p):
+    from massspring.integrators import STUDIED
+
     p.add_argument("scene", help="a built-in scene name (see `massspring scenes`) or a TOML file")
     p.add_argument("--out", help="output directory (default: a new ./study-SCENE)")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                    help="override a scene model parameter (repeatable)")
     p.add_argument("--duration", type=float, help="simulated end time in s (default: a tenth of the scene's)")
-    p.add_argument("--integrators", default="explicit,symplectic,implicit", help="comma-separated list")
+    p.add_argument("--integrators", default=",".join(STUDIED), help="comma-separated list (default %(default)s)")
     p.add_argument("--rungs", type=int, default=7, help="dt values per line, a factor of 2 apart (default 7)")
     p.add_argument("--cg-tols", default="1e-2,1e-4,1e-6", help="implicit: comma-separated CG tolerances")
     p.add_argument("--newton-tols", default="1e-3,1e-6", help="backward-euler, bdf2: comma-separated Newton "

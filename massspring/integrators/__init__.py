@@ -18,6 +18,12 @@ from .symplectic import SymplecticEuler
 INTEGRATORS = {cls.name: cls for cls in (ExplicitEuler, SymplecticEuler, ImplicitEuler, BackwardEuler, BDF2, Midpoint,
                                          RK4)}
 
+# The roles other modules ask for, so that no module outside this package names an integrator:
+DEFAULT = ImplicitEuler.name  # Simulation's and a scene's default; no stability limit, one linear solve a step
+REFERENCE = RK4.name  # the study's reference trajectories (fourth order)
+STUDIED = (ExplicitEuler.name, SymplecticEuler.name, ImplicitEuler.name)  # the study's default lines
+SMALLEST_DT = ExplicitEuler.name  # whose scene dt is the smallest: the study's reference starts from it
+
 # Every integrator's solver options (``options.Option``), by name, in the registry's order.
 OPTIONS = {option.name: option for cls in INTEGRATORS.values() for option in cls.options}
 
@@ -27,4 +33,4 @@ def takers(option: str) -> tuple:
     return tuple(name for name, cls in INTEGRATORS.items() if any(o.name == option for o in cls.options))
 
 
-__all__ = ["INTEGRATORS", "OPTIONS", "Integrator", "takers"]
+__all__ = ["DEFAULT", "INTEGRATORS", "OPTIONS", "REFERENCE", "SMALLEST_DT", "STUDIED", "Integrator", "takers"]
