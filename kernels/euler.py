@@ -15,7 +15,7 @@ blocks, see ``blocks``).
 ``euler_step`` runs one step as parallel loops and returns the new state's
 ``divergence.verdict``; ``euler_steps`` runs up to ``steps`` steps in one launch with serial
 loops (small systems, where a launch costs more than a step), alternating
-a -> b and b -> a, stopping at the first step whose state fails the check.
+a -> b and b -> a from either, stopping at the first step whose state fails the check.
 """
 
 import taichi as ti
@@ -74,12 +74,14 @@ def euler_step(dev: ti.template(), cfg: ti.template(), src: ti.template(), dst: 
 
 @ti.kernel
 def euler_steps(dev: ti.template(), cfg: ti.template(), a: ti.template(), b: ti.template(), dt: ti.f64,
-                t: ti.f64, steps: ti.i32, symplectic: ti.template()) -> ti.types.vector(4, ti.f64):
+                t: ti.f64, steps: ti.i32, parity: ti.i32, symplectic: ti.template()) -> ti.types.vector(4, ti.f64):
     """Up to ``steps`` steps from time t (s) in one launch with serial loops, a -> b, b -> a, ...
+    from ``a`` if ``parity`` is 0, b -> a, a -> b, ... if it is 1 (one compiled kernel
+    whichever of the two states is current).
 
     Returns (good steps done k, then the ``divergence.verdict`` of the last state
-    computed: code, kinetic energy J, bound J). The last good state is in ``a`` if k is even, else in ``b``; a
-    failed state is in the other one.
+    computed: code, kinetic energy J, bound J). The last good state is the start's if k is
+    even, else the other one; a failed state is in the other one.
     """
     h = ti.cast(dt, cfg.real)
     done = 0
@@ -89,7 +91,7 @@ def euler_steps(dev: ti.template(), cfg: ti.template(), a: ti.template(), b: ti.
     for _ in range(1):
         while done < steps and code == OK:
             end = ti.cast(t + (done + 1) * dt, cfg.real)
-            if done % 2 == 0:
+            if (done + parity) % 2 == 0:
                 spring_forces(dev, cfg, a.x, a.v, False)
                 even = update_particles(dev, cfg, a, b, h, end, symplectic)
                 last = verdict(even, dev.check[None])

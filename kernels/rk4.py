@@ -79,8 +79,9 @@ def rk4_step(dev: ti.template(), cfg: ti.template(), src: ti.template(), dst: ti
 
 @ti.kernel
 def rk4_steps(dev: ti.template(), cfg: ti.template(), a: ti.template(), b: ti.template(), stage: ti.template(),
-              dt: ti.f64, t: ti.f64, steps: ti.i32) -> ti.types.vector(4, ti.f64):
-    """Up to ``steps`` steps from time t (s) in one launch with serial loops, as ``euler.euler_steps``."""
+              dt: ti.f64, t: ti.f64, steps: ti.i32, parity: ti.i32) -> ti.types.vector(4, ti.f64):
+    """Up to ``steps`` steps from time t (s) in one launch with serial loops, from ``a``
+    (``parity`` 0) or ``b`` (1), as ``euler.euler_steps``."""
     h = ti.cast(dt, cfg.real)
     done = 0
     code = OK
@@ -89,7 +90,7 @@ def rk4_steps(dev: ti.template(), cfg: ti.template(), a: ti.template(), b: ti.te
     for _ in range(1):
         while done < steps and code == OK:
             end = ti.cast(t + (done + 1) * dt, cfg.real)
-            if done % 2 == 0:
+            if (done + parity) % 2 == 0:
                 even = one_step(dev, cfg, a, b, stage, h, end)
                 last = verdict(even, dev.check[None])
                 code = ti.cast(last[0], ti.i32)

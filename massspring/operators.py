@@ -12,6 +12,7 @@ solver's own kernels: the small public device API for analysis and tests.
 
 from __future__ import annotations
 
+import weakref
 from types import SimpleNamespace
 
 import numpy as np
@@ -26,7 +27,9 @@ from massspring.model import Model
 
 class Jacobians:
     """K and D of ``model`` at ``positions`` (n, 3) m (default: the model's), K of
-    Eq. 13 as written unless ``definiteness_fix``. ``close()`` hands the fields back."""
+    Eq. 13 as written unless ``definiteness_fix``. ``close()`` hands the fields back (else
+    done at garbage collection), for the next operator of the same size to reuse with its
+    kernels compiled."""
 
     def __init__(self, model: Model, positions=None, definiteness_fix=False):
         ensure_taichi()
@@ -40,6 +43,7 @@ class Jacobians:
             layout.vectors("coef", layout.real, "entry", k=5)
             layout.vectors("spring_coef", layout.real, "spring", k=5)
         self._dev = layout.allocate()
+        self._release = weakref.finalize(self, POOL.give, self._dev)
         self._dev.x.from_numpy(_padded(x, self._dev.x.shape[0]))
         base = Config.of(model, "f64")
         self._configs = {
@@ -71,9 +75,8 @@ class Jacobians:
         return self._apply("damping", u)
 
     def close(self):
-        if self._dev is not None:
-            POOL.give(self._dev)
-            self._dev = None
+        self._release()
+        self._dev = None
 
 
 def _state(name, values, default):
@@ -96,7 +99,7 @@ class SystemOperator:
     ``positions``/``velocities`` (default: the model's), in ``precision``, as the
     implicit integrator assembles it each step, with ``preconditioner`` (one of
     ``solvers.CHOICES``, "auto" resolved as by ``Simulation``) set up for it.
-    ``close()`` hands the fields back."""
+    ``close()`` hands the fields back (else done at garbage collection)."""
 
     def __init__(self, model: Model, dt, definiteness_fix=True, positions=None, velocities=None,
                  precision="f64", preconditioner="auto", loops="serial"):
@@ -126,6 +129,7 @@ class SystemOperator:
         cg.cg_refresh(self._dev, self._cfg, self._dev.x, self.dt, 0.0, operator.LINEARISED)
         self._preconditioner = PRECONDITIONERS[preconditioner](self._dev, model, settings)
         self._preconditioner.bind(self._cfg)
+        self._release = weakref.finalize(self, _release, self._dev, self._preconditioner)
         self._preconditioner.setup(self.dt)
 
     def apply(self, p):
@@ -156,7 +160,10 @@ class SystemOperator:
         return self._dev.read("minv").astype(np.float64)
 
     def close(self):
-        if self._dev is not None:
-            self._preconditioner.release()
-            POOL.give(self._dev)
-            self._dev = None
+        self._release()
+        self._dev = None
+
+
+def _release(dev, preconditioner):
+    preconditioner.release()
+    POOL.give(dev)

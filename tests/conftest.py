@@ -14,6 +14,13 @@ sampled matrices); ``python -m pytest --all`` also runs the tests marked ``full`
 import os
 import resource
 
+# Compiling kernels is most of the suite's time. Taichi's own IR optimisation passes
+# off (set before Taichi starts, inherited by the tests' child processes) halve the
+# compile time of the large serial kernels and leave LLVM's optimisation on; kernels
+# then run 6-36% slower (benchmarks/compile_options.py). Users and the
+# benchmarks run with it on; TI_ADVANCED_OPTIMIZATION=1 python -m pytest runs the tests so.
+os.environ.setdefault("TI_ADVANCED_OPTIMIZATION", "0")
+
 import numpy as np
 import pytest
 

@@ -13,9 +13,9 @@ from massspring.integrators import INTEGRATORS
 from massspring.scene import builtin_scenes, load_scene
 
 # The fast tier: each scene once with its default integrator, each integrator on two scenes.
-TWO_SCENES = {"explicit": ("chain", "cloth"), "symplectic": ("spring", "chain"), "rk4": ("spring", "chain"),
+TWO_SCENES = {"explicit": ("chain", "cloth"), "symplectic": ("spring", "chain"), "rk4": ("chain", "heavychain"),
               "implicit": ("stiffcloth", "bigstep"), "backward-euler": ("cloth", "chain"),
-              "bdf2": ("stiffchain", "swing")}
+              "bdf2": ("stiffchain", "swing"), "midpoint": ("chain", "heavychain")}
 FAST_RUNS = {(scene, load_scene(scene).integrator) for scene in builtin_scenes()} | {
     (scene, integrator) for integrator in INTEGRATORS for scene in TWO_SCENES.get(integrator, ("spring", "chain"))}
 

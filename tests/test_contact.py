@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 import massspring as ms
-from conftest import PATHS, dense_matrices, simulation
+from conftest import FULL, PATHS, dense_matrices, simulation
 from massspring.scene import generators
 
 INTEGRATORS = ("explicit", "symplectic", "implicit", "backward-euler", "bdf2", "rk4")
@@ -279,6 +279,7 @@ def test_stiff_contact_at_large_dt_stays_bounded_or_diverges_cleanly():
     assert sim.positions[:, 2].min() >= -1e-9
 
 
+@FULL
 @pytest.mark.fast_sample(integrator=["explicit"])
 @pytest.mark.parametrize("integrator", ["explicit", "implicit", "rk4"])
 def test_serial_and_parallel_drivers_agree_with_colliders(integrator):

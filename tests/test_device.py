@@ -9,6 +9,7 @@ import weakref
 import numpy as np
 import pytest
 
+from conftest import FULL
 import massspring as ms
 from massspring.device import POOL, capacity, reset_taichi
 
@@ -90,14 +91,15 @@ def test_simulations_are_garbage_collected_and_their_fields_pooled():
     assert all(ref() is None for ref in refs)
 
 
+# (scene, resolution, integrator, preconditioner, steps); the fast tier runs the first and the sixth
+THREAD_CASES = [("cloth", 32, "implicit", "block-jacobi", 10), ("cloth", 128, "implicit", "multigrid", 2),
+                ("drape", None, "implicit", "multigrid", 20), ("drape", None, "backward-euler", "multigrid", 2),
+                ("flag", None, "bdf2", "block-jacobi", 3), ("cloth", 32, "symplectic", None, 50),
+                ("drape", None, "explicit", None, 50), ("flag", None, "rk4", None, 50)]
 THREADS_SCRIPT = """
-import hashlib
+import hashlib, sys
 import massspring as ms
-cases = [("cloth", 32, "implicit", "block-jacobi", 10), ("cloth", 128, "implicit", "multigrid", 2),
-         ("drape", None, "implicit", "multigrid", 20), ("drape", None, "backward-euler", "multigrid", 2),
-         ("flag", None, "bdf2", "block-jacobi", 3), ("cloth", 32, "symplectic", None, 50),
-         ("drape", None, "explicit", None, 50), ("flag", None, "rk4", None, 50)]
-for name, resolution, integrator, preconditioner, steps in cases:
+for name, resolution, integrator, preconditioner, steps in eval(sys.argv[1]):
     scene = ms.load_scene(name)
     if resolution:
         scene = scene.with_params(resolution=resolution)
@@ -109,6 +111,7 @@ for name, resolution, integrator, preconditioner, steps in cases:
 """
 
 
+@FULL
 def test_a_simulation_collected_after_a_reset_does_not_return_dead_fields():
     """``reset_taichi`` frees every field; a Simulation of the old runtime collected after
     it must not put its bundle back in the pool, where the next run of that size would
@@ -129,23 +132,26 @@ def test_a_simulation_collected_after_a_reset_does_not_return_dead_fields():
     assert np.all(np.isfinite(runs[0].positions)) and runs[0].positions[2, 2] < 0
 
 
-def test_parallel_results_do_not_depend_on_the_thread_count():
+def test_parallel_results_do_not_depend_on_the_thread_count(request, tmp_path):
     """Reductions sum fixed blocks in order (kernels/blocks.py), multigrid kernels write
     each entry from one thread and its cycle's r . z is a fixed-block sum too: 1 and 2
     threads give the same bits for every integrator and preconditioner, on cloth at
     32 x 32 and 128 x 128 (where ``auto`` picks multigrid), drape (contact) and flag
     (wind). Before, 100 cloth steps differed by up to 4.8e-6 m, and one multigrid step
-    of the 128 x 128 cloth differed."""
+    of the 128 x 128 cloth differed. The two runs share a Taichi offline cache: the
+    second loads the kernels the first compiled (the same source on the same fields)."""
     import os
 
+    cases = THREAD_CASES if request.config.getoption("--all") else [THREAD_CASES[0], THREAD_CASES[5]]
     out = []
     for threads in ("1", "2"):
-        env = dict(os.environ, TI_CPU_MAX_NUM_THREADS=threads)
-        proc = subprocess.run([sys.executable, "-c", THREADS_SCRIPT], capture_output=True, text=True,
+        env = dict(os.environ, TI_CPU_MAX_NUM_THREADS=threads, TI_OFFLINE_CACHE="1",
+                   TI_OFFLINE_CACHE_FILE_PATH=str(tmp_path / "cache"), TI_OFFLINE_CACHE_MAX_SIZE_OF_FILES="2000000000")
+        proc = subprocess.run([sys.executable, "-c", THREADS_SCRIPT, repr(cases)], capture_output=True, text=True,
                               env=env, timeout=600)
         assert proc.returncode == 0, proc.stderr
-        out.append(proc.stdout.split()[-16:])
-    assert len(out[0]) == 16 and out[0] == out[1]
+        out.append(proc.stdout.split()[-2 * len(cases):])  # after Taichi's banner
+    assert len(out[0]) == 2 * len(cases) and out[0] == out[1]
 
 
 def test_serial_and_parallel_loops_agree_to_the_bit_on_explicit_steps(cloth):
@@ -159,6 +165,7 @@ def test_serial_and_parallel_loops_agree_to_the_bit_on_explicit_steps(cloth):
     np.testing.assert_array_equal(runs[0][1], runs[1][1])
 
 
+@FULL
 def test_memory_does_not_grow_with_the_number_of_simulations():
     """Before, every Simulation kept about 48 KB (196 to 266 MiB over 1,500 runs);
     now its fields go back to the pool and nothing else stays: 300 more runs, half of

@@ -86,6 +86,7 @@ TOL = {"f64": STEPS * 10 * np.finfo(np.float64).eps, "f32": STEPS * 10 * np.finf
 CG_TOL = {"f64": 1e-12, "f32": 1e-5}
 
 
+@pytest.mark.fast_sample(integrator=["symplectic", "implicit"], precision=["f64"], path=["serial"])
 @pytest.mark.parametrize("path", PATHS)
 @pytest.mark.parametrize("precision", ["f64", "f32"])
 @pytest.mark.parametrize("integrator", INTEGRATORS)
@@ -182,6 +183,7 @@ def zero_length_model(separate):
                     velocities=v, gravity=(0.0, 0.0, -9.81), fixed=[7])
 
 
+@pytest.mark.fast_sample(integrator=["symplectic", "implicit"], precision=["f32"], path=["serial"])
 @pytest.mark.parametrize("path", PATHS)
 @pytest.mark.parametrize("precision", ["f64", "f32"])
 @pytest.mark.parametrize("integrator", INTEGRATORS)

@@ -11,6 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from conftest import FULL
 from massspring.cli import main
 from massspring.io.obj import read_obj
 
@@ -37,6 +38,7 @@ def test_model_in_code(tmp_path):
     assert int(data["steps"]) > 0 and str(data["scene"]) == "rope"
 
 
+@FULL
 def test_drape_obj(tmp_path):
     out = run_example("drape_obj.py", "--out", "frames", cwd=tmp_path)
     assert "144 vertices, 121 faces -> 242 triangles" in out
@@ -49,6 +51,7 @@ def test_drape_obj(tmp_path):
     assert last.vertices[:, 2].min() < 0.6 - 0.2 < first.vertices[:, 2].min()
 
 
+@FULL
 def test_stiffness_sweep_plots_or_says_why_not(tmp_path):
     out = run_example("stiffness_sweep.py", "--out", "sweep.png", cwd=tmp_path)
     strains = [float(line.split()[1]) for line in out.splitlines()[1:4]]

@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 import massspring as ms
-from conftest import one_line_error
+from conftest import FULL, one_line_error
 from massspring.cli import main
 from massspring.io import frames as frames_io
 from massspring.io.obj import read_obj
@@ -227,6 +227,7 @@ def usd_stage(path):
     return stage
 
 
+@FULL
 def test_usd_stage_of_drape_has_the_npz_frames_points(tmp_path):
     """drape at its default size, 60 frames: the stage's time-sampled points and
     velocities equal the npz frames' to float32 round-off, and it holds the colliders."""
@@ -299,6 +300,7 @@ def test_usd_stage_of_a_chain_with_a_moving_box(tmp_path):
         assert np.allclose(world.TransformDir((1.0, 1.0, 1.0)), [1.0, 2.0, 1.0])  # scaled to its sides
 
 
+@FULL
 def test_usd_stage_of_a_run_that_stops_early_or_cannot_be_saved(tmp_path, capsys, monkeypatch):
     pytest.importorskip("pxr", reason="usd-core is not installed (pip install 'massspring[usd]')")
     from massspring.io import usd
@@ -362,6 +364,7 @@ def test_a_huge_frame_plan_starts_at_once_and_a_signal_leaves_the_frames_listed(
     assert [json.loads(line) for line in (out / "frames.jsonl").read_text().splitlines()] == info["frames"]
 
 
+@FULL
 def test_a_second_signal_during_the_pictures_keeps_what_was_rendered(tmp_path):
     """SIGTERM stops the run; a second one while thousands of recorded frames are being
     rendered stops the rendering: the GIF holds the frames rendered so far, the manifest
@@ -432,6 +435,7 @@ def test_read_frames_lists_exactly_this_runs_frames_after_a_kill(tmp_path, monke
     sim.close()
 
 
+@FULL
 def test_read_frames_after_sigkill_of_a_real_run(tmp_path):
     """SIGKILL at three moments of a run exporting every step into a directory an earlier
     run filled with frames of the same names: read_frames lists exactly the frames the

@@ -199,6 +199,7 @@ def test_euler_step_matches_numpy(integrator, seed, path):
     assert np.abs(v_new - v).max() > 1e6 * 16 * eps * v_scale
 
 
+@pytest.mark.fast_sample(integrator=["implicit"])
 @pytest.mark.parametrize("integrator", ["explicit", "symplectic", "implicit"])
 def test_serial_and_parallel_drivers_agree(integrator):
     """Both drivers run the same algorithm on the same data: over 10 steps of a

@@ -132,6 +132,7 @@ print(json.dumps(peak() - base))
 """
 
 
+@pytest.mark.fast_sample(integrator=["explicit"])
 @pytest.mark.parametrize("integrator, preconditioner", [("explicit", "-"), ("implicit", "multigrid")])
 def test_estimate_bounds_the_measured_peak(integrator, preconditioner):
     """What a 110 x 110 cloth run adds to a warm process stays under ``run_bytes``, and the

@@ -11,7 +11,7 @@ import pytest
 
 import massspring as ms
 from massspring.scene import load_scene
-from conftest import numpy_forces, one_line_error, random_system
+from conftest import FULL, numpy_forces, one_line_error, random_system
 
 
 def test_one_step_solves_the_midpoint_equations():
@@ -30,6 +30,7 @@ def test_one_step_solves_the_midpoint_equations():
     assert sim.solver_stats.converged and sim.info()["newton"]
 
 
+@FULL
 def test_second_order_against_rk4():
     """The damped chain under gravity (nonlinear springs) over 0.1 s: the error against an
     RK4 run at dt / 50 falls by 4 per halving of dt."""
@@ -57,6 +58,7 @@ def zero_length_chain(n=8):
                     damping=0.0, rest_lengths=0.0, velocities=v, gravity=(0.0, 0.0, 0.0), fixed=[0])
 
 
+@FULL
 def test_energy_of_a_linear_system_is_conserved():
     """1,000 steps of 0.02 s (about an eighth of the fastest period, 2 pi / 40 s): the
     relative energy drift stays below 1e-10 at tight solver tolerances."""

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 import massspring as ms
-from conftest import free_dofs
+from conftest import FULL, free_dofs
 from massspring.kernels import cg, operator
 from massspring.operators import SystemOperator
 from massspring.solvers import aggregation, multigrid
@@ -150,6 +150,7 @@ def test_galerkin_pattern_and_numpy_product_match_dense_products(filter_weak):
         assert len(block_pattern(ac, 6)) < len(block_pattern(p_dense.T @ a @ p_dense, 6))
 
 
+@FULL
 def test_tentative_kernels_match_the_numpy_reference():
     """T, the coarse candidates R and the aggregates' centres that the kernels build at
     the current positions equal the numpy reference (rigid modes about each aggregate's
@@ -178,6 +179,7 @@ def test_tentative_kernels_match_the_numpy_reference():
     system.close()
 
 
+@FULL
 def test_composite_tentative_prolongation_spans_rigid_motions_of_coarse_aggregates():
     """Independent of how the kernels shift centres: T0 T1 (level 2 -> particles) has
     orthonormal columns and its range holds every rigid motion (3 translations, 3
@@ -426,6 +428,7 @@ def test_multigrid_with_every_particle_in_contact(friction):
     assert np.abs(v_mg - v_bj).max() <= 1e-4 * np.abs(v_bj).max()
 
 
+@FULL
 @pytest.mark.parametrize("stiffness", [1e4, 1e6])
 @pytest.mark.parametrize("resolution", [16, 32])
 def test_iteration_counts_stay_low(resolution, stiffness):
@@ -439,6 +442,7 @@ def test_iteration_counts_stay_low(resolution, stiffness):
     sim.close()
 
 
+@FULL
 def test_lanczos_goes_on_while_its_estimate_grows(monkeypatch):
     """With too few Lanczos steps the coarse levels' rho is low, and the Chebyshev
     smoother then amplifies their top modes: with 3 steps and no more, one step of a
@@ -470,6 +474,7 @@ def test_lanczos_goes_on_while_its_estimate_grows(monkeypatch):
     assert all(3 <= n < 60 for level in steps for n in level) and max(max(level) for level in steps) > 3, steps
 
 
+@FULL
 @pytest.mark.parametrize("loops", ["serial", "parallel"])
 def test_one_cycle_per_iteration_and_per_cg_start_that_goes_on(loops, monkeypatch):
     """CG applies the cycle once per iteration and once after each true-residual

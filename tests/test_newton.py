@@ -13,7 +13,7 @@ import pytest
 
 import massspring as ms
 from massspring.scene import load_scene
-from conftest import PATHS, numpy_forces, random_system, simulation
+from conftest import FULL, PATHS, numpy_forces, random_system, simulation
 
 NEWTON = ("backward-euler", "bdf2", "midpoint")
 
@@ -42,6 +42,7 @@ def test_one_step_solves_the_backward_euler_equations(seed, path):
     assert stats.converged and stats.newton_iterations >= 2 and len(stats.cg_per_newton) == stats.newton_iterations
 
 
+@FULL
 def test_the_linearised_step_leaves_the_equations_unsolved_where_newton_solves_them():
     """A stretched, moving stiff chain: Eq. 15 (one linearisation) misses the backward-Euler
     equations by a large fraction of dt f; Newton meets them to 1e-6."""
@@ -65,6 +66,7 @@ def test_the_linearised_step_leaves_the_equations_unsolved_where_newton_solves_t
     assert misses["backward-euler"] <= 1e-6
 
 
+@FULL
 def test_newton_converges_quadratically_without_the_fix():
     """No damping and no definiteness fix: the operator is the exact Jacobian, so near the
     solution each residual is at most a power 1.5 of the one before (relative residuals)."""
@@ -102,6 +104,7 @@ def test_order_of_accuracy_against_rk4(integrator, low, high):
     assert np.all((orders >= low) & (orders <= high)), (errors, orders)
 
 
+@FULL
 @pytest.mark.parametrize("integrator", ["implicit", *NEWTON])
 def test_terminal_velocity_with_drag_at_default_tolerances(integrator):
     """v -> m g / c + wind; the step's solve is relative to its own change, so a steady
@@ -114,6 +117,7 @@ def test_terminal_velocity_with_drag_at_default_tolerances(integrator):
     assert np.linalg.norm(sim.velocities[0] - terminal) <= 1e-8 * np.linalg.norm(terminal)
 
 
+@FULL
 @pytest.mark.parametrize("integrator", NEWTON)
 def test_a_cloth_resting_on_a_plane_stays_at_rest(integrator):
     """Contacts and friction inside Newton: a flat cloth at rest on the ground, no pins."""
@@ -131,6 +135,7 @@ def test_a_cloth_resting_on_a_plane_stays_at_rest(integrator):
     assert sim.cg_failures == 0
 
 
+@pytest.mark.fast_sample(dt=[0.01])
 @pytest.mark.parametrize("dt", [0.01, 0.002])
 def test_stiff_chain_energy_never_grows_with_backward_euler(dt):
     """The shipped undamped stiff chain over 2 s: total energy never above its start
@@ -143,6 +148,7 @@ def test_stiff_chain_energy_never_grows_with_backward_euler(dt):
     assert sim.cg_failures == 0
 
 
+@FULL
 @pytest.mark.parametrize("path", PATHS)
 def test_bdf2_restart_continues_bitwise(path):
     model = random_system(3)

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 import massspring as ms
-from conftest import PATHS, dense_system, free_dofs, random_system, simulation
+from conftest import FULL, PATHS, dense_system, free_dofs, random_system, simulation
 from massspring.operators import SystemOperator
 
 EPS = np.finfo(np.float64).eps
@@ -51,6 +51,7 @@ class Operator:
 DT = 2e-2
 
 
+@pytest.mark.fast_sample(seed=[0])
 @pytest.mark.parametrize("fix", [True, False])
 @pytest.mark.parametrize("seed", range(3))
 def test_operator_symmetric(seed, fix):
@@ -71,6 +72,7 @@ def test_operator_symmetric(seed, fix):
         assert pAp == pytest.approx(p @ Ap, rel=1e-12)
 
 
+@pytest.mark.fast_sample(seed=[0])
 @pytest.mark.parametrize("fix", [True, False])
 @pytest.mark.parametrize("seed", range(3))
 def test_operator_equals_independent_dense_matrix(seed, fix):
@@ -112,6 +114,7 @@ def test_definiteness_fix_gives_positive_definite_operator(seed):
         assert sim.solver_stats.converged, (path, sim.solver_stats)
 
 
+@FULL
 @pytest.mark.fast_sample(seed=[0])
 @pytest.mark.parametrize("seed", range(3))
 def test_without_fix_strongly_compressed_operator_is_indefinite(seed):

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 import massspring as ms
-from conftest import dense_step
+from conftest import FULL, dense_step
 from massspring import ordering
 from massspring.cli import main
 from massspring.io.obj import read_obj, write_obj
@@ -118,6 +118,7 @@ def test_a_renumbered_implicit_step_is_the_dense_solve_of_eq15(small_window, pre
     sim.close()
 
 
+@FULL
 @pytest.mark.parametrize("integrator", ["symplectic", "implicit"])
 def test_a_renumbered_run_with_self_collision_is_the_users(small_window, integrator):
     grid = cloth(16, self_collision=ms.SelfCollision(0.02))
@@ -133,6 +134,7 @@ def test_a_renumbered_run_with_self_collision_is_the_users(small_window, integra
     b.close()
 
 
+@FULL
 def test_restart_of_a_renumbered_run_continues_to_the_bit(small_window):
     base = cloth(10)
     floor = ms.Plane((0.0, 0.0, -0.2), (0.0, 0.0, 1.0), friction=0.5)
@@ -159,6 +161,7 @@ def test_restart_of_a_renumbered_run_continues_to_the_bit(small_window):
         sim.close()
 
 
+@FULL
 def test_a_scrambled_obj_mesh_keeps_the_files_numbering_at_the_cli(tmp_path, capsys):
     """An OBJ whose vertices come in a scrambled order: ``massspring info`` says it is
     renumbered, and the exported frames list the vertices in the file's order, moving as

@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 import taichi as ti
 
+from conftest import FULL
 import massspring as ms
 from massspring.device import ensure_taichi
 from massspring.kernels import divergence
@@ -79,6 +80,7 @@ OVERFLOW_SCRIPT = textwrap.dedent("""
 """)
 
 
+@FULL
 @pytest.mark.parametrize("loops", LOOPS)
 def test_overflow_ends_in_divergence_error_never_a_hang_or_nan_state(loops):
     # In a subprocess with a time limit: the bug was an endless loop inside a kernel.

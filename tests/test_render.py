@@ -13,7 +13,7 @@ from massspring.cli import main
 from massspring.io import camera, render
 from massspring.scene import SceneError, builtin_scenes, generators, load_scene
 from massspring.simulation import run
-from conftest import sampled
+from conftest import FULL, sampled
 
 SMALL = {"grid": ["--set", "resolution=6"], "lattice": ["--set", "resolution=3"], "chain": ["--set", "count=5"]}
 BACKGROUND = np.array(render.BACKGROUND)
@@ -298,6 +298,7 @@ def test_scene_view_out_of_range_refused_up_front(body, key, pictures, tmp_path,
     assert not gif.exists()
 
 
+@FULL
 @pytest.mark.parametrize("framing", ["run", "follow", "last"])
 def test_scene_framing_with_framing_option(framing, tmp_path, capsys):
     # a scene whose [view] names a framing (cube: follow), with --framing given too

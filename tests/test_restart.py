@@ -7,7 +7,7 @@ import pytest
 import massspring as ms
 from massspring.cli import main
 from massspring.io.state import read_state
-from conftest import PATHS, one_line_error, random_system
+from conftest import FULL, PATHS, one_line_error, random_system
 
 CLOTH = ["cloth", "--set", "resolution=5", "--quiet"]  # pins, gravity, damping, a surface
 
@@ -26,6 +26,7 @@ def test_ten_plus_ten_steps_through_a_file_equal_twenty(integrator, tmp_path, ca
     assert not np.array_equal(a["positions"], np.load(first)["positions"])  # it did move
 
 
+@FULL
 def test_restart_of_a_contact_scene_through_a_file_continues_to_the_bit(tmp_path, capsys):
     """The implicit step's contact memory (sticking, released contacts, friction) goes
     into the state file with the positions."""
@@ -54,6 +55,7 @@ def test_set_state_continues_bitwise(integrator, path):
     rest.close()
 
 
+@FULL
 @pytest.mark.parametrize("integrator", ["symplectic", "implicit"])
 def test_set_state_continues_moving_pins_and_colliders_bitwise(integrator):
     """Moving pins and a moving collider are where they are at steps x dt after a restart:

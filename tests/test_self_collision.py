@@ -18,6 +18,7 @@ from massspring.device import ensure_taichi
 from massspring.kernels import proximity
 from massspring.self_collision import mesh_edges
 
+from conftest import FULL
 from crossings import crossings, pair_distances
 
 
@@ -179,7 +180,7 @@ def test_small_steps_skip_the_pass_only_while_no_pair_comes_within_the_thickness
     assert sim.self_collision_stats["repelled"] > 0  # the upper sheet lies on the lower one
 
 
-@pytest.mark.fast_sample(height=[0.02])
+@FULL
 @pytest.mark.parametrize("height, lateral", [(0.02, (0.3, 0.25)), (0.01, (0.6, 0.45))])
 def test_a_pair_within_the_thickness_is_a_penalty_of_the_implicit_solve(height, lateral):
     """One linearised implicit step of a triangle (springs on its edges) and a particle
@@ -265,6 +266,7 @@ def test_one_and_two_threads_give_the_same_bits():
     assert out[0] == out[1]
 
 
+@FULL
 def test_restart_continues_to_the_bit():
     scene = sheets()
     runs = []
@@ -278,6 +280,7 @@ def test_restart_continues_to_the_bit():
     np.testing.assert_array_equal(runs[0][1], second.velocities)
 
 
+@FULL
 def test_a_restart_between_skipped_passes_continues_to_the_bit():
     scene = sheets(8)
     runs = []

@@ -10,7 +10,7 @@ import massspring as ms
 from massspring.analysis import stability
 from massspring.cli import main
 from massspring.scene import load_scene
-from conftest import PATHS, dense_jacobians, dense_step, free_dofs, simulation
+from conftest import FULL, PATHS, dense_jacobians, dense_step, free_dofs, simulation
 
 
 def dense_lambda_max(model, x):
@@ -105,6 +105,7 @@ def test_symplectic_above_limit_raises_and_keeps_last_good_state(path):
     assert np.all(np.isfinite(ok.positions))
 
 
+@FULL
 @pytest.mark.parametrize("path", PATHS)
 def test_explicit_far_above_doubling_dt_raises(path):
     scene = load_scene("stiffchain").with_params(count=10)
@@ -131,6 +132,7 @@ def test_explicit_serial_stops_at_the_failing_step_like_single_steps():
     assert np.array_equal(many.positions, one.positions) and np.array_equal(many.velocities, one.velocities)
 
 
+@FULL
 @pytest.mark.parametrize("path", PATHS)
 def test_implicit_far_above_symplectic_limit_stays_finite(path):
     scene = load_scene("stiffchain").with_params(count=10)
@@ -157,6 +159,7 @@ def test_implicit_rejected_step_restores_previous_state(path):
     assert np.array_equal(sim.positions, again.positions) and np.array_equal(sim.velocities, again.velocities)
 
 
+@FULL
 @pytest.mark.parametrize("path", PATHS)
 def test_implicit_runaway_reports_the_rejected_states_energy_and_bound(path):
     """``run chain --dt 1``: the error names the rejected state's kinetic energy and the
@@ -273,6 +276,7 @@ def test_cli_run_divergence_exit_3_writes_out(tmp_path, capsys):
     assert 0 < data["steps"] < 500 and np.all(np.isfinite(data["positions"]))
 
 
+@FULL
 def test_cli_stability_writes_table(tmp_path, capsys):
     prefix = tmp_path / "st"
     code = main(["stability", "spring", "--out", str(prefix), "--max-steps", "50"])
@@ -325,6 +329,7 @@ def test_stability_prints_rk4s_limit(capsys):
         in capsys.readouterr().out
 
 
+@FULL
 @pytest.mark.parametrize("name", ["cube", "heavychain"])
 def test_rk4_default_dt_holds_on_heavily_damped_scenes(name):
     """Before, the RK4 default ignored damping: cube diverged at step 14, heavychain at 3."""

@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 from numpy.lib import format as npformat
 
+from conftest import FULL
 import massspring as ms
 from massspring.cli import main
 from massspring.io.state import DIRECTORY_LIMIT, read_state, write_state
@@ -141,6 +142,7 @@ def test_round_trip_is_bitwise(scene, params, tmp_path):
         assert state.carried[name].dtype == values.dtype and state.carried[name].tobytes() == values.tobytes()
 
 
+@FULL
 @pytest.mark.parametrize("name, model, words", [("extra", "-", ("'extra.npy'", "not a key")),
                                                 ("positions", "-", ("velocities", "expected shape")),
                                                 ("positions", "model", ("bytes, more than a state file",))])
@@ -254,6 +256,7 @@ def test_special_files_are_never_opened(tmp_path):
     assert str(fifo) in message and "not a regular file but a named pipe (FIFO)" in message, proc.stdout
 
 
+@FULL
 def test_the_cli_refuses_a_bomb_with_exit_2(bombs, good, tmp_path, capsys):
     header = io.BytesIO()
     npformat.write_array_header_1_0(header, {"descr": "<f8", "fortran_order": False, "shape": (10 ** 18, 3)})

@@ -7,6 +7,7 @@ import json
 import numpy as np
 import pytest
 
+from conftest import FULL
 import massspring as ms
 from massspring.analysis import fits, reference, report, study
 from massspring.cli import main
@@ -130,6 +131,7 @@ def numpy_rk4(model, dt, steps):
     return x, v
 
 
+@FULL
 def test_rk4_kernel_matches_numpy_rk4_and_is_cached(tmp_path):
     model = tiny_chain().model()
     dt, times = 1e-4, np.array([0.01, 0.02])
@@ -157,6 +159,7 @@ def chain_study(tmp_path_factory):
                            cache=tmp_path_factory.mktemp("cache"))
 
 
+@FULL
 def test_chain_reference_agrees_with_half_its_dt(chain_study, tmp_path):
     check = chain_study.reference
     assert check.method == "rk4" and check.passed
@@ -172,6 +175,40 @@ def test_chain_reference_agrees_with_half_its_dt(chain_study, tmp_path):
 
 
 @pytest.mark.full
+@pytest.mark.parametrize("integrator", ["explicit", "rk4"])
+def test_a_timed_run_compiles_nothing_after_its_warm_up(integrator, monkeypatch):
+    """The study times stepping, not compiling: after ``_warm_up`` the steps of the measured
+    run and of its repeats compile no kernel, at odd and even step counts (before, a run
+    that stepped an odd count compiled the many-step kernel again for its states' other
+    order, and the first rung of a ladder was timed with that compile in it). Readbacks
+    between the timed calls may compile (they are not timed)."""
+    from taichi.lang import kernel_impl
+
+    model = ms.load_scene("spring").model()
+    dt = 1e-3
+    compiled, stepping = [], []
+    materialize, step = kernel_impl.Kernel.materialize, ms.Simulation.step
+
+    def counting(self, key=None, args=None, arg_features=None):
+        if stepping and (key is None or key not in self.compiled_kernels):
+            compiled.append(self.func.__name__)
+        return materialize(self, key, args, arg_features)
+
+    def timed_step(self, n=1):
+        stepping.append(n)
+        try:
+            return step(self, n)
+        finally:
+            stepping.pop()
+
+    study._warm_up(model, integrator, dt, None)
+    monkeypatch.setattr(kernel_impl.Kernel, "materialize", counting)
+    monkeypatch.setattr(ms.Simulation, "step", timed_step)
+    run = study._measure(model, integrator, dt, {}, None, np.array([3, 8, 15]) * dt, 1.0, 3, 10.0)
+    assert not run.diverged and run.steps == 15 and run.timed_runs == 3
+    assert compiled == []
+
+
 def test_reference_check_failure_is_reported(tmp_path):
     """A ratio no RK4 can meet: the check fails after its halvings, and says so."""
     s = study.run_study(tiny_chain(), duration=0.01, integrators=["symplectic"],
@@ -218,6 +255,7 @@ def test_fit_ignores_diverged_runs_even_with_an_error():
 # ---- outputs ----------------------------------------------------------------
 
 
+@FULL
 def test_csv_and_json_have_one_row_per_run(chain_study, tmp_path):
     written = report.write_outputs(chain_study, tmp_path / "out")
     assert {p.name for p in written} == {"runs.csv", "runs.json", "summary.json"}
@@ -260,6 +298,7 @@ def test_cli_study_bad_input(args, key, tmp_path, capsys):
     assert not (tmp_path / "o").exists()
 
 
+@FULL
 def test_implicit_runs_get_a_line_per_preconditioner(tmp_path):
     """Two preconditioners solving to 1e-8 give two lines of the same errors."""
     result = study.run_study(tiny_chain(), integrators=["implicit"], duration=0.04,

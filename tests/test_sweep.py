@@ -75,6 +75,7 @@ def test_bad_vary_is_refused_before_any_case(vary, message):
         sweep.plan(scene, vary, integrator="explicit" if "preconditioner" in vary else None)
 
 
+@FULL
 def test_rows_are_the_direct_runs_and_resume_skips_finished_cases(tmp_path):
     out = tmp_path / "rows.csv"
     vary = {"stiffness": [1e2, 1e3], "integrator": ["implicit", "symplectic"]}

@@ -40,7 +40,7 @@ from massspring import solvers, validate
 from massspring.analysis import cluster, reference
 from massspring.analysis.fits import TARGETS, cheapest, fit_orders
 from massspring.errors import DivergenceError
-from massspring.integrators import INTEGRATORS, OPTIONS, Integrator
+from massspring.integrators import INTEGRATORS, OPTIONS, REFERENCE, SMALLEST_DT, STUDIED, Integrator
 from massspring.simulation import Simulation
 
 DEFAULT_CG_TOLS = OPTIONS["cg_tol"].sweep
@@ -182,7 +182,7 @@ def scene_size(model) -> float:
     return extent if extent > 0 else 1.0
 
 
-DEFAULT_INTEGRATORS = ("explicit", "symplectic", "implicit")
+DEFAULT_INTEGRATORS = STUDIED
 
 
 def run_study(scene, *, integrators=DEFAULT_INTEGRATORS, duration=None, rungs=DEFAULT_RUNGS,
@@ -204,7 +204,7 @@ def run_study(scene, *, integrators=DEFAULT_INTEGRATORS, duration=None, rungs=DE
     """
     integrators = _check_integrators(integrators)
     duration = default_duration(scene) if duration is None else validate.positive_float("duration", duration)
-    start_dt = scene.default_dt("explicit") if reference_dt is None else validate.positive_float("reference_dt",
+    start_dt = scene.default_dt(SMALLEST_DT) if reference_dt is None else validate.positive_float("reference_dt",
                                                                                                   reference_dt)
     if not duration / start_dt <= MAX_REFERENCE_STEPS:
         raise ValueError(f"duration: {duration:g} s is {duration / start_dt:.3g} steps of the reference's dt "
@@ -271,10 +271,12 @@ def _task(kind, args):
 
 
 def _warm_up(model, integrator, dt, preconditioner):
-    """Compile this integrator's kernels (one step on a throwaway Simulation)."""
+    """Compile this integrator's kernels: two steps on a throwaway Simulation, so that a
+    per-step kernel is compiled for both orders of its two states (the runs then step
+    from either)."""
     sim = Simulation(model, integrator=integrator, dt=dt, **_solver({}, preconditioner))
     try:
-        sim.step(1)
+        sim.step(2)
     except DivergenceError:
         pass
     sim.positions  # noqa: B018 - compiles the readback too
@@ -400,7 +402,7 @@ def _reference(model, times, dt, runs, size, cache, use_cache, ratio, known=None
         if change < ratio * smallest:
             break
         coarse = fine
-    return fine, ReferenceCheck("rk4", dt=dt, change=change, smallest=smallest, ratio=ratio,
+    return fine, ReferenceCheck(REFERENCE, dt=dt, change=change, smallest=smallest, ratio=ratio,
                                 passed=change < ratio * smallest)
 
 
