@@ -4,7 +4,7 @@ Reads benchmarks/results/{implicit_step,explicit_step,scaling,roofline}.json
 (written by the scripts of the same names), prints the markdown tables of docs/performance.md
 and draws the figure, by default into benchmarks/out/ (docs/performance.png is the
 one docs/performance.md shows: pass --png docs/performance.png to replace it; needs matplotlib: pip install
-"massspring[plot]").
+-e ".[plot]" in the checkout).
 
     python benchmarks/plot_performance.py --help
     python benchmarks/plot_performance.py --results benchmarks/results --png docs/performance.png
@@ -16,6 +16,7 @@ import sys
 from pathlib import Path
 
 import output
+from massspring.extras import install_hint
 
 
 def parse_args(argv=None):
@@ -100,7 +101,7 @@ def plot(implicit, explicit, scaling, png):
         matplotlib.use("Agg")
         import matplotlib.pyplot as plt
     except ImportError:
-        print('matplotlib is not installed: no figure (pip install "massspring[plot]")')
+        print(f"matplotlib is not installed: no figure ({install_hint('plot')})")
         return
     fig, axes = plt.subplots(2, 2, figsize=(13, 9))
     if implicit:

@@ -4,7 +4,7 @@ Shows: one scene run at several parameter values (``Scene.with_params``), the
 simulations of a sweep sharing compiled kernels (each closed before the next), a
 frame callback of the run loop that measures the state (the largest spring strain
 l / l0 - 1), and a log-log plot with matplotlib (skipped, with a note, when matplotlib
-is not installed: ``pip install 'massspring[plot]'``). The cloth, pinned at two
+is not installed: ``pip install -e ".[plot]"`` in the checkout). The cloth, pinned at two
 corners, falls and swings; the stiffer it is, the less it stretches (strain ~ 1/stiffness).
 
     python examples/stiffness_sweep.py [--small] [--out strain.png]
@@ -20,6 +20,7 @@ import os
 import numpy as np
 
 import massspring as ms
+from massspring.extras import install_hint
 from massspring.io.render import spring_strain
 
 
@@ -59,7 +60,7 @@ def main(argv=None):
         matplotlib.use("Agg")
         import matplotlib.pyplot as plt
     except ImportError:
-        print("plot skipped: matplotlib is not installed (pip install 'massspring[plot]')")
+        print(f"plot skipped: matplotlib is not installed ({install_hint('plot')})")
         return
     fig, ax = plt.subplots(figsize=(5, 3.5))
     ax.loglog(stiffnesses, strains, "o-")

@@ -219,7 +219,7 @@ def cli_parser():
 
 
 def usd_stage(path):
-    pytest.importorskip("pxr", reason="usd-core is not installed (pip install 'massspring[usd]')")
+    pytest.importorskip("pxr", reason="usd-core is not installed (pip install -e '.[usd]')")
     from pxr import Usd
 
     stage = Usd.Stage.Open(str(path))
@@ -302,7 +302,7 @@ def test_usd_stage_of_a_chain_with_a_moving_box(tmp_path):
 
 @FULL
 def test_usd_stage_of_a_run_that_stops_early_or_cannot_be_saved(tmp_path, capsys, monkeypatch):
-    pytest.importorskip("pxr", reason="usd-core is not installed (pip install 'massspring[usd]')")
+    pytest.importorskip("pxr", reason="usd-core is not installed (pip install -e '.[usd]')")
     from massspring.io import usd
 
     # diverges (explicit Euler on an undamped spring at dt = 0.5 s): the stage holds the frames up to then

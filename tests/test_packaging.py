@@ -1,5 +1,6 @@
 """What ``pip install .`` (not editable) ships: every package of the source tree."""
 
+import re
 import tomllib
 from pathlib import Path
 
@@ -41,3 +42,40 @@ def test_the_package_runs_from_the_repository_root_without_the_install_mapping()
                           timeout=300)
     assert proc.returncode == 0, proc.stderr[-2000:]
     assert "cloth" in proc.stdout
+
+
+# an install of the name "massspring" from an index (with or without extras), not of a path
+FROM_AN_INDEX = re.compile(r"""pip install\s+(?:-e\s+)?["']?massspring(?:\[|\s|["']|$)""")
+
+
+def test_no_command_or_message_installs_the_other_projects_distribution():
+    """The name "massspring" on PyPI belongs to another project (issue 42): no install
+    line of the README, the docs, the examples, the benchmarks or the package's own
+    messages may install it. Paths (`pip install "./massspring[cluster]"`) are fine."""
+    files = [ROOT / "README.md", *(ROOT / "docs").glob("*.md"), *(ROOT / "examples").glob("*.py"),
+             *(ROOT / "benchmarks").glob("*.py"), *(ROOT / "massspring").rglob("*.py"), *(ROOT / "tests").glob("*.py")]
+    found = [f"{path.relative_to(ROOT)}:{number}: {line.strip()}" for path in files
+             for number, line in enumerate(path.read_text().splitlines(), 1)
+             if FROM_AN_INDEX.search(line) and "FROM_AN_INDEX" not in line and "re.compile" not in line]
+    assert found == []
+    assert FROM_AN_INDEX.search("""pip install 'massspring[plot]'""") and FROM_AN_INDEX.search("pip install massspring")
+    assert not FROM_AN_INDEX.search('pip install "./massspring[cluster]"')
+
+
+def test_install_hints_name_each_extras_own_packages():
+    """``extras.install_hint`` names what pyproject.toml's extra lists (read back from the
+    installation's metadata, which may reorder a requirement's version bounds); an extra
+    it does not know falls back to the checkout."""
+    from massspring.extras import install_hint
+
+    def parsed(requirement):  # (name with extras, set of version bounds)
+        name = re.match(r"[A-Za-z0-9_.\-\[\]]+", requirement).group(0)
+        return name, frozenset(filter(None, requirement[len(name):].replace(" ", "").split(",")))
+
+    extras = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["optional-dependencies"]
+    for extra, requirements in extras.items():
+        hint = install_hint(extra)
+        assert hint.startswith("pip install ") and "massspring" not in hint, hint
+        named = {parsed(quoted) for quoted in re.findall(r'"([^"]+)"', hint)}
+        assert named == {parsed(requirement) for requirement in requirements}, (extra, hint)
+    assert install_hint("no-such-extra") == 'pip install -e ".[no-such-extra]" in the massspring checkout'

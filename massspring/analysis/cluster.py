@@ -12,7 +12,7 @@ process keeps its Taichi runtime and its pool of fields between tasks
 time, its Taichi loops on its share of the CPUs, ``TI_CPU_MAX_NUM_THREADS`` = CPUs // N
 unless that variable is set) or
 ``--address tcp://HOST:PORT`` (a running ``dask scheduler``), or None for neither.
-Dask is the optional extra ``pip install "massspring[cluster]"``.
+Dask is the optional extra ``cluster`` (``extras.install_hint``).
 """
 
 from __future__ import annotations
@@ -22,7 +22,9 @@ import logging
 import os
 import threading
 
-EXTRA = 'pip install "massspring[cluster]"'
+from massspring.extras import install_hint
+
+EXTRA = install_hint("cluster")
 
 # One Taichi runtime per process: tasks on a worker with several threads take turns.
 _TAICHI = threading.Lock()

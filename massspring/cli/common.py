@@ -5,6 +5,7 @@ from __future__ import annotations
 
 from massspring import progress, validate
 from massspring.defaults import PRECISIONS
+from massspring.extras import install_hint
 
 
 EXIT_OK, EXIT_OUTPUT, EXIT_USAGE, EXIT_DIVERGED, EXIT_INTERRUPTED = 0, 1, 2, 3, 130
@@ -111,7 +112,7 @@ def integrator_names():
 def add_cluster_arguments(p):
     where = p.add_mutually_exclusive_group()
     where.add_argument("--workers", type=int, metavar="N", help="run the cases on a local Dask cluster of N "
-                       "worker processes, started for this command (pip install 'massspring[cluster]')")
+                       f"worker processes, started for this command ({install_hint('cluster')})")
     where.add_argument("--address", metavar="tcp://HOST:PORT",
                        help="run the cases on the Dask cluster whose scheduler listens there")
 
@@ -120,7 +121,7 @@ def needs_matplotlib(option):
     try:
         import matplotlib  # noqa: F401
     except ImportError:
-        raise ValueError(f"{option}: matplotlib is not installed (pip install 'massspring[plot]')") from None
+        raise ValueError(f"{option}: matplotlib is not installed ({install_hint('plot')})") from None
 
 
 def main_thread():

@@ -10,6 +10,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from massspring.text import format_seconds
+from massspring.extras import install_hint
 from massspring.cli.common import Terminated, UsageError
 
 
@@ -41,7 +42,7 @@ def add_frame_arguments(p):
     g = p.add_argument_group("frames as files (for Blender, ParaView, Houdini, Omniverse); sampled like the GIF")
     g.add_argument("--export", metavar="DIR", help="write the frames into DIR (created if missing), "
                    "with manifest.json")
-    formats = "; ".join(f"{f.name}: {f.help}" + (f" (needs {f.module}: pip install 'massspring[{f.extra}]')"
+    formats = "; ".join(f"{f.name}: {f.help}" + (f" (needs {f.module}: {install_hint(f.extra)})"
                                                  if f.module else "") for f in FORMATS.values())
     g.add_argument("--format", choices=tuple(FORMATS), help=f"default {DEFAULT_FORMAT}; {formats}")
 

@@ -8,6 +8,7 @@ from pathlib import Path
 
 from massspring import progress
 from massspring.defaults import MAX_STEPS
+from massspring.extras import install_hint
 from massspring.integrators import DEFAULT
 from massspring.text import format_seconds
 from massspring.cli.common import EXIT_DIVERGED, EXIT_OK, UsageError, add_cluster_arguments, add_scene_arguments, solver_options
@@ -93,6 +94,6 @@ def cmd_stability(args):
     try:
         written.append(stability.plot(rows, f"{prefix}.png", f"{scene.name}: stability ladder"))
     except ImportError:
-        print("plot skipped: matplotlib is not installed (pip install 'massspring[plot]')")
+        print(f"plot skipped: matplotlib is not installed ({install_hint('plot')})")
     print("wrote " + ", ".join(str(p) for p in written))
     return EXIT_OK

@@ -6,6 +6,7 @@ from pathlib import Path
 
 from massspring.cli.common import EXIT_OK, UsageError, add_cluster_arguments
 from massspring.cli.pictures import _number
+from massspring.extras import install_hint
 
 
 def add_study_arguments(p):
@@ -71,6 +72,6 @@ def cmd_study(args):
     try:
         written.append(report.plot(result, out / "work_precision.png"))
     except ImportError:
-        print("plot skipped: matplotlib is not installed (pip install 'massspring[plot]')")
+        print(f"plot skipped: matplotlib is not installed ({install_hint('plot')})")
     print("wrote " + ", ".join(str(p) for p in written))
     return EXIT_OK

@@ -7,6 +7,7 @@ from pathlib import Path
 
 from massspring import validate
 from massspring.defaults import MAX_STEPS
+from massspring.extras import install_hint
 from massspring.cli.common import (
     EXIT_INTERRUPTED, EXIT_OK, Terminated, UsageError, needs_matplotlib, add_cluster_arguments, add_scene_arguments,
     solver_options)
@@ -26,7 +27,7 @@ def add_sweep_arguments(p, integrators):
                    "an existing one of the same sweep is resumed (its finished cases are skipped)")
     p.add_argument("--states", metavar="DIR", help="keep each case's final state as DIR/caseNNNN.npz")
     p.add_argument("--plot", metavar="PNG", help="draw --metric against the first varied key (a line per "
-                   "value of the second) (pip install 'massspring[plot]')")
+                   f"value of the second) ({install_hint('plot')})")
     p.add_argument("--metric", choices=METRICS, default="energy", help="what --plot draws (default energy)")
     p.add_argument("--yes", action="store_true", help=f"run more than {MAX_CASES} cases")
     p.add_argument("--quiet", action="store_true", help="no line per finished case")

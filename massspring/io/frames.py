@@ -52,6 +52,7 @@ from xml.sax.saxutils import quoteattr
 import numpy as np
 
 from massspring.defaults import VERSION
+from massspring.extras import install_hint
 from massspring.io.files import atomic_output, atomic_path, check_writable, write_json
 from massspring.io.obj import write_obj
 from massspring.io.state import write_state
@@ -137,7 +138,7 @@ def check_format(fmt, name="format"):
             importlib.import_module(record.module)
         except ImportError:
             raise ValueError(f"{name} {fmt}: needs {record.module}, which is not installed "
-                             f"(pip install 'massspring[{record.extra}]')") from None
+                             f"({install_hint(record.extra)})") from None
 
 
 def _elements(model):

@@ -1,5 +1,5 @@
 """A run as one USD stage (``run --export DIR --format usd``: ``DIR/frames.usdc``), by
-``pxr`` (the ``usd-core`` package: ``pip install 'massspring[usd]'``).
+``pxr`` (the ``usd-core`` package: the ``usd`` extra, ``extras.install_hint``).
 
 The stage (Z up, 1 m per unit) holds, under its default prim ``/World``:
 
