@@ -16,6 +16,7 @@ import pytest
 import massspring as ms
 from conftest import FULL, one_line_error
 from massspring.cli import main
+from massspring.extras import install_hint
 from massspring.io import frames as frames_io
 from massspring.io.obj import read_obj
 from massspring.io.render import frame_steps
@@ -185,7 +186,7 @@ def test_export_alone_takes_frames_and_every(tmp_path):
 def test_formats_that_need_a_module_say_which_extra_to_install(fmt, module, extra, tmp_path, capsys, monkeypatch):
     monkeypatch.setitem(sys.modules, module, None)  # as if it were not installed
     assert main(["run", "spring", "--steps", "5", "--quiet", "--export", str(tmp_path / "x"), "--format", fmt]) == 2
-    one_line_error(capsys, f"--format {fmt}", module, f"massspring[{extra}]")
+    one_line_error(capsys, f"--format {fmt}", module, install_hint(extra))  # the extra's own packages
     assert not (tmp_path / "x").exists()
 
 

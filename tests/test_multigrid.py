@@ -274,6 +274,7 @@ def chebyshev_smooth(a, dinv, b, x, rho, ratio=multigrid.CHEB_RATIO, degree=mult
     return x
 
 
+@FULL
 def test_two_level_cycle_matches_a_dense_numpy_cycle():
     """On a cloth whose hierarchy has two levels (the coarse one solved exactly), the
     kernels' z = B r equals the same cycle written densely: P = T - (4/3)/rho D^-1 A_s T,

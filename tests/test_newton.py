@@ -97,6 +97,7 @@ def _chain_errors(integrator, counts, duration=0.1):
     return np.array(errors)
 
 
+@FULL
 @pytest.mark.parametrize("integrator, low, high", [("backward-euler", 0.9, 1.1), ("bdf2", 1.8, 2.2)])
 def test_order_of_accuracy_against_rk4(integrator, low, high):
     errors = _chain_errors(integrator, (100, 200, 400))

@@ -202,6 +202,7 @@ def cloth(n_side=12, seed=0):
                     gravity=(0.0, 0.0, -9.81), fixed=[idx[0, 0], idx[0, -1]])
 
 
+@FULL
 @pytest.mark.parametrize("path", PATHS)
 def test_block_jacobi_reduces_cg_iterations(path):
     model = cloth()

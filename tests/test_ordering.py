@@ -106,6 +106,7 @@ def test_a_scrambled_cloth_steps_as_the_grid_does(loops):
     b.close()
 
 
+@pytest.mark.fast_sample(preconditioner=["block-jacobi"])
 @pytest.mark.parametrize("preconditioner", ["block-jacobi", "multigrid"])
 def test_a_renumbered_implicit_step_is_the_dense_solve_of_eq15(small_window, preconditioner):
     model, _ = scrambled(cloth(12), 2)

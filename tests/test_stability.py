@@ -87,6 +87,7 @@ def assert_last_good_state(sim, exc, fresh):
     np.testing.assert_array_equal(sim.velocities, fresh.velocities)
 
 
+@FULL
 @pytest.mark.parametrize("path", PATHS)
 def test_symplectic_above_limit_raises_and_keeps_last_good_state(path):
     scene = load_scene("stiffchain").with_params(count=10)
@@ -338,6 +339,7 @@ def test_rk4_default_dt_holds_on_heavily_damped_scenes(name):
     assert np.all(np.isfinite(sim.positions))
 
 
+@FULL
 def test_a_divergence_at_the_estimated_dt_suggests_a_smaller_one(capsys):
     # rk4's estimate at the coincident start, 0.00239 s, sees no damping (it acts along
     # springs, which have no direction yet); the unfolded chain's damping needs less

@@ -209,6 +209,7 @@ def test_a_timed_run_compiles_nothing_after_its_warm_up(integrator, monkeypatch)
     assert compiled == []
 
 
+@FULL
 def test_reference_check_failure_is_reported(tmp_path):
     """A ratio no RK4 can meet: the check fails after its halvings, and says so."""
     s = study.run_study(tiny_chain(), duration=0.01, integrators=["symplectic"],
