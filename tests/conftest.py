@@ -80,20 +80,8 @@ def fast_tier(items):
     return [item for item in items if id(item) in keep]
 
 
-# Tests that run every built-in scene compile the same configurations (each scene's
-# integrator, terms and colliders; small models share one capacity class): marked
-# ``@SCENES`` they form one pytest-xdist group, run whole by one worker, which compiles
-# each configuration once. Every other test's group is its file (``--dist loadgroup``).
-SCENES = pytest.mark.xdist_group("scenes")
-
-
-@pytest.hookimpl(tryfirst=True)
 def pytest_collection_modifyitems(config, items):
-    """Each test's xdist group (``SCENES``, else its file); without ``--all``, the fast
-    tier (``fast_tier``), the rest deselected."""
-    for item in items:
-        if item.get_closest_marker("xdist_group") is None:
-            item.add_marker(pytest.mark.xdist_group(item.path.name))
+    """Without ``--all``, the fast tier (``fast_tier``); the rest deselected."""
     if config.getoption("--all"):
         return
     keep = fast_tier(items)

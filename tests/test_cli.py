@@ -7,7 +7,7 @@ import sys
 import numpy as np
 import pytest
 
-from conftest import SCENES, one_line_error, sampled
+from conftest import one_line_error, sampled
 from massspring.cli import main
 from massspring.integrators import INTEGRATORS
 from massspring.scene import builtin_scenes, load_scene
@@ -26,7 +26,6 @@ def run_cli(*args):
     return proc.returncode, proc.stdout, proc.stderr
 
 
-@SCENES
 @pytest.mark.parametrize("scene, integrator", sampled(
     [(scene, integrator) for scene in sorted(builtin_scenes()) for integrator in sorted(INTEGRATORS)], FAST_RUNS))
 def test_run_every_scene(scene, integrator, tmp_path, capsys):

@@ -20,7 +20,7 @@ import numpy as np
 import pytest
 
 import massspring as ms
-from conftest import SCENES, sampled
+from conftest import sampled
 
 DATA = np.load(Path(__file__).with_name("data") / "reference_runs.npz")
 IMPLICIT_CG_TOL = 1e-12
@@ -34,7 +34,6 @@ CASES = [pytest.param(*case, marks=pytest.mark.xfail(strict=True, raises=Asserti
 FAST = {("chain", "implicit"), ("spring", "symplectic"), ("heavychain", "explicit")}  # the fast tier's sample
 
 
-@SCENES
 @pytest.mark.parametrize("scene_name, integrator", sampled(CASES, FAST))
 def test_same_results_as_before_the_refactor(scene_name, integrator):
     key = f"{scene_name}/{integrator}"

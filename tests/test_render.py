@@ -13,7 +13,7 @@ from massspring.cli import main
 from massspring.io import camera, render
 from massspring.scene import SceneError, builtin_scenes, generators, load_scene
 from massspring.simulation import run
-from conftest import FULL, SCENES, sampled
+from conftest import FULL, sampled
 
 SMALL = {"grid": ["--set", "resolution=6"], "lattice": ["--set", "resolution=3"], "chain": ["--set", "count=5"]}
 BACKGROUND = np.array(render.BACKGROUND)
@@ -40,7 +40,6 @@ def drawn(image):
     return np.any(image != BACKGROUND, axis=-1)
 
 
-@SCENES
 @pytest.mark.parametrize("scene", sampled(sorted(builtin_scenes()), {"cloth"}))
 def test_gif_of_every_scene(scene, tmp_path, capsys):
     gif, png = tmp_path / "run.gif", tmp_path / "last.png"

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from massspring.scene import builtin_scenes, load_scene
-from conftest import SCENES, numpy_forces, sampled
+from conftest import numpy_forces, sampled
 
 CONTACT_GAIN = pytest.mark.xfail(strict=True, reason=(
     "known limitation of the contact model (kernels/contact.py), whatever the integrator: a particle that "
@@ -34,7 +34,6 @@ def external_power(model, x, v):
     return power
 
 
-@SCENES
 @pytest.mark.parametrize("name", sampled([pytest.param(n, marks=CONTACT_GAIN) if n in ("drape", "rope-drop", "ledge")
                                           else n for n in sorted(builtin_scenes())], {"spring", "chain"}))
 def test_default_run_never_gains_energy(name):
