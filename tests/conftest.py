@@ -20,6 +20,11 @@ import resource
 # then run 6-36% slower (benchmarks/compile_options.py). Users and the
 # benchmarks run with it on; TI_ADVANCED_OPTIMIZATION=1 python -m pytest runs the tests so.
 os.environ.setdefault("TI_ADVANCED_OPTIMIZATION", "0")
+# Taichi's offline cache misses within a run (its key holds the numbers of the fields a
+# kernel reads, which depend on what earlier tests allocated) and, written by two
+# workers at once, prints "Lock ... failed" warnings into the stderr of the command-line
+# tests, whose errors must be one line: off in the tests unless set.
+os.environ.setdefault("TI_OFFLINE_CACHE", "0")
 
 import numpy as np
 import pytest
