@@ -13,9 +13,9 @@ semi-definite), is -K = k (w w^T) (x) (n n^T). Eq. 15 then gains
 and stays symmetric positive definite. The self-collision pass still follows the
 step (repulsion of what the solve left approaching, displacement bounds, friction).
 
-``collect`` runs at the end of each full self-collision pass, on the positions the
-step ends at (the next step's x_n), and at a run's start or restart
-(``self_collision_list``): the pass's list then holds every pair within t of them,
+``collect`` runs (``self_collision_solve_pairs``) at the end of each full
+self-collision pass, on the positions the step ends at (the next step's x_n), and at a
+run's start or restart after ``self_collision_list``: the pass's list then holds every pair within t of them,
 and a step that skips the pass moves no pair within t (nor any particle of a pair
 already within t), so the pairs stay those of x_n. It gathers the pairs within t into
 ``sp_idx``/``sp_w``/``sp_nf`` and builds, per particle, its entries (pair, k) in CSR

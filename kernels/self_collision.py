@@ -50,16 +50,23 @@ is, else ``self_collision_detect`` and ``self_collision_bound`` run the full pas
    thickness / 2 (inside its swept box).
 3. Displacement bounds on the separating plane (after the bounds of Offset Geometric
    Contact, Chen et al. 2025). A pair's closest points p - q = d n give a plane
-   between its primitives; each of its particles may move towards the other side by
-   at most GAMMA (< 1/2) times (d - OFFSET thickness): a displacement that goes
-   further first loses that excess along n (averaged over its pairs, within its box),
-   and then, if a pair still objects, is scaled down until all agree (a smaller
-   scale keeps every bound met: each holds at x0). The primitives of a listed pair
-   then stay on their sides of the plane along the whole straight step, and those of
-   an unlisted pair in disjoint boxes, so no pair touches during the step and no
-   edge passes through a triangle it does not share a particle with. A particle held
-   back ends at x0 + s (x - x0) with velocity s (x - x0) / dt. Pinned particles are
-   neither pushed nor held back.
+   between its primitives. Every point of A starts at least d along n from every
+   point of B, so along a straight step the two stay apart while the largest
+   displacement of an A particle towards B plus the largest of a B particle towards A
+   is at most 2 GAMMA (d - OFFSET thickness) (GAMMA < 1/2): a pair that approaches no
+   faster stands as the step left it, whatever its common motion (a falling or
+   swinging cloth). A pair that approaches faster bounds its own particles from then
+   on: each may move towards the other side by at most GAMMA (d - OFFSET thickness),
+   which meets the first bound too. A displacement that goes further first loses that
+   excess along n (averaged over its pairs, within its box), and then, if a pair still
+   objects, is scaled down until all agree (a smaller scale keeps every such bound
+   met: each holds at x0). Holding particles back can make another pair approach too
+   fast, so rounds repeat until one sets no new pair (after ``BOUND_ROUNDS`` every
+   pair bounds its own). The primitives of a listed pair then stay on their sides of
+   a plane along the whole straight step, and those of an unlisted pair in disjoint
+   boxes, so no pair touches during the step and no edge passes through a triangle it
+   does not share a particle with. A particle held back ends at x0 + s (x - x0) with
+   velocity s (x - x0) / dt. Pinned particles are neither pushed nor held back.
 
 Deterministic for any thread count: distances are reduced with atomic min/max (exact),
 impulses summed in 64-bit fixed point (integer addition: order-free), and nothing
@@ -72,9 +79,11 @@ edges, T cells per table): ``sc_tris`` (t,) int 3-vectors, ``sc_edges`` (e,) int
 ``sc_dv`` (n,) int64 3-vectors (fixed point, ``SCALE`` per m/s), ``sc_hits`` (n,),
 ``sc_vcell``/``sc_ecell`` (T,), ``sc_vfirst``/``sc_efirst`` (T + 1,), ``sc_vitem``
 (n,), ``sc_eitem`` (e,) int32, ``sc_box`` (10,) f64 (cell span, largest displacement,
-smallest distance, listing margin), ``sc_tally`` (4,) int32 (pairs found, pairs
-repelled, particles held back, particles out of their free distance). The pair list
-``pl`` (P pairs): ``pidx`` (P,) int 4-vectors, ``pw`` (P,) 4-vectors, ``pkind`` (P,).
+smallest distance, listing margin), ``sc_tally`` (5,) int32 (pairs found, pairs
+repelled, particles held back, particles out of their free distance, pairs newly set
+to bound their own particles). The pair list ``pl`` (P pairs): ``pidx`` (P,) int
+4-vectors, ``pw`` (P,) 4-vectors, ``pkind`` (P,), ``pbound`` (P,): RELATIVE, OWN or
+NEW (step 3).
 """
 
 import taichi as ti
@@ -91,8 +100,10 @@ CELL_LIMIT = 2**30  # cell coordinates are clipped to +-this
 POINT_TRIANGLE = (1, -1, -1, -1)  # the sides of a pair's particles: a point (A), a triangle (B)
 EDGE_EDGE = (1, 1, -1, -1)  # two edges
 REPEL, PROJECT, BOUND, LIST = 0, 1, 2, 3  # the passes over the pairs
+RELATIVE, OWN, NEW = 0, 1, 2  # ``pbound``: a pair checks its relative approach, bounds its own particles (newly)
 OFFSET = 0.5  # pairs closer than this fraction of the thickness may not approach at all
 REUSE_BELOW = 0.05  # a step whose particles moved less than this x thickness lists pairs for reuse
+BOUND_ROUNDS = 8  # rounds of step 3 before every pair bounds its own particles
 REUSE_MARGIN = 1.5  # ... in boxes grown by this x thickness (unlisted pairs then end > 2 x thickness apart)
 
 
@@ -194,6 +205,7 @@ def pair(dev, cfg: ti.template(), pl, state, idx, w, d, h, thickness, mu, ks, si
             pl.pidx[slot] = idx
             pl.pw[slot] = w
             pl.pkind[slot] = sides[1]  # 1: edge-edge, -1: point-triangle
+            pl.pbound[slot] = RELATIVE
         ti.atomic_min(dev.sc_box[8], ti.cast(d, ti.f64))
         if ti.static(phase == REPEL) and d < thickness and length > 0:
             ti.atomic_add(dev.sc_tally[1], 1)
@@ -334,15 +346,42 @@ def clip(dev, cfg: ti.template(), state, i, margin, h):
 
 
 @ti.func
-def listed_pairs(dev, cfg: ti.template(), pl, state, count, thick, phase: ti.template()):
-    """``pair`` in ``phase`` over the first ``count`` pairs of the pair list ``pl``."""
+def listed_pairs(dev, cfg: ti.template(), pl, state, count, thick, go, phase: ti.template()):
+    """``pair`` in ``phase`` over the pairs of the pair list ``pl`` newly set to bound their
+    own particles (``pbound`` NEW), among its first ``count``; none unless ``go``."""
     for slot in range(count):
-        idx = pl.pidx[slot]
-        w = pl.pw[slot]
-        if pl.pkind[slot] == 1:  # the second particle's side
-            pair(dev, cfg, pl, state, idx, w, 0, 1, thick, 0, 0, EDGE_EDGE, phase)
-        else:
-            pair(dev, cfg, pl, state, idx, w, 0, 1, thick, 0, 0, POINT_TRIANGLE, phase)
+        if go and pl.pbound[slot] == NEW:
+            idx = pl.pidx[slot]
+            w = pl.pw[slot]
+            if pl.pkind[slot] == 1:  # the second particle's side
+                pair(dev, cfg, pl, state, idx, w, 0, 1, thick, 0, 0, EDGE_EDGE, phase)
+            else:
+                pair(dev, cfg, pl, state, idx, w, 0, 1, thick, 0, 0, POINT_TRIANGLE, phase)
+
+
+@ti.func
+def approach_allowed(dev, cfg: ti.template(), state, idx, w, kind, thick):
+    """Whether a listed pair's particles (``idx``, weights ``w``, ``kind`` as ``pkind``)
+    approach each other by at most 2 GAMMA (d - OFFSET thickness) along the normal n of
+    their separating plane at x0 (step 3 of the module docstring): the largest
+    displacement of a side-A particle towards B plus the largest of a side-B particle
+    towards A. False for a pair with d = 0."""
+    gap_vector = ti.Vector.zero(cfg.real, 3)
+    for k in ti.static(range(4)):
+        gap_vector += w[k] * dev.sc_start[idx[k]]
+    length = gap_vector.norm()
+    ok = False
+    if length > 0:
+        normal = gap_vector / length
+        sides = ti.Vector([1, kind, -1, -1])
+        toward = ti.Vector([-sides[k] * normal.dot(state.x[idx[k]] - dev.sc_start[idx[k]])
+                            for k in ti.static(range(4))])
+        side_a = ti.max(toward[0], ti.select(kind == 1, toward[1], toward[0]))
+        side_b = ti.max(toward[2], toward[3])
+        if kind == -1:
+            side_b = ti.max(side_b, toward[1])
+        ok = side_a + side_b <= 2 * GAMMA * ti.max(length - OFFSET * thick, 0)
+    return ok
 
 
 @ti.kernel
@@ -401,10 +440,9 @@ def broad_phase(dev, cfg: ti.template(), margin):
 
 @ti.kernel
 def self_collision_list(dev: ti.template(), cfg: ti.template(), pl: ti.template(), state: ti.template(),
-                        dt: ti.f64, thickness: ti.f64, serial: ti.template()) -> ti.i32:
+                        thickness: ti.f64, serial: ti.template()) -> ti.i32:
     """List the pairs of the state as it stands into ``pl`` (no step: x0 = x, boxes grown
-    by ``thickness``), as a pass would have, so every pair within ``thickness`` is listed;
-    with ``cfg.self_pairs``, the implicit solve's pairs from them (steps of dt, s).
+    by ``thickness``), as a pass would have, so every pair within ``thickness`` is listed.
     Returns the pairs found (more than ``pl`` holds: list again in a larger one)."""
     if ti.static(serial):
         ti.loop_config(serialize=True)
@@ -414,20 +452,17 @@ def self_collision_list(dev: ti.template(), cfg: ti.template(), pl: ti.template(
     if ti.static(serial):
         ti.loop_config(serialize=True)
         for _ in range(1):
-            list_pairs(dev, cfg, pl, state, dt, thickness)
+            list_pairs(dev, cfg, pl, state, thickness)
     else:
-        list_pairs(dev, cfg, pl, state, dt, thickness)
+        list_pairs(dev, cfg, pl, state, thickness)
     return dev.sc_tally[0]
 
 
 @ti.func
-def list_pairs(dev, cfg: ti.template(), pl, state, dt, thickness):
+def list_pairs(dev, cfg: ti.template(), pl, state, thickness):
     thick = ti.cast(thickness, cfg.real)
     span = broad_phase(dev, cfg, thick)
     pairs(dev, cfg, pl, state, dev.sc_count[0], dev.sc_count[1], span, dev.sc_count[2], thick, 1, thick, 0, 0, LIST)
-    if ti.static(cfg.self_pairs):
-        if dev.sc_tally[0] <= pl.pidx.shape[0]:
-            collect(dev, cfg, pl, state.x, ti.cast(dt, cfg.real))
 
 
 @ti.kernel
@@ -511,39 +546,63 @@ def anchor(dev, cfg: ti.template(), pl, state, count, thick, margin):
 
 
 @ti.func
-def bound(dev, cfg: ti.template(), pl, state, dt, thickness):
-    """Step 3 of the pass (module docstring) over the listed pairs, then step 0's anchors
-    and, with ``cfg.self_pairs``, the next implicit solve's pairs. Returns the number of
-    particles held back."""
+def bound(dev, cfg: ti.template(), pl, state, dt, thickness, first, every):
+    """One round of step 3 of the pass (module docstring) over the listed pairs: each
+    pair still checked by its relative approach (``pbound`` RELATIVE) whose particles
+    approach by more than it allows (all of them with ``every``) bounds its own
+    particles from now on; those newly set are projected (``first``: the round after
+    ``detect``) and then held back. Returns the pairs newly set: a round that sets none
+    leaves every pair's bound met."""
     n = dev.size[0]
     h = ti.cast(dt, cfg.real)
     thick = ti.cast(thickness, cfg.real)
-    margin = ti.cast(dev.sc_box[9], cfg.real)
     count = dev.sc_tally[0]
-    dev.sc_tally[2] = 0
+    dev.sc_tally[4] = 0
+    for slot in range(count):
+        if pl.pbound[slot] == RELATIVE:
+            if every != 0 or not approach_allowed(dev, cfg, state, pl.pidx[slot], pl.pw[slot], pl.pkind[slot], thick):
+                pl.pbound[slot] = NEW
+                ti.atomic_add(dev.sc_tally[4], 1)
     for i in range(n):
         dev.sc_dv[i] = ti.Vector.zero(ti.i64, 3)
-        dev.sc_hits[i] = 0
+        if first != 0:
+            dev.sc_hits[i] = 0
         dev.sc_scale[i] = 1
-    listed_pairs(dev, cfg, pl, state, count, thick, PROJECT)
+    listed_pairs(dev, cfg, pl, state, count, thick, first != 0, PROJECT)
     for i in range(n):
         hits = dev.sc_hits[i]
-        if hits > 0:
+        if first != 0 and hits > 0:
             dx = ti.cast(dev.sc_dv[i], cfg.real) / ti.cast(SCALE * hits, cfg.real)
             state.x[i] += dx
             state.v[i] += dx / h
             clip(dev, cfg, state, i, 0.5 * thick, h)
-    listed_pairs(dev, cfg, pl, state, count, thick, BOUND)
+        if first != 0:
+            dev.sc_hits[i] = 0
+    listed_pairs(dev, cfg, pl, state, count, thick, True, BOUND)
     for i in range(n):
         scale = dev.sc_scale[i]
         if scale < 1 and not is_pinned(i, dev, cfg):
             dx = scale * (state.x[i] - dev.sc_start[i])
             state.x[i] = dev.sc_start[i] + dx
             state.v[i] = dx / h
+            dev.sc_hits[i] = 1  # held back
+    for slot in range(count):
+        if pl.pbound[slot] == NEW:
+            pl.pbound[slot] = OWN
+    return dev.sc_tally[4]
+
+
+@ti.func
+def finish(dev, cfg: ti.template(), pl, state, dt, thickness):
+    """After the last round of ``bound``: step 0's anchors. Returns the number of
+    particles held back."""
+    thick = ti.cast(thickness, cfg.real)
+    margin = ti.cast(dev.sc_box[9], cfg.real)
+    dev.sc_tally[2] = 0
+    for i in range(dev.size[0]):
+        if dev.sc_hits[i] == 1:
             ti.atomic_add(dev.sc_tally[2], 1)
-    anchor(dev, cfg, pl, state, count, thick, margin)
-    if ti.static(cfg.self_pairs):
-        collect(dev, cfg, pl, state.x, h)
+    anchor(dev, cfg, pl, state, dev.sc_tally[0], thick, margin)
     return dev.sc_tally[2]
 
 
@@ -568,16 +627,48 @@ def self_collision_detect(dev: ti.template(), cfg: ti.template(), pl: ti.templat
 
 @ti.kernel
 def self_collision_bound(dev: ti.template(), cfg: ti.template(), pl: ti.template(), state: ti.template(),
-                         dt: ti.f64, thickness: ti.f64, serial: ti.template()) -> ti.i32:
-    """``bound`` after ``self_collision_detect`` (whose pairs fitted ``pl``); returns the
-    particles held back."""
+                         dt: ti.f64, thickness: ti.f64, first: ti.i32, every: ti.i32,
+                         serial: ti.template()) -> ti.i32:
+    """A round of ``bound`` after ``self_collision_detect`` (whose pairs fitted ``pl``);
+    returns the pairs it newly set to bound their own particles (none: the last round)."""
     out = 0
     if ti.static(serial):
         ti.loop_config(serialize=True)
         for _ in range(1):
-            held = bound(dev, cfg, pl, state, dt, thickness)
+            marked = bound(dev, cfg, pl, state, dt, thickness, first, every)
+            out = marked
+    else:
+        marked = bound(dev, cfg, pl, state, dt, thickness, first, every)
+        out = marked
+    return out
+
+
+@ti.kernel
+def self_collision_finish(dev: ti.template(), cfg: ti.template(), pl: ti.template(), state: ti.template(),
+                          dt: ti.f64, thickness: ti.f64, serial: ti.template()) -> ti.i32:
+    """``finish`` after the last round of ``self_collision_bound``; returns the particles
+    held back."""
+    out = 0
+    if ti.static(serial):
+        ti.loop_config(serialize=True)
+        for _ in range(1):
+            held = finish(dev, cfg, pl, state, dt, thickness)
             out = held
     else:
-        held = bound(dev, cfg, pl, state, dt, thickness)
+        held = finish(dev, cfg, pl, state, dt, thickness)
         out = held
     return out
+
+
+@ti.kernel
+def self_collision_solve_pairs(dev: ti.template(), cfg: ti.template(), pl: ti.template(), state: ti.template(),
+                               dt: ti.f64, serial: ti.template()):
+    """With ``cfg.self_pairs``: the next implicit solve's pairs (``kernels/pair_penalty.py``,
+    steps of dt, s) from the pairs of ``pl`` at the state's positions, after a pass or a
+    listing (one kernel for both, so a restart computes them to the bit)."""
+    if ti.static(serial):
+        ti.loop_config(serialize=True)
+        for _ in range(1):
+            collect(dev, cfg, pl, state.x, ti.cast(dt, cfg.real))
+    else:
+        collect(dev, cfg, pl, state.x, ti.cast(dt, cfg.real))

@@ -23,7 +23,7 @@ from massspring import mesh
 from massspring.defaults import GRAVITY
 from massspring import terms
 from massspring.colliders import COLLIDERS, MAX_COLLIDERS, Collider
-from massspring.self_collision import SelfCollision
+from massspring.self_collision import SelfCollision, check_thickness
 from massspring.text import brief
 from massspring.validate import MAX_MAGNITUDE, real_array, real_number  # noqa: F401 (MAX_MAGNITUDE: documented here)
 
@@ -188,7 +188,7 @@ class Model:
             from massspring.colliders import check_start_outside
 
             check_start_outside(self.colliders, x, self.free_mask())
-        object.__setattr__(self, "self_collision", _self_collision(self_collision, tris))
+        object.__setattr__(self, "self_collision", _self_collision(self_collision, tris, x))
 
     @classmethod
     def from_mesh(cls, vertices, faces, **parameters) -> Model:
@@ -363,7 +363,7 @@ def _pin_velocities(pin_velocity, fixed, fixed_idx):
     return out
 
 
-def _self_collision(value, triangles):
+def _self_collision(value, triangles, positions):
     if value is None:
         return None
     if not isinstance(value, SelfCollision):
@@ -371,6 +371,7 @@ def _self_collision(value, triangles):
     if len(triangles) == 0:
         raise ValueError("self_collision: needs the model's triangles (a mesh, a grid or a cloth generator, or "
                          "triangles=...); this model has none")
+    check_thickness(value, positions, triangles)
     return value
 
 

@@ -32,6 +32,8 @@ def step_line(label, done, total, dt, elapsed, rate=None) -> str:
             f"{done * dt:.4g} s simulated, {elapsed:.0f} s elapsed")
     if rate and done < total:
         line += f", ~{(total - done) / rate:.0f} s left"
+    if done == 0:
+        line += "; compiling kernels (a configuration's first steps compile them, once per process)"
     return line
 
 
@@ -39,7 +41,7 @@ class steps:
     """Progress of ``total`` steps of ``dt`` s as ``simulation.run``'s callback: a
     context manager giving the callback (None when ``show`` is false). Off a terminal,
     a thread prints ``step_line`` every ``INTERVAL`` s, so the first step's compilation
-    is reported too; the time left is estimated from the pace after the first report
+    is reported too (until a step is done, a line and the bar say it compiles kernels); the time left is estimated from the pace after the first report
     of steps done (which includes compiling)."""
 
     def __init__(self, label, total, dt, show=True, stream=None, clock=time.monotonic):
@@ -60,8 +62,8 @@ class steps:
                                 TextColumn("{task.completed}/{task.total} steps"), TimeElapsedColumn(),
                                 TimeRemainingColumn(), transient=True, console=Console(file=self.stream))
             self.bar.__enter__()
-            task = self.bar.add_task(self.label, total=self.total)
-            return lambda done, total: self.bar.update(task, completed=done)
+            task = self.bar.add_task(f"{self.label}: compiling kernels", total=self.total)
+            return lambda done, total: self.bar.update(task, completed=done, description=self.label)
         self.ticker = phase(self.label, stream=self.stream, clock=self.clock, line=self.line)
         self.ticker.__enter__()
         return self.update

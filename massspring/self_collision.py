@@ -59,8 +59,43 @@ def mesh_edges(triangles) -> np.ndarray:
     return np.unique(pairs, axis=0) if len(pairs) else np.zeros((0, 2), dtype=np.int64)
 
 
+SPACING_FRACTION = 0.5  # a thickness above this fraction of the mesh's spacing is refused
+
+
+def mesh_spacing(positions, triangles) -> float:
+    """The mesh's spacing (m): the median over its triangles of their smallest height
+    (twice the area over the longest side) at ``positions`` (n, 3); 0 if that is 0 (no
+    triangle, or most of them degenerate). A particle of a flat or gently curved mesh is
+    about this far from the nearest triangle it is not a corner of (h / sqrt(2) on a
+    grid of spacing h)."""
+    tris = np.asarray(triangles, dtype=np.int64).reshape(-1, 3)
+    if len(tris) == 0:
+        return 0.0
+    x = np.asarray(positions, dtype=np.float64)
+    a, b, c = x[tris[:, 0]], x[tris[:, 1]], x[tris[:, 2]]
+    twice_area = np.linalg.norm(np.cross(b - a, c - a), axis=1)
+    longest = np.max([np.linalg.norm(b - a, axis=1), np.linalg.norm(c - b, axis=1),
+                      np.linalg.norm(a - c, axis=1)], axis=0)
+    heights = np.divide(twice_area, longest, out=np.zeros_like(twice_area), where=longest > 0)
+    return float(np.median(heights))
+
+
+def check_thickness(settings, positions, triangles):
+    """ValueError naming ``thickness`` and the mesh's spacing if ``settings.thickness``
+    is above ``SPACING_FRACTION`` of ``mesh_spacing``: every particle would then be
+    within the thickness of the triangles next to its own, repelled by them at rest,
+    and the pass would list pairs by the hundred per particle."""
+    spacing = mesh_spacing(positions, triangles)
+    if spacing > 0 and settings.thickness > SPACING_FRACTION * spacing:
+        raise ValueError(f"self_collision: thickness {settings.thickness:g} m is more than half the mesh's spacing "
+                         f"{spacing:.3g} m (the median height of its triangles): each particle would be within "
+                         f"the thickness of the triangles around its own, pushed by them at rest, with hundreds "
+                         f"of pairs to check a step; use a thickness of at most {SPACING_FRACTION * spacing:.3g} m "
+                         f"or a coarser mesh")
+
+
 PAIRS_PER_PARTICLE = 8  # the pair list's first capacity per particle; a pass that finds more grows it
-PAIR_BYTES = 16 + 4 * 8 + 4  # a listed pair: 4 particles, 4 weights (f64), its kind
+PAIR_BYTES = 16 + 4 * 8 + 4 + 4  # a listed pair: 4 particles, 4 weights (f64), its kind, its bound
 # Bytes per particle of the pass's fields (``declare``), for ``memory.run_bytes``: start, anchor, free,
 # end, end velocity, scale, impulses, hits, hash items (24 + 24 + 8 + 24 + 24 + 8 + 24 + 4 + 4); about
 # 2 triangles (12 B) and 3 edges (8 + 4 B each, two hash tables of 8 B per slot, 2 slots per edge); the
@@ -97,13 +132,14 @@ def declare(layout, model):
         layout.add(f"sc_{table}first", ti.i32, size + 1)
         layout.add(f"sc_{table}item", ti.i32, items)
     layout.add("sc_box", ti.f64, 10)
-    layout.add("sc_tally", ti.i32, 4)
+    layout.add("sc_tally", ti.i32, 5)
 
 
 def pair_list(pairs, real):
     """A pair list for at least ``pairs`` pairs (a capacity class, so lists are pooled and
     their kernels compiled once per class): a bundle of ``pidx`` (4 particles), ``pw`` (4
-    weights) and ``pkind`` (1: edge-edge, -1: point-triangle). ValueError if it would not
+    weights), ``pkind`` (1: edge-edge, -1: point-triangle) and ``pbound`` (how the pass
+    bounds its particles, ``kernels/self_collision.py``). ValueError if it would not
     fit in memory."""
     import taichi as ti
 
@@ -114,6 +150,7 @@ def pair_list(pairs, real):
     layout.vectors("pidx", ti.i32, cap, k=4)
     layout.vectors("pw", real, cap, k=4)
     layout.add("pkind", ti.i32, cap)
+    layout.add("pbound", ti.i32, cap)
     return layout.allocate()
 
 
@@ -178,14 +215,21 @@ class Pass:
         self.grown += 1
 
     def _list(self, state):
-        """List the state's pairs (and the implicit solve's, ``kernels/pair_penalty.py``)."""
+        """List the state's pairs, and the implicit solve's from them."""
         from massspring.kernels.self_collision import self_collision_list
 
-        found = self_collision_list(self.dev, self.cfg, self.list, state, self.dt, self.parameters[0], self.serial)
+        found = self_collision_list(self.dev, self.cfg, self.list, state, self.parameters[0], self.serial)
         while found > self.capacity:
             self._grow(found)
-            found = self_collision_list(self.dev, self.cfg, self.list, state, self.dt, self.parameters[0],
-                                        self.serial)
+            found = self_collision_list(self.dev, self.cfg, self.list, state, self.parameters[0], self.serial)
+        self._solve_pairs(state)
+
+    def _solve_pairs(self, state):
+        """The implicit solve's pairs from the list (``cfg.self_pairs``)."""
+        from massspring.kernels.self_collision import self_collision_solve_pairs
+
+        if self.cfg.self_pairs:
+            self_collision_solve_pairs(self.dev, self.cfg, self.list, state, self.dt, self.serial)
 
     def begin(self, state):
         if self.fresh:
@@ -197,8 +241,9 @@ class Pass:
             self.fresh = False
 
     def end(self, state):
-        from massspring.kernels.self_collision import (self_collision_bound, self_collision_check,
-                                                       self_collision_detect, self_collision_restore)
+        from massspring.kernels.self_collision import (BOUND_ROUNDS, self_collision_bound, self_collision_check,
+                                                       self_collision_detect, self_collision_finish,
+                                                       self_collision_restore)
 
         self.steps += 1
         if self_collision_check(self.dev, state, self.serial) == 0:
@@ -209,7 +254,16 @@ class Pass:
             self_collision_restore(self.dev, state, self.serial)
             self._grow(int(out[0]))
             out = self_collision_detect(self.dev, self.cfg, self.list, state, self.dt, *self.parameters, self.serial)
-        held = self_collision_bound(self.dev, self.cfg, self.list, state, self.dt, self.parameters[0], self.serial)
+        thickness = self.parameters[0]
+        rounds, marked = 1, self_collision_bound(self.dev, self.cfg, self.list, state, self.dt, thickness, 1, 0,
+                                                 self.serial)
+        while marked:  # each round sets more pairs to bound their own particles (step 3 of the kernels)
+            every = int(rounds >= BOUND_ROUNDS)
+            marked = self_collision_bound(self.dev, self.cfg, self.list, state, self.dt, thickness, 0, every,
+                                          self.serial)
+            rounds += 1
+        held = self_collision_finish(self.dev, self.cfg, self.list, state, self.dt, thickness, self.serial)
+        self._solve_pairs(state)
         self.last = (int(out[0]), int(out[1]), int(held), float(out[3]), float(out[4]), self.capacity)
         if self.cfg.self_pairs:
             self.left_out = int(self.dev.sp_count[1])

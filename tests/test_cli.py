@@ -7,7 +7,7 @@ import sys
 import numpy as np
 import pytest
 
-from conftest import one_line_error, sampled
+from conftest import FULL, one_line_error, sampled
 from massspring.cli import main
 from massspring.integrators import INTEGRATORS
 from massspring.scene import builtin_scenes, load_scene
@@ -76,6 +76,18 @@ def test_info_names_compiled_terms(capsys):
     assert "fixed-filter" not in terms and "gravity" in terms
     arrays = next(line for line in text.splitlines() if line.startswith("arrays"))
     assert "minv" not in arrays and " p," not in arrays
+
+
+@FULL
+def test_info_warns_of_a_scene_dt_above_the_stability_limit_at_the_size_asked(capsys):
+    """Issue 42: ``info cloth --set resolution=128`` listed the scene's explicit dt, which
+    diverges at that size, without a word; now it says so and gives a dt."""
+    assert main(["info", "cloth"]) == 0
+    assert "stability limit" not in capsys.readouterr().out  # the dt the scene was made for holds
+    assert main(["info", "cloth", "--set", "resolution=128"]) == 0
+    line = next(line for line in capsys.readouterr().out.splitlines() if line.startswith("dt defaults"))
+    explicit = line.split(", symplectic")[0]
+    assert "above its stability limit" in explicit and "--dt " in explicit, line
 
 
 def test_bad_scene_file_names_key(tmp_path):

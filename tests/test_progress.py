@@ -14,6 +14,8 @@ def test_step_line():
     line = progress.step_line("run chain (implicit, dt 1/100 s)", 250, 1000, 0.01, 12.4, rate=25.0)
     assert line == "run chain (implicit, dt 1/100 s): step 250/1,000 (25%), 2.5 s simulated, 12 s elapsed, ~30 s left"
     assert "left" not in progress.step_line("x", 0, 10, 0.1, 3.0)
+    assert "compiling kernels" in progress.step_line("x", 0, 10, 0.1, 3.0)  # issue 42: a first run sat silent
+    assert "compiling" not in progress.step_line("x", 1, 10, 0.1, 3.0)
     assert "left" not in progress.step_line("x", 10, 10, 0.1, 3.0, rate=2.0)
 
 

@@ -341,7 +341,8 @@ def _typed(line):
 
 def plot(rows, keys, metric, path, title=""):
     """Draw ``metric`` against the first varied key (a line per value of the second, if
-    any) to ``path``; diverged and failed cases are red crosses at the foot of the axes."""
+    any) to ``path``; diverged and failed cases are red crosses at the foot of the axes.
+    An axis whose values span a decade or more (``spans_decades``) is logarithmic."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -364,10 +365,10 @@ def plot(rows, keys, metric, path, title=""):
         bad = [r for r in chosen if r["status"] != "ok"]
         ax.plot([float(r[first]) if numeric else xs.index(value_text(r[first])) for r in bad], [0.02] * len(bad),
                 "x", color="red", markersize=9, transform=ax.get_xaxis_transform(), clip_on=False)
-    if numeric and all(float(r[first]) > 0 for r in rows) and len(xs) > 1:
-        values = [float(r[first]) for r in rows]
-        if max(values) / min(values) >= 10:
-            ax.set_xscale("log")
+    if numeric and spans_decades([float(r[first]) for r in rows]):
+        ax.set_xscale("log")
+    if spans_decades([float(r[metric]) for r in rows if r["status"] == "ok" and r[metric] != ""]):
+        ax.set_yscale("log")
     if not numeric:
         ax.set_xticks(range(len(xs)), xs)
     ax.set_xlabel(first)
@@ -381,6 +382,13 @@ def plot(rows, keys, metric, path, title=""):
         fig.savefig(tmp, format="png", dpi=110)
     plt.close(fig)
     return path
+
+
+def spans_decades(values) -> bool:
+    """Whether ``values`` (numbers) are all > 0 and the largest is at least 10 times the
+    smallest: a plot's axis for them is then logarithmic."""
+    values = [float(v) for v in values]
+    return len(values) > 1 and min(values) > 0 and max(values) / min(values) >= 10
 
 
 def _is_number(value):

@@ -204,9 +204,9 @@ def print_summary(scene, sim, wall, energy0, out, start_steps=0):
     print(f"integrator  {sim.integrator}, dt = {format_seconds(sim.dt)}, {sim.precision}")
     if start_steps:
         print(f"steps       {done} from the restart at step {start_steps} to step {sim.steps} (t = "
-              f"{start_steps * sim.dt:g} to {sim.time:g} s) in {wall:.2f} s wall, {rate:.1f} steps/s")
+              f"{start_steps * sim.dt:g} to {sim.time:g} s) in {wall:.2f} s wall, {rate:.3g} steps/s")
     else:
-        print(f"steps       {sim.steps} ({sim.time:g} s simulated) in {wall:.2f} s wall, {rate:.1f} steps/s")
+        print(f"steps       {sim.steps} ({sim.time:g} s simulated) in {wall:.2f} s wall, {rate:.3g} steps/s")
     if sim.newton_iterations:
         newton = np.array(sim.newton_iterations)
         print(f"Newton      {newton.mean():.2f} iterations/step mean, {newton.max()} max, {sim.line_search_cuts} "

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from massspring.integrators import INTEGRATORS
 from massspring.terms import active_terms
 from massspring.text import format_seconds
 from massspring.cli.common import EXIT_OK, integrator_names, make_simulation
@@ -48,8 +49,7 @@ def cmd_info(args):
                                                    for p in term.parameters))
     print(f"integrator  {sim.integrator}, dt = {format_seconds(sim.dt)}, precision {sim.precision}; "
           f"default duration {scene.duration:g} s")
-    print("dt defaults " + ", ".join(f"{k} {format_seconds(scene.default_dt(k))}"
-                                     + ("" if k in scene.dt else " (from the stability estimate)")
+    print("dt defaults " + ", ".join(f"{k} {format_seconds(scene.default_dt(k))}" + _dt_note(scene, k)
                                      for k in integrator_names()))
     if info["options"]:
         levels = info.get("levels")
@@ -62,6 +62,23 @@ def cmd_info(args):
              else "particles renumbered in Z-order (the given order scatters the springs' accesses)")
     print(f"kernels     {info['loops']} loops, {order}")
     return EXIT_OK
+
+
+def _dt_note(scene, name) -> str:
+    """What ``info`` says after an integrator's default dt: where it comes from, and a
+    warning if the scene's [dt] entry is above the integrator's stability limit at this
+    size (a --set resolution=... larger than the one the entry was chosen for)."""
+    if name not in scene.dt:
+        return " (from the stability estimate)"
+    cls = INTEGRATORS[name]
+    try:
+        limit = cls.stability_limit(scene.prediction())
+    except (ValueError, ArithmeticError):
+        return ""
+    if limit is None or not scene.dt[name] > limit:
+        return ""
+    return (f" (above its stability limit {limit:.3g} s at this size: it would diverge; "
+            f"--dt {cls.suggest_dt(scene.prediction()):.3g})")
 
 
 def _option_value(value) -> str:

@@ -163,7 +163,7 @@ class Scene:
     pins: tuple = ()
     self_collision: object = None
     set_keys: tuple = ()
-    _suggested: dict = field(default_factory=dict, repr=False, compare=False)
+    _suggested: dict = field(default_factory=dict, repr=False, compare=False)  # default dts, and the prediction
 
     def with_params(self, **overrides) -> "Scene":
         """A copy with some [model] parameters or ``common_keys()`` replaced (checked like the
@@ -290,10 +290,17 @@ class Scene:
         if name in self.dt:
             return self.dt[name]
         if name not in self._suggested:
+            self._suggested[name] = INTEGRATORS[name].suggest_dt(self.prediction())
+        return self._suggested[name]
+
+    def prediction(self):
+        """The stability prediction (``analysis.stability.predict``) at the initial state,
+        computed once."""
+        if "prediction" not in self._suggested:
             from massspring.analysis.stability import predict
 
-            self._suggested[name] = INTEGRATORS[name].suggest_dt(predict(self.model()))
-        return self._suggested[name]
+            self._suggested["prediction"] = predict(self.model())
+        return self._suggested["prediction"]
 
     def simulation(self, integrator=None, dt=None, **kwargs):
         """A Simulation with the scene's defaults (integrator, dt, [solver]); any Simulation
