@@ -527,22 +527,24 @@ def detect(dev, cfg: ti.template(), pl, state, dt, thickness, friction, stiffnes
 
 
 @ti.func
-def anchor(dev, cfg: ti.template(), pl, state, count, thick, margin):
-    """Step 0 of the pass (module docstring) at the pass's end: anchors at the state's
-    positions (and x0 for the next step), free distances GAMMA (d - thickness) over each
-    particle's listed pairs, at most GAMMA (2 margin - 2 thickness) (unlisted pairs end
-    more than 2 margin - thickness apart)."""
+def anchor(dev, cfg: ti.template(), pl, state, count, thick, margin, go):
+    """Step 0 of the pass (module docstring) at the pass's end (if ``go``): anchors at
+    the state's positions (and x0 for the next step), free distances GAMMA (d -
+    thickness) over each particle's listed pairs, at most GAMMA (2 margin - 2 thickness)
+    (unlisted pairs end more than 2 margin - thickness apart)."""
     cap = GAMMA * ti.max(2 * margin - 2 * thick, 0)
     for i in range(dev.size[0]):
-        dev.sc_start[i] = state.x[i]
-        dev.sc_anchor[i] = state.x[i]
-        dev.sc_free[i] = cap
+        if go:
+            dev.sc_start[i] = state.x[i]
+            dev.sc_anchor[i] = state.x[i]
+            dev.sc_free[i] = cap
     for slot in range(count):
-        idx = pl.pidx[slot]
-        d, _ = listed_pair(state.x, idx, pl.pkind[slot], cfg.real)
-        allowed = GAMMA * ti.max(d - thick, 0)
-        for k in ti.static(range(4)):
-            ti.atomic_min(dev.sc_free[idx[k]], allowed)
+        if go:
+            idx = pl.pidx[slot]
+            d, _ = listed_pair(state.x, idx, pl.pkind[slot], cfg.real)
+            allowed = GAMMA * ti.max(d - thick, 0)
+            for k in ti.static(range(4)):
+                ti.atomic_min(dev.sc_free[idx[k]], allowed)
 
 
 @ti.func
@@ -551,8 +553,9 @@ def bound(dev, cfg: ti.template(), pl, state, dt, thickness, first, every):
     pair still checked by its relative approach (``pbound`` RELATIVE) whose particles
     approach by more than it allows (all of them with ``every``) bounds its own
     particles from now on; those newly set are projected (``first``: the round after
-    ``detect``) and then held back. Returns the pairs newly set: a round that sets none
-    leaves every pair's bound met."""
+    ``detect``) and then held back. A round that sets none leaves every pair's bound
+    met and is the last: it counts the particles held back and sets step 0's anchors.
+    Returns (pairs newly set, particles held back)."""
     n = dev.size[0]
     h = ti.cast(dt, cfg.real)
     thick = ti.cast(thickness, cfg.real)
@@ -589,21 +592,13 @@ def bound(dev, cfg: ti.template(), pl, state, dt, thickness, first, every):
     for slot in range(count):
         if pl.pbound[slot] == NEW:
             pl.pbound[slot] = OWN
-    return dev.sc_tally[4]
-
-
-@ti.func
-def finish(dev, cfg: ti.template(), pl, state, dt, thickness):
-    """After the last round of ``bound``: step 0's anchors. Returns the number of
-    particles held back."""
-    thick = ti.cast(thickness, cfg.real)
-    margin = ti.cast(dev.sc_box[9], cfg.real)
+    last = dev.sc_tally[4] == 0
     dev.sc_tally[2] = 0
-    for i in range(dev.size[0]):
-        if dev.sc_hits[i] == 1:
+    for i in range(n):
+        if last and dev.sc_hits[i] == 1:
             ti.atomic_add(dev.sc_tally[2], 1)
-    anchor(dev, cfg, pl, state, dev.sc_tally[0], thick, margin)
-    return dev.sc_tally[2]
+    anchor(dev, cfg, pl, state, count, thick, ti.cast(dev.sc_box[9], cfg.real), last)
+    return ti.Vector([dev.sc_tally[4], dev.sc_tally[2]])
 
 
 @ti.kernel
@@ -628,35 +623,19 @@ def self_collision_detect(dev: ti.template(), cfg: ti.template(), pl: ti.templat
 @ti.kernel
 def self_collision_bound(dev: ti.template(), cfg: ti.template(), pl: ti.template(), state: ti.template(),
                          dt: ti.f64, thickness: ti.f64, first: ti.i32, every: ti.i32,
-                         serial: ti.template()) -> ti.i32:
+                         serial: ti.template()) -> ti.types.vector(2, ti.i32):
     """A round of ``bound`` after ``self_collision_detect`` (whose pairs fitted ``pl``);
-    returns the pairs it newly set to bound their own particles (none: the last round)."""
-    out = 0
+    returns (the pairs it newly set to bound their own particles, none in the last
+    round; the particles held back, counted in the last round)."""
+    out = ti.Vector.zero(ti.i32, 2)
     if ti.static(serial):
         ti.loop_config(serialize=True)
         for _ in range(1):
-            marked = bound(dev, cfg, pl, state, dt, thickness, first, every)
-            out = marked
+            result = bound(dev, cfg, pl, state, dt, thickness, first, every)
+            out = result
     else:
-        marked = bound(dev, cfg, pl, state, dt, thickness, first, every)
-        out = marked
-    return out
-
-
-@ti.kernel
-def self_collision_finish(dev: ti.template(), cfg: ti.template(), pl: ti.template(), state: ti.template(),
-                          dt: ti.f64, thickness: ti.f64, serial: ti.template()) -> ti.i32:
-    """``finish`` after the last round of ``self_collision_bound``; returns the particles
-    held back."""
-    out = 0
-    if ti.static(serial):
-        ti.loop_config(serialize=True)
-        for _ in range(1):
-            held = finish(dev, cfg, pl, state, dt, thickness)
-            out = held
-    else:
-        held = finish(dev, cfg, pl, state, dt, thickness)
-        out = held
+        result = bound(dev, cfg, pl, state, dt, thickness, first, every)
+        out = result
     return out
 
 

@@ -242,8 +242,7 @@ class Pass:
 
     def end(self, state):
         from massspring.kernels.self_collision import (BOUND_ROUNDS, self_collision_bound, self_collision_check,
-                                                       self_collision_detect, self_collision_finish,
-                                                       self_collision_restore)
+                                                       self_collision_detect, self_collision_restore)
 
         self.steps += 1
         if self_collision_check(self.dev, state, self.serial) == 0:
@@ -254,15 +253,11 @@ class Pass:
             self_collision_restore(self.dev, state, self.serial)
             self._grow(int(out[0]))
             out = self_collision_detect(self.dev, self.cfg, self.list, state, self.dt, *self.parameters, self.serial)
-        thickness = self.parameters[0]
-        rounds, marked = 1, self_collision_bound(self.dev, self.cfg, self.list, state, self.dt, thickness, 1, 0,
-                                                 self.serial)
+        thickness, rounds, marked = self.parameters[0], 0, 1
         while marked:  # each round sets more pairs to bound their own particles (step 3 of the kernels)
-            every = int(rounds >= BOUND_ROUNDS)
-            marked = self_collision_bound(self.dev, self.cfg, self.list, state, self.dt, thickness, 0, every,
-                                          self.serial)
+            marked, held = self_collision_bound(self.dev, self.cfg, self.list, state, self.dt, thickness,
+                                                int(rounds == 0), int(rounds >= BOUND_ROUNDS), self.serial)
             rounds += 1
-        held = self_collision_finish(self.dev, self.cfg, self.list, state, self.dt, thickness, self.serial)
         self._solve_pairs(state)
         self.last = (int(out[0]), int(out[1]), int(held), float(out[3]), float(out[4]), self.capacity)
         if self.cfg.self_pairs:

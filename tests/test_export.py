@@ -472,3 +472,45 @@ def test_read_frames_after_sigkill_of_a_real_run(tmp_path):
 def test_read_frames_names_a_directory_that_is_no_export(tmp_path):
     with pytest.raises(ValueError, match="manifest.json.*not the manifest of an export"):
         frames_io.read_frames(tmp_path)
+
+
+@pytest.mark.parametrize("manifest, words", [
+    ({"status": "complete", "journal": None, "frames": [{"file": "/etc/passwd", "step": 0, "time": 0.0}]},
+     "'/etc/passwd' is not a file name inside"),
+    ({"status": "complete", "journal": None, "frames": [{"file": "../x.obj", "step": 0, "time": 0.0}]},
+     "'../x.obj' is not a file name inside"),
+    ({"status": "running", "journal": "/etc/passwd", "frames": []}, "'/etc/passwd' is not a file name inside"),
+    ({"status": "complete", "journal": None, "frames": {"file": "a"}}, "frames: expected a list, got dict"),
+    ({"status": "complete", "journal": None, "frames": ["frame_00000.obj"]}, "expected {file, step, time}"),
+    ({"status": "complete", "journal": None, "frames": [{"file": "a.obj", "step": "0", "time": 0}]},
+     "step and time must be numbers"),
+])
+def test_read_frames_refuses_a_crafted_manifest(tmp_path, manifest, words):
+    """Issue 42: a crafted manifest made ``read_frames`` return absolute paths
+    (/etc/passwd) or non-lists; it now names the manifest and what is wrong."""
+    (tmp_path / "manifest.json").write_text(json.dumps(manifest))
+    with pytest.raises(ValueError, match="not the manifest of an export") as info:
+        frames_io.read_frames(tmp_path)
+    assert words in str(info.value)
+
+
+def test_read_frames_reads_regular_bounded_files_only(tmp_path, monkeypatch):
+    """Issue 42: a FIFO manifest hung ``read_frames``, /dev/zero or an 8 GB sparse one
+    was read whole, and nested JSON raised RecursionError."""
+    fifo = tmp_path / "fifo"
+    fifo.mkdir()
+    os.mkfifo(fifo / "manifest.json")
+    with pytest.raises(ValueError, match="not a regular file"):
+        frames_io.read_frames(fifo)
+    nested = tmp_path / "nested"
+    nested.mkdir()
+    (nested / "manifest.json").write_text("[" * 100000 + "]" * 100000)
+    with pytest.raises(ValueError, match="not the manifest of an export"):
+        frames_io.read_frames(nested)
+    monkeypatch.setattr(frames_io, "MAX_LIST_BYTES", 1000)
+    big = tmp_path / "big"
+    big.mkdir()
+    with open(big / "manifest.json", "wb") as fh:
+        fh.truncate(8 * 2**30)  # sparse: 8 GB that take no disk
+    with pytest.raises(ValueError, match="more than 0 MB"):
+        frames_io.read_frames(big)

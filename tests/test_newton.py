@@ -195,3 +195,15 @@ def test_cli_newton_options(capsys):
     one_line_error(capsys, "--newton-tol")
     assert main(["run", "stiffchain", "--newton-max-iter", "0", "--quiet"]) == 2
     one_line_error(capsys, "--newton-max-iter")
+
+
+@FULL
+def test_the_summary_advises_when_newton_stops_at_its_limit(capsys):
+    """Issue 42: runs that reached the Newton limit said only "N step(s) not converged"."""
+    from massspring.cli import main
+
+    assert main(["run", "chain", "--integrator", "backward-euler", "--newton-max-iter", "1", "--newton-tol", "1e-14",
+                 "--steps", "3", "--quiet"]) == 0
+    out = capsys.readouterr().out
+    assert "note        Newton stopped at --newton-max-iter 1 before --newton-tol 1e-14 on 3 of 3 steps" in out, out
+    assert "smaller --dt" in out

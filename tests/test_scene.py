@@ -276,3 +276,14 @@ def test_rope_drop_lands_on_the_ball_and_slides_off():
     sim.step(round(1.5 / sim.dt) - sim.steps)
     assert on_ball() == 0
     sim.close()
+
+
+def test_errors_about_a_built_in_scene_name_it_not_its_file():
+    """Issue 42: the memory refusal of ``run cloth --set resolution=...`` named a
+    site-packages path (the installed scene file) instead of the scene."""
+    scene = ms.load_scene("cloth")
+    assert scene.builtin and scene.label == "scene 'cloth'"
+    with pytest.raises(ValueError, match=r"^scene 'cloth': model: resolution = 20000 gives 400,000,000 particles"):
+        scene.with_params(resolution=20000).simulation()
+    copy = ms.load_scene(scene.source)  # the same file by its path: a file of the user's
+    assert not copy.builtin and copy.label == scene.source

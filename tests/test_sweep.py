@@ -284,3 +284,50 @@ def test_stability_ladder_and_study_on_a_cluster_equal_the_serial_ones(client):
     assert [(r.integrator, r.dt, r.error, r.steps) for r in b.runs] == [(r.integrator, r.dt, r.error, r.steps)
                                                                         for r in a.runs]
     assert all(r.error is not None for r in a.runs)
+
+
+def test_equal_values_written_differently_are_one_value():
+    """Issue 42: ``--vary stiffness=1000,1e3`` ran the same case twice."""
+    scene = ms.load_scene("spring")
+    with pytest.raises(ValueError, match=r"vary stiffness: a value given twice \(1000 and 1000.0\)"):
+        sweep.plan(scene, {"stiffness": [1000, 1e3]})
+
+
+def test_the_case_count_is_bounded_before_any_model_is_built_even_when_confirmed(monkeypatch):
+    """Issue 42: ``--yes`` with 10^7 cases took 15 GB before the first case."""
+    scene = ms.load_scene("spring")
+    built = []
+    monkeypatch.setattr(type(scene), "model", lambda self: built.append(1))
+    vary = {"stiffness": list(range(1, 1001)), "damping": list(range(1, 1001))}
+    with pytest.raises(ValueError, match=r"vary: 1,000,000 cases, more than 100,000"):
+        sweep.plan(scene, vary, confirm=True)
+    assert built == []
+
+
+def test_numpy_values_are_written_as_numbers():
+    """Issue 42: ``ms.sweep`` wrote ``np.float64(100.0)`` into the CSV."""
+    assert sweep.value_text(np.float64(100.0)) == "100.0" and sweep.value_text(np.int64(3)) == "3"
+    assert sweep._cell(np.float64(0.5)) == "0.5"
+
+
+def test_a_row_cut_inside_its_last_field_is_not_finished(tmp_path):
+    """Issue 42: a line cut inside its last field (24.5 written as 24) was kept as a
+    finished case, so a resumed sweep never ran it again."""
+    out = tmp_path / "s.csv"
+    header = ",".join(["case", "stiffness", *sweep.COLUMNS])
+    out.write_text(header + "\r\n1,10,ok,,5,0.05,0.1,1.5,0.01,24.5\r\n2,20,ok,,5,0.05,0.1,1.5,0.01,24")
+    results = sweep.Results(out, ["stiffness"])
+    results.close()
+    assert list(results.done) == [("10",)]
+    assert out.read_bytes().endswith(b"24.5\r\n")  # the cut line dropped from the file too
+
+
+def test_two_sweeps_cannot_write_one_csv(tmp_path):
+    """Issue 42: two sweeps on one CSV wrote every case twice; the second is now refused
+    while the first holds it, and runs once it is done."""
+    out = tmp_path / "s.csv"
+    first = sweep.Results(out, ["stiffness"])
+    with pytest.raises(ValueError, match="is being written by another sweep"):
+        sweep.Results(out, ["stiffness"])
+    first.close()
+    sweep.Results(out, ["stiffness"]).close()

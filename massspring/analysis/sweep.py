@@ -34,6 +34,7 @@ NUMBERS = ("steps", "time", "wall_s", "energy", "max_strain", "cg_iterations")
 METRICS = ("energy", "max_strain", "wall_s", "steps", "time", "cg_iterations")
 UNITS = {"energy": "J", "wall_s": "s", "time": "s"}
 MAX_CASES = 200  # more than this needs confirm=True (--yes)
+MOST_CASES = 100_000  # more than this is refused even with confirm (each case is a run: days of them)
 
 
 @dataclass(frozen=True)
@@ -56,8 +57,10 @@ def value_text(value) -> str:
     """A value as the CSV writes it (and a resumed sweep compares it): TOML-like."""
     if isinstance(value, bool):
         return "true" if value else "false"
-    if isinstance(value, float):
-        return repr(value)
+    if isinstance(value, (float, np.floating)):
+        return repr(float(value))  # a NumPy float as the number it holds, not np.float64(...)
+    if isinstance(value, np.integer):
+        return str(int(value))
     if isinstance(value, (list, tuple)):
         return "[" + ",".join(value_text(v) for v in value) + "]"
     return str(value)
@@ -115,9 +118,19 @@ def plan(scene, vary, integrator=None, confirm=False, limit=MAX_CASES, option="v
             raise ValueError(f"{where}: unknown key; expected one of {', '.join(sorted(known | set(RUN_KEYS)))}")
         if not isinstance(values, (list, tuple)) or not values:
             raise ValueError(f"{where}: no values")
-        texts = [value_text(v) for v in values]
-        if len(set(texts)) < len(texts):
-            raise ValueError(f"{where}: a value given twice ({', '.join(texts)})")
+        seen = {}
+        for k, value in enumerate(values):  # 1000 and 1e3 are one value
+            first = seen.setdefault(_same_value(value), k)
+            if first != k:
+                raise ValueError(f"{where}: a value given twice ({value_text(values[first])} and "
+                                 f"{value_text(value)})")
+    count = math.prod(len(v) for v in vary.values())
+    if count > MOST_CASES or (count > limit and not confirm):
+        more = (f"more than {MOST_CASES:,}, more than a sweep runs; split it" if count > MOST_CASES else
+                f"more than {limit}; pass --yes (confirm=True) to run them all")
+        raise ValueError(f"{option}: {count:,} cases, {more}")
+    for key, values in vary.items():
+        where = f"{option} {key}"
         for value in values:
             try:
                 if key == "dt":
@@ -134,9 +147,6 @@ def plan(scene, vary, integrator=None, confirm=False, limit=MAX_CASES, option="v
     if "preconditioner" in vary and "integrator" not in vary and not INTEGRATORS[fixed].linear_solver:
         raise ValueError(f"{option} preconditioner: {fixed} solves no linear system; vary it with "
                          + ", ".join(k for k, cls in INTEGRATORS.items() if cls.linear_solver))
-    count = math.prod(len(v) for v in vary.values())
-    if count > limit and not confirm:
-        raise ValueError(f"{option}: {count} cases, more than {limit}; pass --yes (confirm=True) to run them all")
     keys = list(vary)
     return [Case(n, tuple(zip(keys, combo))) for n, combo in enumerate(itertools.product(*vary.values()), start=1)]
 
@@ -218,11 +228,16 @@ class Results:
         self.keys = list(keys)
         self.header = ["case", *keys, *COLUMNS]
         self.done = {}
-        if self.path.exists():
-            self._read()
-        else:
-            with open(self.path, "w", newline="") as fh:
-                csv.writer(fh).writerow(self.header)
+        self.lock = _lock(self.path)
+        try:
+            if self.path.exists():
+                self._read()
+            else:
+                with open(self.path, "w", newline="") as fh:
+                    csv.writer(fh).writerow(self.header)
+        except BaseException:
+            self.close()
+            raise
 
     def _read(self):
         with open(self.path, newline="") as fh:
@@ -232,6 +247,8 @@ class Results:
             found = ",".join(lines[0]) if lines else "nothing"
             raise ValueError(f"--out: {str(self.path)!r} holds another table (columns {found}; this sweep "
                              f"writes {','.join(self.header)}); give another --out")
+        if not text.endswith("\n"):
+            lines = lines[:1] + lines[1:-1]  # the last line was cut (a crash inside its write): not finished
         kept = [lines[0]]
         for line in lines[1:]:
             if len(line) == len(self.header):  # a line cut short by a crash is dropped
@@ -245,6 +262,12 @@ class Results:
                 csv.writer(out).writerows(kept)
                 fh.write(out.getvalue().encode())
 
+    def close(self):
+        """Let another sweep write the CSV."""
+        if self.lock is not None:
+            os.close(self.lock)
+            self.lock = None
+
     def append(self, case, row):
         out = io.StringIO()
         csv.writer(out).writerow([case.number, *case.texts, *(_cell(row[k]) for k in COLUMNS)])
@@ -254,8 +277,25 @@ class Results:
             os.fsync(fh.fileno())
 
 
+def _lock(path):
+    """An exclusive lock (``fcntl.flock``) on ``path``'s hidden sidecar ``.NAME.lock``,
+    held until ``Results.close``: a second sweep on the same CSV is refused at once
+    instead of writing every case twice. Returns the lock's file descriptor."""
+    import fcntl
+
+    lock = path.with_name(f".{path.name}.lock")
+    fd = os.open(lock, os.O_RDWR | os.O_CREAT, 0o666)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError:
+        os.close(fd)
+        raise ValueError(f"--out: {str(path)!r} is being written by another sweep (it holds {lock.name}); "
+                         "wait for it to end or give another --out") from None
+    return fd
+
+
 def _cell(value):
-    return repr(value) if isinstance(value, float) else str(value)
+    return repr(float(value)) if isinstance(value, (float, np.floating)) else str(value)
 
 
 def sweep(scene, vary, *, integrator=None, dt=None, duration=None, steps=None, out=None, states=None,
@@ -314,7 +354,11 @@ def sweep(scene, vary, *, integrator=None, dt=None, duration=None, steps=None, o
             progress(case, row)
 
     tasks = [(scene, case, integrator, dt, duration, steps, options, keep) for case in todo]
-    cluster.run_tasks(run_case, tasks, client=client, on_result=finished, keep_lost=True)
+    try:
+        cluster.run_tasks(run_case, tasks, client=client, on_result=finished, keep_lost=True)
+    finally:
+        if results:
+            results.close()
     return [rows[case.number] for case in cases]
 
 
@@ -389,6 +433,14 @@ def spans_decades(values) -> bool:
     smallest: a plot's axis for them is then logarithmic."""
     values = [float(v) for v in values]
     return len(values) > 1 and min(values) > 0 and max(values) / min(values) >= 10
+
+
+def _same_value(value):
+    """What makes two varied values the same: numbers by value (1000 and 1e3), the rest
+    by their CSV text."""
+    if _is_number(value) and not isinstance(value, (bool, str)):
+        return ("number", float(value))
+    return ("text", value_text(value))
 
 
 def _is_number(value):

@@ -211,6 +211,10 @@ def print_summary(scene, sim, wall, energy0, out, start_steps=0):
         newton = np.array(sim.newton_iterations)
         print(f"Newton      {newton.mean():.2f} iterations/step mean, {newton.max()} max, {sim.line_search_cuts} "
               f"line-search cut(s), {sim.cg_failures} step(s) not converged (tol {sim.newton_tol:g})")
+        if sim.cg_failures:
+            print(f"note        Newton stopped at --newton-max-iter {sim.newton_max_iter} before --newton-tol "
+                  f"{sim.newton_tol:g} on {sim.cg_failures} of {len(newton)} steps: raise --newton-max-iter, "
+                  f"or take a smaller --dt (a step closer to its start converges in fewer iterations)")
     if sim.cg_iterations:
         its = np.array(sim.cg_iterations)
         failed = "" if sim.newton_iterations else f", {sim.cg_failures} step(s) not converged"

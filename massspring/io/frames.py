@@ -56,6 +56,7 @@ from massspring.extras import install_hint
 from massspring.io.files import atomic_output, atomic_path, check_writable, write_json
 from massspring.io.obj import write_obj
 from massspring.io.state import write_state
+from massspring.text import brief, clipped
 
 MANIFEST = "manifest.json"
 JOURNAL = "frames.jsonl"
@@ -107,24 +108,65 @@ FORMATS = {f.name: f for f in (
 DEFAULT_FORMAT = "obj"
 
 
+MAX_LIST_BYTES = 256 * 2**20  # the largest manifest or journal ``read_frames`` reads (about 3 million frames)
+
+
 def read_frames(directory):
     """The frames (each {``file``, ``step``, ``time``}) of the last export into
     ``directory`` that are on disk, in order: the manifest's list once its run ended;
     while the run goes, or if its process was killed outright (SIGKILL), the journal's
     lines whose file is in place (only the last can be missing: the process was killed
     while writing it). Raises ValueError naming the file if ``directory`` holds no
-    export's manifest."""
+    export's manifest, or one that is not a regular file of at most ``MAX_LIST_BYTES``,
+    not JSON of the shape above, or that names a file outside ``directory``."""
     directory = Path(directory)
+    where = directory / MANIFEST
     try:
-        manifest = json.loads((directory / MANIFEST).read_text())
+        manifest = json.loads(_read_list_file(where))
         frames, journal = manifest["frames"], manifest["journal"]
         if manifest["status"] != "running" or journal is None:
-            return frames
-        with open(directory / journal, "rb") as fh:
-            lines = fh.read().split(b"\n")[:-1]  # a line without its newline is not there yet
-        return [f for f in map(json.loads, lines) if (directory / f["file"]).exists()]
-    except (OSError, ValueError, KeyError, TypeError) as exc:
-        raise ValueError(f"{str(directory / MANIFEST)!r}: not the manifest of an export ({exc})") from None
+            return [_frame(f, directory) for f in _as_list(frames)]
+        where = directory / _inside(journal, directory)
+        lines = _read_list_file(where).split(b"\n")[:-1]  # a line without its newline is not there yet
+        return [f for f in (_frame(json.loads(line), directory) for line in lines) if (directory / f["file"]).exists()]
+    except (OSError, ValueError, KeyError, TypeError, RecursionError) as exc:
+        raise ValueError(f"{str(where)!r}: not the manifest of an export ({clipped(str(exc), 300)})") from None
+
+
+def _read_list_file(path):
+    """The bytes of ``path``, a regular file of at most ``MAX_LIST_BYTES`` (a FIFO or a
+    device would block or never end)."""
+    if not path.is_file():
+        raise ValueError("not a regular file")
+    with open(path, "rb") as fh:
+        data = fh.read(MAX_LIST_BYTES + 1)
+    if len(data) > MAX_LIST_BYTES:
+        raise ValueError(f"more than {MAX_LIST_BYTES // 2**20} MB")
+    return data
+
+
+def _as_list(value):
+    if not isinstance(value, list):
+        raise ValueError(f"frames: expected a list, got {type(value).__name__}")
+    return value
+
+
+def _inside(name, directory):
+    """``name`` if it is a relative path that stays inside ``directory``, else ValueError."""
+    if not isinstance(name, str) or not name or Path(name).is_absolute() or ".." in Path(name).parts:
+        raise ValueError(f"{brief(name, 80)} is not a file name inside {str(directory)!r}")
+    return name
+
+
+def _frame(entry, directory):
+    """A frame entry checked: {``file`` (inside ``directory``), ``step`` (int), ``time`` (number)}."""
+    if not isinstance(entry, dict) or not {"file", "step", "time"} <= set(entry):
+        raise ValueError(f"a frame: expected {{file, step, time}}, got {brief(entry, 80)}")
+    if not isinstance(entry["step"], int) or isinstance(entry["time"], bool) \
+            or not isinstance(entry["time"], (int, float)):
+        raise ValueError(f"a frame: step and time must be numbers, got {brief(entry, 80)}")
+    _inside(entry["file"], directory)
+    return entry
 
 
 def check_format(fmt, name="format"):

@@ -141,7 +141,8 @@ class Scene:
     (defaults filled in); ``colliders``: its [[collider]] tables as
     ``massspring.Plane``/``Sphere``/``Box``; ``self_collision``: its [self_collision]
     table as a ``massspring.SelfCollision`` (None without one); ``pins``: its [[pin]] tables as
-    (index, velocity) pairs; ``set_keys``: the [model] keys changed by ``with_settings``
+    (index, velocity) pairs; ``builtin``: whether it is a built-in scene (its errors name
+    it, not its file: ``label``); ``set_keys``: the [model] keys changed by ``with_settings``
     (``--set``), which errors found when the model is built then name instead of the file."""
 
     name: str
@@ -163,7 +164,13 @@ class Scene:
     pins: tuple = ()
     self_collision: object = None
     set_keys: tuple = ()
+    builtin: bool = False
     _suggested: dict = field(default_factory=dict, repr=False, compare=False)  # default dts, and the prediction
+
+    @property
+    def label(self) -> str:
+        """What errors about the scene start with: a built-in scene's name, else its file."""
+        return f"scene {self.name!r}" if self.builtin else self.source
 
     def with_params(self, **overrides) -> "Scene":
         """A copy with some [model] parameters or ``common_keys()`` replaced (checked like the
@@ -174,13 +181,13 @@ class Scene:
         shared = common_keys()
         for key, value in overrides.items():
             if key in shared:
-                common[key] = _check_common(key, value, f"{self.source}: model.{key}")
+                common[key] = _check_common(key, value, f"{self.label}: model.{key}")
                 continue
-            params[key] = _check_param(self._parameters(), key, value, self.source)
+            params[key] = _check_param(self._parameters(), key, value, self.label)
             if self.form == "mesh" and key in ("density", "mass"):
                 params["mass" if key == "density" else "density"] = None
             if self.form == "mesh" and key == "mesh":
-                surface = _read_mesh(params["mesh"], f"{self.source}: model.mesh")
+                surface = _read_mesh(params["mesh"], f"{self.label}: model.mesh")
         return dataclasses.replace(self, params=params, common=common, obj_mesh=surface, _suggested={})
 
     def _parameters(self):
@@ -226,7 +233,7 @@ class Scene:
         try:
             memory.check(need, f"model: {size}; {what}")
         except memory.MemoryNeedError as exc:
-            raise SceneError(f"{self.source}: {exc}") from None
+            raise SceneError(f"{self.label}: {exc}") from None
 
     def model(self) -> Model:
         """Build the Model (raises SceneError naming the parameter if a value is out of range,
@@ -244,11 +251,11 @@ class Scene:
             if name in self.set_keys:
                 raise SceneError(f"--set {name}: {reason}") from None
             if message.startswith("pin["):
-                raise SceneError(f"{self.source}: {message}") from None
+                raise SceneError(f"{self.label}: {message}") from None
             if self.form == "particles":
                 key = HANDMADE_ARGUMENTS.get(name, f"model.{name}")
-                raise SceneError(f"{self.source}: {key}: {reason}") from None
-            raise SceneError(f"{self.source}: model.{message}") from None
+                raise SceneError(f"{self.label}: {key}: {reason}") from None
+            raise SceneError(f"{self.label}: model.{message}") from None
 
     def _arguments(self) -> dict:
         """The Model arguments of the scene's form (before ``_contact_and_air``)."""
@@ -379,7 +386,8 @@ def load_scene(name_or_path) -> Scene:
         raise SceneError(f"{source}: not valid TOML: {brief(str(exc), 200)}") from None
     except OSError as exc:
         raise SceneError(f"{source}: cannot be read: {exc.strerror}") from None
-    return parse_scene(data, name=path.stem, source=source)
+    scene = parse_scene(data, name=path.stem, source=source)
+    return dataclasses.replace(scene, builtin=True) if str(name_or_path) in scenes else scene
 
 
 def parse_scene(data: dict, name: str, source: str) -> Scene:
