@@ -99,6 +99,17 @@ def pytest_collection_modifyitems(config, items):
 FULL = pytest.mark.full
 
 
+@pytest.fixture(autouse=True)
+def _no_progress_lines(monkeypatch):
+    """No progress line in a test's own process: one comes every ``progress.INTERVAL``
+    (5 s) of a run, and a run that compiles for that long on a loaded machine added one
+    to the stderr a test checks for a one-line error. tests/test_progress.py sets its
+    own interval."""
+    from massspring import progress
+
+    monkeypatch.setattr(progress, "INTERVAL", 3600.0)
+
+
 def sampled(cases, fast):
     """``cases`` (tuples or values) as pytest params, those not in ``fast`` marked ``full``:
     the fast tier runs a sample of a matrix, the full suite all of it."""
