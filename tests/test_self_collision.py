@@ -141,7 +141,7 @@ FALLING_DT = {"implicit": None, "backward-euler": None, "bdf2": None, "midpoint"
               "symplectic": 2e-4, "explicit": 5e-5, "rk4": 5e-4}
 
 
-@pytest.mark.fast_sample(integrator=["implicit"])
+@pytest.mark.full
 @pytest.mark.parametrize("integrator", sorted(FALLING_DT))
 def test_a_cloth_that_touches_nothing_keeps_the_energy_of_its_run_without_self_collision(integrator):
     """Issue 42: the hanging cloth with a thickness a third of its spacing, no pair of

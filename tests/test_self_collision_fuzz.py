@@ -7,9 +7,9 @@ particle with, counted by the tests' own numpy counter (``tests/crossings.py``),
 the project's detection. The draws are derandomised (the same cases on every run); a
 case that ever fails is kept below as an ``@example``, its cause fixed.
 
-The fast tier draws a few cases for the midpoint integrator (the quickest to compile);
-the full suite more, for every integrator (every drawn model falls in one capacity
-class, so each integrator's kernels compile once)."""
+The full suite draws 12 cases for every integrator (every drawn model falls in one
+capacity class, so each integrator's kernels compile once); the fast tier none (about
+25 s for any integrator's first case, most of it compiling)."""
 
 import dataclasses
 
@@ -63,10 +63,10 @@ def check(integrator, case):
     sim.close()
 
 
-@pytest.mark.fast_sample(integrator=["midpoint"])
+@pytest.mark.full
 @pytest.mark.parametrize("integrator", sorted(INTEGRATORS))
-def test_no_crossing_on_drawn_stacked_sheets(integrator, request):
-    draws = 12 if request.config.getoption("--all") else 3
+def test_no_crossing_on_drawn_stacked_sheets(integrator):
+    draws = 12
 
     @settings(max_examples=draws, deadline=None, derandomize=True, database=None,
               suppress_health_check=list(HealthCheck))
