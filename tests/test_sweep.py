@@ -314,12 +314,142 @@ def test_a_row_cut_inside_its_last_field_is_not_finished(tmp_path):
     """Issue 42: a line cut inside its last field (24.5 written as 24) was kept as a
     finished case, so a resumed sweep never ran it again."""
     out = tmp_path / "s.csv"
-    header = ",".join(["case", "stiffness", *sweep.COLUMNS])
-    out.write_text(header + "\r\n1,10,ok,,5,0.05,0.1,1.5,0.01,24.5\r\n2,20,ok,,5,0.05,0.1,1.5,0.01,24")
+    header = ",".join(["case", "stiffness", *sweep.COLUMNS, sweep.SETUP])
+    out.write_text(header + "\r\n1,10,ok,,5,0.05,0.1,1.5,0.01,24.5,steps=5 scene=ab\r\n"
+                   "2,20,ok,,5,0.05,0.1,1.5,0.01,24.5,steps=5 sc")
     results = sweep.Results(out, ["stiffness"])
     results.close()
-    assert list(results.done) == [("10",)]
-    assert out.read_bytes().endswith(b"24.5\r\n")  # the cut line dropped from the file too
+    assert list(results.done) == [1]
+    assert out.read_bytes().endswith(b"scene=ab\r\n")  # the cut line dropped from the file too
+
+
+def test_the_csv_records_each_case_setup_and_a_resume_with_other_options_or_scene_is_refused(tmp_path):
+    """Issue 42: a resume ignored every option (rows of a ``--steps 5`` sweep were returned
+    for a ``--steps 500`` one). Each row records the setup it ran with; a resume with
+    another length, option or scene is refused, naming the case and both setups."""
+    out = tmp_path / "s.csv"
+    ms.sweep(chain(), {"stiffness": [1e2]}, steps=2, out=out, options={"cg_tol": 1e-9})
+    setup = read_rows(out)[0]["setup"]
+    assert setup.startswith("cg_tol=1e-09 steps=2 scene=")
+    assert setup == sweep.setup_text(chain(), steps=2, options={"cg_tol": 1e-9})
+    for other in ({"steps": 3, "options": {"cg_tol": 1e-9}}, {"steps": 2, "options": {"cg_tol": 1e-8}},
+                  {"steps": 2, "integrator": "rk4", "options": {"cg_tol": 1e-9}}):
+        with pytest.raises(ValueError, match=r"--out: .* holds case 1 \(stiffness=100.0\) with cg_tol=1e-09 steps=2 "
+                                             r"scene=\w+, but this sweep runs it with "):
+            ms.sweep(chain(), {"stiffness": [1e2]}, out=out, **other)
+    with pytest.raises(ValueError, match="but this sweep runs it with cg_tol=1e-09 steps=2 scene="):
+        ms.sweep(chain(count=6), {"stiffness": [1e2]}, steps=2, out=out, options={"cg_tol": 1e-9})
+    assert sweep.setup_text(chain(count=6)) != sweep.setup_text(chain()) == sweep.setup_text(chain())
+    again = ms.sweep(chain(), {"stiffness": [1e2]}, steps=2, out=out, options={"cg_tol": 1e-9},
+                     progress=lambda case, row: pytest.fail("a finished case ran again"))
+    assert again[0]["status"] == "ok" and len(read_rows(out)) == 1
+
+
+def test_a_resume_whose_case_numbers_changed_is_refused_and_values_added_at_the_end_run(tmp_path):
+    """Issue 42: a changed --vary list reused case numbers (and overwrote --states files)."""
+    out = tmp_path / "s.csv"
+    ms.sweep(chain(), {"stiffness": [1e2, 1e3]}, steps=2, out=out, states=tmp_path)
+    with pytest.raises(ValueError, match=r"holds case 2 \(stiffness=1000.0\), but this sweep's case 2 is "
+                                         r"stiffness=500.0; give another --out"):
+        ms.sweep(chain(), {"stiffness": [1e2, 5e2, 1e3]}, steps=2, out=out, states=tmp_path)
+    with pytest.raises(ValueError, match=r"holds case 2 \(stiffness=1000.0\), but this sweep has 1 case"):
+        ms.sweep(chain(), {"stiffness": [1e2]}, steps=2, out=out)
+    seen = []
+    ms.sweep(chain(), {"stiffness": [1e2, 1e3, 1e4]}, steps=2, out=out, states=tmp_path,
+             progress=lambda case, row: seen.append(case.number))
+    assert seen == [3] and [r["stiffness"] for r in read_rows(out)] == ["100.0", "1000.0", "10000.0"]
+
+
+def test_an_empty_csv_is_a_new_one_and_an_unreadable_one_is_refused(tmp_path):
+    """Issue 42: a disk full as the header was written left a 0-byte CSV that every resume
+    refused; a cell longer than the csv module reads was a traceback."""
+    out = tmp_path / "s.csv"
+    out.write_text("")
+    sweep.Results(out, ["stiffness"]).close()
+    assert out.read_text().splitlines()[0] == ",".join(["case", "stiffness", *sweep.COLUMNS, sweep.SETUP])
+    out.write_text("case," + "x" * 200_000 + "\n")
+    with pytest.raises(ValueError, match=r"--out: .* is not a sweep's CSV \(field larger than field limit"):
+        sweep.Results(out, ["stiffness"])
+
+
+def test_a_state_that_cannot_be_written_stops_the_sweep_keeping_its_row(tmp_path, monkeypatch, capsys):
+    """Issue 42: a full or read-only --states lost the finished row with a traceback."""
+    import errno
+
+    from massspring.io import files
+
+    out, states = tmp_path / "s.csv", tmp_path / "states"
+    states.mkdir()
+    real = files.atomic_output
+
+    def full(path):
+        if str(path).endswith(".npz"):
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+        return real(path)
+
+    monkeypatch.setattr(files, "atomic_output", full)
+    assert main(["sweep", "chain", "--set", "count=5", "--vary", "stiffness=1e2,1e3", "--steps", "2",
+                 "--out", str(out), "--states", str(states), "--quiet"]) == 2
+    one_line_error(capsys, "--states:", "case0001.npz", "No space left on device", "the CSV holds case 1's row")
+    assert [r["case"] for r in read_rows(out)] == ["1"]
+    monkeypatch.setattr(files, "atomic_output", real)
+    states.chmod(0o500)
+    try:
+        if os.access(states, os.W_OK):  # root writes anywhere
+            return
+        assert main(["sweep", "chain", "--vary", "stiffness=1e2", "--out", str(tmp_path / "t.csv"),
+                     "--states", str(states)]) == 2
+        one_line_error(capsys, "--states:", "Permission denied")
+    finally:
+        states.chmod(0o700)
+
+
+def test_a_fifo_out_is_refused_at_once(tmp_path, capsys):
+    """Issue 42: ``--out`` on a FIFO hung."""
+    fifo = tmp_path / "s.csv"
+    os.mkfifo(fifo)
+    assert main(["sweep", "chain", "--vary", "stiffness=1e2", "--out", str(fifo)]) == 2
+    one_line_error(capsys, "--out:", "is not a regular file")
+
+
+def test_a_case_lost_with_its_worker_is_a_failed_row_and_the_sweep_goes_on(tmp_path, monkeypatch, capsys):
+    """Issue 42: a case whose worker kept dying aborted the sweep with "Unknown format
+    code 'f' for object of type 'str'" (exit 2)."""
+    def lost(function, tasks, client=None, on_result=None, keep_lost=False):
+        for index, _ in enumerate(tasks):
+            on_result(index, RuntimeError("worker lost") if index == 0 else function(*tasks[index]))
+
+    monkeypatch.setattr(sweep.cluster, "run_tasks", lost)
+    out = tmp_path / "s.csv"
+    assert main(["sweep", "chain", "--set", "count=5", "--vary", "stiffness=1e2,1e3", "--steps", "2",
+                 "--out", str(out)]) == 0
+    err = capsys.readouterr().err
+    assert "case 1 of 2 (stiffness=100.0): failed: RuntimeError: worker lost" in err
+    assert "case 2 of 2 (stiffness=1000.0): ok in " in err
+    assert [r["status"] for r in read_rows(out)] == ["failed", "ok"]
+
+
+@pytest.mark.parametrize("address", ["tls://127.0.0.1:8786", "ucx://127.0.0.1:8786"])
+def test_addresses_needing_settings_are_refused_by_name(address, capsys):
+    """Issue 42: tls:// and ucx:// addresses ended in tracebacks."""
+    pytest.importorskip("distributed", reason="the [cluster] extra (Dask distributed) is not installed")
+    assert main(["sweep", "chain", "--vary", "stiffness=1e2", "--out", "s.csv", "--address", address]) == 2
+    one_line_error(capsys, "--address:", f"{address.split(':')[0]}:// is not supported", "tcp://HOST:PORT")
+
+
+def test_a_scheduler_without_workers_is_an_error_not_a_hang(monkeypatch):
+    """Issue 42: a scheduler with no workers (or all of them killed) hung with no message."""
+    distributed = pytest.importorskip("distributed", reason="the [cluster] extra is not installed")
+    from massspring.analysis import cluster
+
+    monkeypatch.setattr(cluster, "NO_WORKER_S", 1.0)
+    monkeypatch.setattr(cluster, "POLL_S", 0.2)
+    with distributed.LocalCluster(n_workers=0, processes=False, dashboard_address=":0") as local, \
+            distributed.Client(local) as client:
+        start = time.monotonic()
+        with pytest.raises(cluster.ClusterError, match=r"no worker for 1 s \(2 task\(s\) unfinished\): start workers"):
+            cluster.run_tasks(max, [(1, 2), (3, 4)], client=client)
+        assert time.monotonic() - start < 30
 
 
 def test_two_sweeps_cannot_write_one_csv(tmp_path):

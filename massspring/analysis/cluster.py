@@ -13,6 +13,10 @@ time, its Taichi loops on its share of the CPUs, ``TI_CPU_MAX_NUM_THREADS`` = CP
 unless that variable is set) or
 ``--address tcp://HOST:PORT`` (a running ``dask scheduler``), or None for neither.
 Dask is the optional extra ``cluster`` (``extras.install_hint``).
+
+No wait on a cluster is unbounded: connecting gives up after ``timeout`` seconds, and
+``run_tasks`` raises ``ClusterError`` when the scheduler has had no worker for
+``NO_WORKER_S`` seconds or goes away (the results that came back are kept).
 """
 
 from __future__ import annotations
@@ -21,10 +25,18 @@ import contextlib
 import logging
 import os
 import threading
+import time
 
 from massspring.extras import install_hint
 
 EXTRA = install_hint("cluster")
+SCHEMES = ("tcp://",)  # what --address accepts (besides HOST:PORT, which is tcp)
+NO_WORKER_S = 60.0  # seconds a scheduler may go without workers while tasks wait
+POLL_S = 2.0  # seconds between checks of the scheduler while waiting for results
+
+
+class ClusterError(RuntimeError):
+    """The cluster cannot finish the tasks: no workers, or the scheduler went away."""
 
 # One Taichi runtime per process: tasks on a worker with several threads take turns.
 _TAICHI = threading.Lock()
@@ -54,6 +66,9 @@ def check_options(workers=None, address=None):
         raise ValueError(f"--workers: expected a number of worker processes in 1..1024, got {workers!r}")
     if address is not None and (not isinstance(address, str) or "://" not in address and ":" not in address):
         raise ValueError(f"--address: expected a scheduler address such as tcp://HOST:8786, got {address!r}")
+    if isinstance(address, str) and "://" in address and not address.startswith(SCHEMES):
+        raise ValueError(f"--address: {address.split('://')[0]}:// is not supported (TLS and UCX need settings "
+                         f"this command does not take); give a tcp://HOST:PORT address")
     if workers is not None or address is not None:
         _distributed()
 
@@ -71,8 +86,9 @@ def cluster(workers=None, address=None, timeout=10):
     if address is not None:
         try:
             client = distributed.Client(address, timeout=timeout)
-        except OSError as exc:
-            raise ValueError(f"--address: no Dask scheduler answers at {address} ({exc})") from None
+        except (OSError, ValueError, TypeError) as exc:  # refused, timed out, or an address Dask cannot parse
+            raise ValueError(f"--address: no Dask scheduler answers at {address} within {timeout} s "
+                             f"({type(exc).__name__}: {exc})") from None
         with client:
             yield client
         return
@@ -103,17 +119,50 @@ def run_tasks(function, tasks, client=None, on_result=None, keep_lost=False):
         return results
     distributed = _distributed()
     futures = {client.submit(exclusive, function, *task, pure=False): index for index, task in enumerate(tasks)}
+    pending, alone_since = set(futures), None
     try:
-        for future in distributed.as_completed(futures):
-            index = futures[future]
+        while pending:
             try:
-                results[index] = future.result()
-            except distributed.KilledWorker as exc:  # its worker died more often than Dask retries
-                if not keep_lost:
-                    raise
-                results[index] = exc
-            if on_result:
-                on_result(index, results[index])
+                done = distributed.wait(pending, timeout=POLL_S, return_when="FIRST_COMPLETED").done
+            except TimeoutError:
+                done = ()
+            for future in done:
+                pending.discard(future)
+                index = futures[future]
+                try:
+                    results[index] = future.result()
+                except distributed.KilledWorker as exc:  # its worker died more often than Dask retries
+                    if not keep_lost:
+                        raise
+                    results[index] = exc
+                except distributed.client.FutureCancelledError:
+                    raise ClusterError(f"the Dask scheduler went away with {len(pending) + 1} task(s) "
+                                       "unfinished") from None
+                if on_result:
+                    on_result(index, results[index])
+            if pending and not done:
+                alone_since = _check_workers(client, alone_since, len(pending))
     finally:
-        client.cancel(list(futures))
+        with contextlib.suppress(Exception):  # a scheduler that is gone has nothing to cancel
+            client.cancel(list(futures))
     return results
+
+
+def _check_workers(client, alone_since, waiting):
+    """While ``waiting`` tasks wait: the time since which the scheduler has had no worker
+    (None while it has one); ClusterError after ``NO_WORKER_S`` seconds without one, or
+    when the scheduler does not answer."""
+    try:
+        workers = client.scheduler_info(n_workers=-1).get("workers", {})
+    except Exception as exc:
+        raise ClusterError(f"the Dask scheduler does not answer ({type(exc).__name__}: {exc}); "
+                           f"{waiting} task(s) unfinished") from None
+    if workers:
+        return None
+    now = time.monotonic()
+    if alone_since is None:
+        return now
+    if now - alone_since > NO_WORKER_S:
+        raise ClusterError(f"the Dask scheduler has had no worker for {NO_WORKER_S:g} s ({waiting} task(s) "
+                           "unfinished): start workers (dask worker ADDRESS) and run the same command again")
+    return alone_since

@@ -9,12 +9,17 @@ Keys are the scene's model parameters (as ``--set``), plus ``dt``, ``integrator`
 ``preconditioner``. A row holds the varied values, ``status`` (``ok``, ``diverged``,
 ``failed``) and ``message``, ``steps``, ``time`` (simulated s), ``wall_s``, ``energy``
 (the final total energy, J, ``Model.energy``), ``max_strain`` (the largest |l / l0 - 1|
-of a spring at the end) and ``cg_iterations`` (mean per step, implicit integrators).
+of a spring at the end), ``cg_iterations`` (mean per step, implicit integrators) and
+``setup`` (``setup_text``: the integrator, dt, length and Simulation options the case ran
+with, and a digest of the scene). A resumed sweep skips a case only if its row holds
+the same number, values and setup; a CSV whose rows disagree with the sweep is refused.
 """
 
 from __future__ import annotations
 
 import csv
+import dataclasses
+import hashlib
 import io
 import itertools
 import math
@@ -30,6 +35,7 @@ from massspring.analysis import cluster
 
 RUN_KEYS = ("dt", "integrator", "preconditioner")
 COLUMNS = ("status", "message", "steps", "time", "wall_s", "energy", "max_strain", "cg_iterations")
+SETUP = "setup"  # the last column: what every case of the sweep ran with (setup_text)
 NUMBERS = ("steps", "time", "wall_s", "energy", "max_strain", "cg_iterations")
 METRICS = ("energy", "max_strain", "wall_s", "steps", "time", "cg_iterations")
 UNITS = {"energy": "J", "wall_s": "s", "time": "s"}
@@ -167,6 +173,36 @@ def check_duration(scene, cases, duration, integrator=None, dt=None, option="dur
                              f"{duration / step:.3g} steps, more than {MAX_STEPS:.3g}")
 
 
+def setup_text(scene, integrator=None, dt=None, duration=None, steps=None, options=None) -> str:
+    """What a case's result depends on besides its varied values, as one line of text:
+    ``integrator``, ``dt``, ``duration``, ``steps`` and the Simulation ``options`` that
+    are set (sorted, ``key=value``), then ``scene=`` and a digest of every field of the
+    scene (its parameters, colliders, pins, solver table, mesh or tables and default dts),
+    so that a changed scene file, ``--set`` or option makes another setup."""
+    run = {"integrator": integrator, "dt": dt, "duration": duration, "steps": steps, **(options or {})}
+    fields = [f"{key}={value_text(value)}" for key, value in sorted(run.items()) if value is not None]
+    digest = hashlib.sha256(_canonical(scene).encode()).hexdigest()[:16]
+    return " ".join([*fields, f"scene={digest}"])
+
+
+def _canonical(value) -> str:
+    """``value`` as text that two equal values share: dicts sorted, arrays by dtype,
+    shape and a hash of their bytes, dataclasses field by field, numbers as ``value_text``."""
+    if isinstance(value, dict):
+        return "{" + ",".join(f"{key!r}:{_canonical(v)}" for key, v in sorted(value.items(), key=repr)) + "}"
+    if isinstance(value, (list, tuple)):
+        return "[" + ",".join(_canonical(v) for v in value) + "]"
+    if isinstance(value, np.ndarray):
+        data = np.ascontiguousarray(value)
+        return f"array{data.shape}{data.dtype}:{hashlib.sha256(data.tobytes()).hexdigest()}"
+    if dataclasses.is_dataclass(value) and not isinstance(value, type):
+        fields = {f.name: getattr(value, f.name) for f in dataclasses.fields(value) if not f.name.startswith("_")}
+        return type(value).__name__ + _canonical(fields)
+    if isinstance(value, (bool, int, float, np.integer, np.floating)):
+        return value_text(value)
+    return repr(value)
+
+
 def run_case(scene, case, integrator=None, dt=None, duration=None, steps=None, options=None, keep_state=False):
     """Run one case to its end and measure it; never raises for the run's own failure.
 
@@ -220,21 +256,21 @@ def run_case(scene, case, integrator=None, dt=None, duration=None, steps=None, o
 
 
 class Results:
-    """The sweep's CSV: its header, the rows already there (a resumed sweep skips their
-    cases), and appending a row as a case finishes (one write of a whole line)."""
+    """The sweep's CSV: its header, the rows already there by case number (a resumed
+    sweep checks them against its cases and skips them), and appending a row as a case
+    finishes (one write of a whole line)."""
 
     def __init__(self, path, keys):
         self.path = Path(path)
         self.keys = list(keys)
-        self.header = ["case", *keys, *COLUMNS]
-        self.done = {}
+        self.header = ["case", *keys, *COLUMNS, SETUP]
+        self.done = {}  # case number -> the row as read (text)
         self.lock = _lock(self.path)
         try:
-            if self.path.exists():
+            if self.path.exists() and self.path.stat().st_size > 0:
                 self._read()
-            else:
-                with open(self.path, "w", newline="") as fh:
-                    csv.writer(fh).writerow(self.header)
+            else:  # a new CSV, or an empty one (a disk that was full as the header was written)
+                self._write([self.header])
         except BaseException:
             self.close()
             raise
@@ -242,7 +278,10 @@ class Results:
     def _read(self):
         with open(self.path, newline="") as fh:
             text = fh.read()
-        lines = list(csv.reader(io.StringIO(text)))
+        try:
+            lines = list(csv.reader(io.StringIO(text)))
+        except csv.Error as exc:  # e.g. a cell longer than the csv module's field limit
+            raise ValueError(f"--out: {str(self.path)!r} is not a sweep's CSV ({exc}); give another --out") from None
         if not lines or lines[0] != self.header:
             found = ",".join(lines[0]) if lines else "nothing"
             raise ValueError(f"--out: {str(self.path)!r} holds another table (columns {found}; this sweep "
@@ -251,16 +290,44 @@ class Results:
             lines = lines[:1] + lines[1:-1]  # the last line was cut (a crash inside its write): not finished
         kept = [lines[0]]
         for line in lines[1:]:
-            if len(line) == len(self.header):  # a line cut short by a crash is dropped
+            if len(line) == len(self.header) and line[0].isdigit():  # a line cut short by a crash is dropped
                 kept.append(line)
-                self.done[tuple(line[1:1 + len(self.keys)])] = dict(zip(self.header, line))
+                self.done[int(line[0])] = dict(zip(self.header, line))
         if len(kept) != len(lines) or not text.endswith("\n"):
-            from massspring.io.files import atomic_output
+            self._write(kept)
 
+    def _write(self, lines):
+        from massspring.io.files import atomic_output
+
+        out = io.StringIO()
+        csv.writer(out).writerows(lines)
+        try:
             with atomic_output(self.path) as fh:
-                out = io.StringIO()
-                csv.writer(out).writerows(kept)
                 fh.write(out.getvalue().encode())
+        except OSError as exc:
+            raise ValueError(f"--out: cannot write {str(self.path)!r}: {exc.strerror or exc}") from None
+
+    def check(self, cases, setup):
+        """Refuse (ValueError) a CSV holding a case this sweep does not have, or has with
+        other values or another ``setup``: resuming it would mix two sweeps' rows (and
+        overwrite their ``--states`` files). Returns the finished cases' rows."""
+        numbers = {case.number: case for case in cases}
+        for number, line in self.done.items():
+            case = numbers.get(number)
+            values = tuple(line[key] for key in self.keys)
+            if case is not None and case.texts == values and line[SETUP] == setup:
+                continue
+            written = " ".join(f"{k}={v}" for k, v in zip(self.keys, values))
+            if case is None:
+                now = f"this sweep has {len(cases)} case(s)"
+            elif case.texts != values:
+                now = f"this sweep's case {number} is {case.label()}"
+            else:
+                now = f"this sweep runs it with {setup}"
+            ran = f" with {line[SETUP]}" if case is not None and case.texts == values else ""
+            raise ValueError(f"--out: {str(self.path)!r} holds case {number} ({written}){ran}, but {now}; give "
+                             "another --out, or the --vary values and options of the sweep that wrote it")
+        return {number: line for number, line in self.done.items()}
 
     def close(self):
         """Let another sweep write the CSV."""
@@ -268,13 +335,17 @@ class Results:
             os.close(self.lock)
             self.lock = None
 
-    def append(self, case, row):
+    def append(self, case, row, setup):
         out = io.StringIO()
-        csv.writer(out).writerow([case.number, *case.texts, *(_cell(row[k]) for k in COLUMNS)])
-        with open(self.path, "a", newline="") as fh:
-            fh.write(out.getvalue())
-            fh.flush()
-            os.fsync(fh.fileno())
+        csv.writer(out).writerow([case.number, *case.texts, *(_cell(row[k]) for k in COLUMNS), setup])
+        try:
+            with open(self.path, "a", newline="") as fh:
+                fh.write(out.getvalue())
+                fh.flush()
+                os.fsync(fh.fileno())
+        except OSError as exc:
+            raise ValueError(f"--out: cannot append case {case.number} to {str(self.path)!r}: "
+                             f"{exc.strerror or exc}") from None
 
 
 def _lock(path):
@@ -327,14 +398,20 @@ def sweep(scene, vary, *, integrator=None, dt=None, duration=None, steps=None, o
     if states is not None:
         states = Path(states)
         if not states.is_dir():
-            raise ValueError(f"states: {str(states)!r} is not a directory")
+            raise ValueError(f"--states: {str(states)!r} is not a directory")
+        check_writable(states / "case0001.npz", "--states")
+    setup = setup_text(scene, integrator, dt, duration, steps, options)
     results = None
     if out is not None:
-        check_writable(out, "out", (".csv",))
+        check_writable(out, "--out", (".csv",))
         results = Results(out, list(vary))
-    previous = results.done if results else {}
-    todo = [case for case in cases if case.texts not in previous]
-    rows = {case.number: _typed(previous[case.texts]) for case in cases if case.texts in previous}
+    try:
+        previous = results.check(cases, setup) if results else {}
+    except BaseException:
+        results.close()
+        raise
+    todo = [case for case in cases if case.number not in previous]
+    rows = {number: _typed(line) for number, line in previous.items()}
     keep = states is not None
 
     def finished(index, result):
@@ -344,12 +421,17 @@ def sweep(scene, vary, *, integrator=None, dt=None, duration=None, steps=None, o
                           **{k: "" for k in NUMBERS}}, None
         else:
             row, state = result
-        if state is not None:
-            with atomic_output(states / f"case{case.number:04d}.npz") as fh:
-                fh.write(state)
         if results:
-            results.append(case, row)
+            results.append(case, row, setup)  # the row first: a state that cannot be written loses nothing
         rows[case.number] = {"case": case.number, **dict(case.values), **row}
+        if state is not None:
+            name = states / f"case{case.number:04d}.npz"
+            try:
+                with atomic_output(name) as fh:
+                    fh.write(state)
+            except OSError as exc:
+                raise ValueError(f"--states: cannot write {str(name)!r}: {exc.strerror or exc}; the CSV holds "
+                                 f"case {case.number}'s row") from None
         if progress:
             progress(case, row)
 

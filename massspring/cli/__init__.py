@@ -19,6 +19,7 @@ import argparse
 import signal
 import sys
 
+from massspring.analysis.cluster import ClusterError
 from massspring.cli.common import (EXIT_DIVERGED, EXIT_INTERRUPTED, EXIT_OK, EXIT_OUTPUT, EXIT_USAGE, Terminated,
                                    UsageError, add_scene_arguments, main_thread)
 from massspring.cli.pictures import add_export_arguments, add_frame_arguments
@@ -113,6 +114,9 @@ def main(argv=None):
         return COMMANDS[args.command](args)
     except ValueError as exc:  # SceneError, UsageError and Model/Simulation validation
         print(f"massspring: error: {clipped(str(exc))}", file=sys.stderr)
+        return EXIT_USAGE
+    except ClusterError as exc:  # no worker, or the scheduler gone, while tasks wait
+        print(f"massspring: error: --workers/--address: {clipped(str(exc))}", file=sys.stderr)
         return EXIT_USAGE
     except Terminated as exc:  # SIGTERM outside a run (e.g. while loading)
         return 128 + exc.signum

@@ -71,8 +71,9 @@ def cmd_sweep(args):
         finished.append(row)
         if not args.quiet:
             message = f": {row['message']}" if row["message"] else ""
-            print(f"sweep {scene.name}: case {case.number} of {total} ({case.label()}): {row['status']} in "
-                  f"{row['wall_s']:.2f} s{message}", file=sys.stderr, flush=True)
+            took = f" in {row['wall_s']:.2f} s" if isinstance(row["wall_s"], float) else ""  # a lost worker's: none
+            print(f"sweep {scene.name}: case {case.number} of {total} ({case.label()}): {row['status']}{took}"
+                  f"{message}", file=sys.stderr, flush=True)
 
     if not args.quiet and Path(args.out).exists():
         print(f"sweep {scene.name}: resuming {args.out}: its finished cases are skipped", file=sys.stderr)
@@ -86,6 +87,10 @@ def cmd_sweep(args):
         print(f"massspring: {what} after {len(finished)} new case(s); {args.out} holds every finished one",
               file=sys.stderr)
         return 128 + exc.signum if isinstance(exc, Terminated) else EXIT_INTERRUPTED
+    except (ValueError, cluster.ClusterError) as exc:  # the CSV or a state that cannot be written, a lost cluster
+        kept = f" ({len(finished)} new case(s) finished; {args.out} holds every finished one)" if finished else ""
+        where = "--workers/--address: " if isinstance(exc, cluster.ClusterError) else ""
+        raise UsageError(f"{where}{exc}{kept}") from None
     print(sweep.format_table(rows, list(vary)))
     written = [args.out]
     if args.plot is not None:

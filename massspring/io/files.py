@@ -96,7 +96,8 @@ def check_writable(path, name, suffixes=None) -> Path:
 
     ``suffixes``: the accepted file name endings (e.g. (".gif",)). The check creates and
     removes the temporary file a write would use, which catches missing or read-only
-    directories, directories in place of files, names too long and special file systems.
+    directories, directories or pipes in place of files, names too long and special file
+    systems.
     """
     if path is None or str(path) == "":
         raise ValueError(f"{name}: empty path")
@@ -106,6 +107,8 @@ def check_writable(path, name, suffixes=None) -> Path:
     try:
         if path.is_dir():
             raise ValueError(f"{name}: {str(path)!r} is a directory")
+        if path.exists() and not path.is_file():  # a FIFO would block a reader or an appending writer
+            raise ValueError(f"{name}: {str(path)!r} is not a regular file (a pipe, socket or device)")
         if not path.parent.is_dir():
             raise ValueError(f"{name}: directory {str(path.parent)!r} does not exist")
         fd, tmp = tempfile.mkstemp(**_temp_name(path))
