@@ -261,14 +261,16 @@ class Layout:
         return sum(int(np.prod(shape + element)) * np.dtype(_NUMPY[dtype]).itemsize
                    for dtype, shape, element, _ in self.decls.values())
 
-    def allocate(self) -> "Bundle":
+    def allocate(self, what=None) -> "Bundle":
         """The bundle: taken from the pool if one has these declarations, else new; filled.
-        A new one that would not fit in the memory available is refused (ValueError)."""
+        A new one that would not fit in the memory available is refused (ValueError
+        starting with ``what``, by default the model's counts)."""
         signature = self.signature()
         bundle = POOL.take(signature)
         reused = bundle is not None
         if not reused:
-            memory.check(self.nbytes(), f"model: {self.n:,} particles and {self.m:,} springs; the fields of this run")
+            what = what or f"model: {self.n:,} particles and {self.m:,} springs; the fields of this run"
+            memory.check(self.nbytes(), what)
             builder = ti.FieldsBuilder()
             fields = {name: _place(builder, dtype, shape, element)
                       for name, (dtype, shape, element, _) in self.decls.items()}

@@ -151,7 +151,7 @@ def pair_list(pairs, real):
     layout.vectors("pw", real, cap, k=4)
     layout.add("pkind", ti.i32, cap)
     layout.add("pbound", ti.i32, cap)
-    return layout.allocate()
+    return layout.allocate(f"self-collision: a pair list of {cap:,} pairs ({pairs:,} within reach)")
 
 
 SOLVE_PAIRS_PER_PARTICLE = 16  # capacity of the implicit solve's pairs per particle (``declare_solve``)
@@ -207,11 +207,13 @@ class Pass:
         return self.list.pidx.shape[0]
 
     def _grow(self, found):
+        """A list for twice ``found`` pairs in place of the current one, which is kept if
+        the new one does not fit in memory (ValueError naming the pair list)."""
         from massspring.device import POOL
 
+        grown = pair_list(2 * found, self.cfg.real)  # each size compiles the pass's kernels once: few sizes
         POOL.give(self.list)
-        self.list = None
-        self.list = pair_list(2 * found, self.cfg.real)  # each size compiles the pass's kernels once: few sizes
+        self.list = grown
         self.grown += 1
 
     def _list(self, state):

@@ -289,6 +289,24 @@ def test_a_pair_list_that_grows_gives_the_bits_of_one_large_enough(monkeypatch):
 
 
 @pytest.mark.full
+def test_a_pair_list_that_cannot_grow_is_an_error_naming_it_and_the_simulation_keeps_its_list(monkeypatch):
+    """Issue 42: a pair list that could not grow raised a ValueError naming "0 particles
+    and 0 springs" and left the Simulation without a list."""
+    from massspring import device, memory
+
+    sim = sheets(16).simulation("implicit")
+    capacity = sim._guard.capacity
+    monkeypatch.setattr(device.POOL, "take", lambda signature: None)  # no pooled list of the next size
+    monkeypatch.setattr(memory, "available", lambda: (1e4, "available"))
+    with pytest.raises(memory.MemoryNeedError, match=r"^self-collision: a pair list of [\d,]+ pairs \([\d,]+ within "
+                                                     r"reach\) needs about .* GB; 1e-05 GB available"):
+        sim.step(100)  # the list of 8 pairs a particle grows within 100 steps
+    assert sim._guard.capacity == capacity and sim.self_collision_stats["grown"] == 0
+    assert np.isfinite(sim.positions).all()
+    sim.close()
+
+
+@pytest.mark.full
 def test_one_and_two_threads_give_the_same_bits():
     script = ("import hashlib, massspring as ms\n"
               "sim = ms.load_scene('sheets').with_params(resolution=10).simulation(loops='parallel')\n"
