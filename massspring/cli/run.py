@@ -59,40 +59,41 @@ def cmd_run(args):
             callback(state)
 
     energy0 = sim.energy()
-    start = time.perf_counter()
-    stopped, diverged = None, None
-    try:
-        label = f"run {scene.name} ({sim.integrator}, dt {format_seconds(sim.dt)})"
-        with progress.steps(label, steps, sim.dt, show=not args.quiet and steps > 1) as on_progress:
-            run(sim, steps, frames=frames if callbacks else (), on_frame=on_frame if callbacks else None,
-                progress=on_progress)
-    except KeyboardInterrupt as exc:  # Ctrl-C or SIGTERM: the simulation holds the state reached
-        stopped = exc
-    except DivergenceError as exc:  # the simulation holds the last good state
-        diverged = exc
-    wall = time.perf_counter() - start
-    with LateSignals() as late:  # from here a signal stops the rendering only, never a write
+    with RunSignals() as signals:
+        start = time.perf_counter()
+        stopped, diverged = None, None
+        try:
+            label = f"run {scene.name} ({sim.integrator}, dt {format_seconds(sim.dt)})"
+            with progress.steps(label, steps, sim.dt, show=not args.quiet and steps > 1) as on_progress:
+                run(sim, steps, frames=frames if callbacks else (), on_frame=on_frame if callbacks else None,
+                    progress=on_progress)
+        except KeyboardInterrupt as exc:  # Ctrl-C or SIGTERM: the simulation holds the state reached
+            stopped = exc
+        except DivergenceError as exc:  # the simulation holds the last good state
+            diverged = exc
+        signals.record_only()  # from here a signal stops the rendering only, never a write
+        wall = time.perf_counter() - start
         if pictures is not None and (diverged or stopped):
             pictures.recording.record_last(sim)  # the picture ends on the last good state
-        failed = write_outputs(args, scene, sim, start_steps + steps, pictures, late.arrived)
+        failed = write_outputs(args, scene, sim, start_steps + steps, pictures, signals.arrived)
         if export is not None:
             failed += finish_export(export, sim, start_steps + steps, diverged, stopped)
         print_summary(scene, sim, wall, energy0, args.out if args.out and "--out" not in failed else None,
                       start_steps)
-    done = sim.steps - start_steps
-    if diverged is not None:
-        print(f"massspring: {diverged}; {divergence_hint(sim, diverged)}", file=sys.stderr)
-        return EXIT_DIVERGED
-    if stopped is not None:
-        what = "terminated" if isinstance(stopped, Terminated) else "interrupted"
-        print(f"massspring: {what} after {done} of {steps} steps; the state reached so far "
-              f"{'was written' if args.out and '--out' not in failed else 'is above'}", file=sys.stderr)
-        return 128 + stopped.signum if isinstance(stopped, Terminated) else EXIT_INTERRUPTED
-    if late.signum is not None:  # the run had ended; a signal cut the pictures short
-        print(f"massspring: {'terminated' if late.signum == signal.SIGTERM else 'interrupted'} while writing the "
-              "outputs; what was written is listed above", file=sys.stderr)
-        return 128 + late.signum
-    return EXIT_OUTPUT if failed else EXIT_OK
+        done = sim.steps - start_steps
+        if diverged is not None:
+            print(f"massspring: {diverged}; {divergence_hint(sim, diverged)}", file=sys.stderr)
+            return EXIT_DIVERGED
+        if stopped is not None:
+            what = "terminated" if isinstance(stopped, Terminated) else "interrupted"
+            print(f"massspring: {what} after {done} of {steps} steps; the state reached so far "
+                  f"{'was written' if args.out and '--out' not in failed else 'is above'}", file=sys.stderr)
+            return 128 + stopped.signum if isinstance(stopped, Terminated) else EXIT_INTERRUPTED
+        if signals.signum is not None:  # the run had ended; a signal cut the pictures short
+            print(f"massspring: {'terminated' if signals.signum == signal.SIGTERM else 'interrupted'} while writing "
+                  "the outputs; what was written is listed above", file=sys.stderr)
+            return 128 + signals.signum
+        return EXIT_OUTPUT if failed else EXIT_OK
 
 
 def restart(args, scene, sim):
@@ -122,16 +123,24 @@ def restart(args, scene, sim):
     return state.steps
 
 
-class LateSignals:
-    """While the outputs are written after a run: SIGINT and SIGTERM are recorded
-    (``signum``, the first) instead of raising, so no file write is cut short; the
-    rendering asks ``arrived()`` between frames and stops."""
+class RunSignals:
+    """SIGINT and SIGTERM from the start of a run to the end of its outputs. The first
+    one during the steps stops them (KeyboardInterrupt; ``Terminated`` for SIGTERM);
+    after that one, and once ``record_only()`` is called as the steps end, a signal is
+    only recorded (``signum``: the first recorded), so a second Ctrl-C can cut no file
+    write short: the rendering asks ``arrived()`` between frames and stops."""
 
     def __init__(self):
-        self.signum, self.previous = None, {}
+        self.signum, self.previous, self.raising = None, {}, True
 
-    def _record(self, signum, frame):
+    def _handle(self, signum, frame):
+        if self.raising:
+            self.raising = False
+            raise Terminated(signum) if signum == signal.SIGTERM else KeyboardInterrupt()
         self.signum = self.signum or signum
+
+    def record_only(self):
+        self.raising = False
 
     def arrived(self):
         return self.signum is not None
@@ -139,7 +148,7 @@ class LateSignals:
     def __enter__(self):
         if main_thread():
             for sig in (signal.SIGINT, signal.SIGTERM):
-                self.previous[sig] = signal.signal(sig, self._record)
+                self.previous[sig] = signal.signal(sig, self._handle)
         return self
 
     def __exit__(self, *exc):
