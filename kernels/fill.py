@@ -1,8 +1,12 @@
 """Filling a device bundle: every declared value in one kernel launch.
 
-``plan`` (from ``device.Layout``) groups the fields by item count (0: a 0-D field); each
-entry is (field name, whether int32, offset in its buffer, element shape, values per
-item), the values read from one float64 and one int32 buffer."""
+``plan`` (from ``device.Layout``) groups the fields by item count; each group is
+(whether its fields are 0-D, the index in ``where`` of its first entry's offset, its
+entries), each entry (field name, whether int32, element
+shape, values per item), the values read from one float64 and one int32 buffer. The
+counts and offsets are not in the plan but in ``where`` (int64: each group's item count,
+then each entry's offset in its buffer, in plan order), so models of other sizes that
+share a bundle's fields share its compiled kernel."""
 
 import taichi as ti
 
@@ -20,27 +24,29 @@ def read_element(source: ti.template(), base, element: ti.template(), dtype: ti.
 
 
 @ti.func
-def read_item(i, field: ti.template(), entry: ti.template(), reals: ti.template(), ints: ti.template()):
-    """Item i of one plan entry, read from its buffer."""
+def read_item(base, field: ti.template(), entry: ti.template(), reals: ti.template(), ints: ti.template()):
+    """The item of one plan entry starting at ``base`` in its buffer."""
     if ti.static(entry[1]):
-        return read_element(ints, entry[2] + i * entry[4], entry[3], field.dtype)
+        return read_element(ints, base, entry[2], field.dtype)
     else:
-        return read_element(reals, entry[2] + i * entry[4], entry[3], field.dtype)
+        return read_element(reals, base, entry[2], field.dtype)
 
 
 @ti.kernel
 def fill(dev: ti.template(), plan: ti.template(), reals: ti.types.ndarray(dtype=ti.f64, ndim=1),
-         ints: ti.types.ndarray(dtype=ti.i32, ndim=1)):
-    """Store the declared values of a bundle's fields in one launch, one loop per item
-    count. (``from_numpy`` compiles a kernel for every field: a new bundle of many
-    fields would compile many loops instead of this one kernel.)"""
-    for count, entries in ti.static(plan):
-        if ti.static(count == 0):
-            for entry in ti.static(entries):
-                ti.static(getattr(dev, entry[0]))[None] = read_item(0, ti.static(getattr(dev, entry[0])), entry,
-                                                                 reals, ints)
+         ints: ti.types.ndarray(dtype=ti.i32, ndim=1), where: ti.types.ndarray(dtype=ti.i64, ndim=1)):
+    """Store the declared values of a bundle's fields in one launch, one loop per group.
+    (``from_numpy`` compiles a kernel for every field: a new bundle of many fields would
+    compile many loops instead of this one kernel.)"""
+    for g in ti.static(range(len(plan))):
+        scalar, first, entries = ti.static(plan[g])
+        if ti.static(scalar):
+            for k in ti.static(range(len(entries))):
+                field = ti.static(getattr(dev, entries[k][0]))
+                field[None] = read_item(where[first + k], field, entries[k], reals, ints)
         else:
-            for i in range(count):
-                for entry in ti.static(entries):
-                    field = ti.static(getattr(dev, entry[0]))
-                    field[i] = read_item(i, field, entry, reals, ints)
+            for i in range(ti.cast(where[g], ti.i32)):
+                for k in ti.static(range(len(entries))):
+                    field = ti.static(getattr(dev, entries[k][0]))
+                    base = where[first + k] + ti.cast(i, ti.i64) * entries[k][3]
+                    field[i] = read_item(base, field, entries[k], reals, ints)

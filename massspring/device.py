@@ -278,19 +278,21 @@ class Layout:
             bundle = Bundle(fields, self.pairs)
             bundle._tree, bundle._signature, bundle._nbytes = tree, signature, self.nbytes()
             bundle._program = impl.get_runtime().prog
-        plan, reals, ints = self._fill_plan()
-        fill(bundle, plan, reals, ints)
+        plan, reals, ints, where = self._fill_plan()
+        fill(bundle, plan, reals, ints, where)
         bundle.n, bundle.m = self.n, self.m
         return bundle
 
 
     def _fill_plan(self):
-        """What ``kernels.fill`` takes for this layout: a plan and two buffers (float64 and int32 numpy
-        arrays, passed to the kernel as they are) holding every declared value. The plan groups the fields with values
-        by how many items they get (one loop each; 0 for 0-D fields); per field: name,
-        whether it is an integer field, where its values start in their buffer, its
-        element shape and size. Items past the values (the capacity padding) are never
-        read by a kernel, so they are left as they are."""
+        """What ``kernels.fill`` takes for this layout: a plan and three buffers (float64
+        and int32 values, int64 counts and offsets; numpy arrays passed as they are). The
+        plan groups the fields with values by how many items they get (one loop each; 0-D
+        fields apart) and says where in the last buffer each group's offsets start; per field: name, whether it is an integer field, its element shape
+        and size. The counts and where each field's values start are in the last buffer,
+        not the plan, so the kernel compiled for a bundle serves every model that reuses it.
+        Items past the values (the capacity padding) are never read by a kernel, so they
+        are left as they are."""
         groups, chunks, sizes = {}, ([], []), [0, 0]
         for name, (dtype, shape, element, values) in self.decls.items():
             if values is None:
@@ -298,13 +300,17 @@ class Layout:
             is_int = dtype == ti.i32
             values = np.asarray(values, dtype=np.int32 if is_int else np.float64)
             values = values.reshape((-1,) + element) if shape else values.reshape(element)
-            entry = (name, is_int, sizes[is_int], element, int(np.prod(element, dtype=np.int64)))
-            groups.setdefault(len(values) if shape else 0, []).append(entry)
+            entry = (name, is_int, element, int(np.prod(element, dtype=np.int64)))
+            groups.setdefault(len(values) if shape else None, []).append((entry, sizes[is_int]))
             chunks[is_int].append(values.reshape(-1))
             sizes[is_int] += values.size
         buffers = [np.ascontiguousarray(np.concatenate(parts) if parts else np.zeros(1), dtype=dtype)
                    for parts, dtype in zip(chunks, (np.float64, np.int32))]
-        return tuple((count, tuple(entries)) for count, entries in groups.items()), buffers[0], buffers[1]
+        starts = np.cumsum([len(groups)] + [len(entries) for entries in groups.values()]).tolist()
+        plan = tuple((count is None, start, tuple(entry for entry, _ in entries))
+                     for (count, entries), start in zip(groups.items(), starts))
+        where = [count or 0 for count in groups] + [offset for entries in groups.values() for _, offset in entries]
+        return plan, buffers[0], buffers[1], np.array(where, dtype=np.int64)
 
 
 def _place(builder, dtype, shape, element):

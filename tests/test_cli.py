@@ -16,6 +16,7 @@ from massspring.scene import builtin_scenes, load_scene
 TWO_SCENES = {"explicit": ("chain", "cloth"), "symplectic": ("spring", "chain"), "rk4": ("chain", "heavychain"),
               "implicit": ("stiffcloth", "bigstep"), "backward-euler": ("cloth", "chain"),
               "bdf2": ("stiffchain", "swing"), "midpoint": ("chain", "heavychain")}
+RESET_BETWEEN_TESTS = True  # conftest: each test compiles its own configuration and shares no simulation
 FAST_RUNS = {(scene, load_scene(scene).integrator) for scene in builtin_scenes()} | {
     (scene, integrator) for integrator in INTEGRATORS for scene in TWO_SCENES.get(integrator, ("spring", "chain"))}
 
