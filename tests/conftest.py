@@ -11,6 +11,7 @@ sampled matrices); ``python -m pytest --all`` also runs the tests marked ``full`
 (every scene x integrator, long runs, clusters, memory probes). CI runs ``--all``.
 """
 
+import math
 import os
 import resource
 
@@ -35,6 +36,7 @@ from massspring.device import reset_taichi
 PEAK_RSS_LIMIT = 3e9  # bytes: in pytest's process, in each xdist worker and in any one child process
 RESET_ABOVE = 2e9  # bytes resident after a test module: Taichi is then reset (its kernels and fields freed)
 WORKER_RESET_ABOVE = 0.8e9  # the same in each of pytest-xdist's worker processes, whose peaks add up
+TEST_RESET_ABOVE = 1.5e9  # bytes resident after a test of a module that sets RESET_BETWEEN_TESTS
 WORKERS_MAX = 4  # -n auto (the default, pyproject's addopts): one worker per core, at most this many
 ZERO_LENGTH = 1e-12  # f64 zero-length rule: such a spring has no direction or force (stiffness only if l0 = 0)
 
@@ -295,13 +297,14 @@ def pytest_runtest_teardown(item, nextitem):
     process holds more than ``RESET_ABOVE``: the kernels compiled for every configuration
     so far would otherwise stay in memory to the end. Below it, the next modules reuse them.
     A module whose tests share no Taichi objects and compile a configuration each (it sets
-    ``RESET_BETWEEN_TESTS = True``) is checked after every test: test_cli.py's scene x
-    integrator runs grew a worker by 13 MB a test, to 1.9 GB."""
+    ``RESET_BETWEEN_TESTS = True``) is also reset after any test that leaves more than
+    ``TEST_RESET_ABOVE``: test_cli.py's scene x integrator runs grew a worker by 13 MB a
+    test, to 1.9 GB."""
     yield
     limit = WORKER_RESET_ABOVE if os.environ.get("PYTEST_XDIST_WORKER") else RESET_ABOVE
-    boundary = nextitem is None or nextitem.module is not item.module or getattr(item.module, "RESET_BETWEEN_TESTS",
-                                                                                   False)
-    if boundary and resident_bytes() > limit:
+    if nextitem is not None and nextitem.module is item.module:  # within a module
+        limit = max(limit, TEST_RESET_ABOVE) if getattr(item.module, "RESET_BETWEEN_TESTS", False) else math.inf
+    if resident_bytes() > limit:
         reset_taichi()
 
 

@@ -307,6 +307,32 @@ def test_a_pair_list_that_cannot_grow_is_an_error_naming_it_and_the_simulation_k
 
 
 @pytest.mark.full
+def test_a_run_gives_the_same_bits_before_and_after_other_simulations_in_its_process():
+    """Issue 42: a result must not depend on the simulations that ran before it in the same
+    process: pooled fields keep the values of other models (larger and smaller ones of the
+    same capacity class, other integrators, a pair list that grew), and kernels compiled
+    for them are reused."""
+    def case():
+        sim = sheets(8).simulation("implicit")
+        sim.step(40)
+        out = sim.positions, sim.velocities, sim.self_collision_stats["pairs"]
+        sim.close()
+        return out
+
+    first = case()
+    for scene, integrator in ((sheets(12), "implicit"), (sheets(6), "symplectic"), (sheets(10), "backward-euler"),
+                              (ms.load_scene("cloth").with_params(resolution=20), "implicit")):
+        sim = scene.simulation(integrator)
+        sim.step(30)
+        sim.close()
+    again = case()
+    assert first[2] > 0
+    np.testing.assert_array_equal(first[0], again[0])
+    np.testing.assert_array_equal(first[1], again[1])
+    assert first[2] == again[2]
+
+
+@pytest.mark.full
 def test_one_and_two_threads_give_the_same_bits():
     script = ("import hashlib, massspring as ms\n"
               "sim = ms.load_scene('sheets').with_params(resolution=10).simulation(loops='parallel')\n"

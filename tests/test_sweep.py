@@ -345,6 +345,18 @@ def test_the_csv_records_each_case_setup_and_a_resume_with_other_options_or_scen
     assert again[0]["status"] == "ok" and len(read_rows(out)) == 1
 
 
+def test_cli_resume_with_other_options_is_one_line_before_any_case(tmp_path, capsys):
+    out = tmp_path / "s.csv"
+    argv = ["sweep", "chain", "--set", "count=5", "--vary", "stiffness=1e2,1e3", "--out", str(out)]
+    assert main([*argv, "--steps", "2", "--quiet"]) == 0
+    capsys.readouterr()
+    assert main([*argv, "--steps", "3"]) == 2
+    err = one_line_error(capsys, "--out:", "holds case 1 (stiffness=100.0) with ", "but this sweep runs it with ")
+    assert " steps=2 " in err.split("but")[0] and " steps=3 " in err.split("but")[1]
+    assert main([*argv, "--steps", "2"]) == 0
+    assert "resuming" in capsys.readouterr().err and len(read_rows(out)) == 2
+
+
 def test_a_resume_whose_case_numbers_changed_is_refused_and_values_added_at_the_end_run(tmp_path):
     """Issue 42: a changed --vary list reused case numbers (and overwrote --states files)."""
     out = tmp_path / "s.csv"

@@ -348,6 +348,18 @@ class Results:
                              f"{exc.strerror or exc}") from None
 
 
+def resumable(out, keys, cases, setup) -> int:
+    """How many of ``cases`` the CSV ``out`` already holds (0 when there is none); raises
+    ValueError as ``Results`` and ``Results.check`` do when this sweep cannot resume it."""
+    if not Path(out).exists():
+        return 0
+    results = Results(out, keys)
+    try:
+        return len(results.check(cases, setup))
+    finally:
+        results.close()
+
+
 def _lock(path):
     """An exclusive lock (``fcntl.flock``) on ``path``'s hidden sidecar ``.NAME.lock``,
     held until ``Results.close``: a second sweep on the same CSV is refused at once

@@ -64,6 +64,11 @@ def cmd_sweep(args):
     except ValueError as exc:
         raise UsageError(str(exc)) from None
     options = dict(precision=args.precision, arch=args.arch, **solver_options(args))
+    setup = sweep.setup_text(scene, args.integrator, args.dt, args.duration, args.steps, options)
+    try:
+        before = sweep.resumable(args.out, list(vary), cases, setup)
+    except ValueError as exc:
+        raise UsageError(str(exc)) from None
     total = len(cases)
     finished = []
 
@@ -75,8 +80,9 @@ def cmd_sweep(args):
             print(f"sweep {scene.name}: case {case.number} of {total} ({case.label()}): {row['status']}{took}"
                   f"{message}", file=sys.stderr, flush=True)
 
-    if not args.quiet and Path(args.out).exists():
-        print(f"sweep {scene.name}: resuming {args.out}: its finished cases are skipped", file=sys.stderr)
+    if not args.quiet and before:
+        print(f"sweep {scene.name}: resuming {args.out}: its {before} finished case(s) of {total} are skipped",
+              file=sys.stderr)
     try:
         with cluster.cluster(args.workers, args.address) as client:
             rows = sweep.sweep(scene, vary, integrator=args.integrator, dt=args.dt, duration=args.duration,
