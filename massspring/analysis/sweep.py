@@ -389,7 +389,8 @@ def sweep(scene, vary, *, integrator=None, dt=None, duration=None, steps=None, o
     ``integrator``, ``dt``, ``options`` (Simulation arguments such as cg_tol): for every
     case, unless varied. ``duration`` (s) or ``steps``: each run's length (default: the
     scene's duration). ``out``: the CSV (a row appended as each case finishes; cases
-    already in it are skipped and their rows returned as read). ``states``: a directory
+    already in it are skipped and their rows returned as read; one holding a case with
+    another number, values or setup is refused, ``Results.check``). ``states``: a directory
     for each case's final state (``case0001.npz``...). ``client``: a
     ``dask.distributed.Client`` (None: in this process). ``progress(case, row)`` is
     called as each case finishes."""
