@@ -18,7 +18,6 @@ the same number, values and setup; a CSV whose rows disagree with the sweep is r
 from __future__ import annotations
 
 import csv
-import dataclasses
 import hashlib
 import io
 import itertools
@@ -176,31 +175,15 @@ def check_duration(scene, cases, duration, integrator=None, dt=None, option="dur
 def setup_text(scene, integrator=None, dt=None, duration=None, steps=None, options=None) -> str:
     """What a case's result depends on besides its varied values, as one line of text:
     ``integrator``, ``dt``, ``duration``, ``steps`` and the Simulation ``options`` that
-    are set (sorted, ``key=value``), then ``scene=`` and a digest of every field of the
-    scene (its parameters, colliders, pins, solver table, mesh or tables and default dts),
-    so that a changed scene file, ``--set`` or option makes another setup."""
+    are set (sorted, ``key=value``), then ``scene=`` and a digest of the scene's model
+    (``Model.fingerprint``: two models with one fingerprint step identically) with the
+    scene's default integrator, dts, duration and [solver] table, so that a changed
+    scene file, ``--set`` or option makes another setup."""
     run = {"integrator": integrator, "dt": dt, "duration": duration, "steps": steps, **(options or {})}
     fields = [f"{key}={value_text(value)}" for key, value in sorted(run.items()) if value is not None]
-    digest = hashlib.sha256(_canonical(scene).encode()).hexdigest()[:16]
+    defaults = (scene.integrator, sorted(scene.dt.items()), scene.duration, sorted(scene.solver.items()))
+    digest = hashlib.sha256(f"{scene.model().fingerprint()} {defaults!r}".encode()).hexdigest()[:16]
     return " ".join([*fields, f"scene={digest}"])
-
-
-def _canonical(value) -> str:
-    """``value`` as text that two equal values share: dicts sorted, arrays by dtype,
-    shape and a hash of their bytes, dataclasses field by field, numbers as ``value_text``."""
-    if isinstance(value, dict):
-        return "{" + ",".join(f"{key!r}:{_canonical(v)}" for key, v in sorted(value.items(), key=repr)) + "}"
-    if isinstance(value, (list, tuple)):
-        return "[" + ",".join(_canonical(v) for v in value) + "]"
-    if isinstance(value, np.ndarray):
-        data = np.ascontiguousarray(value)
-        return f"array{data.shape}{data.dtype}:{hashlib.sha256(data.tobytes()).hexdigest()}"
-    if dataclasses.is_dataclass(value) and not isinstance(value, type):
-        fields = {f.name: getattr(value, f.name) for f in dataclasses.fields(value) if not f.name.startswith("_")}
-        return type(value).__name__ + _canonical(fields)
-    if isinstance(value, (bool, int, float, np.integer, np.floating)):
-        return value_text(value)
-    return repr(value)
 
 
 def run_case(scene, case, integrator=None, dt=None, duration=None, steps=None, options=None, keep_state=False):
