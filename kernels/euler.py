@@ -12,6 +12,9 @@ in a model with colliders, free particles' contact response after the update
 fused with the reduction of the new state's ``divergence.state_sums`` (fixed
 blocks, see ``blocks``).
 
+``euler_adjoint`` runs one step backwards (``adjoint_step``) (``massspring.gradient``): the adjoint of
+the step from ``src``, exact for springs, damping, gravity and pins.
+
 ``euler_step`` runs one step as parallel loops and returns the new state's
 ``divergence.verdict``; ``euler_steps`` runs up to ``steps`` steps in one launch with serial
 loops (small systems, where a launch costs more than a step), alternating
@@ -24,8 +27,9 @@ from .blocks import block_count, block_end, ordered_sum, BLOCK
 from .divergence import OK, state_sums, verdict
 from .constraints import is_free, prescribed
 from .contact import respond
-from .forces import particle_force, spring_forces
-from .terms import uniform_acceleration
+from .forces import particle_force, spring_direction, spring_forces, spring_sum, tiny_length
+from .state import restore_state
+from .terms import SpringDamping, uniform_acceleration
 
 
 @ti.func
@@ -104,3 +108,79 @@ def euler_steps(dev: ti.template(), cfg: ti.template(), a: ti.template(), b: ti.
             if code == OK:
                 done += 1
     return ti.Vector([done, last[0], last[1], last[2]], ti.f64)
+
+
+@ti.kernel
+def euler_adjoint(dev: ti.template(), cfg: ti.template(), adj: ti.template(), src: ti.template(), dt: ti.f64,
+                  slot: ti.i32, symplectic: ti.template(), wants: ti.template(), serial: ti.template()):
+    """``adjoint_step`` as parallel loops, or with ``serial`` in one serial loop (small
+    systems, as ``euler_steps``)."""
+    if ti.static(serial):
+        ti.loop_config(serialize=True)
+        for _ in range(1):
+            adjoint_step(dev, cfg, adj, src, dt, slot, symplectic, wants)
+    else:
+        adjoint_step(dev, cfg, adj, src, dt, slot, symplectic, wants)
+
+
+@ti.func
+def adjoint_step(dev, cfg: ti.template(), adj, src, dt, slot, symplectic: ti.template(), wants: ti.template()):
+    """One step backwards, in f64, from the state kept in ``adj``'s history at ``slot``
+    (``state.save_state``; restored into ``src`` first): on entry ``adj.lx``, ``adj.lv`` (n,) vec3 hold
+    dL/dx', dL/dv' of the step's end state; on exit dL/dx, dL/dv of ``src``, and every
+    parameter gradient array of ``adj`` has this step's share added. With mu = dL/dv' (+
+    dt dL/dx' if ``symplectic``) and w = dt mu / m for free particles (0 for pinned ones):
+
+        dL/dx = dL/dx' + K w,   dL/dv = dL/dv' + dt dL/dx' + D w  (free; pinned: D w),
+
+    K w and D w gathered spring by spring from each term's ``adjoint`` (their transposes are
+    themselves: K and D are symmetric); dL/dm_i += -w_i . f_i / m_i (f_i without the
+    uniform terms; with ``wants.masses``), dL/dg += dt mu_i (``adj.gg`` per particle).
+    ``wants``: ``massspring.gradients.Wants``."""
+    h = ti.cast(dt, ti.f64)
+    n = dev.size[0]
+    g = uniform_acceleration(dev, cfg)
+    restore_state(adj.hx, adj.hv, src, n, slot, adj.stride[None])
+    if ti.static(wants.masses):
+        spring_forces(dev, cfg, src.x, src.v, False)
+    for i in range(n):
+        w = ti.Vector.zero(ti.f64, 3)
+        if is_free(i, dev, cfg):
+            mu = adj.lv[i]
+            if ti.static(symplectic):
+                mu += h * adj.lx[i]
+            w = h * mu / dev.mass[i]
+            if ti.static(wants.masses):
+                f = particle_force(i, dev, cfg, src.x, src.v, False) - dev.mass[i] * g
+                adj.gm[i] = adj.gm[i] - w.dot(f) / dev.mass[i]
+            adj.gg[i] = adj.gg[i] + h * mu
+        adj.w[i] = w
+    if ti.static(cfg.has_springs):
+        for s in range(dev.size[1]):
+            i = dev.ends[s][0]
+            j = dev.ends[s][1]
+            d = src.x[j] - src.x[i]
+            r = src.v[j] - src.v[i]
+            u = adj.w[i] - adj.w[j]
+            unit, length = spring_direction(d, ti.f64)
+            gx = ti.Vector.zero(ti.f64, 3)
+            gv = ti.Vector.zero(ti.f64, 3)
+            if length > tiny_length(ti.f64):
+                for term in ti.static(cfg.spring_terms):
+                    tx, tv = term.adjoint(s, dev, adj, u, d, r, unit, length)
+                    gx += tx
+                    gv += tv
+                if ti.static(wants.rate_gradient):
+                    SpringDamping.rate_gradient(s, adj, u, r, unit)
+            adj.sx[s] = gx
+            adj.sv[s] = gv
+    for i in range(n):
+        lx = adj.lx[i]
+        lv = ti.Vector.zero(ti.f64, 3)
+        if is_free(i, dev, cfg):
+            lv = adj.lv[i] + h * adj.lx[i]
+        if ti.static(cfg.has_springs):
+            lx -= spring_sum(i, dev, adj.sx)
+            lv -= spring_sum(i, dev, adj.sv)
+        adj.lx[i] = lx
+        adj.lv[i] = lv

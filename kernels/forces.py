@@ -75,3 +75,18 @@ def particle_force(i, dev, cfg: ti.template(), x, v, rhs: ti.template()):
         else:
             f += term.force(i, dev, x, v)
     return f
+
+
+@ti.func
+def spring_sum(i, dev, values):
+    """Sum of ``values[s]`` (a vec3 per spring) over particle i's springs, + where i is the
+    spring's first end and - where its second: how a spring's force on its first end
+    reaches both ends (``particle_force``), used for the adjoints' per-spring vectors."""
+    out = ti.Vector.zero(ti.f64, 3)
+    for e in range(dev.offsets[i], dev.offsets[i + 1]):
+        s = dev.entry[e]
+        if s >= 0:
+            out += values[s]
+        else:
+            out -= values[-1 - s]
+    return out

@@ -1,4 +1,5 @@
-"""Loading a state from numpy into a simulation's fields (a restart)."""
+"""Loading a state from numpy into a simulation's fields (a restart), and keeping states
+in a history (the backward pass of ``massspring.gradient``)."""
 
 import taichi as ti
 
@@ -22,3 +23,19 @@ def load_reals(field: ti.template(), values: ti.types.ndarray(dtype=ti.f64, ndim
     """field[i] = values[i] for the (n,) float64 ``values``, cast to the field's precision."""
     for i in range(values.shape[0]):
         field[i] = ti.cast(values[i], field.dtype)
+
+
+@ti.kernel
+def save_state(hx: ti.template(), hv: ti.template(), src: ti.template(), n: ti.i32, slot: ti.i32, stride: ti.i32):
+    """hx[slot * stride + i], hv[...] = src.x[i], src.v[i] for the n particles."""
+    for i in range(n):
+        hx[slot * stride + i] = ti.cast(src.x[i], ti.f64)
+        hv[slot * stride + i] = ti.cast(src.v[i], ti.f64)
+
+
+@ti.func
+def restore_state(hx, hv, dst, n, slot, stride):
+    """The inverse of ``save_state``: dst.x[i], dst.v[i] = hx, hv[slot * stride + i]."""
+    for i in range(n):
+        dst.x[i] = hx[slot * stride + i]
+        dst.v[i] = hv[slot * stride + i]

@@ -24,8 +24,9 @@ from massspring.colliders import Box, Plane, Sphere  # noqa: E402
 from massspring.self_collision import SelfCollision  # noqa: E402
 from massspring.scene import Scene, SceneError, load_scene  # noqa: E402
 from massspring.simulation import Simulation, run  # noqa: E402
+from massspring.gradients import Frames, gradient  # noqa: E402
 from massspring.analysis.sweep import sweep  # noqa: E402
 
 __all__ = ["Model", "Plane", "Sphere", "Box", "SelfCollision", "Simulation", "run", "Scene", "SceneError", "load_scene",
-           "sweep", "DivergenceError", "SimulationClosedError"]
+           "sweep", "gradient", "Frames", "DivergenceError", "SimulationClosedError"]
 __version__ = VERSION

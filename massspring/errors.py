@@ -31,3 +31,18 @@ class DivergenceError(RuntimeError):
 
 class SimulationClosedError(RuntimeError):
     """A Simulation was used after ``close()``: its fields may belong to another run now."""
+
+
+class GradientError(RuntimeError):
+    """A backward pass could not solve a step's adjoint system (``massspring.gradients``).
+
+    Attributes: ``step`` (0-based number of the step whose adjoint failed, from the
+    run's start), ``reason`` (the CG's: "max_iter", "indefinite", "stalled",
+    "non-finite") and ``residual`` (its true relative residual at exit).
+    """
+
+    def __init__(self, step, reason, residual, integrator):
+        self.step, self.reason, self.residual = int(step), reason, float(residual)
+        super().__init__(f"{integrator} gradient: the adjoint solve of step {self.step + 1} stopped "
+                         f"({reason}, relative residual {self.residual:.3g}); no gradient is returned. "
+                         f"Give a larger cg_max_iter or a looser cg_tol, or a smaller dt")

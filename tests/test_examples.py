@@ -27,7 +27,7 @@ def run_example(name, *args, cwd, env=None):
 
 
 def test_every_example_is_tested():
-    tested = {"model_in_code.py", "drape_obj.py", "stiffness_sweep.py", "export_for_blender.py"}
+    tested = {"model_in_code.py", "drape_obj.py", "stiffness_sweep.py", "export_for_blender.py", "fit_stiffness.py"}
     assert {p.name for p in EXAMPLES.glob("*.py")} == tested
 
 
@@ -81,3 +81,13 @@ def test_export_for_blender(tmp_path):
 def test_shipped_scene_files_run(scene, steps, tmp_path, capsys):
     assert main(["run", str(EXAMPLES / scene), "--steps", steps, "--quiet", "--export", str(tmp_path)]) == 0
     assert json.loads((tmp_path / "manifest.json").read_text())["status"] == "complete"
+
+
+def test_fit_stiffness_recovers_both_factors(tmp_path):
+    """Issue 39's fit: from 0.5x and 2x, L-BFGS-B with ``ms.gradient`` as its gradient finds
+    the recorded run's stiffness and damping to 1e-4 relative in at most 30 iterations."""
+    out = run_example("fit_stiffness.py", cwd=tmp_path)
+    fits = re.findall(r"from ([\d.]+)x: (\d+) L-BFGS-B iterations.*largest relative error ([\d.e+-]+)\)", out)
+    assert [start for start, _, _ in fits] == ["0.5", "2"], out
+    for _, iterations, error in fits:
+        assert int(iterations) <= 30 and float(error) <= 1e-4, out

@@ -7,6 +7,7 @@ class SpringTerm:
     kind = "spring"
     name = ""
     uniform = False
+    differentiable = False  # gives ``adjoint``, ``rhs_adjoint``, ``operator_adjoint`` (``massspring.gradients``)
 
     @staticmethod
     @ti.func
@@ -28,10 +29,35 @@ class SpringTerm:
     def dissipation_change(s, dev, n, old_rate, new_rate):
         return 0
 
+    @staticmethod
+    @ti.func
+    def adjoint(s, dev, adj, u, d, r, n, length):
+        """For a weight ``u`` (the adjoint of the force on end i minus that on end j): the
+        gradients of u . (tension n) in d = x_j - x_i and in r = v_j - v_i (two vec3), and
+        u's products with the gradients in the term's parameters added to ``adj``'s
+        per-spring arrays (``massspring.gradient``). Called only where length > tiny."""
+        return d * 0, d * 0
+
+    @staticmethod
+    @ti.func
+    def rhs_adjoint(s, dev, adj, u, d, r, n, length):
+        """``adjoint`` for ``rhs_tension`` (Eq. 15's f - D v): zero by default."""
+        return d * 0, d * 0
+
+    @staticmethod
+    @ti.func
+    def operator_adjoint(s, dev, adj, u, p, d, n, length, h, fix: ti.template()):
+        """For weights u (on end i minus end j) and p (a velocity difference, end i minus
+        end j): the gradient in d = x_j - x_i of E = u . S p, S = a I + b n n^T the
+        term's block of Eq. 15's matrix (``coefficients``), with -dE/d(parameter)
+        added to ``adj``'s per-spring arrays. n = 0 where the spring has no direction."""
+        return d * 0
+
 
 class ParticleTerm:
     kind = "particle"
     name = ""
+    differentiable = False  # the gradients' kernels handle it (``massspring.gradients``)
     # A uniform acceleration a (f_i = m_i a, one a for every particle: gravity) sets
     # ``uniform`` and gives a as ``acceleration(dev)`` (a ``ti.func``, the run's precision);
     # its host side gives it as ``model_acceleration(model)`` (``massspring.terms``).

@@ -13,6 +13,7 @@ class SpringDamping(SpringTerm):
     """
 
     name = "damping"
+    differentiable = True
 
     @staticmethod
     @ti.func
@@ -23,6 +24,46 @@ class SpringDamping(SpringTerm):
     @ti.func
     def coefficients(s, dev, n, length, h, fix: ti.template()):
         return 0, h * dev.kd[s]
+
+    @staticmethod
+    @ti.func
+    def adjoint(s, dev, adj, u, d, r, n, length):
+        """Gradients of u . kd (r.n) n: in d, kd/l ((u.n)(r - (r.n) n) + (r.n)(u - (u.n) n));
+        in r, kd (u.n) n; adds (r.n) u.n to ``adj.gkd[s]`` (``rate_gradient``)."""
+        un = u.dot(n)
+        rn = SpringDamping.rate_gradient(s, adj, u, r, n)
+        kd = dev.kd[s]
+        return kd / length * (un * (r - rn * n) + rn * (u - un * n)), kd * un * n
+
+    @staticmethod
+    @ti.func
+    def operator_adjoint(s, dev, adj, u, p, d, n, length, h, fix: ti.template()):
+        """E = h kd (u.n)(p.n): dE/dd = h kd ((p.n)(u - (u.n) n) + (u.n)(p - (p.n) n)) / l,
+        -dE/dkd added to ``adj.gkd[s]`` (``operator_rate_gradient``)."""
+        grad = d * 0
+        if n.dot(n) > 0:
+            un = u.dot(n)
+            pn = SpringDamping.operator_rate_gradient(s, adj, u, p, n, h)
+            grad = h * dev.kd[s] * (pn * (u - un * n) + un * (p - pn * n)) / length
+        return grad
+
+    @staticmethod
+    @ti.func
+    def operator_rate_gradient(s, adj, u, p, n, h):
+        """Adds -h (u.n)(p.n), minus the gradient of u . S p in kd, to ``adj.gkd[s]``;
+        returns p.n. Also run, alone, for a model with kd = 0 everywhere."""
+        pn = p.dot(n)
+        adj.gkd[s] = adj.gkd[s] - h * u.dot(n) * pn
+        return pn
+
+    @staticmethod
+    @ti.func
+    def rate_gradient(s, adj, u, r, n):
+        """Adds u . (r.n) n, the gradient of u . f in kd, to ``adj.gkd[s]``; returns r.n.
+        Also run, alone, for a model with kd = 0 everywhere (no damping term compiled)."""
+        rn = r.dot(n)
+        adj.gkd[s] = adj.gkd[s] + rn * u.dot(n)
+        return rn
 
     @staticmethod
     @ti.func

@@ -9,6 +9,7 @@ class Gravity(ParticleTerm):
     """f_i = m_i g: ``dev.gravity`` (m/s^2, one vector)."""
 
     name = "gravity"
+    differentiable = True
     uniform = True
 
     @staticmethod

@@ -18,6 +18,7 @@ class Springs(SpringTerm):
     """
 
     name = "spring"
+    differentiable = True
 
     @staticmethod
     @ti.func
@@ -45,6 +46,55 @@ class Springs(SpringTerm):
             a = -k * c
             b = k * (1 + c)
         return a, b
+
+    @staticmethod
+    @ti.func
+    def adjoint(s, dev, adj, u, d, r, n, length):
+        """d/d(d) of u . ks (l - l0) n = ks ((u.n) n + (l - l0)/l (u - (u.n) n)); adds
+        (l - l0) u.n to ``adj.gks[s]`` and -ks u.n to ``adj.gl0[s]``."""
+        un = u.dot(n)
+        stretch = length - dev.l0[s]
+        adj.gks[s] = adj.gks[s] + stretch * un
+        adj.gl0[s] = adj.gl0[s] - dev.ks[s] * un
+        return dev.ks[s] * (un * n + stretch / length * (u - un * n)), d * 0
+
+    @staticmethod
+    @ti.func
+    def rhs_adjoint(s, dev, adj, u, d, r, n, length):
+        """The elastic force is all of this term's share of f - D v: ``adjoint``."""
+        return Springs.adjoint(s, dev, adj, u, d, r, n, length)
+
+    @staticmethod
+    @ti.func
+    def operator_adjoint(s, dev, adj, u, p, d, n, length, h, fix: ti.template()):
+        """E = k (-c u.p + (1 + c)(u.n)(p.n)), k = h^2 ks, c = l0/l - 1 (clamped to 0 where
+        ``fix`` and c > 0, where then dc/dl = 0; -1 for l0 = 0): dE/dd = k dc/dl
+        ((u.n)(p.n) - u.p) n + k (1 + c)((p.n)(u - (u.n) n) + (u.n)(p - (p.n) n)) / l;
+        dE/dks = E / ks, dE/dl0 = k dc/dl0 (-(u.p) + (u.n)(p.n)), dc/dl0 = 1/l unclamped."""
+        k = h * h
+        up = u.dot(p)
+        grad = d * 0
+        if dev.l0[s] == 0:
+            adj.gks[s] = adj.gks[s] - k * up  # a = k ks: K_ii = -ks I at every length
+            if n.dot(n) > 0:  # c = l0/l - 1 as l0 grows from 0
+                adj.gl0[s] = adj.gl0[s] - k * dev.ks[s] / length * (u.dot(n) * p.dot(n) - up)
+        elif n.dot(n) > 0:
+            c = dev.l0[s] / length - 1
+            slope = -dev.l0[s] / (length * length)
+            per_l0 = 1 / length
+            if ti.static(fix):
+                if c > 0:
+                    c = c * 0
+                    slope = slope * 0
+                    per_l0 = per_l0 * 0
+            un = u.dot(n)
+            pn = p.dot(n)
+            both = un * pn
+            ks = dev.ks[s]
+            adj.gks[s] = adj.gks[s] - k * (-c * up + (1 + c) * both)
+            adj.gl0[s] = adj.gl0[s] - k * ks * per_l0 * (both - up)
+            grad = k * ks * (slope * (both - up) * n + (1 + c) * (pn * (u - un * n) + un * (p - pn * n)) / length)
+        return grad
 
     @staticmethod
     @ti.func

@@ -37,6 +37,7 @@ solver's options, ``options.Option`` records: ``integrators.OPTIONS``). ``serial
     swept = None  # the option the study sweeps (a tolerance: its Option.sweep), None: none
     grows_undamped = False  # unstable for undamped oscillation at every dt (damping alone can make it stable)
     limit_reference = False  # its measured stability limit is what the others' ladders are relative to
+    differentiable = False  # has ``adjoint``: ``massspring.gradient`` can run it backwards
 
     def __init__(self, dev, model, settings):
         self.dev = dev
@@ -95,6 +96,14 @@ solver's options, ``options.Option`` records: ``integrators.OPTIONS``). ``serial
                 state_kernels.load_vectors(field, values.astype(np.float64))
             else:
                 state_kernels.load_integers(field, values.astype(np.int32))
+
+    def adjoint(self, adj, slot, wants):
+        """Run a step backwards (``massspring.gradient``) from the state kept at ``slot``
+        of ``adj``'s history (made the current state): ``adj`` (its bundle) holds dL/dx', dL/dv' of the step's end state on entry and
+        dL/dx, dL/dv of the current state on exit, with the step's share of each
+        parameter gradient added; ``wants``: ``gradients.Wants``. Only where ``differentiable``.
+        Returns the ``SolverStats`` of a step's adjoint solve, None where it has none."""
+        raise NotImplementedError
 
     @property
     def stats(self):

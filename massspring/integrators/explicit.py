@@ -25,6 +25,7 @@ class ExplicitEuler(Integrator):
     description = "explicit Euler: x' = x + dt v, v' = v + dt f(x, v)/m"
     symplectic = False
     grows_undamped = True
+    differentiable = True
 
     def __init__(self, dev, model, settings):
         super().__init__(dev, model, settings)
@@ -54,6 +55,11 @@ class ExplicitEuler(Integrator):
                 done += 1
                 self.steps += 1
         return done, check
+
+    def adjoint(self, adj, slot, wants):
+        """``euler.euler_adjoint`` of the step from the state kept at ``slot`` (no solve: None)."""
+        euler.euler_adjoint(self.dev, self.cfg, adj, self.state, self.settings.dt, slot, self.symplectic, wants,
+                            self.serial)
 
     @staticmethod
     def stability_limit(prediction):

@@ -7,7 +7,7 @@ import taichi as ti
 
 from massspring import self_collision
 from massspring.device import Config, read_verdict
-from massspring.kernels import cg, divergence, friction
+from massspring.kernels import cg, divergence, friction, implicit_adjoint, operator
 from massspring.solvers import CHOICES, MULTIGRID_FROM, PRECONDITIONERS, solve
 
 from .base import Integrator
@@ -57,6 +57,7 @@ class ImplicitEuler(Integrator):
     ladder_without_fix = True
     options = LINEAR_OPTIONS
     swept = "cg_tol"
+    differentiable = True
 
     def __init__(self, dev, model, settings):
         super().__init__(dev, model, settings)
@@ -139,6 +140,17 @@ class ImplicitEuler(Integrator):
             self.dev.v.copy_from(self.dev.keep)
         self.steps += accepted
         return int(accepted), check
+
+    def adjoint(self, adj, slot, wants):
+        """The adjoint of Eq. 15 at the state kept at ``slot`` (``kernels/implicit_adjoint.py``):
+        one solve with this run's operator, CG and preconditioner at its cg_tol; returns
+        the solve's ``SolverStats``."""
+        s = self.settings
+        implicit_adjoint.adjoint_rhs(self.dev, self.cfg, adj, s.dt, self.time, slot, self.serial)
+        stats = solve(self.dev, self.cfg, self.preconditioner, s.dt, s.cg_tol, s.cg_max_iter, self.serial,
+                      self.time, mode=operator.REFRESHED)
+        implicit_adjoint.implicit_adjoint(self.dev, self.cfg, adj, s.dt, slot, wants, self.serial)
+        return stats
 
     @staticmethod
     def suggest_dt(prediction):

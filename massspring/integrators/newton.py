@@ -56,6 +56,7 @@ class BackwardEuler(ImplicitEuler):
     order = 1
     description = "backward Euler solved by Newton's method with a line search (CG per iteration)"
     newton = True
+    differentiable = False  # its adjoint (the true Jacobian at the converged iterate) is not built yet
     options = LINEAR_OPTIONS + NEWTON_OPTIONS
     swept = "newton_tol"
     carries = False  # whether a step's commit keeps the state it replaces (BDF2's history)

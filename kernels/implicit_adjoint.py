@@ -1,0 +1,117 @@
+"""The adjoint of the linearised implicit step (seed Eq. 15), for ``massspring.gradients``.
+
+The step solves A(x) v' = b(x, v) on the free particles, A = M - h D - h^2 K (with the
+definiteness fix as the step used it), b = M v + h (f - D v) = M v + h f_e(x) + h M g
+(the damping force is D v exactly), then x' = x + h v'. Backwards, with dL/dx', dL/dv'
+of the state after the step:
+
+    A mu = dL/dv' + h dL/dx'                      (free rows; mu = 0 at pins)
+    dL/dx = dL/dx' + d(mu . b)/dx - d(mu . A v')/dx,   dL/dv = M mu,
+    dL/dtheta += mu . (db/dtheta - dA/dtheta v'),
+
+A is symmetric, so the adjoint system is the step's own: ``adjoint_rhs`` refreshes the
+operator at the step's state (restored from the history) and sets the right-hand side
+and warm start, the Simulation's CG driver and preconditioner solve it
+(``massspring.solvers.solve`` with the operator refreshed), and ``implicit_adjoint``
+gathers the rest spring by spring from each term's ``rhs_adjoint`` and
+``operator_adjoint`` (``kernels/terms``). Arrays of ``adj``: see ``massspring.gradients``.
+"""
+
+import taichi as ti
+
+from .constraints import is_free, prescribed
+from .forces import spring_direction, spring_sum, tiny_length
+from .operator import LINEARISED, apply_row, refresh
+from .state import restore_state
+from .terms import SpringDamping, uniform_acceleration
+
+
+@ti.func
+def rhs(dev, cfg: ti.template(), adj, h, t, slot):
+    n = dev.size[0]
+    restore_state(adj.hx, adj.hv, dev.state, n, slot, adj.stride[None])
+    refresh(dev, cfg, dev.x, dev.v, h, t, LINEARISED)
+    if ti.static(cfg.moving_pins):
+        for i in range(n):  # the solve starts pins at their velocity: their columns of A move to b
+            dev.p[i] = ti.Vector.zero(cfg.real, 3)
+            if not is_free(i, dev, cfg):
+                dev.p[i] = prescribed(i, dev, cfg)
+    for i in range(n):
+        b = ti.Vector.zero(cfg.real, 3)
+        if is_free(i, dev, cfg):
+            b = adj.lv[i] + h * adj.lx[i]
+            if ti.static(cfg.moving_pins):
+                b += apply_row(i, dev, cfg, dev.p)
+        dev.b[i] = b
+        dev.v[i] = adj.w[i]
+
+
+@ti.kernel
+def adjoint_rhs(dev: ti.template(), cfg: ti.template(), adj: ti.template(), dt: ti.f64, t: ti.f64, slot: ti.i32,
+                serial: ti.template()):
+    """The state kept at ``slot`` restored into ``dev.x``, ``dev.v``; the operator refreshed
+    there (time t, s); ``dev.b`` = dL/dv' + h dL/dx' on free rows (plus A's pin columns
+    times the pin velocities, which the solve's start subtracts again); ``dev.v`` = the
+    last adjoint solution ``adj.w`` (the warm start)."""
+    if ti.static(serial):
+        ti.loop_config(serialize=True)
+        for _ in range(1):
+            rhs(dev, cfg, adj, ti.cast(dt, cfg.real), ti.cast(t, cfg.real), slot)
+    else:
+        rhs(dev, cfg, adj, ti.cast(dt, cfg.real), ti.cast(t, cfg.real), slot)
+
+
+@ti.func
+def gather(dev, cfg: ti.template(), adj, h, slot, wants: ti.template()):
+    n = dev.size[0]
+    stride = adj.stride[None]
+    g = uniform_acceleration(dev, cfg)
+    for i in range(n):
+        mu = ti.Vector.zero(ti.f64, 3)
+        if is_free(i, dev, cfg):
+            mu = dev.v[i]
+            if ti.static(wants.masses):
+                change = adj.hv[(slot + 1) * stride + i] - adj.hv[slot * stride + i]
+                adj.gm[i] = adj.gm[i] + mu.dot(h * g - change)
+            adj.gg[i] = adj.gg[i] + h * dev.mass[i] * mu
+        adj.w[i] = mu
+    if ti.static(cfg.has_springs):
+        for s in range(dev.size[1]):
+            i = dev.ends[s][0]
+            j = dev.ends[s][1]
+            d = dev.x[j] - dev.x[i]
+            u = adj.w[i] - adj.w[j]
+            p = adj.hv[(slot + 1) * stride + i] - adj.hv[(slot + 1) * stride + j]
+            unit, length = spring_direction(d, ti.f64)
+            gx = ti.Vector.zero(ti.f64, 3)
+            if length > tiny_length(ti.f64):
+                for term in ti.static(cfg.spring_terms):
+                    tx, _ = term.rhs_adjoint(s, dev, adj, h * u, d, d * 0, unit, length)
+                    gx += tx
+            for term in ti.static(cfg.spring_terms):
+                gx -= term.operator_adjoint(s, dev, adj, u, p, d, unit, length, h, cfg.fix)
+            if ti.static(wants.rate_gradient):
+                if unit.dot(unit) > 0:
+                    SpringDamping.operator_rate_gradient(s, adj, u, p, unit, h)
+            adj.sx[s] = gx
+    for i in range(n):
+        lx = adj.lx[i]
+        if ti.static(cfg.has_springs):
+            lx -= spring_sum(i, dev, adj.sx)
+        adj.lx[i] = lx
+        adj.lv[i] = dev.mass[i] * adj.w[i]
+
+
+@ti.kernel
+def implicit_adjoint(dev: ti.template(), cfg: ti.template(), adj: ti.template(), dt: ti.f64, slot: ti.i32,
+                     wants: ti.template(), serial: ti.template()):
+    """After the adjoint solve (mu in ``dev.v``): dL/dx, dL/dv of the step's state into
+    ``adj.lx``, ``adj.lv``, mu kept in ``adj.w`` (the next solve's warm start), the step's
+    share of each parameter gradient added (module docstring; the masses' with
+    ``wants.masses``: mu . (h g - (v' - v)))."""
+    if ti.static(serial):
+        ti.loop_config(serialize=True)
+        for _ in range(1):
+            gather(dev, cfg, adj, ti.cast(dt, ti.f64), slot, wants)
+    else:
+        gather(dev, cfg, adj, ti.cast(dt, ti.f64), slot, wants)

@@ -1,0 +1,308 @@
+"""Gradients of an objective of a run's frames, by the discrete adjoint of its steps.
+
+``gradient(model, objective, wrt, steps=...)`` runs ``steps`` steps forward with the
+run's own kernels, calls ``objective`` once on the recorded frames, then runs the
+steps backwards: each integrator's ``adjoint`` (next to its forward kernels, e.g.
+``kernels/euler.py``'s ``euler_adjoint``) turns dL/d(state after a step) into
+dL/d(state before it) and adds the step's share of each parameter's gradient. The
+result is the gradient of the run as computed (the discrete adjoint), not of the
+differential equation.
+
+Memory (checkpointing): a run whose every state fits in ``HISTORY_BYTES`` (256 MB)
+keeps them all on the device. A longer one keeps the state at every
+``checkpoint``-th step (by default about sqrt(steps) steps apart); the backward pass
+runs each stretch between two kept states forward again from the earlier one into the
+history, then backwards. Peak: about (steps / checkpoint + checkpoint) states of 48
+bytes a particle, and one forward step more per step than the forward run.
+
+Built so far (issue 39): the explicit and symplectic integrators, with springs,
+damping, gravity and pins (fixed or moving). The adjoint kernels are compiled and
+their fields allocated only when a gradient is asked for: a forward run is as before.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import taichi as ti
+
+from massspring import validate
+from massspring.defaults import MAX_STEPS
+from massspring.device import POOL, Layout, capacity
+from massspring.errors import GradientError
+from massspring.integrators import INTEGRATORS
+from massspring.kernels import state as state_kernels
+from massspring.model import Model
+from massspring.simulation import Simulation
+from massspring.terms import active_terms
+
+# The names ``wrt`` may hold: where each gradient is in the adjoint bundle, and what it is per.
+PARAMETERS = {"stiffness": "spring", "damping": "spring", "rest_lengths": "spring", "masses": "particle",
+              "positions": "state", "velocities": "state", "gravity": "vector"}
+PLANNED = ("drag", "wind", "pin_velocity")  # named by issue 39, not built yet
+PARTIALS = ("positions", "velocities")
+STATE_BYTES = 48  # a particle's x and v in the history (float64)
+HISTORY_BYTES = 256e6  # keep every state of a run whose history fits in this; else checkpoint
+
+
+@dataclass(frozen=True)
+class Frames:
+    """The states an objective sees: ``positions`` (F, n, 3) m, ``velocities`` (F, n, 3)
+    m/s in the model's particle numbering, ``times`` (F,) s, ``steps`` (F,) the step of
+    each frame (frame 0 is the initial state, then every ``every``-th step)."""
+
+    positions: np.ndarray
+    velocities: np.ndarray
+    times: np.ndarray
+    steps: np.ndarray
+
+
+def differentiable() -> tuple:
+    """The integrators ``gradient`` can run backwards."""
+    return tuple(name for name, cls in INTEGRATORS.items() if cls.differentiable)
+
+
+def gradient(model, objective, wrt, *, steps, every=1, integrator="symplectic", dt=1e-2, precision="f64",
+             checkpoint=None, **options):
+    """The value of ``objective`` on a run of ``model`` and its gradient in ``wrt``.
+
+    Parameters
+    ----------
+    model : Model
+    objective : callable
+        ``objective(frames)`` with a :class:`Frames`; returns ``(value, partials)``:
+        a finite float and a dict holding "positions" and/or "velocities", arrays
+        (F, n, 3) of dL/dX and dL/dV (an absent key is zero).
+    wrt : str or sequence of str
+        Names of ``PARAMETERS``: "stiffness", "damping", "rest_lengths" ((m,) per
+        spring), "masses" ((n,)), "positions", "velocities" ((n, 3): the initial state;
+        rows of pinned particles are zero), "gravity" ((3,)).
+    steps : int >= 1
+    every : int >= 1
+        A frame at step 0 and at every ``every``-th step.
+    integrator : one of ``differentiable()``
+    dt : float, s
+    precision : "f64"
+    checkpoint : int >= 1 or None
+        Steps between kept states (None: about sqrt(steps)).
+    **options : the Simulation's (``loops``, ...)
+
+    Returns ``(value, grads)``: the float value and a dict of one float64 array per
+    name in ``wrt``. Bad arguments raise ValueError naming them before any step runs.
+    """
+    names = _check_wrt(wrt, model)
+    if not callable(objective):
+        raise ValueError(f"objective: expected a function of the frames, got {type(objective).__name__}")
+    validate.choice("integrator", integrator, tuple(INTEGRATORS))
+    if not INTEGRATORS[integrator].differentiable:
+        raise ValueError(f"integrator: gradients through {integrator!r} steps are not built yet; "
+                         f"they are for: {', '.join(differentiable())}")
+    if precision != "f64":
+        raise ValueError(f"precision: gradients are computed in f64 only, got {precision!r}")
+    terms = [term.name for term in active_terms(model) if not term.kernel.differentiable]
+    for feature, present in (("colliders", model.has_colliders), ("self-collision", model.has_self_collision),
+                             (" and ".join(terms), bool(terms))):
+        if present:
+            raise ValueError(f"model: gradients through {feature} are not built yet (issue 39); "
+                             f"a model of springs, damping, gravity and pins has them")
+    steps = validate.count("steps", steps, low=1, high=MAX_STEPS)
+    every = validate.count("every", every, low=1, high=MAX_STEPS)
+    if checkpoint is None:
+        checkpoint = default_checkpoint(model.n_particles, steps)
+    checkpoint = min(validate.count("checkpoint", checkpoint, low=1, high=MAX_STEPS), steps)
+
+    sim = Simulation(model, integrator, dt=dt, precision=precision, **options)
+    adj = None
+    try:
+        adj = _adjoint_bundle(sim, checkpoint)
+        frames, kept, last = _forward(sim, adj, steps, every, checkpoint)
+        value, partials = _call(objective, frames, model.n_particles)
+        wants = Wants(masses="masses" in names, rate_gradient="damping" in names and not model.has_damping)
+        _backward(sim, adj, wants, partials, frames.steps, kept, last, steps, checkpoint)
+        return value, _read(sim, adj, names)
+    finally:
+        sim.close()
+        if adj is not None:
+            POOL.give(adj)
+
+
+@dataclass(frozen=True)
+class Wants:
+    """Compile-time switches of an adjoint kernel: ``masses``: add the masses' gradient
+    (needs the step's forces again); ``rate_gradient``: add the damping coefficients'
+    gradient in a model without a damping term."""
+
+    masses: bool
+    rate_gradient: bool
+
+
+def history_stride(n) -> int:
+    """Rows a state of n particles takes in the history (a capacity class, so that models
+    of nearby sizes share a bundle and its compiled kernels)."""
+    return capacity(n, 64)
+
+
+def default_checkpoint(n, steps) -> int:
+    """Every state kept if the history of all ``steps`` fits in ``HISTORY_BYTES``, else
+    about sqrt(steps) between kept states (``steps / k + k`` states held)."""
+    if capacity(steps + 1, 8) * history_stride(n) * STATE_BYTES <= HISTORY_BYTES:
+        return steps
+    return math.isqrt(steps - 1) + 1
+
+
+def _check_wrt(wrt, model):
+    names = [wrt] if isinstance(wrt, str) else list(wrt) if isinstance(wrt, (list, tuple)) else None
+    if not isinstance(model, Model):
+        raise ValueError(f"model: expected a massspring.Model, got {type(model).__name__}")
+    if not names or not all(isinstance(name, str) for name in names):
+        raise ValueError(f"wrt: expected a name or a list of names of {', '.join(PARAMETERS)}, got {wrt!r}")
+    for name in names:
+        if name in PLANNED:
+            raise ValueError(f"wrt: gradients in {name!r} are not built yet (issue 39); "
+                             f"these are: {', '.join(PARAMETERS)}")
+        if name not in PARAMETERS:
+            raise ValueError(f"wrt: unknown parameter {name!r}; expected some of {', '.join(PARAMETERS)}")
+        if PARAMETERS[name] == "spring" and model.n_springs == 0:
+            raise ValueError(f"wrt: {name!r}: the model has no springs")
+    if len(set(names)) != len(names):
+        raise ValueError(f"wrt: a name given twice in {names}")
+    return names
+
+
+def _forward(sim, adj, steps, every, checkpoint):
+    """Run ``steps`` steps: the frames; the states (numpy) at the starts of the stretches of
+    ``checkpoint`` steps but the last, whose states (its end's too) go to the history as
+    the run passes them; the start of that last stretch."""
+    n, stride = sim.model.n_particles, int(adj.stride[None])
+    last = (steps - 1) // checkpoint * checkpoint
+    positions, velocities, at, kept = [], [], [], {}
+    done = 0
+    while True:
+        if done < last and done % checkpoint == 0:
+            kept[done] = (sim.positions, sim.velocities)
+        if done >= last:
+            state_kernels.save_state(adj.hx, adj.hv, sim._integrator.state, n, done - last, stride)
+        if done % every == 0:
+            positions.append(sim.positions)
+            velocities.append(sim.velocities)
+            at.append(done)
+        if done == steps:
+            break
+        stop = done + 1 if done >= last else min(steps, (done // every + 1) * every, last,
+                                                  (done // checkpoint + 1) * checkpoint)
+        sim.step(stop - done)
+        done = stop
+    at = np.array(at)
+    return Frames(np.array(positions), np.array(velocities), at * sim.dt, at), kept, last
+
+
+def _call(objective, frames, n):
+    """``objective(frames)``, its value and partials checked."""
+    out = objective(frames)
+    if not (isinstance(out, tuple) and len(out) == 2):
+        raise ValueError(f"objective: expected a (value, partials) pair, got {type(out).__name__}")
+    value, partials = out
+    try:
+        value = float(value)
+    except (TypeError, ValueError):
+        raise ValueError(f"objective: the value must be a number, got {type(value).__name__}") from None
+    if not math.isfinite(value):
+        raise ValueError(f"objective: the value is {value}, not a finite number")
+    if not isinstance(partials, dict):
+        raise ValueError(f"objective: partials must be a dict with keys of {PARTIALS}, got {type(partials).__name__}")
+    shape = frames.positions.shape
+    out = {}
+    for key, arr in partials.items():
+        if key not in PARTIALS:
+            raise ValueError(f"objective: unknown partials key {key!r}; expected some of {PARTIALS}")
+        arr = np.asarray(arr, dtype=np.float64)
+        if arr.shape != shape:
+            raise ValueError(f"objective: partials[{key!r}] has shape {arr.shape}, expected {shape} (frames, n, 3)")
+        if not np.all(np.isfinite(arr)):
+            raise ValueError(f"objective: partials[{key!r}] holds a value that is not finite")
+        out[key] = arr
+    zero = np.zeros(shape)
+    return value, (out.get("positions", zero), out.get("velocities", zero))
+
+
+def _adjoint_bundle(sim, checkpoint):
+    """The fields of the backward pass (float64; see ``euler.euler_adjoint``), with a
+    history of the ``checkpoint`` + 1 states of a stretch, its end's included (``hx``,
+    ``hv``: slots of ``stride`` rows; an implicit step's adjoint reads the state after it)."""
+    n, m = sim.model.n_particles, sim.model.n_springs
+    layout = Layout(n, m, ti.f64)
+    stride = history_stride(n)
+    layout.add("stride", ti.i32, (), values=np.array(stride))
+    for name in ("hx", "hv"):
+        layout.vectors(name, ti.f64, capacity(checkpoint + 1, 8) * stride)
+    for name in ("lx", "lv", "gg"):
+        layout.vectors(name, ti.f64, values=np.zeros((n, 3)))
+    layout.vectors("w", ti.f64, values=np.zeros((n, 3)))
+    layout.add("gm", ti.f64, "particle", values=np.zeros(n))
+    for name in ("sx", "sv"):
+        layout.vectors(name, ti.f64, "spring")
+    for name in ("gks", "gkd", "gl0"):
+        layout.add(name, ti.f64, "spring", values=np.zeros(m) if m else None)
+    return layout.allocate(f"model: {n:,} particles and {m:,} springs; the fields of its gradient "
+                           f"with {checkpoint:,} states kept (give a smaller checkpoint)")
+
+
+def _backward(sim, adj, wants, partials, frame_steps, kept, last, steps, checkpoint):
+    """Run the steps backwards, stretch by stretch: each but the last run again from its
+    kept state into the history first."""
+    integrator, n, stride = sim._integrator, sim.model.n_particles, int(adj.stride[None])
+    frame_of = {int(k): f for f, k in enumerate(frame_steps)}
+
+    def add_frame(k, lx, lv):
+        f = frame_of[k]
+        lx = lx + sim._to_inner(partials[0][f])
+        lv = lv + sim._to_inner(partials[1][f])
+        state_kernels.load_vectors(adj.lx, np.ascontiguousarray(lx))
+        state_kernels.load_vectors(adj.lv, np.ascontiguousarray(lv))
+
+    if steps in frame_of:
+        add_frame(steps, np.zeros((n, 3)), np.zeros((n, 3)))
+    for start in reversed(range(0, steps, checkpoint)):
+        end = min(start + checkpoint, steps)
+        if start != last:
+            sim.set_state(*kept[start], steps=start)
+            for k in range(start, end + 1):
+                if k > start:
+                    sim.step(1)
+                state_kernels.save_state(adj.hx, adj.hv, integrator.state, n, k - start, stride)
+        for k in reversed(range(start, end)):
+            stats = integrator.adjoint(adj, k - start, wants)
+            if stats is not None and not stats.converged:
+                raise GradientError(k, stats.reason, stats.residual, sim.integrator)
+            if k in frame_of:
+                add_frame(k, adj.read("lx", n), adj.read("lv", n))
+
+
+def _read(sim, adj, names):
+    """The gradients asked for, in the user's numbering."""
+    model, order = sim.model, sim._order
+    n, m = model.n_particles, model.n_springs
+
+    def springs(field):
+        inner = adj.read(field, m)
+        if order is None:
+            return inner
+        out = np.empty_like(inner)
+        out[order.springs] = inner
+        return out
+
+    grads = {}
+    for name in names:
+        if name in ("positions", "velocities"):
+            rows = sim._to_user(adj.read("lx" if name == "positions" else "lv", n))
+            rows[model.fixed] = 0.0
+            grads[name] = rows
+        elif name == "masses":
+            grads[name] = sim._to_user(adj.read("gm", n))
+        elif name == "gravity":
+            grads[name] = adj.read("gg", n).sum(axis=0)
+        else:
+            grads[name] = springs({"stiffness": "gks", "damping": "gkd", "rest_lengths": "gl0"}[name])
+    return grads

@@ -1,0 +1,263 @@
+"""Gradients through the steps (``massspring.gradient``, issue 39): directional
+derivatives against central differences of the forward runs, exact discrete
+gradients of a falling particle, checkpointing, and arguments refused before any step."""
+
+import numpy as np
+import pytest
+
+import massspring as ms
+from conftest import FULL, PATHS
+from massspring.gradients import PARAMETERS, differentiable
+
+DIFFERENTIABLE = differentiable()
+SIDE = 4  # a 4 x 4 sheet with shear springs: 16 particles, 33 springs
+PINNED = [0, SIDE - 1]
+
+
+def sheet(seed=1, damped=True, **changes):
+    """A jittered, pinned (one pin moving), damped sheet with random per-item parameters
+    and a tilted gravity: every parameter kind differs from item to item."""
+    rng = np.random.default_rng(seed)
+    positions = np.array([[i * 0.1, j * 0.1, 0.0] for j in range(SIDE) for i in range(SIDE)])
+    positions += rng.normal(0, 0.01, positions.shape)
+    springs = []
+    for j in range(SIDE):
+        for i in range(SIDE):
+            a = j * SIDE + i
+            springs += [[a, a + 1]] * (i + 1 < SIDE) + [[a, a + SIDE]] * (j + 1 < SIDE)
+            springs += [[a, a + SIDE + 1]] * (i + 1 < SIDE and j + 1 < SIDE)
+    n, m = len(positions), len(springs)
+    values = dict(positions=positions, masses=rng.uniform(0.5, 1.5, n), stiffness=rng.uniform(50, 150, m),
+                  damping=rng.uniform(0.1, 1.0, m) if damped else np.zeros(m),
+                  rest_lengths=rng.uniform(0.08, 0.12, m), velocities=rng.normal(0, 0.1, (n, 3)),
+                  gravity=np.array([0.1, -0.2, -9.8]))
+    values["velocities"][PINNED] = [[0, 0, 0.1], [0, 0, 0]]
+    values.update(changes)
+    return ms.Model(values.pop("positions"), springs, fixed=PINNED, pin_velocity=[[0, 0, 0.1], [0, 0, 0]], **values)
+
+
+def weights(frames_count, n, seed=7):
+    return np.random.default_rng(seed).normal(size=(frames_count, n, 3))
+
+
+def objective(frames):
+    """L = sum C . X + |V|^2 / 2 over the frames: dL/dX = C, dL/dV = V."""
+    c = weights(len(frames.positions), frames.positions.shape[1])
+    value = np.sum(c * frames.positions) + 0.5 * np.sum(frames.velocities ** 2)
+    return value, {"positions": c, "velocities": frames.velocities}
+
+
+RUN = dict(steps=10, every=2, dt=2e-3, checkpoint=3)
+# Solver options per integrator: the gradient is that of the step as solved, so the
+# implicit step's CG solves (forward and adjoint) to round-off here
+SOLVED = {"implicit": dict(cg_tol=1e-13)}
+
+
+def run_of(integrator, **more):
+    return dict(RUN, integrator=integrator, **SOLVED.get(integrator, {}), **more)
+
+
+def model_values(model):
+    return dict(positions=model.positions, masses=model.masses, stiffness=model.stiffness, damping=model.damping,
+                rest_lengths=model.rest_lengths, velocities=model.velocities, gravity=model.gravity)
+
+
+@pytest.mark.fast_sample(integrator=["implicit"], path=["serial"])
+@pytest.mark.parametrize("integrator", DIFFERENTIABLE)
+@pytest.mark.parametrize("path", PATHS)
+def test_directional_derivatives_match_central_differences(integrator, path):
+    """Every parameter kind on a pinned (one pin moving), damped sheet under gravity: the
+    gradient's directional derivative along a random direction agrees with a central
+    difference of the forward runs (step 1e-6 of the largest value) to 1e-6 relative."""
+    model = sheet()
+    names = list(PARAMETERS)
+    run = run_of(integrator, loops=path)
+    value, grads = ms.gradient(model, objective, names, **run)
+    values = model_values(model)
+    rng = np.random.default_rng(3)
+    for name in names:
+        assert grads[name].shape == np.shape(values[name]), name
+        direction = rng.normal(size=np.shape(values[name]))
+        if name in ("positions", "velocities"):
+            direction[PINNED] = 0  # a pin's state is not free (the velocity must be its pin's)
+            assert np.all(grads[name][PINNED] == 0)
+        eps = 1e-6 * max(1.0, np.abs(values[name]).max())
+        ends = []
+        for sign in (1, -1):
+            changed = dict(values, **{name: values[name] + sign * eps * direction})
+            ends.append(ms.gradient(sheet(**changed), objective, "gravity", **run)[0])
+        numeric = (ends[0] - ends[1]) / (2 * eps)
+        exact = float(np.sum(grads[name] * direction))
+        assert abs(exact - numeric) <= 1e-6 * abs(numeric), (name, exact, numeric)
+    assert value == ms.gradient(model, objective, "gravity", **run)[0]
+
+
+@FULL
+@pytest.mark.parametrize("integrator", DIFFERENTIABLE)
+def test_damping_gradient_of_an_undamped_model(integrator):
+    """kd = 0 everywhere compiles no damping term; its gradient is still that of the runs
+    with a little damping (central differences at kd = +-1e-6)."""
+    model = sheet(damped=False)
+    run = run_of(integrator)
+    grads = ms.gradient(model, objective, ["damping"], **run)[1]
+    direction = np.random.default_rng(5).uniform(0.5, 1.0, model.n_springs)
+    values = model_values(model)
+    # a negative damping is refused by the Model: one-sided differences at two step sizes
+    # combined (Richardson), whose error is O(eps^2)
+    one = [ms.gradient(sheet(**dict(values, damping=e * direction)), objective, "gravity", **run)[0]
+           for e in (1e-6, 2e-6)]
+    base = ms.gradient(model, objective, "gravity", **run)[0]
+    numeric = (4 * (one[0] - base) / 1e-6 - (one[1] - base) / 2e-6) / 3
+    exact = float(np.sum(grads["damping"] * direction))
+    assert abs(exact - numeric) <= 1e-6 * abs(numeric), (exact, numeric)
+
+
+@pytest.mark.fast_sample(integrator=["symplectic"])
+@pytest.mark.parametrize("integrator, before", [("explicit", -1), ("symplectic", 1), ("implicit", 1)])
+def test_a_falling_particle_has_its_exact_discrete_gradient(integrator, before):
+    """One free particle under gravity, L = z after N steps: explicit Euler gives
+    z_N = z_0 + N h v_0 + h^2 g N (N - 1) / 2, symplectic and implicit Euler (A = M: the
+    same step) N (N + 1) / 2 in place of N (N - 1) / 2, so dL/dz_0 = 1, dL/dv_0 = N h, dL/dg = h^2 N (N +- 1) / 2."""
+    steps, h = 7, 0.01
+    model = ms.Model([[0.0, 0.0, 1.0]], np.zeros((0, 2), int), masses=2.0, velocities=[[0.3, 0.0, 0.5]])
+
+    def height(frames):
+        partial = np.zeros_like(frames.positions)
+        partial[-1, 0, 2] = 1.0
+        return frames.positions[-1, 0, 2], {"positions": partial}
+
+    value, grads = ms.gradient(model, height, ["positions", "velocities", "gravity", "masses"], steps=steps,
+                               dt=h, integrator=integrator, every=steps)
+    g = model.gravity[2]
+    assert value == pytest.approx(1.0 + steps * h * 0.5 + h * h * g * steps * (steps + before) / 2, rel=1e-14)
+    np.testing.assert_allclose(grads["positions"], [[0, 0, 1]], rtol=1e-14)
+    np.testing.assert_allclose(grads["velocities"], [[0, 0, steps * h]], rtol=1e-14)
+    np.testing.assert_allclose(grads["gravity"], [0, 0, h * h * steps * (steps + before) / 2], rtol=1e-14)
+    np.testing.assert_array_equal(grads["masses"], [0.0])  # gravity's acceleration does not depend on the mass
+
+
+@pytest.mark.fast_sample(integrator=["symplectic"])
+@pytest.mark.parametrize("integrator", DIFFERENTIABLE)
+def test_checkpointed_gradients_equal_those_of_the_stored_trajectory(integrator):
+    """Every state kept (checkpoint 1), one kept (checkpoint = steps) and the default give
+    the same value and gradients to the bit: a stretch run again from its checkpoint
+    repeats the forward run's bits (a restart continues bitwise)."""
+    model = sheet()
+    results = [ms.gradient(model, objective, list(PARAMETERS), steps=12, every=3, dt=2e-3, integrator=integrator,
+                           checkpoint=k, **SOLVED.get(integrator, {})) for k in (1, 12, None, 5)]
+    for value, grads in results[1:]:
+        assert value == results[0][0]
+        for name in PARAMETERS:
+            np.testing.assert_array_equal(grads[name], results[0][1][name])
+
+
+def test_frames_are_the_run_at_every_kth_step():
+    """The objective sees frame 0 and every ``every``-th step of the run a Simulation takes."""
+    model = sheet()
+    seen = {}
+
+    def keep(frames):
+        seen["frames"] = frames
+        return 0.0, {}
+
+    value, grads = ms.gradient(model, keep, ["stiffness"], steps=7, every=3, dt=2e-3, integrator="symplectic")
+    frames = seen["frames"]
+    assert value == 0.0 and np.all(grads["stiffness"] == 0)
+    np.testing.assert_array_equal(frames.steps, [0, 3, 6])
+    np.testing.assert_allclose(frames.times, [0, 6e-3, 12e-3], rtol=1e-15)
+    sim = ms.Simulation(model, "symplectic", dt=2e-3)
+    for f, k in enumerate(frames.steps):
+        sim.step(int(k) - sim.steps)
+        np.testing.assert_array_equal(frames.positions[f], sim.positions)
+        np.testing.assert_array_equal(frames.velocities[f], sim.velocities)
+    sim.close()
+
+
+@pytest.mark.parametrize("kwargs, words", [
+    (dict(wrt="bogus"), ["wrt", "unknown parameter 'bogus'", "stiffness"]),
+    (dict(wrt="drag"), ["wrt", "'drag'", "not built yet"]),
+    (dict(wrt=["masses", "masses"]), ["wrt", "twice"]),
+    (dict(wrt=[]), ["wrt", "expected a name"]),
+    (dict(integrator="backward-euler"), ["integrator", "'backward-euler'", "implicit"]),
+    (dict(integrator="leapfrog"), ["integrator", "leapfrog"]),
+    (dict(precision="f32"), ["precision", "f64"]),
+    (dict(steps=0), ["steps"]),
+    (dict(every=0), ["every"]),
+    (dict(checkpoint=0), ["checkpoint"]),
+    (dict(objective=3), ["objective", "function"]),
+    (dict(model=None), ["model", "massspring.Model"]),
+])
+def test_bad_arguments_are_refused_before_any_step(kwargs, words):
+    calls = []
+
+    def counted(frames):
+        calls.append(frames)
+        return 0.0, {}
+
+    args = dict(model=sheet(), objective=counted, wrt="stiffness", steps=3, dt=1e-3, integrator="symplectic")
+    args.update(kwargs)
+    with pytest.raises(ValueError) as info:
+        ms.gradient(args.pop("model"), args.pop("objective"), args.pop("wrt"), **args)
+    for word in words:
+        assert word in str(info.value), (word, str(info.value))
+    assert not calls
+
+
+@pytest.mark.parametrize("extra, feature", [(dict(colliders=[ms.Plane([0, 0, 0], [0, 0, 1])]), "colliders"),
+                                            (dict(drag=0.5), "drag")])
+def test_a_model_with_a_feature_without_an_adjoint_is_refused(extra, feature):
+    model = ms.Model([[0.0, 0.0, 1.0], [0.1, 0.0, 1.0]], [[0, 1]], **extra)
+    with pytest.raises(ValueError, match=f"model: gradients through {feature} are not built yet"):
+        ms.gradient(model, objective, "stiffness", steps=2, integrator="symplectic")
+
+
+@pytest.mark.parametrize("returned, words", [
+    (1.0, ["(value, partials) pair"]),
+    ((float("nan"), {}), ["not a finite number"]),
+    (("x", {}), ["must be a number"]),
+    ((1.0, []), ["partials must be a dict"]),
+    ((1.0, {"forces": 0}), ["unknown partials key 'forces'"]),
+    ((1.0, {"positions": np.zeros((1, 16, 3))}), ["partials['positions'] has shape (1, 16, 3)", "(3, 16, 3)"]),
+    ((1.0, {"velocities": np.full((3, 16, 3), np.inf)}), ["partials['velocities']", "not finite"]),
+])
+def test_a_bad_objective_result_names_the_objective(returned, words):
+    with pytest.raises(ValueError) as info:
+        ms.gradient(sheet(), lambda frames: returned, "stiffness", steps=2, dt=1e-3, integrator="symplectic")
+    assert str(info.value).startswith("objective: ")
+    for word in words:
+        assert word in str(info.value), (word, str(info.value))
+
+
+@pytest.mark.parametrize("options", [
+    pytest.param(dict(preconditioner="multigrid", loops="parallel"), id="multigrid", marks=FULL),
+    pytest.param(dict(preconditioner="none", definiteness_fix=False), id="no-fix", marks=FULL),
+    pytest.param(dict(preconditioner="none"), id="none", marks=FULL)])
+def test_implicit_gradient_at_a_frame_step_with_each_preconditioner(options):
+    """The implicit step at dt = 1/60 s (compressed springs clamped by the definiteness fix,
+    or not), its adjoint solved with the run's own preconditioner: directional derivatives
+    in every parameter against central differences to 1e-6 relative."""
+    model = sheet()
+    run = run_of("implicit", **dict(options, dt=1 / 60))
+    value, grads = ms.gradient(model, objective, list(PARAMETERS), **run)
+    values = model_values(model)
+    rng = np.random.default_rng(11)
+    for name in PARAMETERS:
+        direction = rng.normal(size=np.shape(values[name]))
+        if name in ("positions", "velocities"):
+            direction[PINNED] = 0
+        eps = 1e-6 * max(1.0, np.abs(values[name]).max())
+        ends = [ms.gradient(sheet(**dict(values, **{name: values[name] + sign * eps * direction})), objective,
+                            "gravity", **run)[0] for sign in (1, -1)]
+        numeric = (ends[0] - ends[1]) / (2 * eps)
+        exact = float(np.sum(grads[name] * direction))
+        assert abs(exact - numeric) <= 1e-6 * abs(numeric), (name, exact, numeric)
+
+
+def test_an_adjoint_solve_that_stops_short_is_an_error():
+    """CG limited to 2 iterations: the forward steps go on unconverged (as a Simulation's
+    do, counted in cg_failures), the first adjoint solve that stops short raises
+    GradientError naming the step and the reason; no gradient is returned."""
+    from massspring.errors import GradientError
+
+    with pytest.raises(GradientError, match=r"implicit gradient: the adjoint solve of step 10 stopped \(max_iter"):
+        ms.gradient(sheet(), objective, "stiffness", **run_of("implicit", cg_max_iter=2, preconditioner="none"))
