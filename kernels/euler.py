@@ -27,9 +27,9 @@ from .blocks import block_count, block_end, ordered_sum, BLOCK
 from .divergence import OK, state_sums, verdict
 from .constraints import is_free, prescribed
 from .contact import respond
-from .forces import particle_force, spring_direction, spring_forces, spring_sum, tiny_length
+from .forces import acceleration_adjoint, particle_force, spring_forces, spring_sum
 from .state import restore_state
-from .terms import SpringDamping, uniform_acceleration
+from .terms import uniform_acceleration
 
 
 @ti.func
@@ -126,54 +126,25 @@ def euler_adjoint(dev: ti.template(), cfg: ti.template(), adj: ti.template(), sr
 @ti.func
 def adjoint_step(dev, cfg: ti.template(), adj, src, dt, slot, symplectic: ti.template(), wants: ti.template()):
     """One step backwards, in f64, from the state kept in ``adj``'s history at ``slot``
-    (``state.save_state``; restored into ``src`` first): on entry ``adj.lx``, ``adj.lv`` (n,) vec3 hold
-    dL/dx', dL/dv' of the step's end state; on exit dL/dx, dL/dv of ``src``, and every
-    parameter gradient array of ``adj`` has this step's share added. With mu = dL/dv' (+
-    dt dL/dx' if ``symplectic``) and w = dt mu / m for free particles (0 for pinned ones):
+    (``state.save_state``; restored into ``src`` first): on entry ``adj.lx``, ``adj.lv``
+    (n,) vec3 hold dL/dx', dL/dv' of the step's end state; on exit dL/dx, dL/dv of
+    ``src``, and every parameter gradient array of ``adj`` has this step's share added.
+    With mu = dL/dv' (+ dt dL/dx' if ``symplectic``) the adjoint of the free particles'
+    accelerations is dt mu, and with w = dt mu / m (0 for pinned particles)
 
         dL/dx = dL/dx' + K w,   dL/dv = dL/dv' + dt dL/dx' + D w  (free; pinned: D w),
 
-    K w and D w gathered spring by spring from each term's ``adjoint`` (their transposes are
-    themselves: K and D are symmetric); dL/dm_i += -w_i . f_i / m_i (f_i without the
-    uniform terms; with ``wants.masses``), dL/dg += dt mu_i (``adj.gg`` per particle).
-    ``wants``: ``massspring.gradients.Wants``."""
+    K w and D w gathered spring by spring (``forces.acceleration_adjoint``, which adds
+    the parameters' shares; K and D are symmetric, their transposes themselves)."""
     h = ti.cast(dt, ti.f64)
     n = dev.size[0]
-    g = uniform_acceleration(dev, cfg)
     restore_state(adj.hx, adj.hv, src, n, slot, adj.stride[None])
-    if ti.static(wants.masses):
-        spring_forces(dev, cfg, src.x, src.v, False)
     for i in range(n):
-        w = ti.Vector.zero(ti.f64, 3)
-        if is_free(i, dev, cfg):
-            mu = adj.lv[i]
-            if ti.static(symplectic):
-                mu += h * adj.lx[i]
-            w = h * mu / dev.mass[i]
-            if ti.static(wants.masses):
-                f = particle_force(i, dev, cfg, src.x, src.v, False) - dev.mass[i] * g
-                adj.gm[i] = adj.gm[i] - w.dot(f) / dev.mass[i]
-            adj.gg[i] = adj.gg[i] + h * mu
-        adj.w[i] = w
-    if ti.static(cfg.has_springs):
-        for s in range(dev.size[1]):
-            i = dev.ends[s][0]
-            j = dev.ends[s][1]
-            d = src.x[j] - src.x[i]
-            r = src.v[j] - src.v[i]
-            u = adj.w[i] - adj.w[j]
-            unit, length = spring_direction(d, ti.f64)
-            gx = ti.Vector.zero(ti.f64, 3)
-            gv = ti.Vector.zero(ti.f64, 3)
-            if length > tiny_length(ti.f64):
-                for term in ti.static(cfg.spring_terms):
-                    tx, tv = term.adjoint(s, dev, adj, u, d, r, unit, length)
-                    gx += tx
-                    gv += tv
-                if ti.static(wants.rate_gradient):
-                    SpringDamping.rate_gradient(s, adj, u, r, unit)
-            adj.sx[s] = gx
-            adj.sv[s] = gv
+        mu = adj.lv[i]
+        if ti.static(symplectic):
+            mu += h * adj.lx[i]
+        adj.w[i] = h * mu
+    acceleration_adjoint(dev, cfg, adj, src.x, src.v, wants)
     for i in range(n):
         lx = adj.lx[i]
         lv = ti.Vector.zero(ti.f64, 3)

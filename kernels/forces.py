@@ -16,6 +16,9 @@ int32; ``fs`` (m,) vec3 N; ``size = (n, m)``; plus each term's own arrays.
 
 import taichi as ti
 
+from .constraints import is_free
+from .terms import SpringDamping, uniform_acceleration
+
 
 @ti.func
 def tiny_length(real: ti.template()):
@@ -90,3 +93,48 @@ def spring_sum(i, dev, values):
         else:
             out -= values[-1 - s]
     return out
+
+
+@ti.func
+def acceleration_adjoint(dev, cfg: ti.template(), adj, x, v, wants: ti.template()):
+    """The adjoint of the accelerations a_i = f_i(x, v) / m_i (``massspring.gradients``): on
+    entry ``adj.w[i]`` holds dL/da_i (ignored at pinned particles); on exit it holds
+    w_i = dL/da_i / m_i (0 at pins), ``adj.sx[s]``, ``adj.sv[s]`` the gradients of
+    sum_i w_i . f_i in spring s's d = x_j - x_i and r = v_j - v_i (each term's
+    ``adjoint``; gather them with ``spring_sum``: dL/dx_i -= spring_sum(sx), likewise v),
+    and the parameters' gradients added: every spring term's, dL/dm_i -= w_i . (f_i -
+    m_i g) / m_i (with ``wants.masses``), dL/dg += dL/da_i (``adj.gg`` per particle).
+    ``wants``: ``massspring.gradients.Wants``."""
+    n = dev.size[0]
+    g = uniform_acceleration(dev, cfg)
+    if ti.static(wants.masses):
+        spring_forces(dev, cfg, x, v, False)
+    for i in range(n):
+        w = ti.Vector.zero(ti.f64, 3)
+        if is_free(i, dev, cfg):
+            abar = adj.w[i]
+            w = abar / dev.mass[i]
+            if ti.static(wants.masses):
+                f = particle_force(i, dev, cfg, x, v, False) - dev.mass[i] * g
+                adj.gm[i] = adj.gm[i] - w.dot(f) / dev.mass[i]
+            adj.gg[i] = adj.gg[i] + abar
+        adj.w[i] = w
+    if ti.static(cfg.has_springs):
+        for s in range(dev.size[1]):
+            i = dev.ends[s][0]
+            j = dev.ends[s][1]
+            d = x[j] - x[i]
+            r = v[j] - v[i]
+            u = adj.w[i] - adj.w[j]
+            unit, length = spring_direction(d, ti.f64)
+            gx = ti.Vector.zero(ti.f64, 3)
+            gv = ti.Vector.zero(ti.f64, 3)
+            if length > tiny_length(ti.f64):
+                for term in ti.static(cfg.spring_terms):
+                    tx, tv = term.adjoint(s, dev, adj, u, d, r, unit, length)
+                    gx += tx
+                    gv += tv
+                if ti.static(wants.rate_gradient):
+                    SpringDamping.rate_gradient(s, adj, u, r, unit)
+            adj.sx[s] = gx
+            adj.sv[s] = gv

@@ -13,7 +13,7 @@ with the stage state in ``stage`` (x, v) and the weighted sums of the stages in
 the last loop, where a model with colliders also gets the explicit integrators'
 contact response (``contact.respond``: first order in dt at contact). ``rk4_step``
 runs one step with parallel loops, ``rk4_steps`` up to ``steps`` in one launch with
-serial loops (as ``euler``).
+serial loops (as ``euler``). ``rk4_adjoint`` runs a step backwards (``adjoint_step``).
 """
 
 import taichi as ti
@@ -22,7 +22,8 @@ from .blocks import BLOCK, block_count, block_end, ordered_sum
 from .divergence import OK, state_sums, verdict
 from .constraints import is_free
 from .contact import respond
-from .forces import particle_force, spring_forces
+from .forces import acceleration_adjoint, particle_force, spring_forces, spring_sum
+from .state import restore_state
 from .terms import uniform_acceleration
 
 
@@ -101,3 +102,81 @@ def rk4_steps(dev: ti.template(), cfg: ti.template(), a: ti.template(), b: ti.te
             if code == OK:
                 done += 1
     return ti.Vector([done, last[0], last[1], last[2]], ti.f64)
+
+
+@ti.func
+def adjoint_step(dev, cfg: ti.template(), adj, src, stage, h, slot, wants: ti.template()):
+    """One step backwards, in f64, from the state kept at ``slot`` of ``adj``'s history
+    (restored into ``src``): dL/dy' in ``adj.lx``, ``adj.lv`` on entry, dL/dy on exit,
+    the parameters' shares added. The stages y2, y3, y4 are computed again as the step
+    computed them and kept in ``adj.xs``, ``adj.vs`` (a slot of ``stride`` rows each);
+    then, from the last stage back, with k4^ = h/6 y'^ and ki^ = b_i h y'^ + c_i h J(y_i+1)^T
+    k_i+1^ (b = 1/6, 1/3, 1/3; c = 1/2, 1/2, 1: y_i+1 = y + c_i h k_i), each stage's
+    J(y_i)^T k_i^ is added to dL/dy. J^T of F(x, v) = (v, f/m) at a stage: dL/dx += K w,
+    dL/dv += k^_x + D w with w = k^_v / m (``forces.acceleration_adjoint``)."""
+    n = dev.size[0]
+    stride = adj.stride[None]
+    restore_state(adj.hx, adj.hv, src, n, slot, stride)
+    for i in range(n):
+        stage.x[i] = src.x[i]
+        stage.v[i] = src.v[i]
+    for k in ti.static(range(3)):
+        offset = ti.cast(ti.static(1.0 if k == 2 else 0.5), ti.f64)
+        spring_forces(dev, cfg, stage.x, stage.v, False)
+        for i in range(n):
+            f = particle_force(i, dev, cfg, stage.x, stage.v, False)
+            a = ti.Vector.zero(ti.f64, 3)
+            if is_free(i, dev, cfg):
+                a = f / dev.mass[i]
+            vt = stage.v[i]
+            stage.x[i] = src.x[i] + offset * h * vt
+            stage.v[i] = src.v[i] + offset * h * a
+            adj.xs[k * stride + i] = stage.x[i]
+            adj.vs[k * stride + i] = stage.v[i]
+    for k in ti.static((3, 2, 1, 0)):
+        b = ti.static(1.0 / 6.0 if k in (0, 3) else 1.0 / 3.0)
+        c = ti.static((0.5, 0.5, 1.0, 0.0)[k])
+        for i in range(n):
+            kx = b * h * adj.lx[i]
+            kv = b * h * adj.lv[i]
+            if ti.static(k < 3):
+                kx += c * h * adj.yx[i]
+                kv += c * h * adj.yv[i]
+            adj.kx[i] = kx
+            adj.w[i] = kv
+            if ti.static(k > 0):
+                stage.x[i] = adj.xs[(k - 1) * stride + i]
+                stage.v[i] = adj.vs[(k - 1) * stride + i]
+        if ti.static(k == 0):
+            acceleration_adjoint(dev, cfg, adj, src.x, src.v, wants)
+        else:
+            acceleration_adjoint(dev, cfg, adj, stage.x, stage.v, wants)
+        for i in range(n):
+            yx = ti.Vector.zero(ti.f64, 3)
+            yv = adj.kx[i]
+            if ti.static(cfg.has_springs):
+                yx -= spring_sum(i, dev, adj.sx)
+                yv -= spring_sum(i, dev, adj.sv)
+            adj.yx[i] = yx
+            adj.yv[i] = yv
+            if ti.static(k == 3):
+                adj.ax[i] = yx
+                adj.av[i] = yv
+            else:
+                adj.ax[i] = adj.ax[i] + yx
+                adj.av[i] = adj.av[i] + yv
+    for i in range(n):
+        adj.lx[i] = adj.lx[i] + adj.ax[i]
+        adj.lv[i] = adj.lv[i] + adj.av[i]
+
+
+@ti.kernel
+def rk4_adjoint(dev: ti.template(), cfg: ti.template(), adj: ti.template(), src: ti.template(), stage: ti.template(),
+                dt: ti.f64, slot: ti.i32, wants: ti.template(), serial: ti.template()):
+    """``adjoint_step`` as parallel loops, or with ``serial`` in one serial loop."""
+    if ti.static(serial):
+        ti.loop_config(serialize=True)
+        for _ in range(1):
+            adjoint_step(dev, cfg, adj, src, stage, ti.cast(dt, ti.f64), slot, wants)
+    else:
+        adjoint_step(dev, cfg, adj, src, stage, ti.cast(dt, ti.f64), slot, wants)

@@ -245,6 +245,7 @@ def _adjoint_bundle(sim, checkpoint):
         layout.vectors(name, ti.f64, "spring")
     for name in ("gks", "gkd", "gl0"):
         layout.add(name, ti.f64, "spring", values=np.zeros(m) if m else None)
+    INTEGRATORS[sim.integrator].declare_adjoint(layout, stride)
     return layout.allocate(f"model: {n:,} particles and {m:,} springs; the fields of its gradient "
                            f"with {checkpoint:,} states kept (give a smaller checkpoint)")
 

@@ -113,11 +113,12 @@ def test_damping_gradient_of_an_undamped_model(integrator):
 
 
 @pytest.mark.fast_sample(integrator=["symplectic"])
-@pytest.mark.parametrize("integrator, before", [("explicit", -1), ("symplectic", 1), ("implicit", 1)])
+@pytest.mark.parametrize("integrator, before", [("explicit", -1), ("symplectic", 1), ("implicit", 1), ("rk4", 0)])
 def test_a_falling_particle_has_its_exact_discrete_gradient(integrator, before):
     """One free particle under gravity, L = z after N steps: explicit Euler gives
     z_N = z_0 + N h v_0 + h^2 g N (N - 1) / 2, symplectic and implicit Euler (A = M: the
-    same step) N (N + 1) / 2 in place of N (N - 1) / 2, so dL/dz_0 = 1, dL/dv_0 = N h, dL/dg = h^2 N (N +- 1) / 2."""
+    same step) N (N + 1) / 2 in place of N (N - 1) / 2, RK4 (exact for a constant
+    acceleration) N^2 / 2, so dL/dz_0 = 1, dL/dv_0 = N h, dL/dg = h^2 N (N + c) / 2 (c = -1, 1, 0)."""
     steps, h = 7, 0.01
     model = ms.Model([[0.0, 0.0, 1.0]], np.zeros((0, 2), int), masses=2.0, velocities=[[0.3, 0.0, 0.5]])
 
@@ -261,3 +262,42 @@ def test_an_adjoint_solve_that_stops_short_is_an_error():
 
     with pytest.raises(GradientError, match=r"implicit gradient: the adjoint solve of step 10 stopped \(max_iter"):
         ms.gradient(sheet(), objective, "stiffness", **run_of("implicit", cg_max_iter=2, preconditioner="none"))
+
+
+THREADS_SCRIPT = """
+import hashlib, sys
+import numpy as np
+import massspring as ms
+model = ms.load_scene("cloth").with_params(resolution=12).model()
+def last(frames):
+    partial = np.zeros_like(frames.positions)
+    partial[-1] = 1.0
+    return float(frames.positions[-1].sum()), {"positions": partial, "velocities": frames.velocities}
+for integrator, options in (("symplectic", {}), ("rk4", {}), ("implicit", {"preconditioner": "multigrid"})):
+    value, grads = ms.gradient(model, last, ["stiffness", "damping", "masses", "positions", "velocities"],
+                               steps=6, every=2, integrator=integrator, dt=1e-3, loops="parallel", checkpoint=4,
+                               **options)
+    digest = hashlib.sha256(np.float64(value).tobytes())
+    for name in sorted(grads):
+        digest.update(grads[name].tobytes())
+    print(integrator, digest.hexdigest())
+"""
+
+
+@FULL
+def test_gradients_do_not_depend_on_the_thread_count(tmp_path):
+    """Parallel adjoint kernels write each item from one thread and gather springs in a
+    fixed order (no atomics), and the adjoint solve's sums are fixed-block sums: 1 and 2
+    threads give the same bits for the symplectic, RK4 and multigrid implicit gradients."""
+    import os
+    import subprocess
+    import sys
+
+    out = []
+    for threads in ("1", "2"):
+        env = dict(os.environ, TI_CPU_MAX_NUM_THREADS=threads)
+        proc = subprocess.run([sys.executable, "-c", THREADS_SCRIPT], capture_output=True, text=True, env=env,
+                              cwd=tmp_path, timeout=600)
+        assert proc.returncode == 0, proc.stderr
+        out.append([line for line in proc.stdout.splitlines() if line.split()[0] in ("symplectic", "rk4", "implicit")])
+    assert len(out[0]) == 3 and out[0] == out[1], out

@@ -97,6 +97,11 @@ solver's options, ``options.Option`` records: ``integrators.OPTIONS``). ``serial
             else:
                 state_kernels.load_integers(field, values.astype(np.int32))
 
+    @classmethod
+    def declare_adjoint(cls, layout, stride):
+        """Add the fields this integrator's ``adjoint`` needs beyond the gradient's own to
+        ``layout`` (float64; ``stride``: the history's rows per state; none by default)."""
+
     def adjoint(self, adj, slot, wants):
         """Run a step backwards (``massspring.gradient``) from the state kept at ``slot``
         of ``adj``'s history (made the current state): ``adj`` (its bundle) holds dL/dx', dL/dv' of the step's end state on entry and

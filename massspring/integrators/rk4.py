@@ -45,6 +45,7 @@ class RK4(Integrator):
     name = "rk4"
     order = 4
     description = "classical Runge-Kutta, 4th order (4 force evaluations per step)"
+    differentiable = True
 
     def __init__(self, dev, model, settings):
         super().__init__(dev, model, settings)
@@ -58,6 +59,19 @@ class RK4(Integrator):
         layout.state("stage", layout.real)
         layout.vectors("sx", layout.real)
         layout.vectors("sv", layout.real)
+
+    @classmethod
+    def declare_adjoint(cls, layout, stride):
+        """The stages y2..y4 of the step run backwards (3 slots of ``stride`` rows) and the
+        backward pass's per-stage vectors (``rk4.rk4_adjoint``)."""
+        for name in ("xs", "vs"):
+            layout.vectors(name, layout.real, 3 * stride)
+        for name in ("kx", "yx", "yv", "ax", "av"):
+            layout.vectors(name, layout.real)
+
+    def adjoint(self, adj, slot, wants):
+        """``rk4.rk4_adjoint`` of the step from the state kept at ``slot`` (no solve: None)."""
+        rk4.rk4_adjoint(self.dev, self.cfg, adj, self.state, self.stage, self.settings.dt, slot, wants, self.serial)
 
     def advance(self, steps):
         dev, cfg, dt = self.dev, self.cfg, self.settings.dt
