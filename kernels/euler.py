@@ -134,8 +134,9 @@ def adjoint_step(dev, cfg: ti.template(), adj, src, dt, slot, symplectic: ti.tem
 
         dL/dx = dL/dx' + K w,   dL/dv = dL/dv' + dt dL/dx' + D w  (free; pinned: D w),
 
-    K w and D w gathered spring by spring (``forces.acceleration_adjoint``, which adds
-    the parameters' shares; K and D are symmetric, their transposes themselves)."""
+    K w and D w gathered spring by spring and particle by particle
+    (``forces.acceleration_adjoint``, which adds the parameters' shares; K and D are
+    symmetric, their transposes themselves)."""
     h = ti.cast(dt, ti.f64)
     n = dev.size[0]
     restore_state(adj.hx, adj.hv, src, n, slot, adj.stride[None])
@@ -153,5 +154,5 @@ def adjoint_step(dev, cfg: ti.template(), adj, src, dt, slot, symplectic: ti.tem
         if ti.static(cfg.has_springs):
             lx -= spring_sum(i, dev, adj.sx)
             lv -= spring_sum(i, dev, adj.sv)
-        adj.lx[i] = lx
-        adj.lv[i] = lv
+        adj.lx[i] = lx + adj.px[i]
+        adj.lv[i] = lv + adj.pv[i]

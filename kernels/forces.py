@@ -102,7 +102,8 @@ def acceleration_adjoint(dev, cfg: ti.template(), adj, x, v, wants: ti.template(
     w_i = dL/da_i / m_i (0 at pins), ``adj.sx[s]``, ``adj.sv[s]`` the gradients of
     sum_i w_i . f_i in spring s's d = x_j - x_i and r = v_j - v_i (each term's
     ``adjoint``; gather them with ``spring_sum``: dL/dx_i -= spring_sum(sx), likewise v),
-    and the parameters' gradients added: every spring term's, dL/dm_i -= w_i . (f_i -
+    ``adj.px[i]``, ``adj.pv[i]`` those of the particle terms' in x_i and v_i (add them as
+    they are), and the parameters' gradients added: every spring term's, dL/dm_i -= w_i . (f_i -
     m_i g) / m_i (with ``wants.masses``), dL/dg += dL/da_i (``adj.gg`` per particle).
     ``wants``: ``massspring.gradients.Wants``."""
     n = dev.size[0]
@@ -118,6 +119,14 @@ def acceleration_adjoint(dev, cfg: ti.template(), adj, x, v, wants: ti.template(
                 f = particle_force(i, dev, cfg, x, v, False) - dev.mass[i] * g
                 adj.gm[i] = adj.gm[i] - w.dot(f) / dev.mass[i]
             adj.gg[i] = adj.gg[i] + abar
+        px = ti.Vector.zero(ti.f64, 3)
+        pv = ti.Vector.zero(ti.f64, 3)
+        for term in ti.static(cfg.particle_terms):
+            tx, tv = term.adjoint(i, dev, adj, w, x, v)
+            px += tx
+            pv += tv
+        adj.px[i] = px
+        adj.pv[i] = pv
         adj.w[i] = w
     if ti.static(cfg.has_springs):
         for s in range(dev.size[1]):

@@ -68,12 +68,17 @@ def gather(dev, cfg: ti.template(), adj, h, slot, wants: ti.template()):
     g = uniform_acceleration(dev, cfg)
     for i in range(n):
         mu = ti.Vector.zero(ti.f64, 3)
+        px = ti.Vector.zero(ti.f64, 3)
         if is_free(i, dev, cfg):
             mu = dev.v[i]
             if ti.static(wants.masses):
                 change = adj.hv[(slot + 1) * stride + i] - adj.hv[slot * stride + i]
                 adj.gm[i] = adj.gm[i] + mu.dot(h * g - change)
             adj.gg[i] = adj.gg[i] + h * dev.mass[i] * mu
+            for term in ti.static(cfg.particle_terms):
+                px += term.rhs_adjoint(i, dev, adj, h * mu, dev.x, dev.v)
+                px -= term.operator_adjoint(i, dev, adj, mu, adj.hv[(slot + 1) * stride + i], h)
+        adj.px[i] = px
         adj.w[i] = mu
     if ti.static(cfg.has_springs):
         for s in range(dev.size[1]):
@@ -98,7 +103,7 @@ def gather(dev, cfg: ti.template(), adj, h, slot, wants: ti.template()):
         lx = adj.lx[i]
         if ti.static(cfg.has_springs):
             lx -= spring_sum(i, dev, adj.sx)
-        adj.lx[i] = lx
+        adj.lx[i] = lx + adj.px[i]
         adj.lv[i] = dev.mass[i] * adj.w[i]
 
 

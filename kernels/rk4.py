@@ -152,8 +152,8 @@ def adjoint_step(dev, cfg: ti.template(), adj, src, stage, h, slot, wants: ti.te
         else:
             acceleration_adjoint(dev, cfg, adj, stage.x, stage.v, wants)
         for i in range(n):
-            yx = ti.Vector.zero(ti.f64, 3)
-            yv = adj.kx[i]
+            yx = adj.px[i]
+            yv = adj.kx[i] + adj.pv[i]
             if ti.static(cfg.has_springs):
                 yx -= spring_sum(i, dev, adj.sx)
                 yv -= spring_sum(i, dev, adj.sv)

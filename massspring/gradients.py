@@ -15,8 +15,8 @@ runs each stretch between two kept states forward again from the earlier one int
 history, then backwards. Peak: about (steps / checkpoint + checkpoint) states of 48
 bytes a particle, and one forward step more per step than the forward run.
 
-Built so far (issue 39): the explicit and symplectic integrators, with springs,
-damping, gravity and pins (fixed or moving). The adjoint kernels are compiled and
+Built so far (issue 39): the explicit, symplectic, RK4 and linearised implicit
+integrators, with springs, damping, gravity, drag and wind, and pins (fixed or moving). The adjoint kernels are compiled and
 their fields allocated only when a gradient is asked for: a forward run is as before.
 """
 
@@ -40,8 +40,8 @@ from massspring.terms import active_terms
 
 # The names ``wrt`` may hold: where each gradient is in the adjoint bundle, and what it is per.
 PARAMETERS = {"stiffness": "spring", "damping": "spring", "rest_lengths": "spring", "masses": "particle",
-              "positions": "state", "velocities": "state", "gravity": "vector"}
-PLANNED = ("drag", "wind", "pin_velocity")  # named by issue 39, not built yet
+              "positions": "state", "velocities": "state", "gravity": "vector", "drag": "scalar", "wind": "vector"}
+PLANNED = ("pin_velocity",)  # named by issue 39, not built yet
 PARTIALS = ("positions", "velocities")
 STATE_BYTES = 48  # a particle's x and v in the history (float64)
 HISTORY_BYTES = 256e6  # keep every state of a run whose history fits in this; else checkpoint
@@ -78,7 +78,8 @@ def gradient(model, objective, wrt, *, steps, every=1, integrator="symplectic", 
     wrt : str or sequence of str
         Names of ``PARAMETERS``: "stiffness", "damping", "rest_lengths" ((m,) per
         spring), "masses" ((n,)), "positions", "velocities" ((n, 3): the initial state;
-        rows of pinned particles are zero), "gravity" ((3,)).
+        rows of pinned particles are zero), "gravity" ((3,)), "drag" (a float64
+        scalar) and "wind" ((3,)) of a model with drag.
     steps : int >= 1
     every : int >= 1
         A frame at step 0 and at every ``every``-th step.
@@ -166,6 +167,8 @@ def _check_wrt(wrt, model):
             raise ValueError(f"wrt: unknown parameter {name!r}; expected some of {', '.join(PARAMETERS)}")
         if PARAMETERS[name] == "spring" and model.n_springs == 0:
             raise ValueError(f"wrt: {name!r}: the model has no springs")
+        if name in ("drag", "wind") and not model.has_drag:
+            raise ValueError(f"wrt: {name!r}: the model has no air drag (drag = 0); give it drag > 0")
     if len(set(names)) != len(names):
         raise ValueError(f"wrt: a name given twice in {names}")
     return names
@@ -243,6 +246,9 @@ def _adjoint_bundle(sim, checkpoint):
     layout.add("gm", ti.f64, "particle", values=np.zeros(n))
     for name in ("sx", "sv"):
         layout.vectors(name, ti.f64, "spring")
+    for name in ("px", "pv", "gwind"):
+        layout.vectors(name, ti.f64, values=np.zeros((n, 3)))
+    layout.add("gdrag", ti.f64, "particle", values=np.zeros(n))
     for name in ("gks", "gkd", "gl0"):
         layout.add(name, ti.f64, "spring", values=np.zeros(m) if m else None)
     INTEGRATORS[sim.integrator].declare_adjoint(layout, stride)
@@ -304,6 +310,10 @@ def _read(sim, adj, names):
             grads[name] = sim._to_user(adj.read("gm", n))
         elif name == "gravity":
             grads[name] = adj.read("gg", n).sum(axis=0)
+        elif name == "drag":
+            grads[name] = np.float64(adj.read("gdrag", n).sum())
+        elif name == "wind":
+            grads[name] = adj.read("gwind", n).sum(axis=0)
         else:
             grads[name] = springs({"stiffness": "gks", "damping": "gkd", "rest_lengths": "gl0"}[name])
     return grads

@@ -70,6 +70,29 @@ class ParticleTerm:
 
     @staticmethod
     @ti.func
+    def adjoint(i, dev, adj, w, x, v):
+        """For a weight ``w`` (vec3): the gradients of w . force in x_i and v_i (two vec3),
+        and w's products with the gradients in the term's parameters added to ``adj``'s
+        per-particle arrays (``massspring.gradients``). A uniform term's share is
+        ``adj.gg`` (the kernels add it by ``uniform``)."""
+        return w * 0, w * 0
+
+    @staticmethod
+    @ti.func
+    def rhs_adjoint(i, dev, adj, u, x, v):
+        """``adjoint`` for ``rhs`` (Eq. 15's f - D v): its gradient in x_i (v enters Eq.
+        15's right-hand side through M v alone); the parameters' shares added."""
+        return u * 0
+
+    @staticmethod
+    @ti.func
+    def operator_adjoint(i, dev, adj, u, p, h):
+        """For weights u, p (vec3): the gradient in x_i of u . (``diagonal`` p), with
+        -d/d(parameter) of it added to ``adj``'s per-particle arrays."""
+        return u * 0
+
+    @staticmethod
+    @ti.func
     def potential_change(i, dev, dx):
         return 0
 

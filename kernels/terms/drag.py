@@ -14,6 +14,7 @@ class Drag(ParticleTerm):
     """
 
     name = "drag"
+    differentiable = True
 
     @staticmethod
     @ti.func
@@ -29,6 +30,30 @@ class Drag(ParticleTerm):
     @ti.func
     def diagonal(i, dev, h):
         return h * dev.drag[None]
+
+    @staticmethod
+    @ti.func
+    def adjoint(i, dev, adj, w, x, v):
+        """w . f: gradient -drag w in v_i; adds -w . (v_i - wind) to ``adj.gdrag[i]`` and
+        drag w to ``adj.gwind[i]``."""
+        adj.gdrag[i] = adj.gdrag[i] - w.dot(v[i] - dev.wind[None])
+        adj.gwind[i] = adj.gwind[i] + dev.drag[None] * w
+        return w * 0, -dev.drag[None] * w
+
+    @staticmethod
+    @ti.func
+    def rhs_adjoint(i, dev, adj, u, x, v):
+        """u . drag wind: adds u . wind to ``adj.gdrag[i]``, drag u to ``adj.gwind[i]``."""
+        adj.gdrag[i] = adj.gdrag[i] + u.dot(dev.wind[None])
+        adj.gwind[i] = adj.gwind[i] + dev.drag[None] * u
+        return u * 0
+
+    @staticmethod
+    @ti.func
+    def operator_adjoint(i, dev, adj, u, p, h):
+        """u . h drag p: adds -h u . p to ``adj.gdrag[i]``."""
+        adj.gdrag[i] = adj.gdrag[i] - h * u.dot(p)
+        return u * 0
 
     @staticmethod
     @ti.func
