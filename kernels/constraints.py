@@ -82,3 +82,12 @@ def prescribed(i, dev, cfg: ti.template()):
         if dev.contacts[i] != 0:
             out = dev.cvel[i]
     return out
+
+
+@ti.func
+def pin_adjoint(i, dev, cfg: ti.template(), adj, h):
+    """For a pinned particle i, at the start of a step's adjoint (``massspring.gradients``):
+    adds h dL/dx' + dL/dv' of the step's end state to ``adj.gp[i]``, the gradient in its
+    pin velocity vp (x' = x + h vp, v' = vp, as the explicit and implicit steps move a pin)."""
+    if is_pinned(i, dev, cfg):
+        adj.gp[i] = adj.gp[i] + h * adj.lx[i] + adj.lv[i]

@@ -25,7 +25,7 @@ import taichi as ti
 
 from .blocks import block_count, block_end, ordered_sum, BLOCK
 from .divergence import OK, state_sums, verdict
-from .constraints import is_free, prescribed
+from .constraints import is_free, pin_adjoint, prescribed
 from .contact import respond
 from .forces import acceleration_adjoint, particle_force, spring_forces, spring_sum
 from .state import restore_state
@@ -145,6 +145,8 @@ def adjoint_step(dev, cfg: ti.template(), adj, src, dt, slot, symplectic: ti.tem
         if ti.static(symplectic):
             mu += h * adj.lx[i]
         adj.w[i] = h * mu
+        if ti.static(wants.pins):
+            pin_adjoint(i, dev, cfg, adj, h)
     acceleration_adjoint(dev, cfg, adj, src.x, src.v, wants)
     for i in range(n):
         lx = adj.lx[i]

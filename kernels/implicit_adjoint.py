@@ -19,7 +19,7 @@ gathers the rest spring by spring from each term's ``rhs_adjoint`` and
 
 import taichi as ti
 
-from .constraints import is_free, prescribed
+from .constraints import is_free, is_pinned, pin_adjoint, prescribed
 from .forces import spring_direction, spring_sum, tiny_length
 from .operator import LINEARISED, apply_row, refresh
 from .state import restore_state
@@ -27,7 +27,7 @@ from .terms import SpringDamping, uniform_acceleration
 
 
 @ti.func
-def rhs(dev, cfg: ti.template(), adj, h, t, slot):
+def rhs(dev, cfg: ti.template(), adj, h, t, slot, wants: ti.template()):
     n = dev.size[0]
     restore_state(adj.hx, adj.hv, dev.state, n, slot, adj.stride[None])
     refresh(dev, cfg, dev.x, dev.v, h, t, LINEARISED)
@@ -37,6 +37,8 @@ def rhs(dev, cfg: ti.template(), adj, h, t, slot):
             if not is_free(i, dev, cfg):
                 dev.p[i] = prescribed(i, dev, cfg)
     for i in range(n):
+        if ti.static(wants.pins):
+            pin_adjoint(i, dev, cfg, adj, h)
         b = ti.Vector.zero(cfg.real, 3)
         if is_free(i, dev, cfg):
             b = adj.lv[i] + h * adj.lx[i]
@@ -48,17 +50,18 @@ def rhs(dev, cfg: ti.template(), adj, h, t, slot):
 
 @ti.kernel
 def adjoint_rhs(dev: ti.template(), cfg: ti.template(), adj: ti.template(), dt: ti.f64, t: ti.f64, slot: ti.i32,
-                serial: ti.template()):
-    """The state kept at ``slot`` restored into ``dev.x``, ``dev.v``; the operator refreshed
-    there (time t, s); ``dev.b`` = dL/dv' + h dL/dx' on free rows (plus A's pin columns
+                wants: ti.template(), serial: ti.template()):
+    """The state kept at ``slot`` restored into ``dev.x``, ``dev.v``; the pins' share of the
+    pin velocities' gradient (with ``wants.pins``, ``constraints.pin_adjoint``); the
+    operator refreshed there (time t, s); ``dev.b`` = dL/dv' + h dL/dx' on free rows (plus A's pin columns
     times the pin velocities, which the solve's start subtracts again); ``dev.v`` = the
     last adjoint solution ``adj.w`` (the warm start)."""
     if ti.static(serial):
         ti.loop_config(serialize=True)
         for _ in range(1):
-            rhs(dev, cfg, adj, ti.cast(dt, cfg.real), ti.cast(t, cfg.real), slot)
+            rhs(dev, cfg, adj, ti.cast(dt, cfg.real), ti.cast(t, cfg.real), slot, wants)
     else:
-        rhs(dev, cfg, adj, ti.cast(dt, cfg.real), ti.cast(t, cfg.real), slot)
+        rhs(dev, cfg, adj, ti.cast(dt, cfg.real), ti.cast(t, cfg.real), slot, wants)
 
 
 @ti.func
@@ -105,6 +108,9 @@ def gather(dev, cfg: ti.template(), adj, h, slot, wants: ti.template()):
             lx -= spring_sum(i, dev, adj.sx)
         adj.lx[i] = lx + adj.px[i]
         adj.lv[i] = dev.mass[i] * adj.w[i]
+        if ti.static(wants.pins):  # v' = vp at a pin moves A's pin columns times vp to the free rows' b
+            if is_pinned(i, dev, cfg):
+                adj.gp[i] = adj.gp[i] - apply_row(i, dev, cfg, adj.w)
 
 
 @ti.kernel
@@ -113,7 +119,8 @@ def implicit_adjoint(dev: ti.template(), cfg: ti.template(), adj: ti.template(),
     """After the adjoint solve (mu in ``dev.v``): dL/dx, dL/dv of the step's state into
     ``adj.lx``, ``adj.lv``, mu kept in ``adj.w`` (the next solve's warm start), the step's
     share of each parameter gradient added (module docstring; the masses' with
-    ``wants.masses``: mu . (h g - (v' - v)))."""
+    ``wants.masses``: mu . (h g - (v' - v)); a pin velocity's, with ``wants.pins``:
+    -(A mu)_p, mu = 0 at pins)."""
     if ti.static(serial):
         ti.loop_config(serialize=True)
         for _ in range(1):

@@ -16,7 +16,8 @@ history, then backwards. Peak: about (steps / checkpoint + checkpoint) states of
 bytes a particle, and one forward step more per step than the forward run.
 
 Built so far (issue 39): the explicit, symplectic, RK4 and linearised implicit
-integrators, with springs, damping, gravity, drag and wind, and pins (fixed or moving). The adjoint kernels are compiled and
+integrators, with springs, damping, gravity, drag and wind, and pins (fixed or moving,
+with their velocities' gradient). The adjoint kernels are compiled and
 their fields allocated only when a gradient is asked for: a forward run is as before.
 """
 
@@ -40,8 +41,8 @@ from massspring.terms import active_terms
 
 # The names ``wrt`` may hold: where each gradient is in the adjoint bundle, and what it is per.
 PARAMETERS = {"stiffness": "spring", "damping": "spring", "rest_lengths": "spring", "masses": "particle",
-              "positions": "state", "velocities": "state", "gravity": "vector", "drag": "scalar", "wind": "vector"}
-PLANNED = ("pin_velocity",)  # named by issue 39, not built yet
+              "positions": "state", "velocities": "state", "gravity": "vector", "drag": "scalar", "wind": "vector",
+              "pin_velocity": "pin"}
 PARTIALS = ("positions", "velocities")
 STATE_BYTES = 48  # a particle's x and v in the history (float64)
 HISTORY_BYTES = 256e6  # keep every state of a run whose history fits in this; else checkpoint
@@ -79,7 +80,8 @@ def gradient(model, objective, wrt, *, steps, every=1, integrator="symplectic", 
         Names of ``PARAMETERS``: "stiffness", "damping", "rest_lengths" ((m,) per
         spring), "masses" ((n,)), "positions", "velocities" ((n, 3): the initial state;
         rows of pinned particles are zero), "gravity" ((3,)), "drag" (a float64
-        scalar) and "wind" ((3,)) of a model with drag.
+        scalar) and "wind" ((3,)) of a model with drag, "pin_velocity" ((k, 3), a row
+        per pinned particle in the order of ``model.fixed``).
     steps : int >= 1
     every : int >= 1
         A frame at step 0 and at every ``every``-th step.
@@ -120,7 +122,8 @@ def gradient(model, objective, wrt, *, steps, every=1, integrator="symplectic", 
         adj = _adjoint_bundle(sim, checkpoint)
         frames, kept, last = _forward(sim, adj, steps, every, checkpoint)
         value, partials = _call(objective, frames, model.n_particles)
-        wants = Wants(masses="masses" in names, rate_gradient="damping" in names and not model.has_damping)
+        wants = Wants(masses="masses" in names, rate_gradient="damping" in names and not model.has_damping,
+                      pins="pin_velocity" in names)
         _backward(sim, adj, wants, partials, frames.steps, kept, last, steps, checkpoint)
         return value, _read(sim, adj, names)
     finally:
@@ -133,10 +136,12 @@ def gradient(model, objective, wrt, *, steps, every=1, integrator="symplectic", 
 class Wants:
     """Compile-time switches of an adjoint kernel: ``masses``: add the masses' gradient
     (needs the step's forces again); ``rate_gradient``: add the damping coefficients'
-    gradient in a model without a damping term."""
+    gradient in a model without a damping term; ``pins``: add the pin velocities'
+    gradient."""
 
     masses: bool
     rate_gradient: bool
+    pins: bool = False
 
 
 def history_stride(n) -> int:
@@ -160,13 +165,12 @@ def _check_wrt(wrt, model):
     if not names or not all(isinstance(name, str) for name in names):
         raise ValueError(f"wrt: expected a name or a list of names of {', '.join(PARAMETERS)}, got {wrt!r}")
     for name in names:
-        if name in PLANNED:
-            raise ValueError(f"wrt: gradients in {name!r} are not built yet (issue 39); "
-                             f"these are: {', '.join(PARAMETERS)}")
         if name not in PARAMETERS:
             raise ValueError(f"wrt: unknown parameter {name!r}; expected some of {', '.join(PARAMETERS)}")
         if PARAMETERS[name] == "spring" and model.n_springs == 0:
             raise ValueError(f"wrt: {name!r}: the model has no springs")
+        if name == "pin_velocity" and not model.has_fixed:
+            raise ValueError("wrt: 'pin_velocity': the model has no pins (fixed)")
         if name in ("drag", "wind") and not model.has_drag:
             raise ValueError(f"wrt: {name!r}: the model has no air drag (drag = 0); give it drag > 0")
     if len(set(names)) != len(names):
@@ -246,7 +250,7 @@ def _adjoint_bundle(sim, checkpoint):
     layout.add("gm", ti.f64, "particle", values=np.zeros(n))
     for name in ("sx", "sv"):
         layout.vectors(name, ti.f64, "spring")
-    for name in ("px", "pv", "gwind"):
+    for name in ("px", "pv", "gwind", "gp"):
         layout.vectors(name, ti.f64, values=np.zeros((n, 3)))
     layout.add("gdrag", ti.f64, "particle", values=np.zeros(n))
     for name in ("gks", "gkd", "gl0"):
@@ -314,6 +318,8 @@ def _read(sim, adj, names):
             grads[name] = np.float64(adj.read("gdrag", n).sum())
         elif name == "wind":
             grads[name] = adj.read("gwind", n).sum(axis=0)
+        elif name == "pin_velocity":  # the steps' shares, and the initial velocity's (a pin starts at vp)
+            grads[name] = sim._to_user(adj.read("gp", n) + adj.read("lv", n))[model.fixed]
         else:
             grads[name] = springs({"stiffness": "gks", "damping": "gkd", "rest_lengths": "gl0"}[name])
     return grads

@@ -15,8 +15,9 @@ PINNED = [0, SIDE - 1]
 
 
 def sheet(seed=1, damped=True, **changes):
-    """A jittered, pinned (one pin moving), damped sheet with random per-item parameters,
-    a tilted gravity, air drag and wind: every parameter kind differs from item to item."""
+    """A jittered sheet pinned at two corners (one pin moving; a pin starts at its pin
+    velocity), damped, with random per-item parameters, a tilted gravity, air drag and
+    wind: every parameter kind differs from item to item."""
     rng = np.random.default_rng(seed)
     positions = np.array([[i * 0.1, j * 0.1, 0.0] for j in range(SIDE) for i in range(SIDE)])
     positions += rng.normal(0, 0.01, positions.shape)
@@ -30,10 +31,10 @@ def sheet(seed=1, damped=True, **changes):
     values = dict(positions=positions, masses=rng.uniform(0.5, 1.5, n), stiffness=rng.uniform(50, 150, m),
                   damping=rng.uniform(0.1, 1.0, m) if damped else np.zeros(m),
                   rest_lengths=rng.uniform(0.08, 0.12, m), velocities=rng.normal(0, 0.1, (n, 3)),
-                  gravity=np.array([0.1, -0.2, -9.8]), drag=0.3, wind=np.array([1.0, 0.5, -0.2]))
-    values["velocities"][PINNED] = [[0, 0, 0.1], [0, 0, 0]]
+                  gravity=np.array([0.1, -0.2, -9.8]), drag=0.3, wind=np.array([1.0, 0.5, -0.2]),
+                  pin_velocity=np.array([[0, 0, 0.1], [0, 0, 0]]))
     values.update(changes)
-    return ms.Model(values.pop("positions"), springs, fixed=PINNED, pin_velocity=[[0, 0, 0.1], [0, 0, 0]], **values)
+    return ms.Model(values.pop("positions"), springs, fixed=PINNED, **values)
 
 
 def weights(frames_count, n, seed=7):
@@ -60,7 +61,7 @@ def run_of(integrator, **more):
 def model_values(model):
     return dict(positions=model.positions, masses=model.masses, stiffness=model.stiffness, damping=model.damping,
                 rest_lengths=model.rest_lengths, velocities=model.velocities, gravity=model.gravity,
-                drag=np.float64(model.drag), wind=model.wind)
+                drag=np.float64(model.drag), wind=model.wind, pin_velocity=model.pin_velocity)
 
 
 @pytest.mark.fast_sample(integrator=["implicit"], path=["serial"])
@@ -177,7 +178,7 @@ def test_frames_are_the_run_at_every_kth_step():
 
 @pytest.mark.parametrize("kwargs, words", [
     (dict(wrt="bogus"), ["wrt", "unknown parameter 'bogus'", "stiffness"]),
-    (dict(wrt="pin_velocity"), ["wrt", "'pin_velocity'", "not built yet"]),
+    (dict(wrt="pin_velocity", model=ms.Model([[0, 0, 0], [1, 0, 0]], [[0, 1]])), ["wrt", "'pin_velocity'", "no pins"]),
     (dict(wrt="wind", model=sheet(drag=0.0, wind=np.zeros(3))), ["wrt", "'wind'", "no air drag"]),
     (dict(wrt=["masses", "masses"]), ["wrt", "twice"]),
     (dict(wrt=[]), ["wrt", "expected a name"]),

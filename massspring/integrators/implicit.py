@@ -146,7 +146,7 @@ class ImplicitEuler(Integrator):
         one solve with this run's operator, CG and preconditioner at its cg_tol; returns
         the solve's ``SolverStats``."""
         s = self.settings
-        implicit_adjoint.adjoint_rhs(self.dev, self.cfg, adj, s.dt, self.time, slot, self.serial)
+        implicit_adjoint.adjoint_rhs(self.dev, self.cfg, adj, s.dt, self.time, slot, wants, self.serial)
         stats = solve(self.dev, self.cfg, self.preconditioner, s.dt, s.cg_tol, s.cg_max_iter, self.serial,
                       self.time, mode=operator.REFRESHED)
         implicit_adjoint.implicit_adjoint(self.dev, self.cfg, adj, s.dt, slot, wants, self.serial)
