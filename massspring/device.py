@@ -158,6 +158,12 @@ class Config:
         return len(self.spring_terms) > 0
 
     @property
+    def rate_stiffness(self):
+        """Whether a spring term's force turns with its spring through the rates (damping:
+        an x-derivative the operator leaves out, ``rate_stiffness_adjoint``)."""
+        return any(term.rate_dependent for term in self.spring_terms)
+
+    @property
     def pointwise(self):
         """Whether the CG kernels apply a pointwise preconditioner themselves."""
         return self.precond is not None

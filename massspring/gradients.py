@@ -15,8 +15,8 @@ runs each stretch between two kept states forward again from the earlier one int
 history, then backwards. Peak: about (steps / checkpoint + checkpoint) states of 48
 bytes a particle, and one forward step more per step than the forward run.
 
-Built so far (issue 39): the explicit, symplectic, RK4 and linearised implicit
-integrators, with springs, damping, gravity, drag and wind, and pins (fixed or moving,
+Built so far (issue 39): the explicit, symplectic, RK4, linearised implicit, backward
+Euler and implicit midpoint integrators, with springs, damping, gravity, drag and wind, and pins (fixed or moving,
 with their velocities' gradient). The adjoint kernels are compiled and
 their fields allocated only when a gradient is asked for: a forward run is as before.
 """

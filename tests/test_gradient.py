@@ -51,7 +51,39 @@ def objective(frames):
 RUN = dict(steps=10, every=2, dt=2e-3, checkpoint=3)
 # Solver options per integrator: the gradient is that of the step as solved, so the
 # implicit step's CG solves (forward and adjoint) to round-off here
-SOLVED = {"implicit": dict(cg_tol=1e-13)}
+NEWTON_SOLVED = dict(cg_tol=1e-13, newton_tol=1e-12, newton_max_iter=200)
+SOLVED = {"implicit": dict(cg_tol=1e-13), "backward-euler": NEWTON_SOLVED, "midpoint": NEWTON_SOLVED}
+# Central differences' step, relative to the largest value: a Newton-solved run meets its
+# equations to about 1e-13 relative of the value, noise that a step of 1e-6 lifts above
+# 1e-6 of a small derivative (measured on the damping of the midpoint run: 3e-6 at 1e-5,
+# 2e-4 at 1e-6); so a step of 1e-3 there, and Richardson's combination of the steps eps
+# and 2 eps, whose error is O(eps^4) (4e-8 at most measured, every parameter)
+STEP = {"backward-euler": 1e-3, "midpoint": 1e-3}
+
+
+def directional_difference(make, values, name, direction, integrator, run):
+    """The derivative of the run's objective along ``direction`` (its largest entry 1) in
+    parameter ``name``: central differences (``STEP``), Richardson-combined for the
+    Newton-solved integrators."""
+    eps = STEP.get(integrator, 1e-6) * max(1.0, np.abs(values[name]).max())
+
+    def central(e):
+        ends = [ms.gradient(make(**dict(values, **{name: values[name] + sign * e * direction})), objective,
+                            "gravity", **run)[0] for sign in (1, -1)]
+        return (ends[0] - ends[1]) / (2 * e)
+
+    if integrator not in STEP:
+        return central(eps)
+    return (4 * central(eps) - central(2 * eps)) / 3
+
+
+def unit_direction(rng, values, name):
+    """A random direction of parameter ``name``, its largest entry 1 in size; zero at the
+    pins' rows of the state (a pin's state is not free: its velocity is its pin's)."""
+    direction = rng.normal(size=np.shape(values[name]))
+    if name in ("positions", "velocities"):
+        direction[PINNED] = 0
+    return direction / np.abs(direction).max()
 
 
 def run_of(integrator, **more):
@@ -70,7 +102,7 @@ def model_values(model):
 def test_directional_derivatives_match_central_differences(integrator, path):
     """Every parameter kind on a pinned (one pin moving), damped sheet under gravity: the
     gradient's directional derivative along a random direction agrees with a central
-    difference of the forward runs (step 1e-6 of the largest value) to 1e-6 relative."""
+    difference of the forward runs (``directional_difference``) to 1e-6 relative."""
     model = sheet()
     names = list(PARAMETERS)
     run = run_of(integrator, loops=path)
@@ -79,16 +111,10 @@ def test_directional_derivatives_match_central_differences(integrator, path):
     rng = np.random.default_rng(3)
     for name in names:
         assert grads[name].shape == np.shape(values[name]), name
-        direction = rng.normal(size=np.shape(values[name]))
         if name in ("positions", "velocities"):
-            direction[PINNED] = 0  # a pin's state is not free (the velocity must be its pin's)
             assert np.all(grads[name][PINNED] == 0)
-        eps = 1e-6 * max(1.0, np.abs(values[name]).max())
-        ends = []
-        for sign in (1, -1):
-            changed = dict(values, **{name: values[name] + sign * eps * direction})
-            ends.append(ms.gradient(sheet(**changed), objective, "gravity", **run)[0])
-        numeric = (ends[0] - ends[1]) / (2 * eps)
+        direction = unit_direction(rng, values, name)
+        numeric = directional_difference(sheet, values, name, direction, integrator, run)
         exact = float(np.sum(grads[name] * direction))
         assert abs(exact - numeric) <= 1e-6 * abs(numeric), (name, exact, numeric)
     assert value == ms.gradient(model, objective, "gravity", **run)[0]
@@ -98,29 +124,31 @@ def test_directional_derivatives_match_central_differences(integrator, path):
 @pytest.mark.parametrize("integrator", DIFFERENTIABLE)
 def test_damping_gradient_of_an_undamped_model(integrator):
     """kd = 0 everywhere compiles no damping term; its gradient is still that of the runs
-    with a little damping (central differences at kd = +-1e-6)."""
+    with a little damping (one-sided differences at kd = e, 2 e and 3 e, ``STEP``)."""
     model = sheet(damped=False)
     run = run_of(integrator)
     grads = ms.gradient(model, objective, ["damping"], **run)[1]
     direction = np.random.default_rng(5).uniform(0.5, 1.0, model.n_springs)
     values = model_values(model)
-    # a negative damping is refused by the Model: one-sided differences at two step sizes
-    # combined (Richardson), whose error is O(eps^2)
-    one = [ms.gradient(sheet(**dict(values, damping=e * direction)), objective, "gravity", **run)[0]
-           for e in (1e-6, 2e-6)]
+    # a negative damping is refused by the Model: the one-sided four-point formula, whose
+    # error is O(eps^3) (the three-point one's O(eps^2) is 3e-5 relative at STEP's 1e-3)
+    e = STEP.get(integrator, 1e-6)
+    ends = [ms.gradient(sheet(**dict(values, damping=k * e * direction)), objective, "gravity", **run)[0]
+            for k in (1, 2, 3)]
     base = ms.gradient(model, objective, "gravity", **run)[0]
-    numeric = (4 * (one[0] - base) / 1e-6 - (one[1] - base) / 2e-6) / 3
+    numeric = (-11 * base + 18 * ends[0] - 9 * ends[1] + 2 * ends[2]) / (6 * e)
     exact = float(np.sum(grads["damping"] * direction))
     assert abs(exact - numeric) <= 1e-6 * abs(numeric), (exact, numeric)
 
 
 @pytest.mark.fast_sample(integrator=["symplectic"])
-@pytest.mark.parametrize("integrator, before", [("explicit", -1), ("symplectic", 1), ("implicit", 1), ("rk4", 0)])
+@pytest.mark.parametrize("integrator, before", [("explicit", -1), ("symplectic", 1), ("implicit", 1), ("rk4", 0),
+                                                ("backward-euler", 1), ("midpoint", 0)])
 def test_a_falling_particle_has_its_exact_discrete_gradient(integrator, before):
     """One free particle under gravity, L = z after N steps: explicit Euler gives
-    z_N = z_0 + N h v_0 + h^2 g N (N - 1) / 2, symplectic and implicit Euler (A = M: the
-    same step) N (N + 1) / 2 in place of N (N - 1) / 2, RK4 (exact for a constant
-    acceleration) N^2 / 2, so dL/dz_0 = 1, dL/dv_0 = N h, dL/dg = h^2 N (N + c) / 2 (c = -1, 1, 0)."""
+    z_N = z_0 + N h v_0 + h^2 g N (N - 1) / 2, symplectic, implicit and backward Euler
+    (A = M: the same step) N (N + 1) / 2 in place of N (N - 1) / 2, RK4 and implicit
+    midpoint (exact for a constant acceleration) N^2 / 2, so dL/dz_0 = 1, dL/dv_0 = N h, dL/dg = h^2 N (N + c) / 2 (c = -1, 1, 0)."""
     steps, h = 7, 0.01
     model = ms.Model([[0.0, 0.0, 1.0]], np.zeros((0, 2), int), masses=2.0, velocities=[[0.3, 0.0, 0.5]])
 
@@ -130,7 +158,7 @@ def test_a_falling_particle_has_its_exact_discrete_gradient(integrator, before):
         return frames.positions[-1, 0, 2], {"positions": partial}
 
     value, grads = ms.gradient(model, height, ["positions", "velocities", "gravity", "masses"], steps=steps,
-                               dt=h, integrator=integrator, every=steps)
+                               dt=h, integrator=integrator, every=steps, **SOLVED.get(integrator, {}))
     g = model.gravity[2]
     assert value == pytest.approx(1.0 + steps * h * 0.5 + h * h * g * steps * (steps + before) / 2, rel=1e-14)
     np.testing.assert_allclose(grads["positions"], [[0, 0, 1]], rtol=1e-14)
@@ -182,7 +210,7 @@ def test_frames_are_the_run_at_every_kth_step():
     (dict(wrt="wind", model=sheet(drag=0.0, wind=np.zeros(3))), ["wrt", "'wind'", "no air drag"]),
     (dict(wrt=["masses", "masses"]), ["wrt", "twice"]),
     (dict(wrt=[]), ["wrt", "expected a name"]),
-    (dict(integrator="backward-euler"), ["integrator", "'backward-euler'", "implicit"]),
+    (dict(integrator="bdf2"), ["integrator", "'bdf2'", "backward-euler"]),
     (dict(integrator="leapfrog"), ["integrator", "leapfrog"]),
     (dict(precision="f32"), ["precision", "f64"]),
     (dict(steps=0), ["steps"]),
@@ -233,27 +261,25 @@ def test_a_bad_objective_result_names_the_objective(returned, words):
         assert word in str(info.value), (word, str(info.value))
 
 
-@pytest.mark.parametrize("options", [
-    pytest.param(dict(preconditioner="multigrid", loops="parallel"), id="multigrid", marks=FULL),
-    pytest.param(dict(preconditioner="none", definiteness_fix=False), id="no-fix", marks=FULL),
-    pytest.param(dict(preconditioner="none"), id="none", marks=FULL)])
-def test_implicit_gradient_at_a_frame_step_with_each_preconditioner(options):
-    """The implicit step at dt = 1/60 s (compressed springs clamped by the definiteness fix,
-    or not), its adjoint solved with the run's own preconditioner: directional derivatives
-    in every parameter against central differences to 1e-6 relative."""
+@pytest.mark.parametrize("integrator, options", [
+    pytest.param("implicit", dict(preconditioner="multigrid", loops="parallel"), id="implicit-multigrid", marks=FULL),
+    pytest.param("implicit", dict(preconditioner="none", definiteness_fix=False), id="implicit-no-fix", marks=FULL),
+    pytest.param("implicit", dict(preconditioner="none"), id="implicit-none", marks=FULL),
+    pytest.param("backward-euler", dict(preconditioner="multigrid", loops="parallel"), id="backward-euler-multigrid",
+                 marks=FULL),
+    pytest.param("midpoint", dict(preconditioner="block-jacobi"), id="midpoint-block-jacobi", marks=FULL)])
+def test_solved_gradients_at_a_frame_step(integrator, options):
+    """Steps of dt = 1/60 s (compressed springs clamped by the definiteness fix, or not),
+    the adjoint solved with the run's own preconditioner: directional derivatives in every
+    parameter against central differences (``directional_difference``) to 1e-6 relative."""
     model = sheet()
-    run = run_of("implicit", **dict(options, dt=1 / 60))
+    run = run_of(integrator, **dict(options, dt=1 / 60))
     value, grads = ms.gradient(model, objective, list(PARAMETERS), **run)
     values = model_values(model)
     rng = np.random.default_rng(11)
     for name in PARAMETERS:
-        direction = rng.normal(size=np.shape(values[name]))
-        if name in ("positions", "velocities"):
-            direction[PINNED] = 0
-        eps = 1e-6 * max(1.0, np.abs(values[name]).max())
-        ends = [ms.gradient(sheet(**dict(values, **{name: values[name] + sign * eps * direction})), objective,
-                            "gravity", **run)[0] for sign in (1, -1)]
-        numeric = (ends[0] - ends[1]) / (2 * eps)
+        direction = unit_direction(rng, values, name)
+        numeric = directional_difference(sheet, values, name, direction, integrator, run)
         exact = float(np.sum(grads[name] * direction))
         assert abs(exact - numeric) <= 1e-6 * abs(numeric), (name, exact, numeric)
 

@@ -8,6 +8,7 @@ class SpringTerm:
     name = ""
     uniform = False
     differentiable = False  # gives ``adjoint``, ``rhs_adjoint``, ``operator_adjoint`` (``massspring.gradients``)
+    rate_dependent = False  # its tension depends on the rates r: ``rate_stiffness_adjoint`` is not zero
 
     @staticmethod
     @ti.func
@@ -43,6 +44,15 @@ class SpringTerm:
     def rhs_adjoint(s, dev, adj, u, d, r, n, length):
         """``adjoint`` for ``rhs_tension`` (Eq. 15's f - D v): zero by default."""
         return d * 0, d * 0
+
+    @staticmethod
+    @ti.func
+    def rate_stiffness_adjoint(s, dev, u, r, n, length):
+        """The gradient in d of u . (tension n) through n alone, of a term whose tension
+        depends on the rates r: its force's x-derivative that Eq. 15's operator leaves out
+        (nonsymmetric; the Newton-solved steps' adjoint adds it, ``kernels/newton_adjoint.py``).
+        Zero by default."""
+        return u * 0
 
     @staticmethod
     @ti.func

@@ -14,6 +14,7 @@ class SpringDamping(SpringTerm):
 
     name = "damping"
     differentiable = True
+    rate_dependent = True
 
     @staticmethod
     @ti.func
@@ -30,10 +31,16 @@ class SpringDamping(SpringTerm):
     def adjoint(s, dev, adj, u, d, r, n, length):
         """Gradients of u . kd (r.n) n: in d, kd/l ((u.n)(r - (r.n) n) + (r.n)(u - (u.n) n));
         in r, kd (u.n) n; adds (r.n) u.n to ``adj.gkd[s]`` (``rate_gradient``)."""
+        SpringDamping.rate_gradient(s, adj, u, r, n)
+        return SpringDamping.rate_stiffness_adjoint(s, dev, u, r, n, length), dev.kd[s] * u.dot(n) * n
+
+    @staticmethod
+    @ti.func
+    def rate_stiffness_adjoint(s, dev, u, r, n, length):
+        """kd/l ((u.n)(r - (r.n) n) + (r.n)(u - (u.n) n)): how n turns with d."""
         un = u.dot(n)
-        rn = SpringDamping.rate_gradient(s, adj, u, r, n)
-        kd = dev.kd[s]
-        return kd / length * (un * (r - rn * n) + rn * (u - un * n)), kd * un * n
+        rn = r.dot(n)
+        return dev.kd[s] / length * (un * (r - rn * n) + rn * (u - un * n))
 
     @staticmethod
     @ti.func

@@ -29,6 +29,7 @@ class Midpoint(BackwardEuler):
     name = "midpoint"
     order = 2
     description = "implicit midpoint (second order, symplectic) solved by Newton's method with a line search"
+    half_step = True
 
     def step_size(self, touching):
         return self.settings.dt if touching else 0.5 * self.settings.dt

@@ -2,12 +2,13 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
 
 from massspring.device import read_verdict
-from massspring.kernels import cg, divergence, friction, newton, operator
+from massspring.kernels import cg, divergence, friction, newton, newton_adjoint, operator
 from massspring.kernels import state as state_kernels
 from massspring.solvers import SolverStats, solve
 from massspring.solvers.cg import EPS32, EPS64, ROUNDOFF
@@ -17,6 +18,7 @@ from .options import Option
 
 NEWTON_TOL = 1e-3  # default newton_tol: a full Newton step this small relative to the step's velocity change ends it
 NEWTON_MAX_ITER = 50  # default newton_max_iter: linear solves per step
+MAX_CORRECTIONS = 30  # defect-correction rounds of a damped Newton step's adjoint (kernels/newton_adjoint.py)
 ARMIJO = 1e-4  # sufficient decrease: E(v + a d) - E(v) <= ARMIJO a g . d
 MAX_CUTS = 12  # halvings of a line search before it takes the shortest step tried
 ETA_FIRST = 1e-2  # CG tolerance of the first linear solve of a step (relative to its first residual)
@@ -56,7 +58,8 @@ class BackwardEuler(ImplicitEuler):
     order = 1
     description = "backward Euler solved by Newton's method with a line search (CG per iteration)"
     newton = True
-    differentiable = False  # its adjoint (the true Jacobian at the converged iterate) is not built yet
+    differentiable = True  # kernels/newton_adjoint.py: the true Jacobian at the converged iterate
+    half_step = False  # (*) of kernels/newton.py is solved for (v_n + v')/2 with h = dt/2 (implicit midpoint)
     options = LINEAR_OPTIONS + NEWTON_OPTIONS
     swept = "newton_tol"
     carries = False  # whether a step's commit keeps the state it replaces (BDF2's history)
@@ -71,6 +74,57 @@ class BackwardEuler(ImplicitEuler):
             layout.vectors(name, real)
         if model.has_colliders:
             layout.vectors("carrier", real)
+
+    @classmethod
+    def declare_adjoint(cls, layout, stride):
+        """The last adjoint solution (the next one's warm start), its right-hand side and
+        the velocity of the point its Jacobian is taken at. The warm start begins at zero
+        (filled even when the bundle comes from the pool: a gradient never depends on the
+        one before it)."""
+        layout.vectors("mu", layout.real, values=np.zeros((layout.n, 3)))
+        for name in ("b0", "ue"):
+            layout.vectors(name, layout.real)
+
+    def adjoint(self, adj, slot, wants):
+        """The adjoint of (*) at the converged iterate (``kernels/newton_adjoint.py``): one
+        solve with the residual's true Jacobian (the operator without the definiteness
+        fix) by this run's CG and preconditioner at its cg_tol; returns its ``SolverStats``."""
+        s = self.settings
+        exact = dataclasses.replace(self.cfg, fix=False)
+        h = 0.5 * s.dt if self.half_step else s.dt
+        newton_adjoint.newton_adjoint_rhs(self.dev, exact, adj, h, s.dt, self.time, slot, self.half_step, wants,
+                                          self.serial)
+        self.preconditioner.bind(exact)
+        try:
+            stats = self._adjoint_solve(adj, exact, h, slot)
+        finally:
+            self.preconditioner.bind(self.cfg)
+        newton_adjoint.newton_adjoint_gather(self.dev, exact, adj, h, slot, self.half_step, wants, self.serial)
+        return stats
+
+    def _adjoint_solve(self, adj, exact, h, slot):
+        """J^T mu = b0 (``kernels/newton_adjoint.py``): one solve, or with spring damping
+        rounds of defect correction until mu moves by at most cg_tol (relative)."""
+        s = self.settings
+        stats = solve(self.dev, exact, self.preconditioner, h, s.cg_tol, s.cg_max_iter, self.serial, self.time,
+                      mode=operator.REFRESHED)
+        if not exact.rate_stiffness or not stats.converged:
+            return stats
+        total, before = stats.iterations, self.dev.read("v")
+        for _ in range(MAX_CORRECTIONS):
+            newton_adjoint.newton_adjoint_correct(self.dev, exact, adj, h, slot, self.half_step, self.serial)
+            stats = solve(self.dev, exact, self.preconditioner, h, s.cg_tol, s.cg_max_iter, self.serial, self.time,
+                          mode=operator.REFRESHED)
+            total += stats.iterations
+            after = self.dev.read("v")
+            moved = np.linalg.norm(after - before) / max(np.linalg.norm(after), 1e-300)
+            before = after
+            if not stats.converged:
+                return stats
+            if moved <= s.cg_tol:
+                return dataclasses.replace(stats, iterations=total)
+        return dataclasses.replace(stats, iterations=total, converged=False, residual=moved,
+                                   reason="defect correction not converging")
 
     def step_size(self, touching) -> float:
         """h of (*) in ``kernels/newton.py`` for the step being taken (``touching``: its
@@ -175,6 +229,7 @@ class BDF2(BackwardEuler):
 
     name = "bdf2"
     order = 2
+    differentiable = False  # a two-step method: its adjoint carries two states back (not built yet)
     extra_bytes = BackwardEuler.extra_bytes + 2 * 24  # and x_{n-1}, v_{n-1}
     description = "BDF2 (second order, first step backward Euler) solved by Newton's method with a line search"
     carries = True

@@ -1,0 +1,187 @@
+"""The adjoint of a Newton-solved step (backward Euler, implicit midpoint) at its
+converged iterate, for ``massspring.gradients``.
+
+Both steps solve (*) of ``kernels/newton.py``, g(u) = M (u - v_n) - h f(x_n + h u, u) = 0,
+for u (backward Euler: u = v', h = dt; implicit midpoint: u = (v_n + v')/2, h = dt/2,
+then v' = 2 u - v_n, x' = x_n + dt u). By the implicit function theorem, with the
+residual's true Jacobian J = M - h D - h^2 K at (x_n + h u, u) (no definiteness fix:
+it is the derivative of g, not the Newton iteration's operator):
+
+    J mu = dL/du,   dL/du = dL/dv' + dt dL/dx'   (midpoint: 2 dL/dv' + dt dL/dx')
+    dL/dx_n = dL/dx' + h K mu,   dL/dv_n = M mu   (midpoint: - dL/dv' too)
+    dL/dtheta += h mu . df/dtheta at (x_n + h u, u),   dL/dm += -mu . (u - v_n - h g)
+    dL/dvp += -(J^T mu)_p at a pin p (u = vp there), with each step's h dL/dx' + dL/dv'
+
+(free rows; mu = 0 at pins; K the force's whole x-derivative). Without spring damping J
+is symmetric, and the adjoint is one CG solve with the run's operator refreshed there
+without the fix and its preconditioner. Spring damping's force turns with the spring,
+an x-derivative the operator leaves out and that is not symmetric: J^T mu = dL/du is
+then solved by defect correction, each round one CG solve with the operator
+(``newton_adjoint_correct``), until mu moves by less than cg_tol. J is definite where
+springs are stretched or the step is small; where compressed springs make it
+indefinite, CG may stop ("indefinite"), and the correction stops converging where the
+damping's share is large: ``massspring.errors.GradientError`` then names the step. ``newton_adjoint_rhs`` sets up the solve, the run's CG solves it,
+``newton_adjoint_gather`` does the rest (``forces.acceleration_adjoint`` with weights
+h mu: at the converged iterate h f / m = u - v_n, so its masses' share is the one above).
+"""
+
+import taichi as ti
+
+from .constraints import is_free, is_pinned, pin_adjoint, prescribed
+from .forces import acceleration_adjoint, spring_direction, spring_sum, tiny_length
+from .operator import LINEARISED, apply_row, refresh
+
+
+@ti.func
+def evaluation_point(adj, i, slot, stride, h, midpoint: ti.template()):
+    """(x_n + h u, u) of particle i from the history (slots ``slot`` and ``slot + 1``)."""
+    u = adj.hv[(slot + 1) * stride + i]
+    x = adj.hx[(slot + 1) * stride + i]
+    if ti.static(midpoint):
+        u = 0.5 * (adj.hv[slot * stride + i] + u)
+        x = adj.hx[slot * stride + i] + h * u
+    return x, u
+
+
+@ti.func
+def rhs(dev, cfg: ti.template(), adj, h, dt, t, slot, midpoint: ti.template(), wants: ti.template()):
+    n = dev.size[0]
+    stride = adj.stride[None]
+    for i in range(n):
+        x, u = evaluation_point(adj, i, slot, stride, h, midpoint)
+        dev.x[i] = x
+        dev.v[i] = u
+        if ti.static(wants.pins):
+            pin_adjoint(i, dev, cfg, adj, dt)
+    refresh(dev, cfg, dev.x, dev.v, h, t, LINEARISED)
+    if ti.static(cfg.moving_pins):
+        for i in range(n):  # the solve starts pins at their velocity: their columns of J move to b
+            dev.p[i] = ti.Vector.zero(cfg.real, 3)
+            if not is_free(i, dev, cfg):
+                dev.p[i] = prescribed(i, dev, cfg)
+    for i in range(n):
+        b = ti.Vector.zero(cfg.real, 3)
+        if is_free(i, dev, cfg):
+            b = adj.lv[i] + dt * adj.lx[i]
+            if ti.static(midpoint):
+                b += adj.lv[i]
+            if ti.static(cfg.moving_pins):
+                b += apply_row(i, dev, cfg, dev.p)
+        dev.b[i] = b
+        adj.b0[i] = b
+        dev.v[i] = adj.mu[i]
+
+
+@ti.kernel
+def newton_adjoint_rhs(dev: ti.template(), cfg: ti.template(), adj: ti.template(), h: ti.f64, dt: ti.f64, t: ti.f64,
+                       slot: ti.i32, midpoint: ti.template(), wants: ti.template(), serial: ti.template()):
+    """``dev.x``, ``dev.v`` = the converged iterate's (x_n + h u, u) from the history; the
+    pins' share of the pin velocities' gradient (``wants.pins``); the operator refreshed
+    there (``cfg`` without the definiteness fix: J); ``dev.b`` = dL/du on free rows (plus
+    J's pin columns times the pin velocities, which the solve's start subtracts again);
+    ``dev.v`` = the last adjoint solution ``adj.mu`` (the warm start)."""
+    if ti.static(serial):
+        ti.loop_config(serialize=True)
+        for _ in range(1):
+            rhs(dev, cfg, adj, h, dt, t, slot, midpoint, wants)
+    else:
+        rhs(dev, cfg, adj, h, dt, t, slot, midpoint, wants)
+
+
+@ti.func
+def rate_stiffness(dev, cfg: ti.template(), adj, h, slot, midpoint: ti.template(), mu):
+    """``adj.sx[s]``: each spring's gradient in d of (mu_i - mu_j) . f through n alone
+    (``rate_stiffness_adjoint``; mu 0 at pins): -spring_sum gathers (df/dx)^T mu of the
+    force's x-derivative the operator leaves out."""
+    stride = adj.stride[None]
+    for s in range(dev.size[1]):
+        i = dev.ends[s][0]
+        j = dev.ends[s][1]
+        mi = ti.Vector.zero(ti.f64, 3)
+        mj = ti.Vector.zero(ti.f64, 3)
+        if is_free(i, dev, cfg):
+            mi = mu[i]
+        if is_free(j, dev, cfg):
+            mj = mu[j]
+        _, ui = evaluation_point(adj, i, slot, stride, h, midpoint)
+        _, uj = evaluation_point(adj, j, slot, stride, h, midpoint)
+        unit, length = spring_direction(dev.x[j] - dev.x[i], ti.f64)
+        g = ti.Vector.zero(ti.f64, 3)
+        if length > tiny_length(ti.f64):
+            for term in ti.static(cfg.spring_terms):
+                g += term.rate_stiffness_adjoint(s, dev, mi - mj, uj - ui, unit, length)
+        adj.sx[s] = g
+
+
+@ti.func
+def correct(dev, cfg: ti.template(), adj, h, slot, midpoint: ti.template()):
+    rate_stiffness(dev, cfg, adj, h, slot, midpoint, dev.v)
+    for i in range(dev.size[0]):
+        b = adj.b0[i]
+        if is_free(i, dev, cfg):
+            b -= h * h * spring_sum(i, dev, adj.sx)
+        dev.b[i] = b
+
+
+@ti.kernel
+def newton_adjoint_correct(dev: ti.template(), cfg: ti.template(), adj: ti.template(), h: ti.f64, slot: ti.i32,
+                           midpoint: ti.template(), serial: ti.template()):
+    """J = S + N with S the refreshed operator (symmetric) and N = -h^2 dfd/dx the part
+    of the damping force's x-derivative it leaves out (``rate_stiffness_adjoint``):
+    J^T mu = b0 is solved by defect correction, S mu_k+1 = b0 - N^T mu_k. This sets
+    ``dev.b`` = b0 + h^2 (dfd/dx)^T mu_k from mu_k in ``dev.v`` (then the warm start)."""
+    if ti.static(serial):
+        ti.loop_config(serialize=True)
+        for _ in range(1):
+            correct(dev, cfg, adj, h, slot, midpoint)
+    else:
+        correct(dev, cfg, adj, h, slot, midpoint)
+
+
+@ti.func
+def gather(dev, cfg: ti.template(), adj, h, slot, midpoint: ti.template(), wants: ti.template()):
+    n = dev.size[0]
+    stride = adj.stride[None]
+    for i in range(n):
+        mu = ti.Vector.zero(ti.f64, 3)
+        if is_free(i, dev, cfg):
+            mu = dev.v[i]
+        adj.mu[i] = mu
+        adj.w[i] = h * dev.mass[i] * mu  # dL/da: f / m enters g as h f / m per unit mass
+        _, u = evaluation_point(adj, i, slot, stride, h, midpoint)
+        adj.ue[i] = u
+    if ti.static(wants.pins):  # u = vp at a pin: -(J^T mu)_p, mu = 0 at pins (module docstring)
+        if ti.static(cfg.rate_stiffness):
+            rate_stiffness(dev, cfg, adj, h, slot, midpoint, adj.mu)
+        for i in range(n):
+            if is_pinned(i, dev, cfg):
+                share = apply_row(i, dev, cfg, adj.mu)
+                if ti.static(cfg.rate_stiffness):
+                    share += h * h * spring_sum(i, dev, adj.sx)
+                adj.gp[i] = adj.gp[i] - share
+    acceleration_adjoint(dev, cfg, adj, dev.x, adj.ue, wants)
+    for i in range(n):
+        lx = adj.lx[i] + adj.px[i]
+        if ti.static(cfg.has_springs):
+            lx -= spring_sum(i, dev, adj.sx)
+        lv = ti.Vector.zero(ti.f64, 3)
+        if is_free(i, dev, cfg):
+            lv = dev.mass[i] * adj.mu[i]
+            if ti.static(midpoint):
+                lv -= adj.lv[i]
+        adj.lx[i] = lx
+        adj.lv[i] = lv
+
+
+@ti.kernel
+def newton_adjoint_gather(dev: ti.template(), cfg: ti.template(), adj: ti.template(), h: ti.f64, slot: ti.i32,
+                          midpoint: ti.template(), wants: ti.template(), serial: ti.template()):
+    """After the adjoint solve (mu in ``dev.v``): dL/dx_n, dL/dv_n into ``adj.lx``,
+    ``adj.lv``, mu kept in ``adj.mu`` (the next solve's warm start), the parameters'
+    shares added (module docstring)."""
+    if ti.static(serial):
+        ti.loop_config(serialize=True)
+        for _ in range(1):
+            gather(dev, cfg, adj, h, slot, midpoint, wants)
+    else:
+        gather(dev, cfg, adj, h, slot, midpoint, wants)
