@@ -304,3 +304,39 @@ def friction_impulse(i, dev, cfg: ti.template(), carrier):
         else:
             out = dev.fric[i]
     return out
+
+
+@ti.func
+def respond_adjoint(dev, cfg: ti.template(), x, v, h, t, gx, gv):
+    """The transpose of ``respond``'s Jacobian at the free step x0 -> (x, v) of a free
+    particle ending at time t, its branch (free, impact sticking or sliding, or only
+    projected out) frozen, for a model whose one collider is a plane
+    (``massspring.gradients`` refuses others). From (gx, gv) = dL/d(x_r, v_r) of its
+    outputs returns (dL/dx0 through x_r, dL/dx, dL/dv). At an impact x_r = P (x0 + h v_r)
+    + c (P = I - n n^T), v_r = v_c + k T - e (rel . n) n with rel = v - v_c, T = P rel
+    and k = 0 (sticking) or 1 + mu (1 + e) (rel . n) / |T| (sliding); projected out,
+    x_r = P x + c. Everything in f64."""
+    n = ti.cast(dev.plane_normal[0], ti.f64)
+    d, _ = PlaneKind.distance(dev, cfg, 0, x, t)
+    ax0 = ti.Vector.zero(ti.f64, 3)
+    ax = gx
+    av = gv
+    if d <= tiny_length(cfg.real):
+        rel = ti.cast(v - dev.plane_velocity[0], ti.f64)
+        vn = rel.dot(n)
+        if vn < 0:
+            e = ti.cast(dev.plane_restitution[0], ti.f64)
+            c = ti.cast(dev.plane_friction[0], ti.f64) * (1 + e)
+            g = gv + h * (gx - gx.dot(n) * n)  # v_r's gradient: it also moves x_r by h P v_r
+            ax0 = gx - gx.dot(n) * n
+            ax = ti.Vector.zero(ti.f64, 3)
+            av = -e * g.dot(n) * n
+            tangent = rel - vn * n
+            speed = ti.sqrt(tangent.dot(tangent))
+            if speed > -c * vn:  # sliding: d(k T) = P + c (t n^T + vn (I - t t^T) P / |T|), t = T / |T|
+                u = tangent / speed
+                pg = g - g.dot(n) * n
+                av += pg + c * (g.dot(u) * n + vn / speed * (pg - u.dot(g) * u))
+        elif d < 0:
+            ax = gx - gx.dot(n) * n
+    return ax0, ax, av

@@ -26,7 +26,7 @@ import taichi as ti
 from .blocks import block_count, block_end, ordered_sum, BLOCK
 from .divergence import OK, state_sums, verdict
 from .constraints import is_free, pin_adjoint, prescribed
-from .contact import respond
+from .contact import respond, respond_adjoint
 from .forces import acceleration_adjoint, particle_force, spring_forces, spring_sum
 from .state import restore_state
 from .terms import uniform_acceleration
@@ -112,21 +112,22 @@ def euler_steps(dev: ti.template(), cfg: ti.template(), a: ti.template(), b: ti.
 
 @ti.kernel
 def euler_adjoint(dev: ti.template(), cfg: ti.template(), adj: ti.template(), src: ti.template(), dt: ti.f64,
-                  slot: ti.i32, symplectic: ti.template(), wants: ti.template(), serial: ti.template()):
+                  t: ti.f64, slot: ti.i32, symplectic: ti.template(), wants: ti.template(), serial: ti.template()):
     """``adjoint_step`` as parallel loops, or with ``serial`` in one serial loop (small
     systems, as ``euler_steps``)."""
     if ti.static(serial):
         ti.loop_config(serialize=True)
         for _ in range(1):
-            adjoint_step(dev, cfg, adj, src, dt, slot, symplectic, wants)
+            adjoint_step(dev, cfg, adj, src, dt, t, slot, symplectic, wants)
     else:
-        adjoint_step(dev, cfg, adj, src, dt, slot, symplectic, wants)
+        adjoint_step(dev, cfg, adj, src, dt, t, slot, symplectic, wants)
 
 
 @ti.func
-def adjoint_step(dev, cfg: ti.template(), adj, src, dt, slot, symplectic: ti.template(), wants: ti.template()):
+def adjoint_step(dev, cfg: ti.template(), adj, src, dt, t, slot, symplectic: ti.template(), wants: ti.template()):
     """One step backwards, in f64, from the state kept in ``adj``'s history at ``slot``
-    (``state.save_state``; restored into ``src`` first): on entry ``adj.lx``, ``adj.lv``
+    (``state.save_state``; restored into ``src`` first), the step ending at time ``t``
+    (s; where moving colliders are): on entry ``adj.lx``, ``adj.lv``
     (n,) vec3 hold dL/dx', dL/dv' of the step's end state; on exit dL/dx, dL/dv of
     ``src``, and every parameter gradient array of ``adj`` has this step's share added.
     With mu = dL/dv' (+ dt dL/dx' if ``symplectic``) the adjoint of the free particles'
@@ -136,10 +137,13 @@ def adjoint_step(dev, cfg: ti.template(), adj, src, dt, slot, symplectic: ti.tem
 
     K w and D w gathered spring by spring and particle by particle
     (``forces.acceleration_adjoint``, which adds the parameters' shares; K and D are
-    symmetric, their transposes themselves)."""
+    symmetric, their transposes themselves). With colliders, ``contact_adjoint`` first
+    takes the contact response's share (its branches frozen)."""
     h = ti.cast(dt, ti.f64)
     n = dev.size[0]
     restore_state(adj.hx, adj.hv, src, n, slot, adj.stride[None])
+    if ti.static(cfg.has_colliders):
+        contact_adjoint(dev, cfg, adj, src, h, t, symplectic)
     for i in range(n):
         mu = adj.lv[i]
         if ti.static(symplectic):
@@ -156,5 +160,32 @@ def adjoint_step(dev, cfg: ti.template(), adj, src, dt, slot, symplectic: ti.tem
         if ti.static(cfg.has_springs):
             lx -= spring_sum(i, dev, adj.sx)
             lv -= spring_sum(i, dev, adj.sv)
+        if ti.static(cfg.has_colliders):
+            lx += adj.cx[i]
         adj.lx[i] = lx + adj.px[i]
         adj.lv[i] = lv + adj.pv[i]
+
+
+@ti.func
+def contact_adjoint(dev, cfg: ti.template(), adj, src, h, t, symplectic: ti.template()):
+    """The contact response's share of a step backwards (``contact.respond_adjoint``,
+    branches frozen): the free step of each free particle computed again from ``src``,
+    then ``adj.lx``, ``adj.lv`` turned from dL/d(x', v') of the response's outputs into
+    dL/d(x, v) of the free step's, and the response's direct gradient in the step's
+    start position into ``adj.cx``."""
+    spring_forces(dev, cfg, src.x, src.v, False)
+    for i in range(dev.size[0]):
+        cx = ti.Vector.zero(ti.f64, 3)
+        if is_free(i, dev, cfg):
+            x = src.x[i]
+            v = src.v[i]
+            v_new = v + h / dev.mass[i] * particle_force(i, dev, cfg, src.x, src.v, False)
+            if ti.static(symplectic):
+                x = x + h * v_new
+            else:
+                x = x + h * v
+            ax0, ax, av = respond_adjoint(dev, cfg, x, v_new, h, t, adj.lx[i], adj.lv[i])
+            cx = ax0
+            adj.lx[i] = ax
+            adj.lv[i] = av
+        adj.cx[i] = cx

@@ -105,11 +105,11 @@ def gradient(model, objective, wrt, *, steps, every=1, integrator="symplectic", 
     if precision != "f64":
         raise ValueError(f"precision: gradients are computed in f64 only, got {precision!r}")
     terms = [term.name for term in active_terms(model) if not term.kernel.differentiable]
-    for feature, present in (("colliders", model.has_colliders), ("self-collision", model.has_self_collision),
-                             (" and ".join(terms), bool(terms))):
+    for feature, present in (("self-collision", model.has_self_collision), (" and ".join(terms), bool(terms))):
         if present:
             raise ValueError(f"model: gradients through {feature} are not built yet (issue 39); "
-                             f"a model of springs, damping, gravity and pins has them")
+                             f"a model of springs, damping, gravity, drag, pins and a ground plane has them")
+    _check_colliders(model, integrator)
     steps = validate.count("steps", steps, low=1, high=MAX_STEPS)
     every = validate.count("every", every, low=1, high=MAX_STEPS)
     if checkpoint is None:
@@ -130,6 +130,23 @@ def gradient(model, objective, wrt, *, steps, every=1, integrator="symplectic", 
         sim.close()
         if adj is not None:
             POOL.give(adj)
+
+
+CONTACT_INTEGRATORS = ("explicit", "symplectic")  # those whose contact response has an adjoint
+
+
+def _check_colliders(model, integrator):
+    """Contact has a gradient (its branches frozen: ``contact.respond_adjoint``) for one
+    plane collider and the explicit and symplectic steps; anything else is refused."""
+    if not model.has_colliders:
+        return
+    kinds = [type(c).__name__ for c in model.colliders]
+    if kinds != ["Plane"]:
+        raise ValueError(f"model: gradients through contact are built for one Plane collider, "
+                         f"got {', '.join(kinds)} (issue 39)")
+    if integrator not in CONTACT_INTEGRATORS:
+        raise ValueError(f"integrator: gradients through contact are built for "
+                         f"{' and '.join(CONTACT_INTEGRATORS)} steps, got {integrator!r} (issue 39)")
 
 
 @dataclass(frozen=True)
@@ -255,6 +272,8 @@ def _adjoint_bundle(sim, checkpoint):
     layout.add("gdrag", ti.f64, "particle", values=np.zeros(n))
     for name in ("gks", "gkd", "gl0"):
         layout.add(name, ti.f64, "spring", values=np.zeros(m) if m else None)
+    if sim.model.has_colliders:
+        layout.vectors("cx", ti.f64)  # the contact response's gradient in the step's start position
     INTEGRATORS[sim.integrator].declare_adjoint(layout, stride)
     return layout.allocate(f"model: {n:,} particles and {m:,} springs; the fields of its gradient "
                            f"with {checkpoint:,} states kept (give a smaller checkpoint)")
@@ -284,6 +303,7 @@ def _backward(sim, adj, wants, partials, frame_steps, kept, last, steps, checkpo
                     sim.step(1)
                 state_kernels.save_state(adj.hx, adj.hv, integrator.state, n, k - start, stride)
         for k in reversed(range(start, end)):
+            integrator.steps = k  # the step's start time, k dt (moving colliders)
             stats = integrator.adjoint(adj, k - start, wants)
             if stats is not None and not stats.converged:
                 raise GradientError(k, stats.reason, stats.residual, sim.integrator)

@@ -58,8 +58,8 @@ class ExplicitEuler(Integrator):
 
     def adjoint(self, adj, slot, wants):
         """``euler.euler_adjoint`` of the step from the state kept at ``slot`` (no solve: None)."""
-        euler.euler_adjoint(self.dev, self.cfg, adj, self.state, self.settings.dt, slot, self.symplectic, wants,
-                            self.serial)
+        euler.euler_adjoint(self.dev, self.cfg, adj, self.state, self.settings.dt, self.time + self.settings.dt, slot,
+                            self.symplectic, wants, self.serial)
 
     @staticmethod
     def stability_limit(prediction):
