@@ -16,11 +16,12 @@ it is the derivative of g, not the Newton iteration's operator):
 is symmetric, and the adjoint is one CG solve with the run's operator refreshed there
 without the fix and its preconditioner. Spring damping's force turns with the spring,
 an x-derivative the operator leaves out and that is not symmetric: J^T mu = dL/du is
-then solved by defect correction, each round one CG solve with the operator
-(``newton_adjoint_correct``), until mu moves by less than cg_tol. J is definite where
-springs are stretched or the step is small; where compressed springs make it
-indefinite, CG may stop ("indefinite"), and the correction stops converging where the
-damping's share is large: ``massspring.errors.GradientError`` then names the step. ``newton_adjoint_rhs`` sets up the solve, the run's CG solves it,
+then solved as (I + S^-1 N^T) mu = S^-1 dL/du by GMRES (``massspring.solvers.gmres``),
+each product one solve with S, the run's operator and preconditioner
+(``newton_adjoint_coupling``). J is definite where springs are stretched or the step
+is small; where compressed springs make it indefinite, CG may stop ("indefinite"), and
+GMRES may not converge within its products: ``massspring.errors.GradientError`` then
+names the step. ``newton_adjoint_rhs`` sets up the solve, the run's CG solves it,
 ``newton_adjoint_gather`` does the rest (``forces.acceleration_adjoint`` with weights
 h mu: at the converged iterate h f / m = u - v_n, so its masses' share is the one above).
 """
@@ -44,6 +45,17 @@ def evaluation_point(adj, i, slot, stride, h, midpoint: ti.template()):
 
 
 @ti.func
+def pin_columns(dev, cfg: ti.template()):
+    """``dev.p`` = the pins' velocities at pins, 0 elsewhere: a solve starts pins at
+    their velocity, so J's pin columns times them are added to b (``apply_row``) for the
+    solve's start to take away again."""
+    for i in range(dev.size[0]):
+        dev.p[i] = ti.Vector.zero(cfg.real, 3)
+        if not is_free(i, dev, cfg):
+            dev.p[i] = prescribed(i, dev, cfg)
+
+
+@ti.func
 def rhs(dev, cfg: ti.template(), adj, h, dt, t, slot, midpoint: ti.template(), wants: ti.template()):
     n = dev.size[0]
     stride = adj.stride[None]
@@ -55,10 +67,7 @@ def rhs(dev, cfg: ti.template(), adj, h, dt, t, slot, midpoint: ti.template(), w
             pin_adjoint(i, dev, cfg, adj, dt)
     refresh(dev, cfg, dev.x, dev.v, h, t, LINEARISED)
     if ti.static(cfg.moving_pins):
-        for i in range(n):  # the solve starts pins at their velocity: their columns of J move to b
-            dev.p[i] = ti.Vector.zero(cfg.real, 3)
-            if not is_free(i, dev, cfg):
-                dev.p[i] = prescribed(i, dev, cfg)
+        pin_columns(dev, cfg)
     for i in range(n):
         b = ti.Vector.zero(cfg.real, 3)
         if is_free(i, dev, cfg):
@@ -68,7 +77,6 @@ def rhs(dev, cfg: ti.template(), adj, h, dt, t, slot, midpoint: ti.template(), w
             if ti.static(cfg.moving_pins):
                 b += apply_row(i, dev, cfg, dev.p)
         dev.b[i] = b
-        adj.b0[i] = b
         dev.v[i] = adj.mu[i]
 
 
@@ -114,28 +122,34 @@ def rate_stiffness(dev, cfg: ti.template(), adj, h, slot, midpoint: ti.template(
 
 
 @ti.func
-def correct(dev, cfg: ti.template(), adj, h, slot, midpoint: ti.template()):
+def coupling(dev, cfg: ti.template(), adj, h, slot, midpoint: ti.template()):
     rate_stiffness(dev, cfg, adj, h, slot, midpoint, dev.v)
+    if ti.static(cfg.moving_pins):
+        pin_columns(dev, cfg)
     for i in range(dev.size[0]):
-        b = adj.b0[i]
+        b = ti.Vector.zero(ti.f64, 3)
         if is_free(i, dev, cfg):
-            b -= h * h * spring_sum(i, dev, adj.sx)
+            b = -h * h * spring_sum(i, dev, adj.sx)
+            if ti.static(cfg.moving_pins):
+                b += apply_row(i, dev, cfg, dev.p)
         dev.b[i] = b
+        dev.v[i] = ti.Vector.zero(ti.f64, 3)
 
 
 @ti.kernel
-def newton_adjoint_correct(dev: ti.template(), cfg: ti.template(), adj: ti.template(), h: ti.f64, slot: ti.i32,
-                           midpoint: ti.template(), serial: ti.template()):
+def newton_adjoint_coupling(dev: ti.template(), cfg: ti.template(), adj: ti.template(), h: ti.f64, slot: ti.i32,
+                            midpoint: ti.template(), serial: ti.template()):
     """J = S + N with S the refreshed operator (symmetric) and N = -h^2 dfd/dx the part
-    of the damping force's x-derivative it leaves out (``rate_stiffness_adjoint``):
-    J^T mu = b0 is solved by defect correction, S mu_k+1 = b0 - N^T mu_k. This sets
-    ``dev.b`` = b0 + h^2 (dfd/dx)^T mu_k from mu_k in ``dev.v`` (then the warm start)."""
+    of the damping force's x-derivative it leaves out (``rate_stiffness_adjoint``): for
+    y in ``dev.v`` sets ``dev.b`` = -N^T y on free rows and ``dev.v`` = 0 (a solve's
+    start), so that a solve gives S^-1 (-N^T y) and J^T mu = b0 becomes
+    (I + S^-1 N^T) mu = S^-1 b0 (``integrators/newton.py``, GMRES)."""
     if ti.static(serial):
         ti.loop_config(serialize=True)
         for _ in range(1):
-            correct(dev, cfg, adj, h, slot, midpoint)
+            coupling(dev, cfg, adj, h, slot, midpoint)
     else:
-        correct(dev, cfg, adj, h, slot, midpoint)
+        coupling(dev, cfg, adj, h, slot, midpoint)
 
 
 @ti.func

@@ -12,13 +12,14 @@ from massspring.kernels import cg, divergence, friction, newton, newton_adjoint,
 from massspring.kernels import state as state_kernels
 from massspring.solvers import SolverStats, solve
 from massspring.solvers.cg import EPS32, EPS64, ROUNDOFF
+from massspring.solvers.gmres import gmres
 
 from .implicit import LINEAR_OPTIONS, ImplicitEuler
 from .options import Option
 
 NEWTON_TOL = 1e-3  # default newton_tol: a full Newton step this small relative to the step's velocity change ends it
 NEWTON_MAX_ITER = 50  # default newton_max_iter: linear solves per step
-MAX_CORRECTIONS = 30  # defect-correction rounds of a damped Newton step's adjoint (kernels/newton_adjoint.py)
+MAX_PRODUCTS = 60  # GMRES products (each a solve) of a damped Newton step's adjoint (kernels/newton_adjoint.py)
 ARMIJO = 1e-4  # sufficient decrease: E(v + a d) - E(v) <= ARMIJO a g . d
 MAX_CUTS = 12  # halvings of a line search before it takes the shortest step tried
 ETA_FIRST = 1e-2  # CG tolerance of the first linear solve of a step (relative to its first residual)
@@ -77,13 +78,12 @@ class BackwardEuler(ImplicitEuler):
 
     @classmethod
     def declare_adjoint(cls, layout, stride):
-        """The last adjoint solution (the next one's warm start), its right-hand side and
+        """The last adjoint solution (the next one's warm start) and
         the velocity of the point its Jacobian is taken at. The warm start begins at zero
         (filled even when the bundle comes from the pool: a gradient never depends on the
         one before it)."""
         layout.vectors("mu", layout.real, values=np.zeros((layout.n, 3)))
-        for name in ("b0", "ue"):
-            layout.vectors(name, layout.real)
+        layout.vectors("ue", layout.real)
 
     def adjoint(self, adj, slot, wants):
         """The adjoint of (*) at the converged iterate (``kernels/newton_adjoint.py``): one
@@ -103,28 +103,35 @@ class BackwardEuler(ImplicitEuler):
         return stats
 
     def _adjoint_solve(self, adj, exact, h, slot):
-        """J^T mu = b0 (``kernels/newton_adjoint.py``): one solve, or with spring damping
-        rounds of defect correction until mu moves by at most cg_tol (relative)."""
+        """J^T mu = b0 (``kernels/newton_adjoint.py``): one solve; with spring damping
+        (J = S + N, N not symmetric) GMRES on (I + S^-1 N^T) mu = S^-1 b0 from that
+        solve's mu = S^-1 b0, each product one solve with S, to cg_tol relative."""
         s = self.settings
         stats = solve(self.dev, exact, self.preconditioner, h, s.cg_tol, s.cg_max_iter, self.serial, self.time,
                       mode=operator.REFRESHED)
         if not exact.rate_stiffness or not stats.converged:
             return stats
-        total, before = stats.iterations, self.dev.read("v")
-        for _ in range(MAX_CORRECTIONS):
-            newton_adjoint.newton_adjoint_correct(self.dev, exact, adj, h, slot, self.half_step, self.serial)
-            stats = solve(self.dev, exact, self.preconditioner, h, s.cg_tol, s.cg_max_iter, self.serial, self.time,
-                          mode=operator.REFRESHED)
-            total += stats.iterations
-            after = self.dev.read("v")
-            moved = np.linalg.norm(after - before) / max(np.linalg.norm(after), 1e-300)
-            before = after
-            if not stats.converged:
-                return stats
-            if moved <= s.cg_tol:
-                return dataclasses.replace(stats, iterations=total)
-        return dataclasses.replace(stats, iterations=total, converged=False, residual=moved,
-                                   reason="defect correction not converging")
+        inner = [stats]
+        # the free rows (a solve sets pins to their velocities; mu is 0 there)
+        free = (self.dev.read("free") != 0)[:, None] if exact.fixed else True
+
+        def product(y):  # (I + S^-1 N^T) y
+            state_kernels.load_vectors(self.dev.v, np.ascontiguousarray(y))
+            newton_adjoint.newton_adjoint_coupling(self.dev, exact, adj, h, slot, self.half_step, self.serial)
+            inner.append(solve(self.dev, exact, self.preconditioner, h, s.cg_tol, s.cg_max_iter, self.serial,
+                               self.time, mode=operator.REFRESHED))
+            return np.where(free, y - self.dev.read("v"), 0.0)
+
+        start = np.where(free, self.dev.read("v"), 0.0)
+        out = gmres(product, start, start, s.cg_tol, MAX_PRODUCTS)
+        state_kernels.load_vectors(self.dev.v, np.ascontiguousarray(out.x))
+        failed = next((one for one in inner if not one.converged), None)
+        total = sum(one.iterations for one in inner)
+        if failed is not None:
+            return dataclasses.replace(failed, iterations=total)
+        return dataclasses.replace(stats, iterations=total, converged=out.converged,
+                                   residual=out.residual if not out.converged else stats.residual,
+                                   reason="converged" if out.converged else "GMRES not converging (damping's turning)")
 
     def step_size(self, touching) -> float:
         """h of (*) in ``kernels/newton.py`` for the step being taken (``touching``: its
