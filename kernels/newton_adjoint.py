@@ -12,16 +12,18 @@ it is the derivative of g, not the Newton iteration's operator):
     dL/dtheta += h mu . df/dtheta at (x_n + h u, u),   dL/dm += -mu . (u - v_n - h g)
     dL/dvp += -(J^T mu)_p at a pin p (u = vp there), with each step's h dL/dx' + dL/dv'
 
-(free rows; mu = 0 at pins; K the force's whole x-derivative). Without spring damping J
-is symmetric, and the adjoint is one CG solve with the run's operator refreshed there
-without the fix and its preconditioner. Spring damping's force turns with the spring,
-an x-derivative the operator leaves out and that is not symmetric: J^T mu = dL/du is
-then solved as (I + S^-1 N^T) mu = S^-1 dL/du by GMRES (``massspring.solvers.gmres``),
-each product one solve with S, the run's operator and preconditioner
-(``newton_adjoint_coupling``). J is definite where springs are stretched or the step
-is small; where compressed springs make it indefinite, CG may stop ("indefinite"), and
-GMRES may not converge within its products: ``massspring.errors.GradientError`` then
-names the step. ``newton_adjoint_rhs`` sets up the solve, the run's CG solves it,
+(free rows; mu = 0 at pins; K the force's whole x-derivative). J is the operator
+refreshed without the definiteness fix, plus, with spring damping, the damping force's
+turning with its spring (an x-derivative the seed's Eq. 14 leaves out, not symmetric:
+``rate_stiffness``). Where no spring is compressed and nothing is damped, J is the step's
+own symmetric positive definite operator S and one CG solve gives mu. Otherwise J may be
+nonsymmetric and, where compressed springs lose their transverse stiffness, indefinite:
+J^T mu = dL/du is solved as S^-1 J^T mu = S^-1 dL/du by GMRES
+(``massspring.solvers.gmres``) with S the operator with the fix, each product one CG
+solve with the run's preconditioner (``newton_adjoint_product``); S^-1 J^T is the
+identity plus what the fix and the turning change, so few products are needed. Where
+GMRES does not converge within its products (J singular or nearly),
+``massspring.errors.GradientError`` names the step. ``newton_adjoint_rhs`` sets up the solve, the run's CG solves it,
 ``newton_adjoint_gather`` does the rest (``forces.acceleration_adjoint`` with weights
 h mu: at the converged iterate h f / m = u - v_n, so its masses' share is the one above).
 """
@@ -85,8 +87,9 @@ def newton_adjoint_rhs(dev: ti.template(), cfg: ti.template(), adj: ti.template(
                        slot: ti.i32, midpoint: ti.template(), wants: ti.template(), serial: ti.template()):
     """``dev.x``, ``dev.v`` = the converged iterate's (x_n + h u, u) from the history; the
     pins' share of the pin velocities' gradient (``wants.pins``); the operator refreshed
-    there (``cfg`` without the definiteness fix: J); ``dev.b`` = dL/du on free rows (plus
-    J's pin columns times the pin velocities, which the solve's start subtracts again);
+    there (``cfg``: the step's own, with its definiteness fix: S); ``dev.b`` = dL/du on
+    free rows (plus S's pin columns times the pin velocities, which the solve's start
+    subtracts again);
     ``dev.v`` = the last adjoint solution ``adj.mu`` (the warm start)."""
     if ti.static(serial):
         ti.loop_config(serialize=True)
@@ -122,38 +125,54 @@ def rate_stiffness(dev, cfg: ti.template(), adj, h, slot, midpoint: ti.template(
 
 
 @ti.func
-def coupling(dev, cfg: ti.template(), adj, h, slot, midpoint: ti.template()):
-    rate_stiffness(dev, cfg, adj, h, slot, midpoint, dev.v)
-    if ti.static(cfg.moving_pins):
-        pin_columns(dev, cfg)
-    for i in range(dev.size[0]):
+def product(dev, exact: ti.template(), fixed: ti.template(), adj, h, t, slot, midpoint: ti.template()):
+    n = dev.size[0]
+    stride = adj.stride[None]
+    for i in range(n):
+        adj.y[i] = dev.v[i]
+        _, u = evaluation_point(adj, i, slot, stride, h, midpoint)
+        dev.v[i] = u
+    refresh(dev, exact, dev.x, dev.v, h, t, LINEARISED)
+    if ti.static(exact.rate_stiffness):
+        rate_stiffness(dev, exact, adj, h, slot, midpoint, adj.y)
+    for i in range(n):
+        jy = ti.Vector.zero(ti.f64, 3)
+        if is_free(i, dev, exact):
+            jy = apply_row(i, dev, exact, adj.y)
+            if ti.static(exact.rate_stiffness):
+                jy += h * h * spring_sum(i, dev, adj.sx)
+        adj.jy[i] = jy
+    refresh(dev, fixed, dev.x, dev.v, h, t, LINEARISED)
+    if ti.static(fixed.moving_pins):
+        pin_columns(dev, fixed)
+    for i in range(n):
         b = ti.Vector.zero(ti.f64, 3)
-        if is_free(i, dev, cfg):
-            b = -h * h * spring_sum(i, dev, adj.sx)
-            if ti.static(cfg.moving_pins):
-                b += apply_row(i, dev, cfg, dev.p)
+        if is_free(i, dev, fixed):
+            b = adj.jy[i]
+            if ti.static(fixed.moving_pins):
+                b += apply_row(i, dev, fixed, dev.p)
         dev.b[i] = b
         dev.v[i] = ti.Vector.zero(ti.f64, 3)
 
 
 @ti.kernel
-def newton_adjoint_coupling(dev: ti.template(), cfg: ti.template(), adj: ti.template(), h: ti.f64, slot: ti.i32,
-                            midpoint: ti.template(), serial: ti.template()):
-    """J = S + N with S the refreshed operator (symmetric) and N = -h^2 dfd/dx the part
-    of the damping force's x-derivative it leaves out (``rate_stiffness_adjoint``): for
-    y in ``dev.v`` sets ``dev.b`` = -N^T y on free rows and ``dev.v`` = 0 (a solve's
-    start), so that a solve gives S^-1 (-N^T y) and J^T mu = b0 becomes
-    (I + S^-1 N^T) mu = S^-1 b0 (``integrators/newton.py``, GMRES)."""
+def newton_adjoint_product(dev: ti.template(), exact: ti.template(), fixed: ti.template(), adj: ti.template(),
+                           h: ti.f64, t: ti.f64, slot: ti.i32, midpoint: ti.template(), serial: ti.template()):
+    """For y in ``dev.v`` (0 at pins): ``dev.b`` = J^T y on free rows, J the residual's
+    true Jacobian (``exact``: the operator without the definiteness fix, plus spring
+    damping's turning, ``rate_stiffness``), the operator then refreshed as ``fixed``
+    (the step's own, symmetric positive definite) and ``dev.v`` = 0, so that a solve
+    gives S^-1 J^T y (``integrators/newton.py``: GMRES on S^-1 J^T mu = S^-1 b0)."""
     if ti.static(serial):
         ti.loop_config(serialize=True)
         for _ in range(1):
-            coupling(dev, cfg, adj, h, slot, midpoint)
+            product(dev, exact, fixed, adj, h, t, slot, midpoint)
     else:
-        coupling(dev, cfg, adj, h, slot, midpoint)
+        product(dev, exact, fixed, adj, h, t, slot, midpoint)
 
 
 @ti.func
-def gather(dev, cfg: ti.template(), adj, h, slot, midpoint: ti.template(), wants: ti.template()):
+def gather(dev, cfg: ti.template(), adj, h, t, slot, midpoint: ti.template(), wants: ti.template()):
     n = dev.size[0]
     stride = adj.stride[None]
     for i in range(n):
@@ -165,6 +184,7 @@ def gather(dev, cfg: ti.template(), adj, h, slot, midpoint: ti.template(), wants
         _, u = evaluation_point(adj, i, slot, stride, h, midpoint)
         adj.ue[i] = u
     if ti.static(wants.pins):  # u = vp at a pin: -(J^T mu)_p, mu = 0 at pins (module docstring)
+        refresh(dev, cfg, dev.x, adj.ue, h, t, LINEARISED)  # J's coefficients (a solve may have left S's)
         if ti.static(cfg.rate_stiffness):
             rate_stiffness(dev, cfg, adj, h, slot, midpoint, adj.mu)
         for i in range(n):
@@ -188,7 +208,7 @@ def gather(dev, cfg: ti.template(), adj, h, slot, midpoint: ti.template(), wants
 
 
 @ti.kernel
-def newton_adjoint_gather(dev: ti.template(), cfg: ti.template(), adj: ti.template(), h: ti.f64, slot: ti.i32,
+def newton_adjoint_gather(dev: ti.template(), cfg: ti.template(), adj: ti.template(), h: ti.f64, t: ti.f64, slot: ti.i32,
                           midpoint: ti.template(), wants: ti.template(), serial: ti.template()):
     """After the adjoint solve (mu in ``dev.v``): dL/dx_n, dL/dv_n into ``adj.lx``,
     ``adj.lv``, mu kept in ``adj.mu`` (the next solve's warm start), the parameters'
@@ -196,6 +216,6 @@ def newton_adjoint_gather(dev: ti.template(), cfg: ti.template(), adj: ti.templa
     if ti.static(serial):
         ti.loop_config(serialize=True)
         for _ in range(1):
-            gather(dev, cfg, adj, h, slot, midpoint, wants)
+            gather(dev, cfg, adj, h, t, slot, midpoint, wants)
     else:
-        gather(dev, cfg, adj, h, slot, midpoint, wants)
+        gather(dev, cfg, adj, h, t, slot, midpoint, wants)

@@ -19,7 +19,8 @@ from .options import Option
 
 NEWTON_TOL = 1e-3  # default newton_tol: a full Newton step this small relative to the step's velocity change ends it
 NEWTON_MAX_ITER = 50  # default newton_max_iter: linear solves per step
-MAX_PRODUCTS = 60  # GMRES products (each a solve) of a damped Newton step's adjoint (kernels/newton_adjoint.py)
+MAX_PRODUCTS = 120  # GMRES products (each a solve) of a Newton step's adjoint (kernels/newton_adjoint.py)
+INNER = 0.1  # a GMRES product's solve to this times cg_tol: the products' error stays below GMRES's own
 ARMIJO = 1e-4  # sufficient decrease: E(v + a d) - E(v) <= ARMIJO a g . d
 MAX_CUTS = 12  # halvings of a line search before it takes the shortest step tried
 ETA_FIRST = 1e-2  # CG tolerance of the first linear solve of a step (relative to its first residual)
@@ -78,49 +79,50 @@ class BackwardEuler(ImplicitEuler):
 
     @classmethod
     def declare_adjoint(cls, layout, stride):
-        """The last adjoint solution (the next one's warm start) and
-        the velocity of the point its Jacobian is taken at. The warm start begins at zero
+        """The last adjoint solution (the next one's warm start), the velocity of the point
+        its Jacobian is taken at, and a GMRES product's vector and its J^T y. The warm start begins at zero
         (filled even when the bundle comes from the pool: a gradient never depends on the
         one before it)."""
         layout.vectors("mu", layout.real, values=np.zeros((layout.n, 3)))
-        layout.vectors("ue", layout.real)
+        for name in ("ue", "y", "jy"):
+            layout.vectors(name, layout.real)
 
     def adjoint(self, adj, slot, wants):
-        """The adjoint of (*) at the converged iterate (``kernels/newton_adjoint.py``): one
-        solve with the residual's true Jacobian (the operator without the definiteness
-        fix) by this run's CG and preconditioner at its cg_tol; returns its ``SolverStats``."""
+        """The adjoint of (*) at the converged iterate (``kernels/newton_adjoint.py``):
+        J^T mu = dL/du with the residual's true Jacobian J, by this run's CG and
+        preconditioner at its cg_tol (GMRES around them where J is not the step's own
+        operator); returns the ``SolverStats`` of it all."""
         s = self.settings
         exact = dataclasses.replace(self.cfg, fix=False)
         h = 0.5 * s.dt if self.half_step else s.dt
-        newton_adjoint.newton_adjoint_rhs(self.dev, exact, adj, h, s.dt, self.time, slot, self.half_step, wants,
+        newton_adjoint.newton_adjoint_rhs(self.dev, self.cfg, adj, h, s.dt, self.time, slot, self.half_step, wants,
                                           self.serial)
-        self.preconditioner.bind(exact)
-        try:
-            stats = self._adjoint_solve(adj, exact, h, slot)
-        finally:
-            self.preconditioner.bind(self.cfg)
-        newton_adjoint.newton_adjoint_gather(self.dev, exact, adj, h, slot, self.half_step, wants, self.serial)
+        stats = self._adjoint_solve(adj, exact, h, slot)
+        newton_adjoint.newton_adjoint_gather(self.dev, exact, adj, h, self.time, slot, self.half_step, wants,
+                                             self.serial)
         return stats
 
     def _adjoint_solve(self, adj, exact, h, slot):
-        """J^T mu = b0 (``kernels/newton_adjoint.py``): one solve; with spring damping
-        (J = S + N, N not symmetric) GMRES on (I + S^-1 N^T) mu = S^-1 b0 from that
-        solve's mu = S^-1 b0, each product one solve with S, to cg_tol relative."""
+        """mu = S^-1 b0 by one solve with S, the step's own operator; where J may differ
+        from S (the definiteness fix on, or spring damping), GMRES on S^-1 J^T mu = S^-1 b0
+        from there, each product one more solve (to ``INNER`` cg_tol), to cg_tol relative (S^-1 J^T is the
+        identity where J = S: one product confirms it)."""
         s = self.settings
-        stats = solve(self.dev, exact, self.preconditioner, h, s.cg_tol, s.cg_max_iter, self.serial, self.time,
+        stats = solve(self.dev, self.cfg, self.preconditioner, h, s.cg_tol, s.cg_max_iter, self.serial, self.time,
                       mode=operator.REFRESHED)
-        if not exact.rate_stiffness or not stats.converged:
+        if not (exact.rate_stiffness or self.cfg.fix) or not stats.converged:
             return stats
         inner = [stats]
         # the free rows (a solve sets pins to their velocities; mu is 0 there)
         free = (self.dev.read("free") != 0)[:, None] if exact.fixed else True
 
-        def product(y):  # (I + S^-1 N^T) y
+        def product(y):  # S^-1 J^T y
             state_kernels.load_vectors(self.dev.v, np.ascontiguousarray(y))
-            newton_adjoint.newton_adjoint_coupling(self.dev, exact, adj, h, slot, self.half_step, self.serial)
-            inner.append(solve(self.dev, exact, self.preconditioner, h, s.cg_tol, s.cg_max_iter, self.serial,
-                               self.time, mode=operator.REFRESHED))
-            return np.where(free, y - self.dev.read("v"), 0.0)
+            newton_adjoint.newton_adjoint_product(self.dev, exact, self.cfg, adj, h, self.time, slot, self.half_step,
+                                                  self.serial)
+            inner.append(solve(self.dev, self.cfg, self.preconditioner, h, INNER * s.cg_tol, s.cg_max_iter,
+                               self.serial, self.time, mode=operator.REFRESHED))
+            return np.where(free, self.dev.read("v"), 0.0)
 
         start = np.where(free, self.dev.read("v"), 0.0)
         out = gmres(product, start, start, s.cg_tol, MAX_PRODUCTS)
@@ -131,7 +133,7 @@ class BackwardEuler(ImplicitEuler):
             return dataclasses.replace(failed, iterations=total)
         return dataclasses.replace(stats, iterations=total, converged=out.converged,
                                    residual=out.residual if not out.converged else stats.residual,
-                                   reason="converged" if out.converged else "GMRES not converging (damping's turning)")
+                                   reason="converged" if out.converged else "GMRES not converging")
 
     def step_size(self, touching) -> float:
         """h of (*) in ``kernels/newton.py`` for the step being taken (``touching``: its

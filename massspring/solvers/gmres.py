@@ -12,7 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-RESTART = 20  # Krylov vectors kept before a restart (each as large as the solution)
+RESTART = 40  # Krylov vectors kept before a restart (each as large as the solution: 24 n bytes)
 
 
 @dataclass(frozen=True)
