@@ -58,6 +58,23 @@ def pin_columns(dev, cfg: ti.template()):
 
 
 @ti.func
+def solve_side(dev, cfg: ti.template(), h, t, values):
+    """S, the operator of ``cfg``, refreshed at (``dev.x``, ``dev.v``); ``dev.b`` = ``values``
+    on free rows plus S's pin columns times the pins' velocities (``pin_columns``), 0
+    at pins."""
+    refresh(dev, cfg, dev.x, dev.v, h, t, LINEARISED)
+    if ti.static(cfg.moving_pins):
+        pin_columns(dev, cfg)
+    for i in range(dev.size[0]):
+        b = ti.Vector.zero(ti.f64, 3)
+        if is_free(i, dev, cfg):
+            b = values[i]
+            if ti.static(cfg.moving_pins):
+                b += apply_row(i, dev, cfg, dev.p)
+        dev.b[i] = b
+
+
+@ti.func
 def rhs(dev, cfg: ti.template(), adj, h, dt, t, slot, midpoint: ti.template(), wants: ti.template()):
     n = dev.size[0]
     stride = adj.stride[None]
@@ -67,18 +84,12 @@ def rhs(dev, cfg: ti.template(), adj, h, dt, t, slot, midpoint: ti.template(), w
         dev.v[i] = u
         if ti.static(wants.pins):
             pin_adjoint(i, dev, cfg, adj, dt)
-    refresh(dev, cfg, dev.x, dev.v, h, t, LINEARISED)
-    if ti.static(cfg.moving_pins):
-        pin_columns(dev, cfg)
+        b = adj.lv[i] + dt * adj.lx[i]
+        if ti.static(midpoint):
+            b += adj.lv[i]
+        adj.jy[i] = b
+    solve_side(dev, cfg, h, t, adj.jy)
     for i in range(n):
-        b = ti.Vector.zero(cfg.real, 3)
-        if is_free(i, dev, cfg):
-            b = adj.lv[i] + dt * adj.lx[i]
-            if ti.static(midpoint):
-                b += adj.lv[i]
-            if ti.static(cfg.moving_pins):
-                b += apply_row(i, dev, cfg, dev.p)
-        dev.b[i] = b
         dev.v[i] = adj.mu[i]
 
 
@@ -142,16 +153,8 @@ def product(dev, exact: ti.template(), fixed: ti.template(), adj, h, t, slot, mi
             if ti.static(exact.rate_stiffness):
                 jy += h * h * spring_sum(i, dev, adj.sx)
         adj.jy[i] = jy
-    refresh(dev, fixed, dev.x, dev.v, h, t, LINEARISED)
-    if ti.static(fixed.moving_pins):
-        pin_columns(dev, fixed)
+    solve_side(dev, fixed, h, t, adj.jy)
     for i in range(n):
-        b = ti.Vector.zero(ti.f64, 3)
-        if is_free(i, dev, fixed):
-            b = adj.jy[i]
-            if ti.static(fixed.moving_pins):
-                b += apply_row(i, dev, fixed, dev.p)
-        dev.b[i] = b
         dev.v[i] = ti.Vector.zero(ti.f64, 3)
 
 
