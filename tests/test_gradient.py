@@ -304,7 +304,7 @@ def test_contact_with_a_plane_has_the_gradient_of_its_branches(integrator, case)
         if name in ("positions", "velocities") and case != "fall":
             direction[:, 2] = 0  # along the plane: the particles lie on it (a lift would switch a branch)
         direction /= np.abs(direction).max()
-        eps = 1e-6 * max(1.0, np.abs(values[name]).max())
+        eps = 1e-5 * max(1.0, np.abs(values[name]).max())  # 1e-6 lifts round-off to 9e-7 of damping's
         ends = [ms.gradient(ground_sheet(case, **{name: values[name] + sign * eps * direction}), objective,
                             "gravity", **run)[0] for sign in (1, -1)]
         numeric = (ends[0] - ends[1]) / (2 * eps)
