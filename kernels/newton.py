@@ -36,7 +36,7 @@ velocity of the collider each particle touches, from ``contact.detect``); BDF2's
 import taichi as ti
 
 from .blocks import BLOCK, block_count, block_end, ordered_sum
-from .constraints import constrain, is_free, prescribed
+from .constraints import constrain, is_free, is_pinned, prescribed
 from .contact import detect, friction_diagonal, friction_impulse
 from .forces import spring_direction, tiny_length
 from .operator import NEWTON, refresh
@@ -56,6 +56,9 @@ def start(dev, cfg: ti.template(), dt, t, bdf2: ti.template()):
         if ti.static(bdf2):
             xb = (4 * dev.x[i] - dev.xo[i]) / 3
             vb = (4 * dev.keep[i] - dev.vo[i]) / 3
+            if ti.static(cfg.moving_pins):  # a pin moves by dt times its velocity: x' = xb + 2/3 dt v'
+                if is_pinned(i, dev, cfg):
+                    xb = dev.x[i] + dt / 3 * prescribed(i, dev, cfg)
         dev.xb[i] = xb
         dev.vb[i] = vb
         if ti.static(cfg.contact_filter):
@@ -248,8 +251,13 @@ def newton_trial(dev: ti.template(), cfg: ti.template(), h: ti.f64, alpha: ti.f6
 def midpoint_finish(dev: ti.template(), cfg: ti.template(), h: ti.f64):
     """Implicit midpoint's step from the solution w = ``dev.v`` of (*) with h = dt / 2 and
     the base (x_n, v_n): v' = 2 w - v_n (v_n = ``dev.keep``) and x^ = x_n + h v_n in
-    ``dev.xb``, so that x' = x^ + h v' = x_n + dt w (``cg.advance_positions``)."""
+    ``dev.xb``, so that x' = x^ + h v' = x_n + dt w (``cg.advance_positions``). A pin
+    moves with its velocity w and keeps it (x^ = x_n + h w; the same while w = v_n, which
+    keyframed pins change between steps)."""
     hh = ti.cast(h, cfg.real)
     for i in range(dev.size[0]):
-        dev.xb[i] = dev.xb[i] + hh * dev.keep[i]
-        dev.v[i] = 2 * dev.v[i] - dev.keep[i]
+        if is_pinned(i, dev, cfg):
+            dev.xb[i] = dev.xb[i] + hh * dev.v[i]
+        else:
+            dev.xb[i] = dev.xb[i] + hh * dev.keep[i]
+            dev.v[i] = 2 * dev.v[i] - dev.keep[i]

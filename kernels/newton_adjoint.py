@@ -36,12 +36,14 @@ from .operator import LINEARISED, apply_row, refresh
 
 
 @ti.func
-def evaluation_point(adj, i, slot, stride, h, midpoint: ti.template()):
-    """(x_n + h u, u) of particle i from the history (slots ``slot`` and ``slot + 1``)."""
+def evaluation_point(dev, cfg: ti.template(), adj, i, slot, stride, h, midpoint: ti.template()):
+    """(x_n + h u, u) of particle i from the history (slots ``slot`` and ``slot + 1``); a
+    midpoint step's pin keeps its velocity u (``newton.midpoint_finish``)."""
     u = adj.hv[(slot + 1) * stride + i]
     x = adj.hx[(slot + 1) * stride + i]
     if ti.static(midpoint):
-        u = 0.5 * (adj.hv[slot * stride + i] + u)
+        if not is_pinned(i, dev, cfg):
+            u = 0.5 * (adj.hv[slot * stride + i] + u)
         x = adj.hx[slot * stride + i] + h * u
     return x, u
 
@@ -79,7 +81,7 @@ def rhs(dev, cfg: ti.template(), adj, h, dt, t, slot, midpoint: ti.template(), w
     n = dev.size[0]
     stride = adj.stride[None]
     for i in range(n):
-        x, u = evaluation_point(adj, i, slot, stride, h, midpoint)
+        x, u = evaluation_point(dev, cfg, adj, i, slot, stride, h, midpoint)
         dev.x[i] = x
         dev.v[i] = u
         if ti.static(wants.pins):
@@ -125,8 +127,8 @@ def rate_stiffness(dev, cfg: ti.template(), adj, h, slot, midpoint: ti.template(
             mi = mu[i]
         if is_free(j, dev, cfg):
             mj = mu[j]
-        _, ui = evaluation_point(adj, i, slot, stride, h, midpoint)
-        _, uj = evaluation_point(adj, j, slot, stride, h, midpoint)
+        _, ui = evaluation_point(dev, cfg, adj, i, slot, stride, h, midpoint)
+        _, uj = evaluation_point(dev, cfg, adj, j, slot, stride, h, midpoint)
         unit, length = spring_direction(dev.x[j] - dev.x[i], ti.f64)
         g = ti.Vector.zero(ti.f64, 3)
         if length > tiny_length(ti.f64):
@@ -141,7 +143,7 @@ def product(dev, exact: ti.template(), fixed: ti.template(), adj, h, t, slot, mi
     stride = adj.stride[None]
     for i in range(n):
         adj.y[i] = dev.v[i]
-        _, u = evaluation_point(adj, i, slot, stride, h, midpoint)
+        _, u = evaluation_point(dev, exact, adj, i, slot, stride, h, midpoint)
         dev.v[i] = u
     refresh(dev, exact, dev.x, dev.v, h, t, LINEARISED)
     if ti.static(exact.rate_stiffness):
@@ -184,7 +186,7 @@ def gather(dev, cfg: ti.template(), adj, h, t, slot, midpoint: ti.template(), wa
             mu = dev.v[i]
         adj.mu[i] = mu
         adj.w[i] = h * dev.mass[i] * mu  # dL/da: f / m enters g as h f / m per unit mass
-        _, u = evaluation_point(adj, i, slot, stride, h, midpoint)
+        _, u = evaluation_point(dev, cfg, adj, i, slot, stride, h, midpoint)
         adj.ue[i] = u
     if ti.static(wants.pins):  # u = vp at a pin: -(J^T mu)_p, mu = 0 at pins (module docstring)
         refresh(dev, cfg, dev.x, adj.ue, h, t, LINEARISED)  # J's coefficients (a solve may have left S's)

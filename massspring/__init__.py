@@ -19,6 +19,7 @@ os.environ.setdefault("ENABLE_TAICHI_HEADER_PRINT", "0")
 
 from massspring.defaults import VERSION  # noqa: E402
 from massspring.errors import DivergenceError, SimulationClosedError  # noqa: E402
+from massspring.controls import Controls  # noqa: E402
 from massspring.model import Model  # noqa: E402
 from massspring.colliders import Box, Plane, Sphere  # noqa: E402
 from massspring.self_collision import SelfCollision  # noqa: E402
@@ -27,6 +28,6 @@ from massspring.simulation import Simulation, run  # noqa: E402
 from massspring.gradients import Frames, gradient  # noqa: E402
 from massspring.analysis.sweep import sweep  # noqa: E402
 
-__all__ = ["Model", "Plane", "Sphere", "Box", "SelfCollision", "Simulation", "run", "Scene", "SceneError", "load_scene",
+__all__ = ["Model", "Controls", "Plane", "Sphere", "Box", "SelfCollision", "Simulation", "run", "Scene", "SceneError", "load_scene",
            "sweep", "gradient", "Frames", "DivergenceError", "SimulationClosedError"]
 __version__ = VERSION

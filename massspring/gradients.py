@@ -16,8 +16,9 @@ history, then backwards. Peak: about (steps / checkpoint + checkpoint) states of
 bytes a particle, and one forward step more per step than the forward run.
 
 Built so far (issue 39): the explicit, symplectic, RK4, linearised implicit, backward
-Euler and implicit midpoint integrators, with springs, damping, gravity, drag and wind, and pins (fixed or moving,
-with their velocities' gradient). The adjoint kernels are compiled and
+Euler and implicit midpoint integrators, with springs, damping, gravity, drag and wind, pins (fixed or moving,
+with their velocities' gradient), a ground plane (explicit and symplectic steps) and
+controls over time (keyframed pins, wind, actuated rest lengths: ``ControlShares``). The adjoint kernels are compiled and
 their fields allocated only when a gradient is asked for: a forward run is as before.
 """
 
@@ -42,7 +43,8 @@ from massspring.terms import active_terms
 # The names ``wrt`` may hold: where each gradient is in the adjoint bundle, and what it is per.
 PARAMETERS = {"stiffness": "spring", "damping": "spring", "rest_lengths": "spring", "masses": "particle",
               "positions": "state", "velocities": "state", "gravity": "vector", "drag": "scalar", "wind": "vector",
-              "pin_velocity": "pin"}
+              "pin_velocity": "pin", "controls.pin_targets": "control", "controls.wind": "control",
+              "controls.rest_lengths": "control"}
 PARTIALS = ("positions", "velocities")
 STATE_BYTES = 48  # a particle's x and v in the history (float64)
 HISTORY_BYTES = 256e6  # keep every state of a run whose history fits in this; else checkpoint
@@ -81,7 +83,9 @@ def gradient(model, objective, wrt, *, steps, every=1, integrator="symplectic", 
         spring), "masses" ((n,)), "positions", "velocities" ((n, 3): the initial state;
         rows of pinned particles are zero), "gravity" ((3,)), "drag" (a float64
         scalar) and "wind" ((3,)) of a model with drag, "pin_velocity" ((k, 3), a row
-        per pinned particle in the order of ``model.fixed``).
+        per pinned particle in the order of ``model.fixed``); of a model with
+        ``controls`` (``massspring.Controls``), "controls.pin_targets",
+        "controls.wind" and "controls.rest_lengths", shaped as those arrays.
     steps : int >= 1
     every : int >= 1
         A frame at step 0 and at every ``every``-th step.
@@ -123,9 +127,10 @@ def gradient(model, objective, wrt, *, steps, every=1, integrator="symplectic", 
         frames, kept, last = _forward(sim, adj, steps, every, checkpoint)
         value, partials = _call(objective, frames, model.n_particles)
         wants = Wants(masses="masses" in names, rate_gradient="damping" in names and not model.has_damping,
-                      pins="pin_velocity" in names)
-        _backward(sim, adj, wants, partials, frames.steps, kept, last, steps, checkpoint)
-        return value, _read(sim, adj, names)
+                      pins="pin_velocity" in names or "controls.pin_targets" in names)
+        shares = ControlShares(sim, adj) if model.controls is not None else None
+        _backward(sim, adj, wants, partials, frames.steps, kept, last, steps, checkpoint, shares)
+        return value, _read(sim, adj, names, shares)
     finally:
         sim.close()
         if adj is not None:
@@ -190,6 +195,14 @@ def _check_wrt(wrt, model):
             raise ValueError("wrt: 'pin_velocity': the model has no pins (fixed)")
         if name in ("drag", "wind") and not model.has_drag:
             raise ValueError(f"wrt: {name!r}: the model has no air drag (drag = 0); give it drag > 0")
+        if PARAMETERS[name] == "control":
+            array = name.split(".", 1)[1]
+            if model.controls is None or getattr(model.controls, array) is None:
+                raise ValueError(f"wrt: {name!r}: the model has no {name} (Model(controls=Controls({array}=...)))")
+        overridden = {"wind": "wind", "pin_velocity": "pin_targets"}.get(name)
+        if overridden and model.controls is not None and getattr(model.controls, overridden) is not None:
+            raise ValueError(f"wrt: {name!r}: the model's controls.{overridden} set it over time; "
+                             f"ask for 'controls.{overridden}'")
     if len(set(names)) != len(names):
         raise ValueError(f"wrt: a name given twice in {names}")
     return names
@@ -279,9 +292,57 @@ def _adjoint_bundle(sim, checkpoint):
                            f"with {checkpoint:,} states kept (give a smaller checkpoint)")
 
 
-def _backward(sim, adj, wants, partials, frame_steps, kept, last, steps, checkpoint):
+class ControlShares:
+    """The controls' gradients (``massspring.controls``), interval by interval: after the
+    adjoint of an interval's first step, what the steps since the last such read added to
+    the wind's, rest lengths' and pin velocities' accumulators is that interval's share
+    (steps after the last interval add to its wind and rest lengths; pins then stand still)."""
+
+    def __init__(self, sim, adj):
+        self.sim, self.adj = sim, adj
+        self.schedule = sim._schedule
+        self.controls = sim.model.controls
+        count = self.controls.intervals
+        self.wind = np.zeros((count, 3))
+        self.rest = np.zeros((count, 0 if self.controls.springs is None else self.controls.springs.size))
+        self.pins = np.zeros((count, sim.model.fixed.size, 3))
+        self.seen = self._totals()
+
+    def _totals(self):
+        n, m = self.sim.model.n_particles, self.sim.model.n_springs
+        return (self.adj.read("gwind", n).sum(axis=0), self.adj.read("gl0", m) if m else np.zeros(0),
+                self.adj.read("gp", n))
+
+    def after(self, k):
+        """Called after step k's adjoint."""
+        if k % self.schedule.per:
+            return
+        totals = self._totals()
+        wind, rest, pins = (now - before for now, before in zip(totals, self.seen))
+        self.seen = totals
+        s = self.schedule.interval(k)
+        held = min(s, self.controls.intervals - 1)
+        self.wind[held] += wind
+        if self.rest.shape[1]:
+            self.rest[held] += rest[self.schedule.controls.springs]
+        if s < self.controls.intervals:
+            self.pins[s] += self.sim._to_user(pins)[self.sim.model.fixed]
+
+    def gradients(self, lv):
+        """name -> gradient of each control; ``lv`` dL/dv of the initial state (n, 3), whose
+        pinned rows are the first interval's pin velocity's share."""
+        pins = self.pins.copy()
+        pins[0] += self.sim._to_user(lv)[self.sim.model.fixed]
+        grads = {"controls.wind": self.wind.copy(), "controls.rest_lengths": self.rest.copy()}
+        if self.controls.pin_targets is not None:
+            grads["controls.pin_targets"] = self.controls.pin_target_gradient(pins)
+        return grads
+
+
+def _backward(sim, adj, wants, partials, frame_steps, kept, last, steps, checkpoint, shares=None):
     """Run the steps backwards, stretch by stretch: each but the last run again from its
-    kept state into the history first."""
+    kept state into the history first; ``shares`` (a ``ControlShares``) collects the
+    controls' gradients."""
     integrator, n, stride = sim._integrator, sim.model.n_particles, int(adj.stride[None])
     frame_of = {int(k): f for f, k in enumerate(frame_steps)}
 
@@ -304,17 +365,23 @@ def _backward(sim, adj, wants, partials, frame_steps, kept, last, steps, checkpo
                 state_kernels.save_state(adj.hx, adj.hv, integrator.state, n, k - start, stride)
         for k in reversed(range(start, end)):
             integrator.steps = k  # the step's start time, k dt (moving colliders)
+            if shares is not None:
+                shares.schedule.apply(k)
             stats = integrator.adjoint(adj, k - start, wants)
             if stats is not None and not stats.converged:
                 raise GradientError(k, stats.reason, stats.residual, sim.integrator)
+            if shares is not None:
+                shares.after(k)
             if k in frame_of:
                 add_frame(k, adj.read("lx", n), adj.read("lv", n))
 
 
-def _read(sim, adj, names):
-    """The gradients asked for, in the user's numbering."""
+def _read(sim, adj, names, shares=None):
+    """The gradients asked for, in the user's numbering (a rest length the controls set
+    over time has none of its own: zero)."""
     model, order = sim.model, sim._order
     n, m = model.n_particles, model.n_springs
+    controlled = {} if shares is None else shares.gradients(adj.read("lv", n))
 
     def springs(field):
         inner = adj.read(field, m)
@@ -340,6 +407,10 @@ def _read(sim, adj, names):
             grads[name] = adj.read("gwind", n).sum(axis=0)
         elif name == "pin_velocity":  # the steps' shares, and the initial velocity's (a pin starts at vp)
             grads[name] = sim._to_user(adj.read("gp", n) + adj.read("lv", n))[model.fixed]
+        elif name in controlled:
+            grads[name] = controlled[name]
         else:
             grads[name] = springs({"stiffness": "gks", "damping": "gkd", "rest_lengths": "gl0"}[name])
+            if name == "rest_lengths" and model.controls is not None and model.controls.springs is not None:
+                grads[name][model.controls.springs] = 0.0
     return grads

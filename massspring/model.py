@@ -23,6 +23,7 @@ from massspring import mesh
 from massspring.defaults import GRAVITY
 from massspring import terms
 from massspring.colliders import COLLIDERS, MAX_COLLIDERS, Collider
+from massspring.controls import Controls
 from massspring.self_collision import SelfCollision, check_thickness
 from massspring.text import brief
 from massspring.validate import MAX_MAGNITUDE, real_array, real_number  # noqa: F401 (MAX_MAGNITUDE: documented here)
@@ -92,6 +93,10 @@ class Model:
     self_collision : None or ``massspring.SelfCollision``
         Keeps the mesh of ``triangles`` from passing through itself (needs triangles);
         None: off.
+    controls : None or ``massspring.Controls``
+        Time-varying inputs: keyframed pins (then ``pin_velocity`` is their first
+        interval's velocity), wind (a model with drag) and actuated rest lengths per
+        interval (``massspring.controls``). None: the values above hold throughout.
 
     The force terms' own parameters (``terms.parameters()``: {term_names}) are the
     keyword arguments listed after ``colliders``, each stored under its name as a float or
@@ -116,10 +121,11 @@ class Model:
     colliders: tuple
     pin_velocity: np.ndarray
     self_collision: object
+    controls: object
 
     def __init__(self, positions, springs, masses=1.0, stiffness=1e3, damping=0.0,
                  rest_lengths=None, velocities=None, gravity=GRAVITY, fixed=None, triangles=None,
-                 colliders=(), pin_velocity=None, self_collision=None, **term_parameters):
+                 colliders=(), pin_velocity=None, self_collision=None, controls=None, **term_parameters):
         x = real_array("positions", positions)
         if x.ndim != 2 or x.shape[1] != 3 or x.shape[0] < 1:
             raise ValueError(f"positions: expected shape (n, 3) with n >= 1, got shape {x.shape}")
@@ -170,6 +176,13 @@ class Model:
 
         fixed_idx = _fixed_indices(fixed, n)
         pins = _pin_velocities(pin_velocity, fixed, fixed_idx)
+        if controls is not None and not isinstance(controls, Controls):
+            raise ValueError(f"controls: expected a massspring.Controls, got {type(controls).__name__}")
+        if controls is not None and controls.pin_targets is not None:
+            if np.any(pins != 0):
+                raise ValueError("pin_velocity: the pins follow controls.pin_targets; give one or the other")
+            controls.check(m, fixed_idx, drag=True)  # the pins' rows, before they are read
+            pins = controls.pin_velocities(x[fixed_idx])[0]
         v[fixed_idx] = pins
         tris = _triangles(triangles, n)
         unknown = sorted(set(term_parameters) - set(terms.parameters()))
@@ -189,6 +202,9 @@ class Model:
 
             check_start_outside(self.colliders, x, self.free_mask())
         object.__setattr__(self, "self_collision", _self_collision(self_collision, tris, x))
+        if controls is not None:
+            controls.check(m, fixed_idx, drag=self.has_drag)
+        object.__setattr__(self, "controls", controls)
 
     @classmethod
     def from_mesh(cls, vertices, faces, **parameters) -> Model:
@@ -216,6 +232,8 @@ class Model:
             if name not in PHYSICS and not parameter.is_default(value):
                 digest.update(f"{name}:{np.asarray(value, dtype=np.float64).tobytes().hex()}".encode())
         digest.update(repr(self.colliders).encode())  # frozen dataclasses of floats: repr is exact
+        if self.controls is not None:
+            digest.update(self.controls.digest())
         if self.self_collision is not None:  # the triangles then take part in the physics
             digest.update(repr(self.self_collision).encode())
             digest.update(self.triangles.astype(np.int64).tobytes())
@@ -258,8 +276,10 @@ class Model:
 
     @property
     def has_moving_pins(self) -> bool:
-        """True if some pinned particle has a non-zero pin velocity."""
-        return bool(np.any(self.pin_velocity != 0))
+        """True if some pinned particle has a non-zero pin velocity or follows keyframes
+        (``controls.pin_targets``)."""
+        keyframed = self.controls is not None and self.controls.pin_targets is not None and self.has_fixed
+        return keyframed or bool(np.any(self.pin_velocity != 0))
 
     @property
     def has_colliders(self) -> bool:

@@ -84,14 +84,19 @@ def renumbered(model: Model, particles, springs) -> Model:
     """``model`` with its particle k being ``model``'s particle ``particles[k]`` and its
     spring k being spring ``springs[k]`` (both permutations, int arrays); every array
     that holds particle indices (springs, fixed, triangles) is mapped to the new
-    numbering, pin velocities follow their pins."""
+    numbering, pin velocities and keyframes follow their pins, actuated springs theirs."""
     inverse = _inverse(particles)
+    controls, pins = model.controls, model.pin_velocity
+    if controls is not None:
+        controls = controls.renumbered(np.argsort(inverse[model.fixed], kind="stable"), _inverse(springs))
+        if controls.pin_targets is not None:
+            pins = None  # the keyframes' first velocities, as the model derived them
     return Model(model.positions[particles], inverse[model.springs][springs], masses=model.masses[particles],
                  stiffness=model.stiffness[springs], damping=model.damping[springs],
                  rest_lengths=model.rest_lengths[springs], velocities=model.velocities[particles],
                  gravity=model.gravity, fixed=inverse[model.fixed], triangles=inverse[model.triangles],
-                 colliders=model.colliders, pin_velocity=model.pin_velocity,
-                 self_collision=model.self_collision, **model.term_parameters)
+                 colliders=model.colliders, pin_velocity=pins, self_collision=model.self_collision,
+                 controls=controls, **model.term_parameters)
 
 
 def plan(model: Model) -> Ordering | None:

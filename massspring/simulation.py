@@ -17,6 +17,7 @@ from massspring.integrators import DEFAULT, INTEGRATORS, OPTIONS, takers
 from massspring.kernels import divergence
 from massspring.terms import active_terms
 from massspring.model import Model
+from massspring.schedule import Schedule
 from massspring.solvers import PRECONDITIONERS, resolve
 from massspring.validate import real_array
 
@@ -72,7 +73,8 @@ def divergence_check(model: Model, factor=DIVERGENCE_FACTOR):
     energy of the whole mass moving at one scene size per second (size: the diagonal of
     the initial bounding box, or the longest rest length if larger; 1 m if both are 0)
     plus the fastest drive: the wind speed, the fastest pin or twice the fastest
-    collider (what the air, a moving pin or a collider can give the particles).
+    collider (what the air, a moving pin or a collider can give the particles; the
+    controls' pins and wind of every interval included).
     Physically kinetic energy never exceeds base - floor + W (springs only store and
     dampers only dissipate), so ``factor`` = 100 leaves room for the energy error of a
     stable integrator (symplectic Euler's oscillates by up to ~40x just below its limit)
@@ -82,7 +84,8 @@ def divergence_check(model: Model, factor=DIVERGENCE_FACTOR):
     extent = float(np.linalg.norm(np.ptp(model.positions, axis=0)))
     size = max(extent, float(model.rest_lengths.max(initial=0.0))) or 1.0
     drive = max([float(np.linalg.norm(model.wind))] + [float(np.linalg.norm(v)) for v in model.pin_velocity]
-                + [2 * float(np.linalg.norm(c.velocity)) for c in model.colliders])
+                + [2 * float(np.linalg.norm(c.velocity)) for c in model.colliders]
+                + ([model.controls.speeds(model.positions[model.fixed])] if model.controls is not None else []))
     floor = 0.5 * float(model.masses.sum()) * (size + drive) ** 2
     return (energy["kinetic"] + energy["spring"] + floor, model.external_work(model.positions), float(factor))
 
@@ -135,6 +138,12 @@ class Simulation:
         validate.choice("integrator", integrator, tuple(INTEGRATORS))
         validate.choice("precision", precision, PRECISIONS)
         dt = validate.positive_float("dt", dt)
+        if model.controls is not None:
+            model.controls.steps_per_interval(dt)
+            if model.controls.pin_targets is not None and not INTEGRATORS[integrator].keyframed_pins:
+                raise ValueError(f"integrator: {integrator!r} does not move keyframed pins "
+                                 f"(controls.pin_targets); these do: "
+                                 f"{', '.join(k for k, c in INTEGRATORS.items() if c.keyframed_pins)}")
         options = {name: option.default if options.get(name) is None else option.check(options[name])
                    for name, option in OPTIONS.items()}
         if options["cg_max_iter"] is None:
@@ -179,6 +188,7 @@ class Simulation:
         dev = layout.allocate()
         dev.check[None] = self._check
         self._integrator = cls(dev, inner, self._settings)
+        self._schedule = None if model.controls is None else Schedule(inner, dev, dt)
         self._guard = (self_collision.Pass(dev, self._integrator.cfg, inner, self._integrator.serial, dt)
                        if model.has_self_collision else None)
         self._release = weakref.finalize(self, _release, dev, self._integrator, self._guard)
@@ -317,7 +327,8 @@ class Simulation:
         for j steps equals an unbroken run of k + j steps to the bit (in f64, with the
         same integrator and dt). Values must be finite (and within an f32 run's range);
         a pinned particle's velocity must be its pin velocity (``Model.pin_velocity``,
-        0 by default). Raises ValueError naming the argument.
+        0 by default; with keyframed pins the velocity it last moved with). Raises
+        ValueError naming the argument.
         """
         integrator = self._open()
         n = self._model.n_particles
@@ -330,13 +341,13 @@ class Simulation:
                 raise ValueError(f"{name}: {np.abs(arr).max():g} is beyond what an f32 run holds "
                                  f"(|value| <= {F32_MAX_MAGNITUDE:g})")
             arrays[name] = np.ascontiguousarray(arr)
-        fixed, pinned = self._model.fixed, self._model.pin_velocity
+        steps = validate.count("steps", steps, low=0, high=MAX_STEPS)
+        fixed, pinned = self._model.fixed, self._pin_velocity_before(steps)
         wrong = np.flatnonzero(np.any(arrays["velocities"][fixed] != pinned, axis=1))
         if wrong.size:
             k = int(wrong[0])
             raise ValueError(f"velocities: particle {int(fixed[k])} is pinned, so its velocity must be its pin "
                              f"velocity {pinned[k].tolist()}, got {arrays['velocities'][fixed[k]].tolist()}")
-        steps = validate.count("steps", steps, low=0, high=MAX_STEPS)
         carried = _check_carried(carried, self._carried_names(integrator), n)
         arrays = {name: self._to_inner(rows) for name, rows in arrays.items()}
         if carried is not None:
@@ -350,6 +361,18 @@ class Simulation:
         self._steps = steps
         return self
 
+    def _pin_velocity_before(self, steps):
+        """(k, 3) m/s: the pins' velocities in a state after ``steps`` steps: their pin
+        velocity, or with keyframed pins (``Controls.pin_targets``) the velocity each last
+        moved with."""
+        model, schedule = self._model, self._schedule
+        if steps == 0 or schedule is None or schedule.pins is None:
+            return model.pin_velocity
+        s = schedule.interval(steps - 1)
+        if s >= schedule.count:
+            return np.zeros_like(model.pin_velocity)
+        return model.controls.pin_velocities(model.positions[model.fixed])[s]
+
     # ------------------------------------------------------------------ stepping
 
     def step(self, n=1):
@@ -362,15 +385,21 @@ class Simulation:
         """
         integrator = self._open()
         n = validate.count("n", n, low=0, high=MAX_STEPS)
+        schedule = self._schedule
         if not integrator.has_stats and self._guard is None:
             while n:
                 chunk = min(n, STEPS_PER_LAUNCH)
+                if schedule is not None:
+                    schedule.apply(self._steps)
+                    chunk = min(chunk, schedule.steps_left(self._steps) or chunk)
                 done, check = integrator.advance(chunk)
                 self._steps += done
                 self._raise_if_diverged(check)
                 n -= chunk
             return self
         for _ in range(n):
+            if schedule is not None:
+                schedule.apply(self._steps)
             if self._guard is not None:
                 self._guard.begin(integrator.state)
             done, check = integrator.advance(1)
@@ -418,6 +447,10 @@ class Simulation:
             terms.append("contact (" + ", ".join(kinds) + ")")
         if self._model.has_self_collision:
             terms.append("self-collision")
+        if self._model.controls is not None:
+            given = [name for name in ("pin_targets", "wind", "rest_lengths")
+                     if getattr(self._model.controls, name) is not None]
+            terms.append("controls (" + ", ".join(given) + ")")
         out = {"integrator": self.integrator, "precision": self.precision, "dt": self.dt,
                "particles": self._model.n_particles, "springs": self._model.n_springs,
                "terms": terms, "arrays": list(self._layout_names), "loops": self.loops,

@@ -7,9 +7,10 @@ import pytest
 
 import massspring as ms
 from conftest import FULL, PATHS
-from massspring.gradients import PARAMETERS, differentiable
+from massspring.gradients import PARAMETERS as ALL_PARAMETERS, differentiable
 
 DIFFERENTIABLE = differentiable()
+PARAMETERS = [name for name, kind in ALL_PARAMETERS.items() if kind != "control"]  # the model's (test_controls: the rest)
 SIDE = 4  # a 4 x 4 sheet with shear springs: 16 particles, 33 springs
 PINNED = [0, SIDE - 1]
 
@@ -61,6 +62,24 @@ SOLVED = {"implicit": dict(cg_tol=1e-13), "backward-euler": NEWTON_SOLVED, "midp
 STEP = {"backward-euler": 1e-3, "midpoint": 1e-3}
 
 
+def run_value(model, objective, run):
+    """The objective of a plain forward run with the options of ``run`` (what
+    ``ms.gradient`` would take): a Simulation stepped to each frame, no backward pass."""
+    options = {k: v for k, v in run.items() if k not in ("steps", "every", "checkpoint", "integrator", "dt")}
+    steps, every = run["steps"], run.get("every", 1)
+    sim = ms.Simulation(model, run.get("integrator", "symplectic"), dt=run.get("dt", 1e-2), **options)
+    positions, velocities, at = [], [], list(range(0, steps + 1, every))
+    try:
+        for k in at:
+            sim.step(k - sim.steps)
+            positions.append(sim.positions)
+            velocities.append(sim.velocities)
+    finally:
+        sim.close()
+    at = np.array(at)
+    return objective(ms.Frames(np.array(positions), np.array(velocities), at * sim.dt, at))[0]
+
+
 def directional_difference(make, values, name, direction, integrator, run):
     """The derivative of the run's objective along ``direction`` (its largest entry 1) in
     parameter ``name``: central differences (``STEP``), Richardson-combined for the
@@ -68,8 +87,8 @@ def directional_difference(make, values, name, direction, integrator, run):
     eps = STEP.get(integrator, 1e-6) * max(1.0, np.abs(values[name]).max())
 
     def central(e):
-        ends = [ms.gradient(make(**dict(values, **{name: values[name] + sign * e * direction})), objective,
-                            "gravity", **run)[0] for sign in (1, -1)]
+        ends = [run_value(make(**dict(values, **{name: values[name] + sign * e * direction})), objective, run)
+                for sign in (1, -1)]
         return (ends[0] - ends[1]) / (2 * e)
 
     if integrator not in STEP:
@@ -117,7 +136,7 @@ def test_directional_derivatives_match_central_differences(integrator, path):
         numeric = directional_difference(sheet, values, name, direction, integrator, run)
         exact = float(np.sum(grads[name] * direction))
         assert abs(exact - numeric) <= 1e-6 * abs(numeric), (name, exact, numeric)
-    assert value == ms.gradient(model, objective, "gravity", **run)[0]
+    assert value == ms.gradient(model, objective, "gravity", **run)[0] == run_value(model, objective, run)
 
 
 @FULL
@@ -133,9 +152,8 @@ def test_damping_gradient_of_an_undamped_model(integrator):
     # a negative damping is refused by the Model: the one-sided four-point formula, whose
     # error is O(eps^3) (the three-point one's O(eps^2) is 3e-5 relative at STEP's 1e-3)
     e = STEP.get(integrator, 1e-6)
-    ends = [ms.gradient(sheet(**dict(values, damping=k * e * direction)), objective, "gravity", **run)[0]
-            for k in (1, 2, 3)]
-    base = ms.gradient(model, objective, "gravity", **run)[0]
+    ends = [run_value(sheet(**dict(values, damping=k * e * direction)), objective, run) for k in (1, 2, 3)]
+    base = run_value(model, objective, run)
     numeric = (-11 * base + 18 * ends[0] - 9 * ends[1] + 2 * ends[2]) / (6 * e)
     exact = float(np.sum(grads["damping"] * direction))
     assert abs(exact - numeric) <= 1e-6 * abs(numeric), (exact, numeric)
@@ -305,8 +323,8 @@ def test_contact_with_a_plane_has_the_gradient_of_its_branches(integrator, case)
             direction[:, 2] = 0  # along the plane: the particles lie on it (a lift would switch a branch)
         direction /= np.abs(direction).max()
         eps = 1e-5 * max(1.0, np.abs(values[name]).max())  # 1e-6 lifts round-off to 9e-7 of damping's
-        ends = [ms.gradient(ground_sheet(case, **{name: values[name] + sign * eps * direction}), objective,
-                            "gravity", **run)[0] for sign in (1, -1)]
+        ends = [run_value(ground_sheet(case, **{name: values[name] + sign * eps * direction}), objective, run)
+                for sign in (1, -1)]
         numeric = (ends[0] - ends[1]) / (2 * eps)
         exact = float(np.sum(grads[name] * direction))
         assert abs(exact - numeric) <= 1e-6 * abs(numeric), (name, exact, numeric)
@@ -333,15 +351,18 @@ def test_a_bad_objective_result_names_the_objective(returned, words):
     pytest.param("implicit", dict(preconditioner="multigrid", loops="parallel"), id="implicit-multigrid", marks=FULL),
     pytest.param("implicit", dict(preconditioner="none", definiteness_fix=False), id="implicit-no-fix", marks=FULL),
     pytest.param("implicit", dict(preconditioner="none"), id="implicit-none", marks=FULL),
-    pytest.param("backward-euler", dict(preconditioner="multigrid", loops="parallel"), id="backward-euler-multigrid",
-                 marks=FULL),
+    pytest.param("backward-euler", dict(preconditioner="multigrid"), id="backward-euler-multigrid", marks=FULL),
     pytest.param("midpoint", dict(preconditioner="block-jacobi"), id="midpoint-block-jacobi", marks=FULL)])
 def test_solved_gradients_at_a_frame_step(integrator, options):
     """Steps of dt = 1/60 s (compressed springs clamped by the definiteness fix, or not),
     the adjoint solved with the run's own preconditioner: directional derivatives in every
-    parameter against central differences (``directional_difference``) to 1e-6 relative."""
+    parameter against central differences (``directional_difference``) to 1e-6 relative.
+    Six steps: from the eighth on, the damped sheet's Newton iterations stall near 2e-9
+    of the first residual (the line search's incremental potential and the residual
+    part ways by the damping's turning, which Newton's operator leaves out), so tighter
+    tolerances run the 200 iterations allowed and only the time grows."""
     model = sheet()
-    run = run_of(integrator, **dict(options, dt=1 / 60))
+    run = run_of(integrator, **dict(options, dt=1 / 60, steps=6))
     value, grads = ms.gradient(model, objective, list(PARAMETERS), **run)
     values = model_values(model)
     rng = np.random.default_rng(11)

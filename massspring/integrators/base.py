@@ -38,6 +38,7 @@ solver's options, ``options.Option`` records: ``integrators.OPTIONS``). ``serial
     grows_undamped = False  # unstable for undamped oscillation at every dt (damping alone can make it stable)
     limit_reference = False  # its measured stability limit is what the others' ladders are relative to
     differentiable = False  # has ``adjoint``: ``massspring.gradient`` can run it backwards
+    keyframed_pins = True  # moves pins with a velocity that changes between steps (``Controls.pin_targets``)
 
     def __init__(self, dev, model, settings):
         self.dev = dev

@@ -46,6 +46,7 @@ class RK4(Integrator):
     order = 4
     description = "classical Runge-Kutta, 4th order (4 force evaluations per step)"
     differentiable = True
+    keyframed_pins = False  # its stages move a pin with the velocity in its state
 
     def __init__(self, dev, model, settings):
         super().__init__(dev, model, settings)
