@@ -27,7 +27,8 @@ def run_example(name, *args, cwd, env=None):
 
 
 def test_every_example_is_tested():
-    tested = {"model_in_code.py", "drape_obj.py", "stiffness_sweep.py", "export_for_blender.py", "fit_stiffness.py"}
+    tested = {"model_in_code.py", "drape_obj.py", "stiffness_sweep.py", "export_for_blender.py", "fit_stiffness.py",
+              "creature.py", "drape_to_target.py"}
     assert {p.name for p in EXAMPLES.glob("*.py")} == tested
 
 
@@ -91,3 +92,22 @@ def test_fit_stiffness_recovers_both_factors(tmp_path):
     assert [start for start, _, _ in fits] == ["0.5", "2"], out
     for _, iterations, error in fits:
         assert int(iterations) <= 30 and float(error) <= 1e-4, out
+
+
+@FULL
+def test_the_creature_learns_to_crawl_forward(tmp_path):
+    """Issue 39's creature: from muscles at rest (it stands still), L-BFGS-B on the
+    gradient through its steps and its contacts with the ground makes it move forward."""
+    out = run_example("creature.py", cwd=tmp_path)
+    still, moved = map(float, re.search(r"at rest: moved ([-\d.]+) cm; .*moved ([-\d.]+) cm forward", out).groups())
+    assert abs(still) < 0.01 and moved > 1.0, out
+
+
+@FULL
+def test_drape_to_target_brings_the_cloth_to_its_target_shape(tmp_path):
+    """Issue 39's design of rest lengths: from the scene's own, L-BFGS-B on the gradient
+    in every rest length brings the hanging cloth several times closer to its target."""
+    out = run_example("drape_to_target.py", cwd=tmp_path)
+    first = float(re.search(r"the farthest particle is ([\d.]+) cm off its target", out).group(1))
+    last = float(re.search(r"the farthest particle is ([\d.]+) cm off \(", out).group(1))
+    assert last < first / 3, out
