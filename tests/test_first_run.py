@@ -90,7 +90,7 @@ def test_output_paths_checked_before_the_first_step(tmp_path, capsys):
         cases.append(("--out", str(locked / "x.npz")))
     for option, path in cases:
         start = time.perf_counter()
-        assert main(["run", "cloth", "--steps", "100000", "--quiet", option, path]) == 2, (option, path)
+        assert main(["run", "cloth", "--set", "resolution=12", "--steps", "100000", "--quiet", option, path]) == 2, (option, path)
         one_line_error(capsys, option)
         assert time.perf_counter() - start < 30  # refused before 100000 steps, not after
 
@@ -135,7 +135,7 @@ def test_sigterm_is_handled_like_ctrl_c(tmp_path):
     disk): exit 143, no traceback, and the state file holds the state reached, at least
     those 100 steps, with the GIF of the frames recorded so far."""
     out, gif, frames = tmp_path / "state.npz", tmp_path / "run.gif", tmp_path / "frames"
-    proc = subprocess.Popen([sys.executable, "-m", "massspring", "run", "cloth", "--steps", "100000", "--quiet",
+    proc = subprocess.Popen([sys.executable, "-m", "massspring", "run", "cloth", "--set", "resolution=12", "--steps", "100000", "--quiet",
                              "--out", str(out), "--gif", str(gif), "--every", "50", "--export", str(frames)],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     deadline = time.monotonic() + 120
