@@ -56,6 +56,8 @@ def test_top_level_keys_are_listed():
         row(section("`[dt]`"), key)
     for key in spec.VIEW_KEYS:
         row(section("`[view]`"), key)
+    for key in spec.CONTROL_KEYS:
+        row(section("`[controls]`"), key)
     for key in spec.SOLVER_KEYS:
         row(section("`[solver]`"), key)
     assert f"{solvers.MULTIGRID_FROM:,} free particles" in row(section("`[solver]`"), "preconditioner")

@@ -208,12 +208,40 @@ def scene_file(tmp_path, body, model='generator = "chain"\ncount = 4'):
     ('[[pin]]\nvelocity = [0, 0, 1]', "pin[0].index"),
     ('[[pin]]\nindex = 1\nvelocity = [0, 1]', "pin[0].velocity"),
     ('[[pin]]\nindex = 1\nspeed = 2.0', "pin[0].speed"),
+    ('[controls]\nwind = [[1, 0, 0]]', "controls.interval"),
+    ('[controls]\ninterval = 0.1\ngust = 1', "controls.gust"),
+    ('[controls]\ninterval = 0.1\nwind = [[1, 0]]', "controls.wind"),
+    ('[controls]\ninterval = 0.1\nwind = [[1, 0, 0]]', "controls.wind"),  # the chain has no drag
+    ('[controls]\ninterval = 0.1\npin_targets = [[[0, 0, 0], [1, 0, 0]]]', "controls.pin_targets"),  # one pin
+    ('[controls]\ninterval = "long"\nwind = [[1, 0, 0]]', "controls.interval"),
 ])
 def test_bad_collider_and_pin_tables_name_the_key_and_file(tmp_path, body, key):
     path = scene_file(tmp_path, body)
     with pytest.raises(ms.SceneError) as info:
         ms.load_scene(path).model()
     assert key in str(info.value) and str(path) in str(info.value), info.value
+
+
+def test_controls_of_a_scene_file_are_the_python_ones_and_run(tmp_path, capsys):
+    """A [controls] table gives the model the Controls its keys describe; the CLI runs it
+    (pins to their keyframes) and refuses a dt that does not divide the interval (exit 2,
+    naming dt)."""
+    from massspring.cli import main
+
+    path = scene_file(tmp_path, "[controls]\ninterval = 0.05\nwind = [[1, 0, 0], [0, 2, 0]]\n"
+                                "pin_targets = [[[0, 0, 0.1]], [[0, 0, 0.2]]]",
+                      'generator = "chain"\ncount = 4\ndrag = 0.1')
+    model = ms.load_scene(path).model()
+    assert model.controls.interval == 0.05 and model.has_moving_pins
+    np.testing.assert_array_equal(model.controls.wind, [[1, 0, 0], [0, 2, 0]])
+    np.testing.assert_array_equal(model.controls.pin_targets, [[[0, 0, 0.1]], [[0, 0, 0.2]]])
+    out = tmp_path / "state.npz"
+    assert main(["run", str(path), "--dt", "0.01", "--steps", "12", "--quiet", "--out", str(out)]) == 0
+    np.testing.assert_allclose(np.load(out)["positions"][model.fixed[0]], [0, 0, 0.2], atol=1e-12)
+    capsys.readouterr()
+    assert main(["run", str(path), "--dt", "0.03", "--steps", "2", "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert "dt: controls.interval 0.05 s is not a whole number of steps of 0.03 s" in err and "Traceback" not in err
 
 
 def test_pin_index_out_of_range_is_named(tmp_path):

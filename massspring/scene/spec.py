@@ -45,6 +45,11 @@ Contact, pins and air (optional; ``common_keys()`` work with every generator and
     [self_collision]                 # the mesh never passes through itself (massspring.SelfCollision)
     thickness = 0.005                # m; optional: friction, stiffness (N/m)
 
+    [controls]                       # inputs per interval (massspring.Controls)
+    interval = 0.5                   # s: a whole number of the run's steps
+    wind = [[2.0, 0.0, 0.0], [0.0, 0.0, 0.0]]   # m/s per interval (with drag > 0)
+    pin_targets = [[[0, 0, 1], [1, 0, 1]], [[0, 0, 1.2], [1, 0, 1.2]]]   # m: each pin's keyframes
+
     [[collider]]                     # repeatable; the fields of massspring.Plane/Sphere/Box
     type = "sphere"                  # "plane" | "sphere" | "box"
     center = [0.5, 0.5, -0.4]
@@ -72,6 +77,7 @@ from massspring import memory, mesh, validate
 from massspring import solvers as preconditioners
 from massspring.colliders import COLLIDERS
 from massspring.defaults import GRAVITY
+from massspring.controls import Controls
 from massspring.self_collision import PASS_BYTES, SelfCollision
 from massspring.integrators import INTEGRATORS, OPTIONS
 from massspring.io.camera import DEFAULT_FRAMING, FRAMINGS, View
@@ -90,7 +96,7 @@ MAX_SCENE_BYTES = 64 * 2**20  # a scene file's size limit (a hand-made [particle
 SIZE_KEYS = {"chain": ("count",), "grid": ("resolution",), "lattice": ("resolution",)}
 TOP_KEYS = {"description": str, "integrator": str, "duration": float, "dt": dict, "model": dict,
             "solver": dict, "view": dict, "particles": dict, "springs": dict, "collider": list, "pin": list,
-            "self_collision": dict}
+            "self_collision": dict, "controls": dict}
 # [solver]: the integrators' solver options a scene may set (``integrators.OPTIONS``; the
 # CLI's options and the API's arguments override them).
 SOLVER_KEYS = {name: option.type for name, option in OPTIONS.items()}
@@ -140,7 +146,8 @@ class Scene:
     [solver] table (checked Simulation arguments); ``common``: the ``common_keys()``
     (defaults filled in); ``colliders``: its [[collider]] tables as
     ``massspring.Plane``/``Sphere``/``Box``; ``self_collision``: its [self_collision]
-    table as a ``massspring.SelfCollision`` (None without one); ``pins``: its [[pin]] tables as
+    table as a ``massspring.SelfCollision`` (None without one); ``controls``: its [controls]
+    table as a ``massspring.Controls`` (None without one); ``pins``: its [[pin]] tables as
     (index, velocity) pairs; ``builtin``: whether it is a built-in scene (its errors name
     it, not its file: ``label``); ``set_keys``: the [model] keys changed by ``with_settings``
     (``--set``), which errors found when the model is built then name instead of the file."""
@@ -163,6 +170,7 @@ class Scene:
     colliders: tuple = ()
     pins: tuple = ()
     self_collision: object = None
+    controls: object = None
     set_keys: tuple = ()
     builtin: bool = False
     _suggested: dict = field(default_factory=dict, repr=False, compare=False)  # default dts, and the prediction
@@ -250,7 +258,7 @@ class Scene:
             name, _, reason = message.partition(": ")
             if name in self.set_keys:
                 raise SceneError(f"--set {name}: {reason}") from None
-            if message.startswith("pin["):
+            if message.startswith(("pin[", "controls")):
                 raise SceneError(f"{self.label}: {message}") from None
             if self.form == "particles":
                 key = HANDMADE_ARGUMENTS.get(name, f"model.{name}")
@@ -273,7 +281,7 @@ class Scene:
         its pins move with ``pin_velocity``; each [[pin]] pins its particle (one already
         pinned too) with its own velocity."""
         air = {**{name: self.common[name] for name in terms.parameters()}, "colliders": self.colliders,
-               "self_collision": self.self_collision}
+               "self_collision": self.self_collision, "controls": self.controls}
         if not self.pins and not any(self.common["pin_velocity"]):
             return air  # the form's own pins, left to the Model to check
         n = len(np.asarray(args["positions"]))
@@ -419,7 +427,8 @@ def parse_scene(data: dict, name: str, source: str) -> Scene:
     scene = Scene(name=name, source=source, description=data.get("description", ""), integrator=integrator,
                   duration=duration, dt=dt, generator=None, view=view, framing=framing, solver=_solver(data, source),
                   form=_form(data, source), colliders=colliders, pins=pins,
-                  self_collision=_self_collision(data.get("self_collision"), source))
+                  self_collision=_self_collision(data.get("self_collision"), source),
+                  controls=_controls(data.get("controls"), source))
     model = dict(data.get("model", {}))
     if scene.form == "generator":
         generator = model.pop("generator")
@@ -489,6 +498,25 @@ def _self_collision(table, source):
         return SelfCollision(**table)
     except ValueError as exc:
         raise SceneError(f"{source}: self_collision.{exc}") from None
+
+
+CONTROL_KEYS = ("interval", "pin_targets", "wind", "springs", "rest_lengths")
+
+
+def _controls(table, source):
+    """The [controls] table as a ``massspring.Controls`` (None without one); its shapes
+    against the model's pins and springs are checked when the model is built."""
+    if table is None:
+        return None
+    for key in table:
+        if key not in CONTROL_KEYS:
+            raise SceneError(f"{source}: controls.{key}: unknown key (expected {', '.join(CONTROL_KEYS)})")
+    if "interval" not in table:
+        raise SceneError(f"{source}: controls.interval: missing (s: how long each value holds)")
+    try:
+        return Controls(**table)
+    except ValueError as exc:
+        raise SceneError(f"{source}: {exc}") from None
 
 
 def _pin(k, table, source):
