@@ -1,4 +1,4 @@
-"""The adjoint of a Newton-solved step (backward Euler, implicit midpoint) at its
+"""The adjoint of a Newton-solved step (backward Euler, BDF2, implicit midpoint) at its
 converged iterate, for ``massspring.gradients``.
 
 Both steps solve (*) of ``kernels/newton.py``, g(u) = M (u - v_n) - h f(x_n + h u, u) = 0,
@@ -11,6 +11,10 @@ it is the derivative of g, not the Newton iteration's operator):
     dL/dx_n = dL/dx' + h K mu,   dL/dv_n = M mu   (midpoint: - dL/dv' too)
     dL/dtheta += h mu . df/dtheta at (x_n + h u, u),   dL/dm += -mu . (u - v_n - h g)
     dL/dvp += -(J^T mu)_p at a pin p (u = vp there), with each step's h dL/dx' + dL/dv'
+
+BDF2 is backward Euler from the base (x^, v^) = (4/3 x_n - 1/3 x_{n-1}, 4/3 v_n - 1/3
+v_{n-1}) with h = 2 dt / 3: the same adjoint gives dL/d(x^, v^), which ``bdf2_split``
+shares between the two states before the step.
 
 (free rows; mu = 0 at pins; K the force's whole x-derivative). J is the operator
 refreshed without the definiteness fix, plus, with spring damping, the damping force's
@@ -77,7 +81,7 @@ def solve_side(dev, cfg: ti.template(), h, t, values):
 
 
 @ti.func
-def rhs(dev, cfg: ti.template(), adj, h, dt, t, slot, midpoint: ti.template(), wants: ti.template()):
+def rhs(dev, cfg: ti.template(), adj, h, hx, t, slot, midpoint: ti.template(), wants: ti.template()):
     n = dev.size[0]
     stride = adj.stride[None]
     for i in range(n):
@@ -85,8 +89,8 @@ def rhs(dev, cfg: ti.template(), adj, h, dt, t, slot, midpoint: ti.template(), w
         dev.x[i] = x
         dev.v[i] = u
         if ti.static(wants.pins):
-            pin_adjoint(i, dev, cfg, adj, dt)
-        b = adj.lv[i] + dt * adj.lx[i]
+            pin_adjoint(i, dev, cfg, adj, hx)
+        b = adj.lv[i] + hx * adj.lx[i]
         if ti.static(midpoint):
             b += adj.lv[i]
         adj.jy[i] = b
@@ -96,20 +100,20 @@ def rhs(dev, cfg: ti.template(), adj, h, dt, t, slot, midpoint: ti.template(), w
 
 
 @ti.kernel
-def newton_adjoint_rhs(dev: ti.template(), cfg: ti.template(), adj: ti.template(), h: ti.f64, dt: ti.f64, t: ti.f64,
-                       slot: ti.i32, midpoint: ti.template(), wants: ti.template(), serial: ti.template()):
+def newton_adjoint_rhs(dev: ti.template(), cfg: ti.template(), adj: ti.template(), h: ti.f64, hx: ti.f64,
+                       t: ti.f64, slot: ti.i32, midpoint: ti.template(), wants: ti.template(), serial: ti.template()):
     """``dev.x``, ``dev.v`` = the converged iterate's (x_n + h u, u) from the history; the
     pins' share of the pin velocities' gradient (``wants.pins``); the operator refreshed
-    there (``cfg``: the step's own, with its definiteness fix: S); ``dev.b`` = dL/du on
-    free rows (plus S's pin columns times the pin velocities, which the solve's start
-    subtracts again);
-    ``dev.v`` = the last adjoint solution ``adj.mu`` (the warm start)."""
+    there (``cfg``: the step's own, with its definiteness fix: S); ``dev.b`` = dL/du =
+    dL/dv' + hx dL/dx' on free rows (hx: x' moves by hx u from the base: dt, or BDF2's
+    2 dt / 3; plus S's pin columns times the pin velocities, which the solve's start
+    subtracts again); ``dev.v`` = the last adjoint solution ``adj.mu`` (the warm start)."""
     if ti.static(serial):
         ti.loop_config(serialize=True)
         for _ in range(1):
-            rhs(dev, cfg, adj, h, dt, t, slot, midpoint, wants)
+            rhs(dev, cfg, adj, h, hx, t, slot, midpoint, wants)
     else:
-        rhs(dev, cfg, adj, h, dt, t, slot, midpoint, wants)
+        rhs(dev, cfg, adj, h, hx, t, slot, midpoint, wants)
 
 
 @ti.func
@@ -224,3 +228,32 @@ def newton_adjoint_gather(dev: ti.template(), cfg: ti.template(), adj: ti.templa
             gather(dev, cfg, adj, h, t, slot, midpoint, wants)
     else:
         gather(dev, cfg, adj, h, t, slot, midpoint, wants)
+
+
+@ti.kernel
+def bdf2_split(dev: ti.template(), cfg: ti.template(), adj: ti.template(), history: ti.i32, third: ti.f64,
+               wants: ti.template()):
+    """After a BDF2 step's adjoint, whose ``adj.lx``, ``adj.lv`` hold dL/d(x^, v^) of its
+    base: with ``history`` (the step used x^ = (4 x_n - x_{n-1}) / 3, v^ likewise), 4/3 of
+    it goes to the state before the step and -1/3 to the one before that, kept in
+    ``adj.kx``, ``adj.kv`` until the backward pass reaches it; without (a backward-Euler
+    step), all to the state before. The share kept for x_n by the step after is added
+    either way. A pin's base is x_n moved by ``third`` = dt / 3 times its velocity: all of
+    it to x_n, and ``third`` dL/dx^ to its velocity's gradient (``wants.pins``)."""
+    for i in range(dev.size[0]):
+        lx = adj.lx[i]
+        lv = adj.lv[i]
+        kx = ti.Vector.zero(ti.f64, 3)
+        kv = ti.Vector.zero(ti.f64, 3)
+        if history != 0:
+            if not is_pinned(i, dev, cfg):
+                kx = -lx / 3
+                kv = -lv / 3
+                lx = 4 * lx / 3
+                lv = 4 * lv / 3
+            elif ti.static(wants.pins):
+                adj.gp[i] = adj.gp[i] + third * lx
+        adj.lx[i] = lx + adj.kx[i]
+        adj.lv[i] = lv + adj.kv[i]
+        adj.kx[i] = kx
+        adj.kv[i] = kv

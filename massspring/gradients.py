@@ -16,7 +16,7 @@ history, then backwards. Peak: about (steps / checkpoint + checkpoint) states of
 bytes a particle, and one forward step more per step than the forward run.
 
 Built so far (issue 39): the explicit, symplectic, RK4, linearised implicit, backward
-Euler and implicit midpoint integrators, with springs, damping, gravity, drag and wind, pins (fixed or moving,
+Euler, BDF2 and implicit midpoint integrators, with springs, damping, gravity, drag and wind, pins (fixed or moving,
 with their velocities' gradient), a ground plane (explicit and symplectic steps) and
 controls over time (keyframed pins, wind, actuated rest lengths: ``ControlShares``). The adjoint kernels are compiled and
 their fields allocated only when a gradient is asked for: a forward run is as before.
@@ -209,7 +209,8 @@ def _check_wrt(wrt, model):
 
 
 def _forward(sim, adj, steps, every, checkpoint):
-    """Run ``steps`` steps: the frames; the states (numpy) at the starts of the stretches of
+    """Run ``steps`` steps: the frames; the states (numpy, with what the integrator carries:
+    BDF2's previous state) at the starts of the stretches of
     ``checkpoint`` steps but the last, whose states (its end's too) go to the history as
     the run passes them; the start of that last stretch."""
     n, stride = sim.model.n_particles, int(adj.stride[None])
@@ -218,7 +219,7 @@ def _forward(sim, adj, steps, every, checkpoint):
     done = 0
     while True:
         if done < last and done % checkpoint == 0:
-            kept[done] = (sim.positions, sim.velocities)
+            kept[done] = (sim.positions, sim.velocities, sim.carried_state())
         if done >= last:
             state_kernels.save_state(adj.hx, adj.hv, sim._integrator.state, n, done - last, stride)
         if done % every == 0:
@@ -358,7 +359,8 @@ def _backward(sim, adj, wants, partials, frame_steps, kept, last, steps, checkpo
     for start in reversed(range(0, steps, checkpoint)):
         end = min(start + checkpoint, steps)
         if start != last:
-            sim.set_state(*kept[start], steps=start)
+            positions, velocities, carried = kept[start]
+            sim.set_state(positions, velocities, steps=start, carried=carried)
             for k in range(start, end + 1):
                 if k > start:
                     sim.step(1)

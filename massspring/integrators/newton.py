@@ -94,8 +94,9 @@ class BackwardEuler(ImplicitEuler):
         operator); returns the ``SolverStats`` of it all."""
         s = self.settings
         exact = dataclasses.replace(self.cfg, fix=False)
-        h = 0.5 * s.dt if self.half_step else s.dt
-        newton_adjoint.newton_adjoint_rhs(self.dev, self.cfg, adj, h, s.dt, self.time, slot, self.half_step, wants,
+        h = 0.5 * s.dt if self.half_step else self.step_size(touching=0)
+        hx = s.dt if self.half_step else h  # x' = base + hx u
+        newton_adjoint.newton_adjoint_rhs(self.dev, self.cfg, adj, h, hx, self.time, slot, self.half_step, wants,
                                           self.serial)
         stats = self._adjoint_solve(adj, exact, h, slot)
         newton_adjoint.newton_adjoint_gather(self.dev, exact, adj, h, self.time, slot, self.half_step, wants,
@@ -238,7 +239,6 @@ class BDF2(BackwardEuler):
 
     name = "bdf2"
     order = 2
-    differentiable = False  # a two-step method: its adjoint carries two states back (not built yet)
     extra_bytes = BackwardEuler.extra_bytes + 2 * 24  # and x_{n-1}, v_{n-1}
     description = "BDF2 (second order, first step backward Euler) solved by Newton's method with a line search"
     carries = True
@@ -255,6 +255,23 @@ class BDF2(BackwardEuler):
 
     def base_is_bdf2(self):
         return self.ready
+
+    @classmethod
+    def declare_adjoint(cls, layout, stride):
+        """Backward Euler's, and the share of dL/d(state) a step's adjoint keeps for the
+        state two steps back (``newton_adjoint.bdf2_split``), zero to start."""
+        super().declare_adjoint(layout, stride)
+        for name in ("kx", "kv"):
+            layout.vectors(name, layout.real, values=np.zeros((layout.n, 3)))
+
+    def adjoint(self, adj, slot, wants):
+        """Backward Euler's adjoint from BDF2's base, shared between the two states it is
+        made of. A gradient's run starts without a history, so every step but the first
+        used it (contact, which breaks it, has no gradient with BDF2)."""
+        self.ready = self.steps > 0
+        stats = super().adjoint(adj, slot, wants)
+        newton_adjoint.bdf2_split(self.dev, self.cfg, adj, int(self.ready), self.settings.dt / 3, wants)
+        return stats
 
     def step_size(self, touching):
         return 2.0 * self.settings.dt / 3.0 if self.ready else self.settings.dt
