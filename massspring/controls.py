@@ -133,13 +133,19 @@ class Controls:
         later = np.concatenate([by_velocity[1:], np.zeros_like(by_velocity[:1])])
         return (by_velocity - later) / self.interval
 
-    def speeds(self, start) -> float:
-        """The fastest pin or wind of any interval (m/s): what the controls can drive."""
+    def speeds(self, start, rest) -> float:
+        """What the controls can drive (m/s): the fastest pin or wind of any interval, or
+        the fastest change of an actuated rest length (its change over an interval by the
+        interval: muscles move the particles they join as a pin would), from the pins'
+        positions ``start`` (k, 3) and the model's rest lengths ``rest`` (m,) at time 0."""
         fastest = 0.0
         if self.pin_targets is not None and self.pin_targets.shape[1]:
             fastest = float(np.linalg.norm(self.pin_velocities(start), axis=2).max())
         if self.wind is not None:
             fastest = max(fastest, float(np.linalg.norm(self.wind, axis=1).max()))
+        if self.rest_lengths is not None and self.springs.size:
+            lengths = np.concatenate([np.asarray(rest)[self.springs][None], self.rest_lengths])
+            fastest = max(fastest, float(np.abs(np.diff(lengths, axis=0)).max()) / self.interval)
         return fastest
 
     def renumbered(self, fixed_order, spring_inverse) -> Controls:

@@ -74,7 +74,7 @@ def divergence_check(model: Model, factor=DIVERGENCE_FACTOR):
     the initial bounding box, or the longest rest length if larger; 1 m if both are 0)
     plus the fastest drive: the wind speed, the fastest pin or twice the fastest
     collider (what the air, a moving pin or a collider can give the particles; the
-    controls' pins and wind of every interval included).
+    controls' pins, wind and rest lengths of every interval included: ``Controls.speeds``).
     Physically kinetic energy never exceeds base - floor + W (springs only store and
     dampers only dissipate), so ``factor`` = 100 leaves room for the energy error of a
     stable integrator (symplectic Euler's oscillates by up to ~40x just below its limit)
@@ -85,7 +85,8 @@ def divergence_check(model: Model, factor=DIVERGENCE_FACTOR):
     size = max(extent, float(model.rest_lengths.max(initial=0.0))) or 1.0
     drive = max([float(np.linalg.norm(model.wind))] + [float(np.linalg.norm(v)) for v in model.pin_velocity]
                 + [2 * float(np.linalg.norm(c.velocity)) for c in model.colliders]
-                + ([model.controls.speeds(model.positions[model.fixed])] if model.controls is not None else []))
+                + ([model.controls.speeds(model.positions[model.fixed], model.rest_lengths)]
+                   if model.controls is not None else []))
     floor = 0.5 * float(model.masses.sum()) * (size + drive) ** 2
     return (energy["kinetic"] + energy["spring"] + floor, model.external_work(model.positions), float(factor))
 

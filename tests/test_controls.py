@@ -84,6 +84,25 @@ def test_wind_and_rest_lengths_step_as_a_chain_of_runs_with_fixed_values(integra
     sim.close()
 
 
+def test_the_divergence_bound_counts_what_the_controls_drive():
+    """Actuated rest lengths do work on the particles (a muscle moving its ends as a pin
+    would): the divergence check's floor counts the fastest change of one, |dl0| / T, as
+    it counts the fastest pin and wind (a crawling creature was called runaway before)."""
+    from massspring.simulation import divergence_check
+
+    values = control_values()
+    plain = sheet(pin_velocity=None, wind=np.zeros(3))
+    lengths = np.concatenate([plain.rest_lengths[SPRINGS][None], values["rest_lengths"]])
+    rate = np.abs(np.diff(lengths, axis=0)).max() / (PER * DT)
+    model = sheet(pin_velocity=None, wind=np.zeros(3), controls=ms.Controls(
+        PER * DT, springs=SPRINGS, rest_lengths=values["rest_lengths"]))
+    size = float(np.linalg.norm(np.ptp(plain.positions, axis=0)))
+    energy = plain.energy(plain.positions, plain.velocities)
+    floor = divergence_check(model)[0] - energy["kinetic"] - energy["spring"]
+    assert rate > 1 and floor == pytest.approx(0.5 * plain.masses.sum() * (size + rate) ** 2, rel=1e-12)
+    assert divergence_check(plain)[0] < divergence_check(model)[0]
+
+
 CONTROL_NAMES = ("controls.pin_targets", "controls.wind", "controls.rest_lengths")
 
 
