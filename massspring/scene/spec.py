@@ -484,39 +484,38 @@ def _collider(k, table, source):
         raise SceneError(f"{where}.{exc}") from None
 
 
-def _self_collision(table, source):
-    """The [self_collision] table as a ``massspring.SelfCollision`` (None without one)."""
+def _settings_table(name, cls, table, source, required, hint):
+    """A [name] table as ``cls(**table)`` (None without one): an unknown key, the missing
+    ``required`` key (``hint`` says what it is) and the class's own ValueErrors name
+    ``name.<key>`` and the file."""
     if table is None:
         return None
-    names = [f.name for f in dataclasses.fields(SelfCollision)]
+    names = [f.name for f in dataclasses.fields(cls)]
     for key in table:
         if key not in names:
-            raise SceneError(f"{source}: self_collision.{key}: unknown key (expected {', '.join(names)})")
-    if "thickness" not in table:
-        raise SceneError(f"{source}: self_collision.thickness: missing (m: how close the mesh may come to itself)")
+            raise SceneError(f"{source}: {name}.{key}: unknown key (expected {', '.join(names)})")
+    if required not in table:
+        raise SceneError(f"{source}: {name}.{required}: missing ({hint})")
     try:
-        return SelfCollision(**table)
+        return cls(**table)
     except ValueError as exc:
-        raise SceneError(f"{source}: self_collision.{exc}") from None
+        message = str(exc)
+        raise SceneError(f"{source}: {message if message.startswith(name) else f'{name}.{message}'}") from None
 
 
-CONTROL_KEYS = ("interval", "pin_targets", "wind", "springs", "rest_lengths")
+def _self_collision(table, source):
+    """The [self_collision] table as a ``massspring.SelfCollision`` (None without one)."""
+    return _settings_table("self_collision", SelfCollision, table, source, "thickness",
+                           "m: how close the mesh may come to itself")
+
+
+CONTROL_KEYS = tuple(f.name for f in dataclasses.fields(Controls))
 
 
 def _controls(table, source):
     """The [controls] table as a ``massspring.Controls`` (None without one); its shapes
     against the model's pins and springs are checked when the model is built."""
-    if table is None:
-        return None
-    for key in table:
-        if key not in CONTROL_KEYS:
-            raise SceneError(f"{source}: controls.{key}: unknown key (expected {', '.join(CONTROL_KEYS)})")
-    if "interval" not in table:
-        raise SceneError(f"{source}: controls.interval: missing (s: how long each value holds)")
-    try:
-        return Controls(**table)
-    except ValueError as exc:
-        raise SceneError(f"{source}: {exc}") from None
+    return _settings_table("controls", Controls, table, source, "interval", "s: how long each value holds")
 
 
 def _pin(k, table, source):
