@@ -1,5 +1,5 @@
-"""Loading a state from numpy into a simulation's fields (a restart), and keeping states
-in a history (the backward pass of ``massspring.gradient``)."""
+"""Loading a state from numpy into a simulation's fields (a restart), copying one state
+into another, and keeping states in a history (the backward pass of ``massspring.gradient``)."""
 
 import taichi as ti
 
@@ -23,6 +23,14 @@ def load_reals(field: ti.template(), values: ti.types.ndarray(dtype=ti.f64, ndim
     """field[i] = values[i] for the (n,) float64 ``values``, cast to the field's precision."""
     for i in range(values.shape[0]):
         field[i] = ti.cast(values[i], field.dtype)
+
+
+@ti.kernel
+def copy_state(dst: ti.template(), src: ti.template(), n: ti.i32):
+    """dst.x[i], dst.v[i] = src.x[i], src.v[i] for the n particles (states of one bundle)."""
+    for i in range(n):
+        dst.x[i] = src.x[i]
+        dst.v[i] = src.v[i]
 
 
 @ti.kernel

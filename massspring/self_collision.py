@@ -95,6 +95,9 @@ def check_thickness(settings, positions, triangles):
 
 
 PAIRS_PER_PARTICLE = 8  # the pair list's first capacity per particle; a pass that finds more grows it
+# The smallest pair list (3.7 MB): small meshes, whose pairs can outnumber 8 a particle where they
+# fold, never grow it, so they compile the pass's kernels for one list.
+PAIR_FLOOR = 65536
 PAIR_BYTES = 16 + 4 * 8 + 4 + 4  # a listed pair: 4 particles, 4 weights (f64), its kind, its bound
 # Bytes per particle of the pass's fields (``declare``), for ``memory.run_bytes``: start, anchor, free,
 # end, end velocity, scale, impulses, hits, hash items (24 + 24 + 8 + 24 + 24 + 8 + 24 + 4 + 4); about
@@ -136,8 +139,8 @@ def declare(layout, model):
 
 
 def pair_list(pairs, real):
-    """A pair list for at least ``pairs`` pairs (a capacity class, so lists are pooled and
-    their kernels compiled once per class): a bundle of ``pidx`` (4 particles), ``pw`` (4
+    """A pair list for at least ``pairs`` pairs, at least ``PAIR_FLOOR`` (a capacity class,
+    so lists are pooled and their kernels compiled once per class): a bundle of ``pidx`` (4 particles), ``pw`` (4
     weights), ``pkind`` (1: edge-edge, -1: point-triangle) and ``pbound`` (how the pass
     bounds its particles, ``kernels/self_collision.py``). ValueError if it would not
     fit in memory."""
@@ -145,7 +148,7 @@ def pair_list(pairs, real):
 
     from massspring.device import Layout, capacity
 
-    cap = capacity(pairs, 4096)
+    cap = capacity(pairs, PAIR_FLOOR)
     layout = Layout(0, 0, real)
     layout.vectors("pidx", ti.i32, cap, k=4)
     layout.vectors("pw", real, cap, k=4)

@@ -386,6 +386,13 @@ class Simulation:
         """
         integrator = self._open()
         n = validate.count("n", n, low=0, high=MAX_STEPS)
+        try:
+            self._advance(integrator, n)
+        finally:
+            integrator.settle()
+        return self
+
+    def _advance(self, integrator, n):
         schedule = self._schedule
         if not integrator.has_stats and self._guard is None:
             while n:
@@ -397,7 +404,7 @@ class Simulation:
                 self._steps += done
                 self._raise_if_diverged(check)
                 n -= chunk
-            return self
+            return
         for _ in range(n):
             if schedule is not None:
                 schedule.apply(self._steps)
@@ -405,6 +412,7 @@ class Simulation:
                 self._guard.begin(integrator.state)
             done, check = integrator.advance(1)
             if done and self._guard is not None:
+                integrator.settle()
                 self._guard.end(integrator.state)
             if not integrator.has_stats:
                 self._steps += done
@@ -419,7 +427,6 @@ class Simulation:
                     self._newton_iterations.append(stats.newton_iterations)
                     self._cuts += stats.cuts
             self._raise_if_diverged(check)
-        return self
 
     def _raise_if_diverged(self, check):
         code, kinetic, bound = check

@@ -275,6 +275,7 @@ def test_a_pair_list_that_grows_gives_the_bits_of_one_large_enough(monkeypatch):
     start."""
     from massspring import self_collision
 
+    monkeypatch.setattr(self_collision, "PAIR_FLOOR", 4096)  # a list the sheets outgrow
     runs = []
     for per_particle in (self_collision.PAIRS_PER_PARTICLE, 64):
         monkeypatch.setattr(self_collision, "PAIRS_PER_PARTICLE", per_particle)
@@ -292,8 +293,9 @@ def test_a_pair_list_that_grows_gives_the_bits_of_one_large_enough(monkeypatch):
 def test_a_pair_list_that_cannot_grow_is_an_error_naming_it_and_the_simulation_keeps_its_list(monkeypatch):
     """Issue 42: a pair list that could not grow raised a ValueError naming "0 particles
     and 0 springs" and left the Simulation without a list."""
-    from massspring import device, memory
+    from massspring import device, memory, self_collision
 
+    monkeypatch.setattr(self_collision, "PAIR_FLOOR", 4096)  # a list the sheets outgrow
     sim = sheets(16).simulation("implicit")
     capacity = sim._guard.capacity
     monkeypatch.setattr(device.POOL, "take", lambda signature: None)  # no pooled list of the next size

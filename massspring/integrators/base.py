@@ -76,6 +76,15 @@ solver's options, ``options.Option`` records: ``integrators.OPTIONS``). ``serial
         """
         raise NotImplementedError
 
+    def settle(self):
+        """Make ``dev.state`` the current state. An integrator that steps into a spare state
+        and swaps the two (explicit, symplectic, RK4) copies it back, so that what reads or
+        changes the state between steps (``positions``, the self-collision pass, a gradient's
+        history and adjoint) compiles its kernels for one pair of fields, not two."""
+        if self.state is not self.dev.state:
+            state_kernels.copy_state(self.dev.state, self.state, self.dev.n)
+            self.state, self.spare = self.dev.state, self.state
+
     def carried(self) -> dict:
         """The arrays of ``carried_names`` at the current state (numpy, a row per particle)."""
         return {name: self.dev.read(name).astype(dtype) for name, (dtype, _) in self.carried_names().items()}
