@@ -271,12 +271,13 @@ def _task(kind, args):
 
 
 def _warm_up(model, integrator, dt, preconditioner):
-    """Compile this integrator's kernels: two steps on a throwaway Simulation, so that a
-    per-step kernel is compiled for both orders of its two states (the runs then step
-    from either)."""
+    """Compile this integrator's kernels: two steps and then one on a throwaway Simulation,
+    so that a per-step kernel is compiled for both orders of its two states and an odd
+    count's copy back into the first (``Integrator.settle``) is compiled too."""
     sim = Simulation(model, integrator=integrator, dt=dt, **_solver({}, preconditioner))
     try:
         sim.step(2)
+        sim.step(1)
     except DivergenceError:
         pass
     sim.positions  # noqa: B018 - compiles the readback too
