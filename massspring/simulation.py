@@ -393,6 +393,10 @@ class Simulation:
         return self
 
     def _advance(self, integrator, n):
+        """``n`` steps of ``integrator``: in launches of up to ``STEPS_PER_LAUNCH`` steps
+        (cut at the control schedule's interval ends) when it keeps no per-step statistics
+        and no self-collision pass runs between steps, else one step at a time. Counts the
+        good steps and the solver statistics; raises ``DivergenceError`` at a failed step."""
         schedule = self._schedule
         if not integrator.has_stats and self._guard is None:
             while n:

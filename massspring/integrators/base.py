@@ -77,13 +77,8 @@ solver's options, ``options.Option`` records: ``integrators.OPTIONS``). ``serial
         raise NotImplementedError
 
     def settle(self):
-        """Make ``dev.state`` the current state. An integrator that steps into a spare state
-        and swaps the two (explicit, symplectic, RK4) copies it back, so that what reads or
-        changes the state between steps (``positions``, the self-collision pass, a gradient's
-        history and adjoint) compiles its kernels for one pair of fields, not two."""
-        if self.state is not self.dev.state:
-            state_kernels.copy_state(self.dev.state, self.state, self.dev.n)
-            self.state, self.spare = self.dev.state, self.state
+        """Make ``dev.state`` the current state (it is, unless the integrator swaps states:
+        ``SwappingStates``)."""
 
     def carried(self) -> dict:
         """The arrays of ``carried_names`` at the current state (numpy, a row per particle)."""
@@ -139,3 +134,24 @@ solver's options, ``options.Option`` records: ``integrators.OPTIONS``). ``serial
 
     def release(self):
         """Hand back resources other than the simulation's bundle (none by default)."""
+
+
+class SwappingStates(Integrator):
+    """An integrator that steps from ``state`` into ``spare`` and swaps the two (explicit,
+    symplectic, RK4). ``settle`` copies the current state back into ``dev.state``, so that
+    what reads or changes the state between steps (``positions``, the self-collision pass,
+    a gradient's history and adjoint) compiles its kernels for one pair of fields, not two."""
+
+    def __init__(self, dev, model, settings):
+        super().__init__(dev, model, settings)
+        self.spare = dev.states["spare"]
+        self.states = (self.state, self.spare)  # the serial kernels' fixed order (one compile)
+
+    @classmethod
+    def declare(cls, layout, model, settings):
+        layout.state("spare", layout.real)
+
+    def settle(self):
+        if self.state is not self.dev.state:
+            state_kernels.copy_state(self.dev.state, self.state, self.dev.n)
+            self.state, self.spare = self.dev.state, self.state

@@ -8,10 +8,10 @@ from massspring.defaults import FALLBACK_DT
 from massspring.device import read_verdict
 from massspring.kernels import divergence, euler
 
-from .base import Integrator
+from .base import SwappingStates
 
 
-class ExplicitEuler(Integrator):
+class ExplicitEuler(SwappingStates):
     """x' = x + dt v, v' = v + dt f(x, v) / m: one fused kernel per step into a spare state.
 
     Serial: many steps per launch (``euler.euler_steps``); parallel: one
@@ -26,15 +26,6 @@ class ExplicitEuler(Integrator):
     symplectic = False
     grows_undamped = True
     differentiable = True
-
-    def __init__(self, dev, model, settings):
-        super().__init__(dev, model, settings)
-        self.spare = dev.states["spare"]
-        self.states = (self.state, self.spare)  # the serial kernel's fixed order (one compile)
-
-    @classmethod
-    def declare(cls, layout, model, settings):
-        layout.state("spare", layout.real)
 
     def advance(self, steps):
         dev, cfg, dt = self.dev, self.cfg, self.settings.dt

@@ -8,7 +8,7 @@ from massspring.defaults import FALLBACK_DT
 from massspring.device import read_verdict
 from massspring.kernels import divergence, rk4
 
-from .base import Integrator
+from .base import SwappingStates
 
 RK4_IMAGINARY_LIMIT = 2.0 * math.sqrt(2.0)  # |dt omega| where RK4's stability region meets the imaginary axis
 
@@ -37,7 +37,7 @@ def rk4_stable_dt(omega: float, rate: float) -> float:
     return min(limits) if limits else math.inf
 
 
-class RK4(Integrator):
+class RK4(SwappingStates):
     """Four force evaluations per step (``kernels/rk4.py``); fourth order. The study's
     reference solutions are RK4 runs in f64. With colliders it gets the explicit
     integrators' contact response after each step, which is first order in dt."""
@@ -50,13 +50,11 @@ class RK4(Integrator):
 
     def __init__(self, dev, model, settings):
         super().__init__(dev, model, settings)
-        self.spare = dev.states["spare"]
-        self.states = (self.state, self.spare)  # the serial kernel's fixed order (one compile)
         self.stage = dev.states["stage"]
 
     @classmethod
     def declare(cls, layout, model, settings):
-        layout.state("spare", layout.real)
+        super().declare(layout, model, settings)
         layout.state("stage", layout.real)
         layout.vectors("sx", layout.real)
         layout.vectors("sv", layout.real)
