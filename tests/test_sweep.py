@@ -464,6 +464,51 @@ def test_a_scheduler_without_workers_is_an_error_not_a_hang(monkeypatch):
         assert time.monotonic() - start < 30
 
 
+def _pause(dask_worker):
+    from distributed.core import Status
+
+    dask_worker.status = Status.paused  # what Dask's memory monitor does past the pause fraction
+
+
+def test_a_cluster_whose_workers_are_all_paused_is_an_error_not_a_hang(monkeypatch):
+    """Issue 42: a worker that Dask pauses (its memory past the pause fraction) still
+    counted as a worker, so a sweep waited for it without end."""
+    distributed = pytest.importorskip("distributed", reason="the [cluster] extra is not installed")
+    from massspring.analysis import cluster
+
+    monkeypatch.setattr(cluster, "NO_WORKER_S", 1.0)
+    monkeypatch.setattr(cluster, "POLL_S", 0.2)
+    with distributed.LocalCluster(n_workers=1, processes=False, dashboard_address=":0", memory_limit=0) as local, \
+            distributed.Client(local) as client:
+        client.run(_pause)  # no memory monitor (memory_limit=0) resumes it
+        start = time.monotonic()
+        with pytest.raises(cluster.ClusterError, match=r"every worker of the Dask scheduler \(1\) has been paused "
+                                                       r"for 1 s \(2 task\(s\) unfinished\).*--memory-limit"):
+            cluster.run_tasks(max, [(1, 2), (3, 4)], client=client)
+        assert time.monotonic() - start < 30
+
+
+def test_a_scheduler_that_goes_away_is_an_error_not_a_traceback(monkeypatch):
+    """Issue 42: the scheduler's end cancels the futures; ``distributed.wait`` raised
+    FuturesCancelledError past the sweep (found by this test)."""
+    distributed = pytest.importorskip("distributed", reason="the [cluster] extra is not installed")
+    import threading
+
+    from massspring.analysis import cluster
+
+    monkeypatch.setattr(cluster, "POLL_S", 0.2)
+    with distributed.LocalCluster(n_workers=0, processes=False, dashboard_address=":0", memory_limit=0) as local, \
+            distributed.Client(local) as client:
+        killer = threading.Timer(1.0, local.close)  # the scheduler (and the cluster) shut down
+        killer.start()
+        start = time.monotonic()
+        with pytest.raises(cluster.ClusterError, match=r"the Dask scheduler (went away with 2 task\(s\) unfinished|"
+                                                       r"does not answer)"):
+            cluster.run_tasks(max, [(1, 2), (3, 4)], client=client)
+        killer.join()
+        assert time.monotonic() - start < 30
+
+
 def test_two_sweeps_cannot_write_one_csv(tmp_path):
     """Issue 42: two sweeps on one CSV wrote every case twice; the second is now refused
     while the first holds it, and runs once it is done."""

@@ -15,8 +15,8 @@ unless that variable is set) or
 Dask is the optional extra ``cluster`` (``extras.install_hint``).
 
 No wait on a cluster is unbounded: connecting gives up after ``timeout`` seconds, and
-``run_tasks`` raises ``ClusterError`` when the scheduler has had no worker for
-``NO_WORKER_S`` seconds or goes away (the results that came back are kept).
+``run_tasks`` raises ``ClusterError`` when the scheduler has had no worker that can take a
+task (none, or all paused) for ``NO_WORKER_S`` seconds, or goes away (the results that came back are kept).
 """
 
 from __future__ import annotations
@@ -31,7 +31,7 @@ from massspring.extras import install_hint
 
 EXTRA = install_hint("cluster")
 SCHEMES = ("tcp://",)  # what --address accepts (besides HOST:PORT, which is tcp)
-NO_WORKER_S = 60.0  # seconds a scheduler may go without workers while tasks wait
+NO_WORKER_S = 60.0  # seconds a scheduler may go without a worker that takes tasks while tasks wait
 POLL_S = 2.0  # seconds between checks of the scheduler while waiting for results
 
 
@@ -119,13 +119,15 @@ def run_tasks(function, tasks, client=None, on_result=None, keep_lost=False):
         return results
     distributed = _distributed()
     futures = {client.submit(exclusive, function, *task, pure=False): index for index, task in enumerate(tasks)}
-    pending, alone_since = set(futures), None
+    pending, stalled_since = set(futures), None
     try:
         while pending:
             try:
                 done = distributed.wait(pending, timeout=POLL_S, return_when="FIRST_COMPLETED").done
             except TimeoutError:
                 done = ()
+            except distributed.client.FuturesCancelledError:
+                raise ClusterError(f"the Dask scheduler went away with {len(pending)} task(s) unfinished") from None
             for future in done:
                 pending.discard(future)
                 index = futures[future]
@@ -141,28 +143,42 @@ def run_tasks(function, tasks, client=None, on_result=None, keep_lost=False):
                 if on_result:
                     on_result(index, results[index])
             if pending and not done:
-                alone_since = _check_workers(client, alone_since, len(pending))
+                stalled_since = _check_workers(client, stalled_since, len(pending))
     finally:
         with contextlib.suppress(Exception):  # a scheduler that is gone has nothing to cancel
             client.cancel(list(futures))
     return results
 
 
-def _check_workers(client, alone_since, waiting):
-    """While ``waiting`` tasks wait: the time since which the scheduler has had no worker
-    (None while it has one); ClusterError after ``NO_WORKER_S`` seconds without one, or
-    when the scheduler does not answer."""
+def _check_workers(client, stalled_since, waiting):
+    """While ``waiting`` tasks wait: the time since which no worker can take them (None while
+    one can): the scheduler has no worker, or every worker is paused (Dask pauses a worker
+    whose memory passes its pause fraction) and none is still executing a task.
+    ClusterError after ``NO_WORKER_S`` seconds of that, or when the scheduler does not answer."""
     try:
         workers = client.scheduler_info(n_workers=-1).get("workers", {})
     except Exception as exc:
         raise ClusterError(f"the Dask scheduler does not answer ({type(exc).__name__}: {exc}); "
                            f"{waiting} task(s) unfinished") from None
-    if workers:
+    if any(_can_work(worker) for worker in workers.values()):
         return None
     now = time.monotonic()
-    if alone_since is None:
+    if stalled_since is None:
         return now
-    if now - alone_since > NO_WORKER_S:
-        raise ClusterError(f"the Dask scheduler has had no worker for {NO_WORKER_S:g} s ({waiting} task(s) "
-                           "unfinished): start workers (dask worker ADDRESS) and run the same command again")
-    return alone_since
+    if now - stalled_since <= NO_WORKER_S:
+        return stalled_since
+    if workers:
+        raise ClusterError(f"every worker of the Dask scheduler ({len(workers)}) has been paused for "
+                           f"{NO_WORKER_S:g} s ({waiting} task(s) unfinished): Dask pauses a worker whose memory "
+                           "passes its pause fraction; give the workers more memory (dask worker --memory-limit) "
+                           "and run the same command again")
+    raise ClusterError(f"the Dask scheduler has had no worker for {NO_WORKER_S:g} s ({waiting} task(s) "
+                       "unfinished): start workers (dask worker ADDRESS) and run the same command again")
+
+
+def _can_work(worker):
+    """Whether a worker (an entry of ``scheduler_info``'s workers) takes tasks or is running one."""
+    if worker.get("status", "running") == "running":
+        return True
+    counts = worker.get("metrics", {}).get("task_counts", {})
+    return counts.get("executing", 0) + counts.get("long-running", 0) > 0
