@@ -109,7 +109,8 @@ def gradient(model, objective, wrt, *, steps, every=1, integrator="symplectic", 
     if precision != "f64":
         raise ValueError(f"precision: gradients are computed in f64 only, got {precision!r}")
     terms = [term.name for term in active_terms(model) if not term.kernel.differentiable]
-    for feature, present in (("self-collision", model.has_self_collision), (" and ".join(terms), bool(terms))):
+    for feature, present in (("self-collision", model.has_self_collision), ("a strain limit", model.has_strain_limit),
+                             (" and ".join(terms), bool(terms))):
         if present:
             raise ValueError(f"model: gradients through {feature} are not built yet (issue 39); "
                              f"a model of springs, damping, gravity, drag, pins and a ground plane has them")

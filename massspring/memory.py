@@ -36,16 +36,18 @@ class MemoryNeedError(ValueError):
     """A run would not fit in the memory this process may use."""
 
 
-def run_bytes(particles, springs, solver=None, model_built=False, extra=0) -> float:
+def run_bytes(particles, springs, solver=None, model_built=False, extra=0, spring_extra=0) -> float:
     """Bytes a run of ``particles`` and ``springs`` may add at its peak, margin included.
 
     ``solver``: None for an integrator without a linear solve, else the preconditioner
     it resolves to ("none", "block-jacobi", "multigrid"). ``model_built``: the Model's
     own arrays exist already (then building them is not counted again). ``extra``:
     bytes per particle the integrator adds to the linearised step's (its
-    ``extra_bytes``: the Newton-solved ones' work vectors)."""
+    ``extra_bytes``: the Newton-solved ones' work vectors); ``spring_extra``: bytes per
+    spring beyond (a strain limit's corrections)."""
     per_particle, per_spring = RUN_BYTES[solver]
     per_particle += extra
+    per_spring += spring_extra
     if model_built:
         per_particle, per_spring = per_particle - BUILD_BYTES[0], per_spring - BUILD_BYTES[1]
     return _total(per_particle, particles, per_spring, springs) + FIXED

@@ -243,7 +243,7 @@ def pins_in_box(vertices, pin_box):
 
 def mesh_arguments(vertices, faces, *, density=None, mass=None, stiffness=1e4, damping=0.0, bend=0.1, shear=1.0,
                    fixed=None, pin_box=None, gravity=GRAVITY, velocities=None, colliders=(), pin_velocity=None,
-                   self_collision=None, **term_parameters):
+                   self_collision=None, strain_limit=None, **term_parameters):
     """The keyword arguments of :class:`Model` for a cloth or shell from a polygon mesh
     (see the module docstring); ``Model.from_mesh`` builds it.
 
@@ -272,7 +272,7 @@ def mesh_arguments(vertices, faces, *, density=None, mass=None, stiffness=1e4, d
         Also pin every vertex inside this axis-aligned box (bounds included; it must hold one).
     gravity : (3,) float, m/s^2 (default (0, 0, -9.81))
     velocities : None or (n, 3) float, m/s
-    colliders, and the force terms' parameters (drag, wind, ...) : as for :class:`Model`
+    colliders, pin_velocity, self_collision, strain_limit, and the force terms' parameters (drag, wind, ...) : as for :class:`Model`
     pin_velocity : None, (3,) or (k, 3) float, m/s
         The pins' velocity: one for every pin, or a row per pin (``fixed``, then the
         vertices in ``pin_box`` in ascending order).
@@ -306,4 +306,5 @@ def mesh_arguments(vertices, faces, *, density=None, mass=None, stiffness=1e4, d
                 stiffness=real_number("stiffness", stiffness, 0.0, ">=") * factor,
                 damping=real_number("damping", damping, 0.0, ">=") * factor, gravity=gravity,
                 fixed=pins, triangles=triangles, velocities=velocities, colliders=colliders,
-                pin_velocity=pin_velocity, self_collision=self_collision, **term_parameters)
+                pin_velocity=pin_velocity, self_collision=self_collision, strain_limit=strain_limit,
+                **term_parameters)

@@ -25,6 +25,7 @@ from massspring import terms
 from massspring.colliders import COLLIDERS, MAX_COLLIDERS, Collider
 from massspring.controls import Controls
 from massspring.self_collision import SelfCollision, check_thickness
+from massspring.strain_limit import check as strain_limit_check
 from massspring.text import brief
 from massspring.validate import MAX_MAGNITUDE, real_array, real_number  # noqa: F401 (MAX_MAGNITUDE: documented here)
 
@@ -93,6 +94,10 @@ class Model:
     self_collision : None or ``massspring.SelfCollision``
         Keeps the mesh of ``triangles`` from passing through itself (needs triangles);
         None: off.
+    strain_limit : None or float > 0
+        The largest stretch l / l0 - 1 of any spring after a step
+        (``massspring.strain_limit``: springs stretched further are shortened after each
+        step, every integrator); None: no limit.
     controls : None or ``massspring.Controls``
         Time-varying inputs: keyframed pins (then ``pin_velocity`` is their first
         interval's velocity), wind (a model with drag) and actuated rest lengths per
@@ -122,10 +127,12 @@ class Model:
     pin_velocity: np.ndarray
     self_collision: object
     controls: object
+    strain_limit: object
 
     def __init__(self, positions, springs, masses=1.0, stiffness=1e3, damping=0.0,
                  rest_lengths=None, velocities=None, gravity=GRAVITY, fixed=None, triangles=None,
-                 colliders=(), pin_velocity=None, self_collision=None, controls=None, **term_parameters):
+                 colliders=(), pin_velocity=None, self_collision=None, controls=None, strain_limit=None,
+                 **term_parameters):
         x = real_array("positions", positions)
         if x.ndim != 2 or x.shape[1] != 3 or x.shape[0] < 1:
             raise ValueError(f"positions: expected shape (n, 3) with n >= 1, got shape {x.shape}")
@@ -205,6 +212,7 @@ class Model:
         if controls is not None:
             controls.check(m, fixed_idx, drag=self.has_drag)
         object.__setattr__(self, "controls", controls)
+        object.__setattr__(self, "strain_limit", strain_limit_check(strain_limit, m))
 
     @classmethod
     def from_mesh(cls, vertices, faces, **parameters) -> Model:
@@ -234,6 +242,8 @@ class Model:
         digest.update(repr(self.colliders).encode())  # frozen dataclasses of floats: repr is exact
         if self.controls is not None:
             digest.update(self.controls.digest())
+        if self.strain_limit is not None:
+            digest.update(f"strain_limit:{self.strain_limit!r}".encode())
         if self.self_collision is not None:  # the triangles then take part in the physics
             digest.update(repr(self.self_collision).encode())
             digest.update(self.triangles.astype(np.int64).tobytes())
@@ -288,6 +298,10 @@ class Model:
     @property
     def has_self_collision(self) -> bool:
         return self.self_collision is not None
+
+    @property
+    def has_strain_limit(self) -> bool:
+        return self.strain_limit is not None
 
     @property
     def has_drag(self) -> bool:

@@ -96,7 +96,7 @@ def renumbered(model: Model, particles, springs) -> Model:
                  rest_lengths=model.rest_lengths[springs], velocities=model.velocities[particles],
                  gravity=model.gravity, fixed=inverse[model.fixed], triangles=inverse[model.triangles],
                  colliders=model.colliders, pin_velocity=pins, self_collision=model.self_collision,
-                 controls=controls, **model.term_parameters)
+                 controls=controls, strain_limit=model.strain_limit, **model.term_parameters)
 
 
 def plan(model: Model) -> Ordering | None:

@@ -8,7 +8,7 @@ from dataclasses import make_dataclass
 
 import numpy as np
 
-from massspring import memory, ordering, self_collision, validate
+from massspring import memory, ordering, self_collision, strain_limit, validate
 from massspring.colliders import COLLIDERS
 from massspring.defaults import MAX_STEPS, PRECISIONS
 from massspring.device import ARCHS, CPU_ARCHS, POOL, ensure_taichi, model_layout
@@ -175,7 +175,9 @@ class Simulation:
         memory.check(memory.run_bytes(model.n_particles, model.n_springs, preconditioner if cls.linear_solver else None,
                                       model_built=not ordering.wanted(model),  # else a renumbered copy
                                       extra=cls.extra_bytes + self_collision.PASS_BYTES * model.has_self_collision
-                                      + self_collision.SOLVE_BYTES * cls.pairs_in_solve(model)),
+                                      + self_collision.SOLVE_BYTES * cls.pairs_in_solve(model)
+                                      + 4 * model.has_strain_limit,
+                                      spring_extra=strain_limit.PASS_BYTES_PER_SPRING * model.has_strain_limit),
                      f"model: {model.n_particles:,} particles and {model.n_springs:,} springs; "
                      f"a run of it ({integrator})")
         self._order = ordering.plan(model)
@@ -184,6 +186,8 @@ class Simulation:
         cls.declare(layout, inner, self._settings)
         if model.has_self_collision:
             self_collision.declare(layout, inner)
+        if model.has_strain_limit:
+            strain_limit.declare(layout)
         self._layout_names = [name for name in layout.decls if name not in ("size", "check", "partial")]
         self._bytes = layout.nbytes()
         dev = layout.allocate()
@@ -192,6 +196,8 @@ class Simulation:
         self._schedule = None if model.controls is None else Schedule(inner, dev, dt)
         self._guard = (self_collision.Pass(dev, self._integrator.cfg, inner, self._integrator.serial, dt)
                        if model.has_self_collision else None)
+        self._limit = (strain_limit.Pass(dev, self._integrator.cfg, model.strain_limit, self._integrator.serial, dt)
+                       if model.has_strain_limit else None)
         self._release = weakref.finalize(self, _release, dev, self._integrator, self._guard)
 
     # ------------------------------------------------------------------ settings
@@ -291,6 +297,18 @@ class Simulation:
         return {"steps": guard.steps, "passes": guard.passes, "grown": guard.grown, "capacity": capacity,
                 "pairs": pairs, "repelled": repelled, "held": held, "displacement": displacement,
                 "closest": closest, "left_out": guard.left_out}
+
+    @property
+    def strain_limit_stats(self) -> dict | None:
+        """The strain limit (None without one) at the last step: "iterations" (Jacobi
+        iterations it ran), "before" and "after" (the largest l / l0 - 1 of a spring after
+        the integrator's step and at the last iteration's start); "unmet": steps so far
+        that ended with a spring past the limit after ``strain_limit.ITERATIONS``."""
+        limit = self._limit
+        if limit is None:
+            return None
+        iterations, before, after = limit.last
+        return {"iterations": iterations, "before": before, "after": after, "unmet": limit.unmet}
 
     @property
     def line_search_cuts(self) -> int:
@@ -395,10 +413,11 @@ class Simulation:
     def _advance(self, integrator, n):
         """``n`` steps of ``integrator``: in launches of up to ``STEPS_PER_LAUNCH`` steps
         (cut at the control schedule's interval ends) when it keeps no per-step statistics
-        and no self-collision pass runs between steps, else one step at a time. Counts the
+        and no strain limit or self-collision pass runs between steps, else one step at a
+        time. Counts the
         good steps and the solver statistics; raises ``DivergenceError`` at a failed step."""
         schedule = self._schedule
-        if not integrator.has_stats and self._guard is None:
+        if not integrator.has_stats and self._guard is None and self._limit is None:
             while n:
                 chunk = min(n, STEPS_PER_LAUNCH)
                 if schedule is not None:
@@ -415,6 +434,9 @@ class Simulation:
             if self._guard is not None:
                 self._guard.begin(integrator.state)
             done, check = integrator.advance(1)
+            if done and self._limit is not None:
+                integrator.settle()
+                self._limit.end(integrator.state, integrator.time)
             if done and self._guard is not None:
                 integrator.settle()
                 self._guard.end(integrator.state)

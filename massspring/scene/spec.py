@@ -79,6 +79,7 @@ from massspring.colliders import COLLIDERS
 from massspring.defaults import GRAVITY
 from massspring.controls import Controls
 from massspring.self_collision import PASS_BYTES, SelfCollision
+from massspring.strain_limit import PASS_BYTES_PER_SPRING
 from massspring.integrators import INTEGRATORS, OPTIONS
 from massspring.io.camera import DEFAULT_FRAMING, FRAMINGS, View
 from massspring import terms
@@ -120,9 +121,10 @@ HANDMADE_ARGUMENTS = {"positions": "particles.positions", "masses": "particles.m
 
 def common_keys() -> dict:
     """[model] keys of every form, applied to the Model arguments it makes: name -> default
-    (the force terms' parameters, ``terms.parameters()``, then the pins' velocity)."""
+    (the force terms' parameters, ``terms.parameters()``, then the pins' velocity and the strain
+    limit, 0 for none)."""
     return {**{name: list(p.default) if p.vector else p.default for name, p in terms.parameters().items()},
-            "pin_velocity": [0.0, 0.0, 0.0]}
+            "pin_velocity": [0.0, 0.0, 0.0], "strain_limit": 0.0}
 
 
 PIN_KEYS = {"index": int, "velocity": list}
@@ -281,7 +283,8 @@ class Scene:
         its pins move with ``pin_velocity``; each [[pin]] pins its particle (one already
         pinned too) with its own velocity."""
         air = {**{name: self.common[name] for name in terms.parameters()}, "colliders": self.colliders,
-               "self_collision": self.self_collision, "controls": self.controls}
+               "self_collision": self.self_collision, "controls": self.controls,
+               "strain_limit": self.common["strain_limit"] or None}
         if not self.pins and not any(self.common["pin_velocity"]):
             return air  # the form's own pins, left to the Model to check
         n = len(np.asarray(args["positions"]))
@@ -330,7 +333,9 @@ class Scene:
             solver = preconditioners.resolve_for_count(options.get("preconditioner", "auto"), particles)
         extra = INTEGRATORS[integrator].extra_bytes if integrator in INTEGRATORS else 0
         extra += PASS_BYTES if self.self_collision is not None else 0
-        self.check_memory(memory.run_bytes(particles, springs, solver, extra=extra), particles, springs,
+        limited = bool(self.common["strain_limit"])
+        self.check_memory(memory.run_bytes(particles, springs, solver, extra=extra + 4 * limited,
+                                           spring_extra=PASS_BYTES_PER_SPRING * limited), particles, springs,
                           f"a run of it ({integrator}{f', {solver}' if solver else ''})")
         dt = self.default_dt(integrator) if dt is None else dt
         return Simulation(self.model(), integrator=integrator, dt=dt, **options)

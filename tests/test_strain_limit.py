@@ -1,0 +1,129 @@
+"""Strain limiting (``Model(strain_limit=...)``, ``massspring/strain_limit.py``): no spring
+stretched past the limit after any step of any integrator, momentum kept, nothing of it
+in a run without one, bad values refused by name."""
+
+import numpy as np
+import pytest
+
+import massspring as ms
+from massspring.scene import generators
+from massspring.integrators import INTEGRATORS
+from massspring.scene import SceneError, builtin_scenes, load_scene
+
+LIMIT = 0.1
+ROUND_OFF = 1e-12  # numpy's l / l0 - 1 from the positions read back against the kernel's
+
+
+def stretch(model, x):
+    """The largest l / l0 - 1 of the model's springs at positions x."""
+    e = model.springs
+    return float((np.linalg.norm(x[e[:, 1]] - x[e[:, 0]], axis=1) / model.rest_lengths - 1).max())
+
+
+def hanging(strain_limit=None, **kw):
+    """A soft 6 x 6 cloth pinned at two corners, falling: its springs stretch past 30%
+    within 0.2 s without a limit."""
+    args = generators.grid(resolution=6, size=0.5, mass=0.5, stiffness=30.0, damping=0.5, shear=1.0, bend=0.0,
+                           pin="corners", gravity=[0.0, 0.0, -9.81])
+    return ms.Model(**args, strain_limit=strain_limit, **kw)
+
+
+DT = {"explicit": 2e-4, "symplectic": 2e-4, "rk4": 2e-4}
+
+
+@pytest.mark.parametrize("integrator", sorted(INTEGRATORS))
+def test_no_spring_ends_a_step_past_the_limit(integrator):
+    """Every step of 0.2 s ends with every spring within the limit (+ the pass's tolerance),
+    where the same run without a limit stretches springs past 3 times the limit."""
+    dt = DT.get(integrator, 1e-2)
+    steps = round(0.2 / dt)
+    free = ms.Simulation(hanging(), integrator, dt=dt)
+    free.step(steps)
+    assert stretch(free.model, free.positions) > 3 * LIMIT
+    sim = ms.Simulation(hanging(LIMIT), integrator, dt=dt)
+    passes = 0
+    for _ in range(steps):
+        sim.step()
+        assert stretch(sim.model, sim.positions) <= LIMIT + ROUND_OFF
+        stats = sim.strain_limit_stats
+        passes += stats["before"] > LIMIT
+        assert stats["unmet"] == 0 and stats["after"] <= LIMIT
+    assert passes > steps // 10  # the limit did the work
+    pins = sim.model.fixed
+    np.testing.assert_array_equal(sim.positions[pins], sim.model.positions[pins])  # pins never move
+    assert np.all(np.isfinite(sim.velocities))
+
+
+@pytest.mark.fast_sample(integrator=["symplectic", "implicit"])
+@pytest.mark.parametrize("integrator", ["symplectic", "implicit"])
+def test_the_limit_keeps_linear_momentum(integrator):
+    """A free cloth (no pins, gravity or colliders) flung apart: the pass moves both ends of
+    a spring by shares of one correction, so total momentum stays what it was to
+    round-off while the limit acts."""
+    args = generators.grid(resolution=5, size=0.4, mass=0.3, stiffness=20.0, damping=0.0, shear=1.0, bend=0.0,
+                           pin="none", gravity=[0.0, 0.0, 0.0])
+    rng = np.random.default_rng(7)
+    args["velocities"] = rng.normal(0.0, 1.0, (len(args["positions"]), 3))
+    masses = np.full(len(args["positions"]), 0.3 / len(args["positions"]))
+    model = ms.Model(**args, strain_limit=LIMIT)
+    start = masses @ model.velocities
+    sim = ms.Simulation(model, integrator, dt=5e-3, cg_tol=1e-14)
+    acted = 0
+    for _ in range(20):
+        sim.step()
+        acted += sim.strain_limit_stats["before"] > LIMIT
+        np.testing.assert_allclose(masses @ sim.velocities, start, rtol=0, atol=1e-12 * np.abs(masses @ np.abs(
+            sim.velocities)).max())
+    assert acted >= 5
+
+
+def test_the_limit_keeps_a_draped_cloth_on_its_collider():
+    """A cloth dropped on a sphere with the implicit step: springs within the limit and no
+    particle left inside the sphere (a particle the pass moves into it is put back)."""
+    scene = load_scene("drape").with_params(resolution=12, strain_limit=LIMIT)
+    sim = scene.simulation()
+    sphere = next(c for c in sim.model.colliders if type(c).__name__ == "Sphere")
+    for _ in range(40):
+        sim.step()
+        assert stretch(sim.model, sim.positions) <= LIMIT + ROUND_OFF
+        depth = sphere.radius - np.linalg.norm(sim.positions - np.asarray(sphere.center), axis=1)
+        assert depth.max() <= 1e-9
+
+
+def test_a_run_without_a_limit_has_nothing_of_it():
+    model = hanging()
+    sim = ms.Simulation(model, "implicit", dt=1e-2)
+    assert sim.strain_limit_stats is None
+    assert not {"sl_dx", "sl_k"} & set(sim._layout_names)
+    limited = ms.Simulation(hanging(LIMIT), "implicit", dt=1e-2)
+    assert {"sl_dx", "sl_k"} <= set(limited._layout_names)
+    assert model.fingerprint() != hanging(LIMIT).fingerprint()
+
+
+@pytest.mark.parametrize("value", [0, -0.1, float("nan"), float("inf"), True, "0.1", [0.1]])
+def test_bad_limits_are_refused_by_name(value):
+    with pytest.raises(ValueError, match="strain_limit: "):
+        hanging(value)
+
+
+def test_a_model_without_springs_cannot_have_a_limit():
+    with pytest.raises(ValueError, match="strain_limit: the model has no springs"):
+        ms.Model([[0.0, 0.0, 0.0]], np.zeros((0, 2), dtype=int), strain_limit=LIMIT)
+
+
+def test_scene_key(tmp_path):
+    scene = load_scene("drape").with_params(resolution=8, strain_limit=0.05)
+    assert scene.model().strain_limit == 0.05
+    assert load_scene("cloth").model().strain_limit is None  # 0: none
+    path = tmp_path / "bad.toml"
+    path.write_text(builtin_scenes()["chain"].read_text().replace("[model]", "[model]\nstrain_limit = -1", 1))
+    with pytest.raises(SceneError, match=r"model.strain_limit: must be >= 0"):
+        load_scene(path)
+
+
+def test_gradients_refuse_a_limit():
+    def objective(frames):
+        return 0.0, {}
+
+    with pytest.raises(ValueError, match="strain limit"):
+        ms.gradient(hanging(LIMIT), objective, ["stiffness"], steps=2, integrator="implicit", dt=1e-2)
