@@ -272,7 +272,7 @@ def mesh_arguments(vertices, faces, *, density=None, mass=None, stiffness=1e4, d
         Also pin every vertex inside this axis-aligned box (bounds included; it must hold one).
     gravity : (3,) float, m/s^2 (default (0, 0, -9.81))
     velocities : None or (n, 3) float, m/s
-    colliders, pin_velocity, self_collision, strain_limit, and the force terms' parameters (drag, wind, ...) : as for :class:`Model`
+    colliders, self_collision, strain_limit, and the force terms' parameters (drag, wind, ...) : as for :class:`Model`
     pin_velocity : None, (3,) or (k, 3) float, m/s
         The pins' velocity: one for every pin, or a row per pin (``fixed``, then the
         vertices in ``pin_box`` in ascending order).
