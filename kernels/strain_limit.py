@@ -35,7 +35,7 @@ RELAX = 1.5  # over-relaxation of the corrections: 100-150 iterations where 1.0 
 def inverse_mass(i, dev, cfg: ti.template()):
     out = ti.cast(0, cfg.real)
     if not is_pinned(i, dev, cfg):
-        out = 1 / dev.mass[i]
+        out = ti.cast(1, cfg.real) / dev.mass[i]
     return out
 
 
@@ -68,7 +68,7 @@ def iteration(dev, cfg: ti.template(), state, limit, tol, dt, t):
             wi = inverse_mass(i, dev, cfg)
             wj = inverse_mass(j, dev, cfg)
             shares = ti.cast(ti.max(dev.sl_k[i], dev.sl_k[j]), cfg.real)
-            dev.sl_dx[s] = ti.static(RELAX) * c / ((wi + wj) * shares)
+            dev.sl_dx[s] = ti.cast(RELAX, cfg.real) * c / ((wi + wj) * shares)
     for i in range(n):
         if go and dev.sl_k[i] > 0:
             total = ti.Vector.zero(cfg.real, 3)
