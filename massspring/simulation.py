@@ -302,13 +302,15 @@ class Simulation:
     def strain_limit_stats(self) -> dict | None:
         """The strain limit (None without one) at the last step: "iterations" (Jacobi
         iterations it ran), "before" and "after" (the largest l / l0 - 1 of a spring after
-        the integrator's step and at the last iteration's start); "unmet": steps so far
-        that ended with a spring past the limit after ``strain_limit.ITERATIONS``."""
+        the integrator's step and at the last iteration's start); of the steps so far:
+        "unmet" (ended with a spring past the limit after ``strain_limit.ITERATIONS``),
+        "steps" (whose pass moved particles) and "most" (the most iterations of one)."""
         limit = self._limit
         if limit is None:
             return None
         iterations, before, after = limit.last
-        return {"iterations": iterations, "before": before, "after": after, "unmet": limit.unmet}
+        return {"iterations": iterations, "before": before, "after": after, "unmet": limit.unmet,
+                "steps": limit.steps, "most": limit.most}
 
     @property
     def line_search_cuts(self) -> int:

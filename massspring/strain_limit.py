@@ -53,14 +53,15 @@ class Pass:
     Jacobi iterations until no spring is stretched past the limit or ``ITERATIONS``
     have run. ``last``: (iterations that moved particles, the largest
     l / l0 - 1 before the pass, the largest after it) of the last step; ``unmet``: steps
-    that ended with a spring still past the limit after ``ITERATIONS``
+    that ended with a spring still past the limit after ``ITERATIONS``; ``steps``: steps
+    whose pass moved particles; ``most``: the most iterations of a step
     (the last of the ``ITERATIONS`` + 1 launches then moves particles too, and "after"
     is measured before it)."""
 
     def __init__(self, dev, cfg, limit, serial, dt):
         self.dev, self.cfg, self.limit, self.serial, self.dt = dev, cfg, limit, serial, dt
         self.last = (0, 0.0, 0.0)
-        self.unmet = 0
+        self.unmet = self.steps = self.most = 0
 
     def end(self, state, t):
         """Limit ``state`` (after a step ending at time t, s)."""
@@ -73,4 +74,6 @@ class Pass:
             if worst <= self.limit:
                 break
         self.unmet += worst > self.limit
+        self.steps += k > 1
+        self.most = max(self.most, k - 1)
         self.last = (k - 1, first, worst)

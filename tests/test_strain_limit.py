@@ -121,6 +121,16 @@ def test_scene_key(tmp_path):
         load_scene(path)
 
 
+def test_run_prints_what_the_limit_did(capsys):
+    from massspring.cli import main
+
+    assert main(["run", "drape", "--set", "resolution=8", "--steps", "30", "--quiet"]) == 0
+    line = next(line for line in capsys.readouterr().out.splitlines() if line.startswith("strain"))
+    assert line.startswith("strain      limit 0.1: ") and "step(s) shortened springs" in line
+    assert main(["run", "drape", "--set", "resolution=8", "--set", "strain_limit=0", "--steps", "3", "--quiet"]) == 0
+    assert "strain " not in capsys.readouterr().out
+
+
 def test_gradients_refuse_a_limit():
     def objective(frames):
         return 0.0, {}

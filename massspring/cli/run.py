@@ -9,7 +9,7 @@ import time
 
 import numpy as np
 
-from massspring import progress
+from massspring import progress, strain_limit
 from massspring.defaults import MAX_STEPS
 from massspring.text import format_seconds
 from massspring.cli.common import (
@@ -235,6 +235,11 @@ def print_summary(scene, sim, wall, energy0, out, start_steps=0):
         if sim.cg_failures and not sim.definiteness_fix:
             print("note        CG stops when A is indefinite, as compressed springs make it without the "
                   "definiteness fix: drop --no-definiteness-fix")
+    limit = sim.strain_limit_stats
+    if limit is not None:
+        unmet = f", {limit['unmet']} step(s) left over it after {strain_limit.ITERATIONS}" if limit["unmet"] else ""
+        print(f"strain      limit {sim.model.strain_limit:g}: {limit['steps']} step(s) shortened springs, "
+              f"{limit['most']} iterations at most{unmet}")
     print("energy      " + format_energy(energy0, energy1))
     print(f"compiled    terms: {', '.join(info['terms'])}; arrays: {', '.join(info['arrays'])} "
           f"({info['loops']} loops)")
