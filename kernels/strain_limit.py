@@ -89,19 +89,37 @@ def iteration(dev, cfg: ti.template(), state, limit, tol, dt, t):
 
 @ti.kernel
 def strain_limit_iteration(dev: ti.template(), cfg: ti.template(), state: ti.template(), limit: ti.f64,
-                           tol: ti.f64, dt: ti.f64, t: ti.f64, serial: ti.template()) -> ti.f64:
+                           tol: ti.f64, dt: ti.f64, t: ti.f64) -> ti.f64:
     """One Jacobi iteration (the module's steps 1-4) on ``state`` after a step of dt (s)
-    ending at time t (s), springs shortened to (1 + ``limit`` - ``tol``) times their rest
-    length; none if no spring is stretched past the limit (steps 3-4 skipped, the state
-    left as it is). Returns the largest l / l0 - 1 of the springs at the iteration's start."""
+    ending at time t (s), in parallel loops: springs shortened to (1 + ``limit`` -
+    ``tol``) times their rest length; none if no spring is stretched past the limit
+    (steps 3-4 skipped, the state left as it is). Returns the largest l / l0 - 1 of the
+    springs at the iteration's start."""
+    return iteration(dev, cfg, state, ti.cast(limit, cfg.real), ti.cast(tol, cfg.real), ti.cast(dt, cfg.real),
+                     ti.cast(t, cfg.real))
+
+
+@ti.kernel
+def strain_limit_serial(dev: ti.template(), cfg: ti.template(), state: ti.template(), limit: ti.f64, tol: ti.f64,
+                        dt: ti.f64, t: ti.f64, launches: ti.i32) -> ti.types.vector(3, ti.f64):
+    """Up to ``launches`` iterations of ``strain_limit_iteration`` in one serial launch
+    (small systems, as the integrators' serial kernels), stopping after the first that
+    finds no spring past the limit. Returns (iterations run, the largest l / l0 - 1 at
+    the first's start, at the last's start)."""
     s = ti.cast(limit, cfg.real)
-    h = ti.cast(dt, cfg.real)
-    now = ti.cast(t, cfg.real)
-    out = ti.cast(0, ti.f64)
-    if ti.static(serial):
-        ti.loop_config(serialize=True)
-        for _ in range(1):
-            out = iteration(dev, cfg, state, s, ti.cast(tol, cfg.real), h, now)
-    else:
-        out = iteration(dev, cfg, state, s, ti.cast(tol, cfg.real), h, now)
+    out = ti.Vector.zero(ti.f64, 3)
+    ti.loop_config(serialize=True)
+    for _ in range(1):
+        k = 0
+        first = ti.cast(0, ti.f64)
+        worst = ti.cast(0, ti.f64)
+        while k < launches:
+            worst = iteration(dev, cfg, state, s, ti.cast(tol, cfg.real), ti.cast(dt, cfg.real),
+                              ti.cast(t, cfg.real))
+            if k == 0:
+                first = worst
+            k += 1
+            if worst <= limit:
+                break
+        out = ti.Vector([ti.cast(k, ti.f64), first, worst], ti.f64)
     return out

@@ -49,7 +49,8 @@ def declare(layout):
 
 
 class Pass:
-    """The strain limit of one simulation, run on the state after each step (``end``):
+    """The strain limit of one simulation, run on the state after each step (``end``;
+    ``serial``: all its iterations in one serial launch, else one parallel launch each):
     Jacobi iterations until no spring is stretched past the limit or ``ITERATIONS``
     have run. ``last``: (iterations that moved particles, the largest
     l / l0 - 1 before the pass, the largest after it) of the last step; ``unmet``: steps
@@ -65,14 +66,19 @@ class Pass:
 
     def end(self, state, t):
         """Limit ``state`` (after a step ending at time t, s)."""
-        from massspring.kernels.strain_limit import strain_limit_iteration
+        from massspring.kernels.strain_limit import strain_limit_iteration, strain_limit_serial
 
-        first = worst = None
-        for k in range(1, ITERATIONS + 2):  # the last only measures what the others left
-            worst = strain_limit_iteration(self.dev, self.cfg, state, self.limit, TOLERANCE, self.dt, t, self.serial)
-            first = worst if first is None else first
-            if worst <= self.limit:
-                break
+        launches = ITERATIONS + 1  # the last only measures what the others left, unless it finds a spring over
+        if self.serial:
+            out = strain_limit_serial(self.dev, self.cfg, state, self.limit, TOLERANCE, self.dt, t, launches)
+            k, first, worst = int(out[0]), float(out[1]), float(out[2])
+        else:
+            first = None
+            for k in range(1, launches + 1):
+                worst = strain_limit_iteration(self.dev, self.cfg, state, self.limit, TOLERANCE, self.dt, t)
+                first = worst if first is None else first
+                if worst <= self.limit:
+                    break
         self.unmet += worst > self.limit
         self.steps += k > 1
         self.most = max(self.most, k - 1)
