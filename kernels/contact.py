@@ -70,6 +70,12 @@ class PlaneKind:
         n = dev.plane_normal[k]
         return (x - dev.plane_point[k] - t * dev.plane_velocity[k]).dot(n), n
 
+    @staticmethod
+    @ti.func
+    def curvature(dev, cfg: ti.template(), k, x, t):
+        """dn/dx (1/m, f64) at x: zero (a flat surface)."""
+        return ti.Matrix.zero(ti.f64, 3, 3)
+
 
 class SphereKind:
     """``sphere_center`` (m) and ``sphere_radius`` (m): d = |x - c| - r, n = (x - c)/|x - c|
@@ -86,6 +92,18 @@ class SphereKind:
         if length > tiny_length(cfg.real):
             n = q * (ti.cast(1, cfg.real) / length)
         return length - dev.sphere_radius[k], n
+
+    @staticmethod
+    @ti.func
+    def curvature(dev, cfg: ti.template(), k, x, t):
+        """dn/dx (1/m, f64) at x: (I - n n^T) / |x - c| (zero at the centre)."""
+        q = ti.cast(x - dev.sphere_center[k] - t * dev.sphere_velocity[k], ti.f64)
+        length = ti.sqrt(q.dot(q))
+        out = ti.Matrix.zero(ti.f64, 3, 3)
+        if length > tiny_length(cfg.real):
+            n = q / length
+            out = (ti.Matrix.identity(ti.f64, 3) - n.outer_product(n)) / length
+        return out
 
 
 class BoxKind:
@@ -123,6 +141,29 @@ class BoxKind:
                     n[c] = side[c]
             n = n * (ti.cast(1, cfg.real) / ti.sqrt(n.dot(n)))
         return d, n
+
+    @staticmethod
+    @ti.func
+    def curvature(dev, cfg: ti.template(), k, x, t):
+        """dn/dx (1/m, f64) at x: on a rounded edge or corner (L > 0 above) (A - n n^T) / L,
+        A the diagonal of the slabs x is outside of; zero on a face and inside."""
+        shift = t * dev.box_velocity[k]
+        lower = dev.box_lower[k] + shift
+        upper = dev.box_upper[k] + shift
+        q = x - ti.cast(0.5, cfg.real) * (lower + upper)
+        a = ti.cast(ti.abs(q) - (ti.cast(0.5, cfg.real) * (upper - lower) - dev.box_radius[k]), ti.f64)
+        side = ti.Vector([1.0 if q[c] >= 0 else -1.0 for c in ti.static(range(3))], ti.f64)
+        out = ti.max(a, 0)
+        length = ti.sqrt(out.dot(out))
+        result = ti.Matrix.zero(ti.f64, 3, 3)
+        if length > 0:
+            n = side * out / length
+            active = ti.Matrix.zero(ti.f64, 3, 3)
+            for c in ti.static(range(3)):
+                if a[c] > 0:
+                    active[c, c] = 1.0
+            result = (active - n.outer_product(n)) / length
+        return result
 
 
 @ti.func
@@ -307,36 +348,56 @@ def friction_impulse(i, dev, cfg: ti.template(), carrier):
 
 
 @ti.func
-def respond_adjoint(dev, cfg: ti.template(), x, v, h, t, gx, gv):
+def respond_adjoint(dev, cfg: ti.template(), x0, x, v, h, t, gx, gv):
     """The transpose of ``respond``'s Jacobian at the free step x0 -> (x, v) of a free
     particle ending at time t, its branch (free, impact sticking or sliding, or only
-    projected out) frozen, for a model whose one collider is a plane
-    (``massspring.gradients`` refuses others). From (gx, gv) = dL/d(x_r, v_r) of its
-    outputs returns (dL/dx0 through x_r, dL/dx, dL/dv). At an impact x_r = P (x0 + h v_r)
-    + c (P = I - n n^T), v_r = v_c + k T - e (rel . n) n with rel = v - v_c, T = P rel
-    and k = 0 (sticking) or 1 + mu (1 + e) (rel . n) / |T| (sliding); projected out,
-    x_r = P x + c. Everything in f64."""
-    n = ti.cast(dev.plane_normal[0], ti.f64)
-    d, _ = PlaneKind.distance(dev, cfg, 0, x, t)
+    projected out) frozen, for a model whose one collider is a plane, a sphere or a box
+    (``massspring.gradients`` refuses more). From (gx, gv) = dL/d(x_r, v_r) of its
+    outputs returns (dL/dx0 through x_r, dL/dx, dL/dv). With the surface's distance d,
+    normal n(x) and curvature N = dn/dx (``curvature``), rel = v - v_c, vn = rel . n,
+    T = rel - vn n: at an impact v_r = v_c + k T - e vn n with k = 0 (sticking) or
+    1 + mu (1 + e) vn / |T| (sliding), and x_r = P(x0 + h v_r), P(y) = y - d(y) n(y)
+    the projection onto the surface, whose Jacobian is I - n n^T - d N; projected out
+    only, x_r = P(x). x enters an impact through n(x). Everything in f64."""
+    identity = ti.Matrix.identity(ti.f64, 3)
     ax0 = ti.Vector.zero(ti.f64, 3)
     ax = gx
     av = gv
-    if d <= tiny_length(cfg.real):
-        rel = ti.cast(v - dev.plane_velocity[0], ti.f64)
-        vn = rel.dot(n)
-        if vn < 0:
-            e = ti.cast(dev.plane_restitution[0], ti.f64)
-            c = ti.cast(dev.plane_friction[0], ti.f64) * (1 + e)
-            g = gv + h * (gx - gx.dot(n) * n)  # v_r's gradient: it also moves x_r by h P v_r
-            ax0 = gx - gx.dot(n) * n
-            ax = ti.Vector.zero(ti.f64, 3)
-            av = -e * g.dot(n) * n
-            tangent = rel - vn * n
-            speed = ti.sqrt(tangent.dot(tangent))
-            if speed > -c * vn:  # sliding: d(k T) = P + c (t n^T + vn (I - t t^T) P / |T|), t = T / |T|
-                u = tangent / speed
-                pg = g - g.dot(n) * n
-                av += pg + c * (g.dot(u) * n + vn / speed * (pg - u.dot(g) * u))
-        elif d < 0:
-            ax = gx - gx.dot(n) * n
+    for kind, count, first in ti.static(cfg.colliders):  # one collider: this runs once
+        d, n_real = kind.distance(dev, cfg, 0, x, t)
+        n = ti.cast(n_real, ti.f64)
+        if d <= tiny_length(cfg.real):
+            rel = ti.cast(v - velocity(dev, kind, 0), ti.f64)
+            vn = rel.dot(n)
+            if vn < 0:
+                e = ti.cast(restitution(dev, kind, 0), ti.f64)
+                c = ti.cast(mu(dev, kind, 0), ti.f64) * (1 + e)
+                tangent = rel - vn * n
+                speed = ti.sqrt(tangent.dot(tangent))
+                sliding = speed > -c * vn
+                kept = ti.cast(0, ti.f64)
+                if sliding:
+                    kept = 1 + c * vn / speed
+                vr = ti.cast(velocity(dev, kind, 0), ti.f64) + kept * tangent - e * vn * n
+                moved = ti.cast(x0, ti.f64) + h * vr
+                gap, n2_real = kind.distance(dev, cfg, 0, ti.cast(moved, cfg.real), t)
+                n2 = ti.cast(n2_real, ti.f64)
+                projection = identity - n2.outer_product(n2) - ti.cast(gap, ti.f64) * kind.curvature(
+                    dev, cfg, 0, ti.cast(moved, cfg.real), t)
+                ax0 = projection.transpose() @ gx
+                g = gv + h * ax0  # v_r's gradient: it also moves x_r by h v_r
+                an = ti.Vector.zero(ti.f64, 3)  # n's gradient
+                if sliding:  # v_r = v_c + T + c vn t - e vn n, t = T / |T|
+                    u = tangent / speed
+                    gt = g + c * vn / speed * (g - u.dot(g) * u)  # T's
+                    gvn = c * u.dot(g) - e * n.dot(g) - n.dot(gt)  # vn's, through T = rel - vn n too
+                    av = gt + gvn * n
+                    an = -e * vn * g - vn * gt + gvn * rel
+                else:  # v_r = v_c - e vn n
+                    av = -e * n.dot(g) * n
+                    an = -e * (n.dot(g) * rel + vn * g)
+                ax = kind.curvature(dev, cfg, 0, x, t).transpose() @ an
+            elif d < 0:
+                ax = (identity - n.outer_product(n) - ti.cast(d, ti.f64) * kind.curvature(dev, cfg, 0, x, t)
+                      ).transpose() @ gx
     return ax0, ax, av

@@ -184,7 +184,7 @@ def contact_adjoint(dev, cfg: ti.template(), adj, src, h, t, symplectic: ti.temp
                 x = x + h * v_new
             else:
                 x = x + h * v
-            ax0, ax, av = respond_adjoint(dev, cfg, x, v_new, h, t, adj.lx[i], adj.lv[i])
+            ax0, ax, av = respond_adjoint(dev, cfg, src.x[i], x, v_new, h, t, adj.lx[i], adj.lv[i])
             cx = ax0
             adj.lx[i] = ax
             adj.lv[i] = av
