@@ -21,7 +21,7 @@ import taichi as ti
 from .blocks import BLOCK, block_count, block_end, ordered_sum
 from .divergence import OK, state_sums, verdict
 from .constraints import is_free
-from .contact import respond
+from .contact import respond, respond_adjoint
 from .forces import acceleration_adjoint, particle_force, spring_forces, spring_sum
 from .state import restore_state
 from .terms import uniform_acceleration
@@ -105,7 +105,7 @@ def rk4_steps(dev: ti.template(), cfg: ti.template(), a: ti.template(), b: ti.te
 
 
 @ti.func
-def adjoint_step(dev, cfg: ti.template(), adj, src, stage, h, slot, wants: ti.template()):
+def adjoint_step(dev, cfg: ti.template(), adj, src, stage, h, t, slot, wants: ti.template()):
     """One step backwards, in f64, from the state kept at ``slot`` of ``adj``'s history
     (restored into ``src``): dL/dy' in ``adj.lx``, ``adj.lv`` on entry, dL/dy on exit,
     the parameters' shares added. The stages y2, y3, y4 are computed again as the step
@@ -113,15 +113,23 @@ def adjoint_step(dev, cfg: ti.template(), adj, src, stage, h, slot, wants: ti.te
     then, from the last stage back, with k4^ = h/6 y'^ and ki^ = b_i h y'^ + c_i h J(y_i+1)^T
     k_i+1^ (b = 1/6, 1/3, 1/3; c = 1/2, 1/2, 1: y_i+1 = y + c_i h k_i), each stage's
     J(y_i)^T k_i^ is added to dL/dy. J^T of F(x, v) = (v, f/m) at a stage: dL/dx += K w,
-    dL/dv += k^_x + D w with w = k^_v / m (``forces.acceleration_adjoint``)."""
+    dL/dv += k^_x + D w with w = k^_v / m (``forces.acceleration_adjoint``). With colliders
+    the step ends at time t (s) with the contact response: the free step's end is computed
+    again as ``one_step`` computed it (its weighted sums in ``dev.sx``, ``dev.sv``) and
+    ``contact.respond_adjoint`` (branches frozen) turns dL/dy' into dL/d(free end) first,
+    its share in the start position going to ``adj.cx``."""
     n = dev.size[0]
     stride = adj.stride[None]
     restore_state(adj.hx, adj.hv, src, n, slot, stride)
     for i in range(n):
         stage.x[i] = src.x[i]
         stage.v[i] = src.v[i]
+        if ti.static(cfg.has_colliders):
+            dev.sx[i] = ti.Vector.zero(cfg.real, 3)
+            dev.sv[i] = ti.Vector.zero(cfg.real, 3)
     for k in ti.static(range(3)):
         offset = ti.cast(ti.static(1.0 if k == 2 else 0.5), ti.f64)
+        weight = ti.static(1 if k == 0 else 2)
         spring_forces(dev, cfg, stage.x, stage.v, False)
         for i in range(n):
             f = particle_force(i, dev, cfg, stage.x, stage.v, False)
@@ -129,10 +137,26 @@ def adjoint_step(dev, cfg: ti.template(), adj, src, stage, h, slot, wants: ti.te
             if is_free(i, dev, cfg):
                 a = f / dev.mass[i]
             vt = stage.v[i]
+            if ti.static(cfg.has_colliders):
+                dev.sx[i] += weight * vt
+                dev.sv[i] += weight * a
             stage.x[i] = src.x[i] + offset * h * vt
             stage.v[i] = src.v[i] + offset * h * a
             adj.xs[k * stride + i] = stage.x[i]
             adj.vs[k * stride + i] = stage.v[i]
+    if ti.static(cfg.has_colliders):
+        spring_forces(dev, cfg, stage.x, stage.v, False)
+        for i in range(n):
+            cx = ti.Vector.zero(ti.f64, 3)
+            if is_free(i, dev, cfg):
+                a = particle_force(i, dev, cfg, stage.x, stage.v, False) / dev.mass[i]
+                x = src.x[i] + h / ti.cast(6, cfg.real) * (dev.sx[i] + stage.v[i])
+                v = src.v[i] + h / ti.cast(6, cfg.real) * (dev.sv[i] + a)
+                ax0, ax, av = respond_adjoint(dev, cfg, src.x[i], x, v, h, t, adj.lx[i], adj.lv[i])
+                cx = ax0
+                adj.lx[i] = ax
+                adj.lv[i] = av
+            adj.cx[i] = cx
     for k in ti.static((3, 2, 1, 0)):
         b = ti.static(1.0 / 6.0 if k in (0, 3) else 1.0 / 3.0)
         c = ti.static((0.5, 0.5, 1.0, 0.0)[k])
@@ -166,17 +190,21 @@ def adjoint_step(dev, cfg: ti.template(), adj, src, stage, h, slot, wants: ti.te
                 adj.ax[i] = adj.ax[i] + yx
                 adj.av[i] = adj.av[i] + yv
     for i in range(n):
-        adj.lx[i] = adj.lx[i] + adj.ax[i]
+        lx = adj.lx[i] + adj.ax[i]
+        if ti.static(cfg.has_colliders):
+            lx += adj.cx[i]
+        adj.lx[i] = lx
         adj.lv[i] = adj.lv[i] + adj.av[i]
 
 
 @ti.kernel
 def rk4_adjoint(dev: ti.template(), cfg: ti.template(), adj: ti.template(), src: ti.template(), stage: ti.template(),
-                dt: ti.f64, slot: ti.i32, wants: ti.template(), serial: ti.template()):
-    """``adjoint_step`` as parallel loops, or with ``serial`` in one serial loop."""
+                dt: ti.f64, t: ti.f64, slot: ti.i32, wants: ti.template(), serial: ti.template()):
+    """``adjoint_step`` of the step of dt (s) ending at time t (s) as parallel loops, or
+    with ``serial`` in one serial loop."""
     if ti.static(serial):
         ti.loop_config(serialize=True)
         for _ in range(1):
-            adjoint_step(dev, cfg, adj, src, stage, ti.cast(dt, ti.f64), slot, wants)
+            adjoint_step(dev, cfg, adj, src, stage, ti.cast(dt, ti.f64), ti.cast(t, ti.f64), slot, wants)
     else:
-        adjoint_step(dev, cfg, adj, src, stage, ti.cast(dt, ti.f64), slot, wants)
+        adjoint_step(dev, cfg, adj, src, stage, ti.cast(dt, ti.f64), ti.cast(t, ti.f64), slot, wants)

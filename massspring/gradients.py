@@ -17,7 +17,7 @@ bytes a particle, and one forward step more per step than the forward run.
 
 Built so far (issue 39): the explicit, symplectic, RK4, linearised implicit, backward
 Euler, BDF2 and implicit midpoint integrators, with springs, damping, gravity, drag and wind, pins (fixed or moving,
-with their velocities' gradient), one collider: a plane, sphere or box (explicit and symplectic steps) and
+with their velocities' gradient), one collider: a plane, sphere or box (explicit, symplectic and RK4 steps) and
 controls over time (keyframed pins, wind, actuated rest lengths: ``ControlShares``). The adjoint kernels are compiled and
 their fields allocated only when a gradient is asked for: a forward run is as before.
 """
@@ -138,12 +138,12 @@ def gradient(model, objective, wrt, *, steps, every=1, integrator="symplectic", 
             POOL.give(adj)
 
 
-CONTACT_INTEGRATORS = ("explicit", "symplectic")  # those whose contact response has an adjoint
+CONTACT_INTEGRATORS = ("explicit", "symplectic", "rk4")  # those whose contact response has an adjoint
 
 
 def _check_colliders(model, integrator):
     """Contact has a gradient (its branches frozen: ``contact.respond_adjoint``) for one
-    collider (a plane, a sphere or a box) and the explicit and symplectic steps; anything
+    collider (a plane, a sphere or a box) and the explicit, symplectic and RK4 steps; anything
     else is refused."""
     if not model.has_colliders:
         return
@@ -152,7 +152,7 @@ def _check_colliders(model, integrator):
         raise ValueError(f"model: gradients through contact are built for one collider, got {kinds} (issue 39)")
     if integrator not in CONTACT_INTEGRATORS:
         raise ValueError(f"integrator: gradients through contact are built for "
-                         f"{' and '.join(CONTACT_INTEGRATORS)} steps, got {integrator!r} (issue 39)")
+                         f"{', '.join(CONTACT_INTEGRATORS)} steps, got {integrator!r} (issue 39)")
 
 
 @dataclass(frozen=True)

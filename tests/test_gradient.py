@@ -274,7 +274,7 @@ def test_self_collision_is_refused():
     ([ms.Plane([0, 0, 0], [0, 0, 1]), ms.Sphere([0, 0, -1], 0.5)], "symplectic",
      ["model", "one collider", "Plane, Sphere"]),
     ([ms.Plane([0, 0, 0], [0, 0, 1])] * 2, "symplectic", ["model", "one collider", "Plane, Plane"]),
-    ([ms.Sphere([0, 0, -1], 0.5)], "implicit", ["integrator", "explicit and symplectic", "'implicit'"])])
+    ([ms.Sphere([0, 0, -1], 0.5)], "implicit", ["integrator", "explicit, symplectic, rk4", "'implicit'"])])
 def test_contact_without_an_adjoint_is_refused(colliders, integrator, words):
     model = ms.Model([[0.0, 0.0, 1.0], [0.1, 0.0, 1.0]], [[0, 1]], colliders=colliders)
     with pytest.raises(ValueError) as info:
@@ -313,7 +313,7 @@ def ground_sheet(case, **changes):
 
 
 @pytest.mark.fast_sample(integrator=["symplectic"], case=["slide"])
-@pytest.mark.parametrize("integrator", ["explicit", "symplectic"])
+@pytest.mark.parametrize("integrator", ["explicit", "symplectic", "rk4"])
 @pytest.mark.parametrize("case", ["slide", "stick", "fall"])
 def test_contact_with_a_plane_has_the_gradient_of_its_branches(integrator, case):
     """Resting contact on a plane, sliding or sticking, and a landing with restitution:
@@ -374,7 +374,7 @@ def curved_sheet(collider, **changes):
 
 
 @pytest.mark.fast_sample(integrator=["symplectic"], collider=["sphere"])
-@pytest.mark.parametrize("integrator", ["explicit", "symplectic"])
+@pytest.mark.parametrize("integrator", ["explicit", "symplectic", "rk4"])
 @pytest.mark.parametrize("collider", ["sphere", "sphere-stick", "box"])
 def test_contact_with_a_curved_surface_has_the_gradient_of_its_branches(integrator, collider):
     """A sheet landing on a sphere or on a box's rounded edge, sliding or sticking: the

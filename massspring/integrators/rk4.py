@@ -70,7 +70,8 @@ class RK4(SwappingStates):
 
     def adjoint(self, adj, slot, wants):
         """``rk4.rk4_adjoint`` of the step from the state kept at ``slot`` (no solve: None)."""
-        rk4.rk4_adjoint(self.dev, self.cfg, adj, self.state, self.stage, self.settings.dt, slot, wants, self.serial)
+        rk4.rk4_adjoint(self.dev, self.cfg, adj, self.state, self.stage, self.settings.dt,
+                        self.time + self.settings.dt, slot, wants, self.serial)
 
     def advance(self, steps):
         dev, cfg, dt = self.dev, self.cfg, self.settings.dt
