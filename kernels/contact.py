@@ -188,35 +188,53 @@ def restitution(dev, kind: ti.template(), k):
 def respond(dev, cfg: ti.template(), x0, x, v, h, t):
     """The explicit integrators' contact response (see the module docstring) to the free
     step x0 -> (x, v) of a free particle ending at time t: returns the new (x, v)."""
+    xr, vr, _ = respond_upto(dev, cfg, x0, x, v, h, t, ti.static(cfg.collider_count))
+    return xr, vr
+
+
+@ti.func
+def respond_upto(dev, cfg: ti.template(), x0, x, v, h, t, upto: ti.template()):
+    """``respond`` by the colliders before the ``upto``-th (``cfg.collider_order``):
+    returns (x, v, the moves onto surfaces so far)."""
     xr = x
     vr = v
     shift = ti.Vector.zero(cfg.real, 3)  # the moves onto surfaces so far: kept when the position is recomputed
-    for kind, count, first in ti.static(cfg.colliders):
-        for k in ti.static(range(count)):
-            d, n = kind.distance(dev, cfg, k, xr, t)
-            if d <= tiny_length(cfg.real):  # touching, to round-off
-                vc = velocity(dev, kind, k)
-                rel = vr - vc
-                vn = rel.dot(n)
-                if vn < 0:
-                    e = restitution(dev, kind, k)
-                    tangent = rel - vn * n
-                    speed = ti.sqrt(tangent.dot(tangent))
-                    limit = -mu(dev, kind, k) * (1 + e) * vn
-                    kept = ti.cast(0, cfg.real)
-                    if speed > limit:
-                        kept = 1 - limit / speed
-                    vr = vc + kept * tangent - e * vn * n
-                    moved = x0 + shift + h * vr
-                    gap, normal = kind.distance(dev, cfg, k, moved, t)
-                    shift -= gap * normal
-                    xr = x0 + shift + h * vr
-                    if ti.static(first + k > 0):  # the new velocity may carry it back into an earlier one
-                        out = project(dev, cfg, xr, t, first + k)
-                        xr = out
-                elif d < 0:
-                    xr = xr - d * n
-    return xr, vr
+    for kind, k, index in ti.static(cfg.collider_order):
+        if ti.static(index < upto):
+            xr, vr, shift = respond_one(dev, cfg, kind, k, index, x0, xr, vr, shift, h, t)
+    return xr, vr, shift
+
+
+@ti.func
+def respond_one(dev, cfg: ti.template(), kind: ti.template(), k: ti.template(), index: ti.template(), x0, xr, vr,
+                shift, h, t):
+    """Collider ``index``'s part of ``respond`` (its k-th of ``kind``): (x, v, shift) after it."""
+    x_out = xr
+    v_out = vr
+    s_out = shift
+    d, n = kind.distance(dev, cfg, k, xr, t)
+    if d <= tiny_length(cfg.real):  # touching, to round-off
+        vc = velocity(dev, kind, k)
+        rel = vr - vc
+        vn = rel.dot(n)
+        if vn < 0:
+            e = restitution(dev, kind, k)
+            tangent = rel - vn * n
+            speed = ti.sqrt(tangent.dot(tangent))
+            limit = -mu(dev, kind, k) * (1 + e) * vn
+            kept = ti.cast(0, cfg.real)
+            if speed > limit:
+                kept = 1 - limit / speed
+            v_out = vc + kept * tangent - e * vn * n
+            moved = x0 + shift + h * v_out
+            gap, normal = kind.distance(dev, cfg, k, moved, t)
+            s_out = shift - gap * normal
+            x_out = x0 + s_out + h * v_out
+            if ti.static(index > 0):  # the new velocity may carry it back into an earlier one
+                x_out = project(dev, cfg, x_out, t, index)
+        elif d < 0:
+            x_out = xr - d * n
+    return x_out, v_out, s_out
 
 
 @ti.func
@@ -350,54 +368,95 @@ def friction_impulse(i, dev, cfg: ti.template(), carrier):
 @ti.func
 def respond_adjoint(dev, cfg: ti.template(), x0, x, v, h, t, gx, gv):
     """The transpose of ``respond``'s Jacobian at the free step x0 -> (x, v) of a free
-    particle ending at time t, its branch (free, impact sticking or sliding, or only
-    projected out) frozen, for a model whose one collider is a plane, a sphere or a box
-    (``massspring.gradients`` refuses more). From (gx, gv) = dL/d(x_r, v_r) of its
-    outputs returns (dL/dx0 through x_r, dL/dx, dL/dv). With the surface's distance d,
-    normal n(x) and curvature N = dn/dx (``curvature``), rel = v - v_c, vn = rel . n,
-    T = rel - vn n: at an impact v_r = v_c + k T - e vn n with k = 0 (sticking) or
-    1 + mu (1 + e) vn / |T| (sliding), and x_r = P(x0 + h v_r), P(y) = y - d(y) n(y)
-    the projection onto the surface, whose Jacobian is I - n n^T - d N; projected out
-    only, x_r = P(x). x enters an impact through n(x). Everything in f64."""
-    identity = ti.Matrix.identity(ti.f64, 3)
-    ax0 = ti.Vector.zero(ti.f64, 3)
-    ax = gx
-    av = gv
-    for kind, count, first in ti.static(cfg.colliders):  # one collider: this runs once
-        d, n_real = kind.distance(dev, cfg, 0, x, t)
-        n = ti.cast(n_real, ti.f64)
-        if d <= tiny_length(cfg.real):
-            rel = ti.cast(v - velocity(dev, kind, 0), ti.f64)
-            vn = rel.dot(n)
-            if vn < 0:
-                e = ti.cast(restitution(dev, kind, 0), ti.f64)
-                c = ti.cast(mu(dev, kind, 0), ti.f64) * (1 + e)
-                tangent = rel - vn * n
-                speed = ti.sqrt(tangent.dot(tangent))
-                sliding = speed > -c * vn
-                kept = ti.cast(0, ti.f64)
-                if sliding:
-                    kept = 1 + c * vn / speed
-                vr = ti.cast(velocity(dev, kind, 0), ti.f64) + kept * tangent - e * vn * n
-                moved = ti.cast(x0, ti.f64) + h * vr
-                gap, n2_real = kind.distance(dev, cfg, 0, ti.cast(moved, cfg.real), t)
-                n2 = ti.cast(n2_real, ti.f64)
-                projection = identity - n2.outer_product(n2) - ti.cast(gap, ti.f64) * kind.curvature(
-                    dev, cfg, 0, ti.cast(moved, cfg.real), t)
-                ax0 = projection.transpose() @ gx
-                g = gv + h * ax0  # v_r's gradient: it also moves x_r by h v_r
-                an = ti.Vector.zero(ti.f64, 3)  # n's gradient
-                if sliding:  # v_r = v_c + T + c vn t - e vn n, t = T / |T|
-                    u = tangent / speed
-                    gt = g + c * vn / speed * (g - u.dot(g) * u)  # T's
-                    gvn = c * u.dot(g) - e * n.dot(g) - n.dot(gt)  # vn's, through T = rel - vn n too
-                    av = gt + gvn * n
-                    an = -e * vn * g - vn * gt + gvn * rel
-                else:  # v_r = v_c - e vn n
-                    av = -e * n.dot(g) * n
-                    an = -e * (n.dot(g) * rel + vn * g)
-                ax = kind.curvature(dev, cfg, 0, x, t).transpose() @ an
-            elif d < 0:
-                ax = (identity - n.outer_product(n) - ti.cast(d, ti.f64) * kind.curvature(dev, cfg, 0, x, t)
-                      ).transpose() @ gx
-    return ax0, ax, av
+    particle ending at time t, every collider's branch (free, impact sticking or sliding,
+    or only projected out) frozen. From (gx, gv) = dL/d(x_r, v_r) of its outputs returns
+    (dL/dx0, dL/dx, dL/dv). Backwards through the colliders in turn
+    (``respond_one_adjoint``), each one's inputs computed again (``respond_upto``)."""
+    gxr = ti.cast(gx, ti.f64)
+    gvr = ti.cast(gv, ti.f64)
+    gshift = ti.Vector.zero(ti.f64, 3)
+    gx0 = ti.Vector.zero(ti.f64, 3)
+    for kind, k, index in ti.static(cfg.collider_order_back):
+        xr, vr, shift = respond_upto(dev, cfg, x0, x, v, h, t, index)
+        gxr, gvr, gshift, gx0 = respond_one_adjoint(dev, cfg, kind, k, index, x0, xr, vr, shift, h, t, gxr, gvr,
+                                                    gshift, gx0)
+    return gx0, gxr, gvr
+
+
+@ti.func
+def projection_jacobian(dev, cfg: ti.template(), kind: ti.template(), k: ti.template(), y, t):
+    """The Jacobian (f64) of P(y) = y - d(y) n(y), the projection onto collider k's
+    surface: I - n n^T - d N, N = dn/dy (``curvature``)."""
+    d, n_real = kind.distance(dev, cfg, k, y, t)
+    n = ti.cast(n_real, ti.f64)
+    return ti.Matrix.identity(ti.f64, 3) - n.outer_product(n) - ti.cast(d, ti.f64) * kind.curvature(dev, cfg, k, y, t)
+
+
+@ti.func
+def project_adjoint(dev, cfg: ti.template(), y, t, upto: ti.template(), g):
+    """The transpose of ``project``'s Jacobian at y (by the first ``upto`` colliders, each
+    one's projection frozen as taken) applied to g (f64)."""
+    out = g
+    for kind, k, index in ti.static(cfg.collider_order_back):
+        if ti.static(index < upto):
+            at = project(dev, cfg, y, t, index)  # what collider index was given
+            d, _ = kind.distance(dev, cfg, k, at, t)
+            if d < 0:
+                out = projection_jacobian(dev, cfg, kind, k, at, t).transpose() @ out
+    return out
+
+
+@ti.func
+def respond_one_adjoint(dev, cfg: ti.template(), kind: ti.template(), k: ti.template(), index: ti.template(), x0,
+                        xr, vr, shift, h, t, gxr, gvr, gshift, gx0):
+    """The transpose of ``respond_one``'s Jacobian at its inputs (xr, vr, shift) with the
+    gradients (gxr, gvr, gshift) of its outputs; returns those of its inputs and gx0 with
+    dL/dx0's share added. With the surface's distance d, normal n(xr), curvature N = dn/dx
+    (``curvature``), rel = vr - v_c, vn = rel . n, T = rel - vn n: at an impact v' = v_c +
+    kappa T - e vn n with kappa = 0 (sticking) or 1 + mu (1 + e) vn / |T| (sliding), then
+    moved = x0 + shift + h v', shift' = shift + P(moved) - moved and x' = P(moved) (then
+    ``project``ed out of the colliders before), P the projection onto the surface
+    (``projection_jacobian``); projected out only, x' = P(xr). Everything in f64."""
+    gx_in = gxr
+    gv_in = gvr
+    gs_in = gshift
+    d, n_real = kind.distance(dev, cfg, k, xr, t)
+    n = ti.cast(n_real, ti.f64)
+    if d <= tiny_length(cfg.real):
+        rel = ti.cast(vr - velocity(dev, kind, k), ti.f64)
+        vn = rel.dot(n)
+        if vn < 0:
+            e = ti.cast(restitution(dev, kind, k), ti.f64)
+            c = ti.cast(mu(dev, kind, k), ti.f64) * (1 + e)
+            tangent = rel - vn * n
+            speed = ti.sqrt(tangent.dot(tangent))
+            sliding = speed > -c * vn
+            kappa = ti.cast(0, ti.f64)
+            if sliding:
+                kappa = 1 + c * vn / speed
+            v_new = ti.cast(velocity(dev, kind, k), ti.f64) + kappa * tangent - e * vn * n
+            moved = ti.cast(x0 + shift, ti.f64) + h * v_new
+            landed = ti.cast(moved, cfg.real)
+            gy = gxr
+            if ti.static(index > 0):
+                gap, normal = kind.distance(dev, cfg, k, landed, t)
+                gy = project_adjoint(dev, cfg, landed - gap * normal, t, index, gxr)
+            jacobian = projection_jacobian(dev, cfg, kind, k, landed, t)
+            g_moved = jacobian.transpose() @ (gy + gshift) - gshift
+            gx0 += g_moved
+            gs_in = gshift + g_moved
+            g = gvr + h * g_moved  # v''s gradient: it also moves x' and the shift through moved
+            an = ti.Vector.zero(ti.f64, 3)  # n's gradient
+            if sliding:  # v' = v_c + T + c vn u - e vn n, u = T / |T|
+                u = tangent / speed
+                gt = g + c * vn / speed * (g - u.dot(g) * u)  # T's
+                gvn = c * u.dot(g) - e * n.dot(g) - n.dot(gt)  # vn's, through T = rel - vn n too
+                gv_in = gt + gvn * n
+                an = -e * vn * g - vn * gt + gvn * rel
+            else:  # v' = v_c - e vn n
+                gv_in = -e * n.dot(g) * n
+                an = -e * (n.dot(g) * rel + vn * g)
+            gx_in = kind.curvature(dev, cfg, k, xr, t).transpose() @ an
+        elif d < 0:
+            gx_in = projection_jacobian(dev, cfg, kind, k, xr, t).transpose() @ gxr
+    return gx_in, gv_in, gs_in, gx0

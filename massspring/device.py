@@ -192,6 +192,16 @@ class Config:
         """The number of colliders, all kinds."""
         return sum(count for _, count, _ in self.colliders)
 
+    @property
+    def collider_order(self):
+        """(kind, k, index) of every collider in the order the contact response meets them
+        (``index`` among all kinds); ``collider_order_back``: the same backwards."""
+        return tuple((kind, k, first + k) for kind, count, first in self.colliders for k in range(count))
+
+    @property
+    def collider_order_back(self):
+        return self.collider_order[::-1]
+
     @classmethod
     def of(cls, model, precision, **switches):
         terms = active_terms(model)

@@ -271,9 +271,8 @@ def test_self_collision_is_refused():
 
 
 @pytest.mark.parametrize("colliders, integrator, words", [
-    ([ms.Plane([0, 0, 0], [0, 0, 1]), ms.Sphere([0, 0, -1], 0.5)], "symplectic",
-     ["model", "one collider", "Plane, Sphere"]),
-    ([ms.Plane([0, 0, 0], [0, 0, 1])] * 2, "symplectic", ["model", "one collider", "Plane, Plane"]),
+    ([ms.Plane([0, 0, 0], [0, 0, 1]), ms.Sphere([0, 0, -1], 0.5)], "backward-euler",
+     ["integrator", "explicit, symplectic, rk4", "'backward-euler'"]),
     ([ms.Sphere([0, 0, -1], 0.5)], "implicit", ["integrator", "explicit, symplectic, rk4", "'implicit'"])])
 def test_contact_without_an_adjoint_is_refused(colliders, integrator, words):
     model = ms.Model([[0.0, 0.0, 1.0], [0.1, 0.0, 1.0]], [[0, 1]], colliders=colliders)
@@ -345,7 +344,10 @@ def curved_sheet(collider, **changes):
     """The 3 x 3 damped sheet with shear springs falling 3-4 cm onto a curved surface with
     restitution 0.5: "sphere" (radius 0.5 m, its top under the sheet's middle) or "box"
     (a rounded edge of radius 0.2 m along y under it), friction 0.2 (sliding as it lands),
-    or "sphere-stick" with friction 3 (sticking where it lands)."""
+    "sphere-stick" with friction 3 (sticking where it lands), or "groove": two planes
+    tilted by 0.3 towards a valley along y under the sheet's middle row, which lands in
+    both within one step (the response takes them in turn: the second moves it on from
+    the first's landing and projects it out of the first again)."""
     rng = np.random.default_rng(5)
     side = 3
     positions = np.array([[i * 0.1, j * 0.1, 0.0] for j in range(side) for i in range(side)])
@@ -364,25 +366,30 @@ def curved_sheet(collider, **changes):
         surface = ms.Box((-1.0, -1.0, -1.0), (0.15, 1.0, 0.0), radius=0.2, friction=0.2, restitution=0.5)
         over = np.maximum(positions[:, 0] - (0.15 - 0.2), 0.0)
         height = np.sqrt(np.maximum(0.04 - over ** 2, 0.0)) - 0.2
+    colliders = [surface]
+    if collider == "groove":
+        colliders = [ms.Plane((0.1, 0.0, 0.0), (side_x * 0.5, 0.0, 1.0), friction=0.1) for side_x in (-1.0, 1.0)]
+        height = 0.5 * np.abs(positions[:, 0] - 0.1)
     positions[:, 2] = height + 0.031 + rng.uniform(0, 0.01, n)
-    velocities = np.tile([0.5, 0.2, -1.0], (n, 1)) + rng.normal(0, 0.05, (n, 3))
+    drift = 0.0 if collider == "groove" else 0.5  # in the groove: the middle row lands in the valley
+    velocities = np.tile([drift, 0.2, -1.0], (n, 1)) + rng.normal(0, 0.05, (n, 3))
     values = dict(positions=positions, masses=rng.uniform(0.5, 1.5, n), stiffness=rng.uniform(50, 150, m),
                   damping=rng.uniform(0.1, 1, m), rest_lengths=rng.uniform(0.09, 0.11, m), velocities=velocities,
                   gravity=np.array([0.0, 0.0, -9.8]))
     values.update(changes)
-    return ms.Model(values.pop("positions"), springs, colliders=[surface], **values)
+    return ms.Model(values.pop("positions"), springs, colliders=colliders, **values)
 
 
 @pytest.mark.fast_sample(integrator=["symplectic"], collider=["sphere"])
 @pytest.mark.parametrize("integrator", ["explicit", "symplectic", "rk4"])
-@pytest.mark.parametrize("collider", ["sphere", "sphere-stick", "box"])
+@pytest.mark.parametrize("collider", ["sphere", "sphere-stick", "box", "groove"])
 def test_contact_with_a_curved_surface_has_the_gradient_of_its_branches(integrator, collider):
     """A sheet landing on a sphere or on a box's rounded edge, sliding or sticking: the
     surface's normal turns with the position (``curvature``), in the impulse and in the
     projection onto the surface; with the branches frozen, the gradient agrees with
     central differences to 1e-6 relative in every parameter kind and the initial state."""
     names = list(PARAMETERS)[:7]
-    run = dict(steps=30, every=5, dt=2e-3, integrator=integrator, checkpoint=7)
+    run = dict(steps=60 if collider == "groove" else 30, every=5, dt=2e-3, integrator=integrator, checkpoint=7)
     model = curved_sheet(collider)
     value, grads = ms.gradient(model, objective, names, **run)
     values = model_values(model)
