@@ -26,7 +26,7 @@ import taichi as ti
 
 from .constraints import is_pinned
 from .contact import project
-from .forces import spring_direction, tiny_length
+from .forces import spring_direction, spring_sum, tiny_length
 
 RELAX = 1.5  # over-relaxation of the corrections: 100-150 iterations where 1.0 needs over 200 (a taut hanging cloth)
 
@@ -71,14 +71,7 @@ def iteration(dev, cfg: ti.template(), state, limit, tol, dt, t):
             dev.sl_dx[s] = ti.cast(RELAX, cfg.real) * c / ((wi + wj) * shares)
     for i in range(n):
         if go and dev.sl_k[i] > 0:
-            total = ti.Vector.zero(cfg.real, 3)
-            for e in range(dev.offsets[i], dev.offsets[i + 1]):
-                s = dev.entry[e]
-                if s >= 0:
-                    total += dev.sl_dx[s]
-                else:
-                    total -= dev.sl_dx[-1 - s]
-            moved = inverse_mass(i, dev, cfg) * total
+            moved = inverse_mass(i, dev, cfg) * ti.cast(spring_sum(i, dev, dev.sl_dx), cfg.real)
             x = state.x[i] + moved
             if ti.static(cfg.has_colliders):
                 x = project(dev, cfg, x, t, ti.static(cfg.collider_count))

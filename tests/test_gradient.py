@@ -282,12 +282,9 @@ def test_contact_without_an_adjoint_is_refused(colliders, integrator, words):
         assert word in str(info.value), (word, str(info.value))
 
 
-def ground_sheet(case, **changes):
-    """A 3 x 3 damped sheet with shear springs on the ground plane z = 0 (friction,
-    restitution): "slide" lies on it sliding, "stick" lies on it with friction enough to
-    hold every particle, "fall" starts 3-4 cm above it, lands in the run and slides."""
-    rng = np.random.default_rng(2)
-    side = 3
+def sheet_grid(side=3):
+    """A flat side x side sheet of spacing 0.1 m at z = 0: positions (n, 3) and its
+    structural and shear springs (one diagonal a square)."""
     positions = np.array([[i * 0.1, j * 0.1, 0.0] for j in range(side) for i in range(side)])
     springs = []
     for j in range(side):
@@ -295,6 +292,23 @@ def ground_sheet(case, **changes):
             a = j * side + i
             springs += [[a, a + 1]] * (i + 1 < side) + [[a, a + side]] * (j + 1 < side)
             springs += [[a, a + side + 1]] * (i + 1 < side and j + 1 < side)
+    return positions, springs
+
+
+def sheet_values(rng, positions, velocities, m):
+    """The random per-particle and per-spring values of the contact tests' sheets."""
+    n = len(positions)
+    return dict(positions=positions, masses=rng.uniform(0.5, 1.5, n), stiffness=rng.uniform(50, 150, m),
+                damping=rng.uniform(0.1, 1, m), rest_lengths=rng.uniform(0.09, 0.11, m), velocities=velocities,
+                gravity=np.array([0.0, 0.0, -9.8]))
+
+
+def ground_sheet(case, **changes):
+    """A 3 x 3 damped sheet with shear springs on the ground plane z = 0 (friction,
+    restitution): "slide" lies on it sliding, "stick" lies on it with friction enough to
+    hold every particle, "fall" starts 3-4 cm above it, lands in the run and slides."""
+    rng = np.random.default_rng(2)
+    positions, springs = sheet_grid()
     n, m = len(positions), len(springs)
     friction, restitution = {"slide": (0.3, 0.0), "stick": (1.0, 0.0), "fall": (0.2, 0.5)}[case]
     if case == "fall":
@@ -303,9 +317,7 @@ def ground_sheet(case, **changes):
     else:
         velocities = (np.tile([1.0, 0.3, 0.0], (n, 1)) if case == "slide" else 0) + rng.normal(0, 0.01, (n, 3))
         velocities[:, 2] = 0
-    values = dict(positions=positions, masses=rng.uniform(0.5, 1.5, n), stiffness=rng.uniform(50, 150, m),
-                  damping=rng.uniform(0.1, 1, m), rest_lengths=rng.uniform(0.09, 0.11, m), velocities=velocities,
-                  gravity=np.array([0.0, 0.0, -9.8]))
+    values = sheet_values(rng, positions, velocities, m)
     values.update(changes)
     plane = ms.Plane((0, 0, 0), (0, 0, 1), friction=friction, restitution=restitution)
     return ms.Model(values.pop("positions"), springs, colliders=[plane], **values)
@@ -323,18 +335,25 @@ def test_contact_with_a_plane_has_the_gradient_of_its_branches(integrator, case)
     (the others are at the differences' round-off)."""
     names = ["positions", "velocities"] if case == "stick" else list(PARAMETERS)[:7]
     run = dict(steps=30, every=5, dt=2e-3, integrator=integrator, checkpoint=7)
-    model = ground_sheet(case)
+    check_against_differences(lambda **changes: ground_sheet(case, **changes), names, run, along_plane=case != "fall")
+
+
+def check_against_differences(make, names, run, along_plane=False):
+    """The gradient of ``make()``'s run against central differences of the runs of
+    ``make(name=value +- eps direction)`` (a step of 1e-5 of the largest value), to 1e-6
+    relative, along a random direction per name; ``along_plane``: the initial state's
+    directions have no z (particles lying on z = 0, which a lift would take off)."""
+    model = make()
     value, grads = ms.gradient(model, objective, names, **run)
     values = model_values(model)
     rng = np.random.default_rng(3)
     for name in names:
         direction = rng.normal(size=np.shape(values[name]))
-        if name in ("positions", "velocities") and case != "fall":
-            direction[:, 2] = 0  # along the plane: the particles lie on it (a lift would switch a branch)
+        if name in ("positions", "velocities") and along_plane:
+            direction[:, 2] = 0
         direction /= np.abs(direction).max()
         eps = 1e-5 * max(1.0, np.abs(values[name]).max())  # 1e-6 lifts round-off to 9e-7 of damping's
-        ends = [run_value(ground_sheet(case, **{name: values[name] + sign * eps * direction}), objective, run)
-                for sign in (1, -1)]
+        ends = [run_value(make(**{name: values[name] + sign * eps * direction}), objective, run) for sign in (1, -1)]
         numeric = (ends[0] - ends[1]) / (2 * eps)
         exact = float(np.sum(grads[name] * direction))
         assert abs(exact - numeric) <= 1e-6 * abs(numeric), (name, exact, numeric)
@@ -345,37 +364,28 @@ def curved_sheet(collider, **changes):
     restitution 0.5: "sphere" (radius 0.5 m, its top under the sheet's middle) or "box"
     (a rounded edge of radius 0.2 m along y under it), friction 0.2 (sliding as it lands),
     "sphere-stick" with friction 3 (sticking where it lands), or "groove": two planes
-    tilted by 0.3 towards a valley along y under the sheet's middle row, which lands in
-    both within one step (the response takes them in turn: the second moves it on from
-    the first's landing and projects it out of the first again)."""
+    (friction 0.1, no restitution) tilted by 0.5 towards a valley along y under the
+    sheet's middle row, which lands in the valley and then meets both within a step
+    (the response takes them in turn: the second moves it on from the first's landing
+    and projects it out of the first again)."""
     rng = np.random.default_rng(5)
-    side = 3
-    positions = np.array([[i * 0.1, j * 0.1, 0.0] for j in range(side) for i in range(side)])
-    springs = []
-    for j in range(side):
-        for i in range(side):
-            a = j * side + i
-            springs += [[a, a + 1]] * (i + 1 < side) + [[a, a + side]] * (j + 1 < side)
-            springs += [[a, a + side + 1]] * (i + 1 < side and j + 1 < side)
+    positions, springs = sheet_grid()
     n, m = len(positions), len(springs)
     if collider.startswith("sphere"):
-        surface = ms.Sphere((0.1, 0.1, -0.5), 0.5, friction=3.0 if collider == "sphere-stick" else 0.2,
-                            restitution=0.5)
+        colliders = [ms.Sphere((0.1, 0.1, -0.5), 0.5, friction=3.0 if collider == "sphere-stick" else 0.2,
+                               restitution=0.5)]
         height = np.sqrt(0.25 - (positions[:, 0] - 0.1) ** 2 - (positions[:, 1] - 0.1) ** 2) - 0.5
-    else:  # the box's top at z = 0, its rounded edge (x = 0.15) under the sheet
-        surface = ms.Box((-1.0, -1.0, -1.0), (0.15, 1.0, 0.0), radius=0.2, friction=0.2, restitution=0.5)
+    elif collider == "box":  # the box's top at z = 0, its rounded edge (x = 0.15) under the sheet
+        colliders = [ms.Box((-1.0, -1.0, -1.0), (0.15, 1.0, 0.0), radius=0.2, friction=0.2, restitution=0.5)]
         over = np.maximum(positions[:, 0] - (0.15 - 0.2), 0.0)
         height = np.sqrt(np.maximum(0.04 - over ** 2, 0.0)) - 0.2
-    colliders = [surface]
-    if collider == "groove":
+    else:
         colliders = [ms.Plane((0.1, 0.0, 0.0), (side_x * 0.5, 0.0, 1.0), friction=0.1) for side_x in (-1.0, 1.0)]
         height = 0.5 * np.abs(positions[:, 0] - 0.1)
     positions[:, 2] = height + 0.031 + rng.uniform(0, 0.01, n)
     drift = 0.0 if collider == "groove" else 0.5  # in the groove: the middle row lands in the valley
     velocities = np.tile([drift, 0.2, -1.0], (n, 1)) + rng.normal(0, 0.05, (n, 3))
-    values = dict(positions=positions, masses=rng.uniform(0.5, 1.5, n), stiffness=rng.uniform(50, 150, m),
-                  damping=rng.uniform(0.1, 1, m), rest_lengths=rng.uniform(0.09, 0.11, m), velocities=velocities,
-                  gravity=np.array([0.0, 0.0, -9.8]))
+    values = sheet_values(rng, positions, velocities, m)
     values.update(changes)
     return ms.Model(values.pop("positions"), springs, colliders=colliders, **values)
 
@@ -388,21 +398,8 @@ def test_contact_with_a_curved_surface_has_the_gradient_of_its_branches(integrat
     surface's normal turns with the position (``curvature``), in the impulse and in the
     projection onto the surface; with the branches frozen, the gradient agrees with
     central differences to 1e-6 relative in every parameter kind and the initial state."""
-    names = list(PARAMETERS)[:7]
     run = dict(steps=60 if collider == "groove" else 30, every=5, dt=2e-3, integrator=integrator, checkpoint=7)
-    model = curved_sheet(collider)
-    value, grads = ms.gradient(model, objective, names, **run)
-    values = model_values(model)
-    rng = np.random.default_rng(3)
-    for name in names:
-        direction = rng.normal(size=np.shape(values[name]))
-        direction /= np.abs(direction).max()
-        eps = 1e-5 * max(1.0, np.abs(values[name]).max())
-        ends = [run_value(curved_sheet(collider, **{name: values[name] + sign * eps * direction}), objective, run)
-                for sign in (1, -1)]
-        numeric = (ends[0] - ends[1]) / (2 * eps)
-        exact = float(np.sum(grads[name] * direction))
-        assert abs(exact - numeric) <= 1e-6 * abs(numeric), (name, exact, numeric)
+    check_against_differences(lambda **changes: curved_sheet(collider, **changes), list(PARAMETERS)[:7], run)
 
 
 @pytest.mark.parametrize("returned, words", [
