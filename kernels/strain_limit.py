@@ -6,20 +6,22 @@ order of the springs or on the thread count.
 
 One iteration (``strain_limit_iteration``) at the state (x, v) after a step of dt:
 
-1. each spring s = (i, j) of length l > (1 + s - tol) l0 is violated by e = l - (1 + s - tol) l0 (m),
-   tol a little below the limit (``massspring.strain_limit.TOLERANCE``) so that the
-   iterations end with every spring within it;
+1. each spring s = (i, j) of length l > (1 + s - tol) l0 is violated by
+   e = l - (1 + s - tol) l0 (m): springs are shortened a little below the limit (tol =
+   ``massspring.strain_limit.TOLERANCE``), so that the iterations end with every spring
+   within it (a spring of zero rest length is not limited);
 2. k_i: the number of violated springs at particle i;
-3. the spring's correction c = w e u / ((w_i + w_j) K) (w = ``RELAX``), u = (x_j - x_i) / l, w_i the inverse
-   masses (0 for a pinned particle),
-   K = max(k_i, k_j) (one share for both ends, so that the pair conserves momentum);
+3. the spring's correction c = w e u / ((w_i + w_j) K), w = ``RELAX``, u = (x_j - x_i) / l,
+   w_i the inverse masses (0 for a pinned particle), K = max(k_i, k_j) (one share for both
+   ends, so that the pair conserves momentum);
 4. x_i += w_i sum of c over its violated springs (+ at its first end, - at its second), and
    v_i += that change / dt, so that the velocity is the step's displacement over dt.
 
 Both ends move by mass-weighted shares of the same correction along the spring, so a
 model with no pins and no collider keeps its linear momentum to round-off.
 With colliders, a moved particle is then projected out of any collider it entered
-(``contact.project``): a particle resting on a collider slides along it. Fields: ``sl_dx`` (a vec3 per spring), ``sl_k`` (an i32 per particle).
+(``contact.project``): a particle resting on a collider slides along it. Fields:
+``sl_dx`` (a vec3 per spring), ``sl_k`` (an i32 per particle).
 """
 
 import taichi as ti

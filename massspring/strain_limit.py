@@ -51,13 +51,13 @@ def declare(layout):
 class Pass:
     """The strain limit of one simulation, run on the state after each step (``end``;
     ``serial``: all its iterations in one serial launch, else one parallel launch each):
-    Jacobi iterations until no spring is stretched past the limit or ``ITERATIONS``
-    have run. ``last``: (iterations that moved particles, the largest
-    l / l0 - 1 before the pass, the largest after it) of the last step; ``unmet``: steps
-    that ended with a spring still past the limit after ``ITERATIONS``; ``steps``: steps
-    whose pass moved particles; ``most``: the most iterations of a step
-    (the last of the ``ITERATIONS`` + 1 launches then moves particles too, and "after"
-    is measured before it)."""
+    Jacobi iterations until no spring is stretched past the limit, at most
+    ``ITERATIONS`` that move particles (then one more launch measures, and moves them
+    again if a spring is still over). ``last``: (iterations that moved particles, the
+    largest l / l0 - 1 before the pass, the largest at the last launch's start) of the
+    last step; ``unmet``: steps that ended with a spring still past the limit;
+    ``steps``: steps whose pass moved particles; ``most``: the most iterations of a step.
+    """
 
     def __init__(self, dev, cfg, limit, serial, dt):
         self.dev, self.cfg, self.limit, self.serial, self.dt = dev, cfg, limit, serial, dt
