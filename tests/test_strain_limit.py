@@ -148,6 +148,15 @@ def test_run_prints_what_the_limit_did(capsys):
     assert "strain " not in capsys.readouterr().out
 
 
+def test_info_says_the_limit(capsys):
+    from massspring.cli import main
+
+    assert main(["info", "drape", "--set", "resolution=8"]) == 0
+    assert "strain      limit 0.1: no spring longer than 1.1 times its rest length" in capsys.readouterr().out
+    assert main(["info", "cloth", "--set", "resolution=8"]) == 0
+    assert "strain " not in capsys.readouterr().out
+
+
 def test_gradients_refuse_a_limit():
     def objective(frames):
         return 0.0, {}

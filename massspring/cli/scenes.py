@@ -43,6 +43,9 @@ def cmd_info(args):
     if sim.model.has_colliders:
         print("colliders   " + "; ".join(f"{c.kind} (friction {c.friction:g}, restitution {c.restitution:g}"
                                          + (", moving" if c.moving else "") + ")" for c in sim.model.colliders))
+    if sim.model.has_strain_limit:
+        print(f"strain      limit {sim.model.strain_limit:g}: no spring longer than "
+              f"{1 + sim.model.strain_limit:g} times its rest length after a step")
     for term in active_terms(sim.model):
         if term.parameters:
             print(f"{term.name:<11} " + ", ".join(f"{p.name} {_shown(getattr(sim.model, p.name))} {p.unit}"
