@@ -416,8 +416,8 @@ class Simulation:
         """``n`` steps of ``integrator``: in launches of up to ``STEPS_PER_LAUNCH`` steps
         (cut at the control schedule's interval ends) when it keeps no per-step statistics
         and no strain limit or self-collision pass runs between steps, else one step at a
-        time. Counts the
-        good steps and the solver statistics; raises ``DivergenceError`` at a failed step."""
+        time. Counts the good steps and the solver statistics; raises ``DivergenceError``
+        at a failed step."""
         schedule = self._schedule
         if not integrator.has_stats and self._guard is None and self._limit is None:
             while n:
@@ -436,12 +436,12 @@ class Simulation:
             if self._guard is not None:
                 self._guard.begin(integrator.state)
             done, check = integrator.advance(1)
-            if done and self._limit is not None:
+            if done and (self._limit is not None or self._guard is not None):
                 integrator.settle()
-                self._limit.end(integrator.state, integrator.time)
-            if done and self._guard is not None:
-                integrator.settle()
-                self._guard.end(integrator.state)
+                if self._limit is not None:
+                    self._limit.end(integrator.state, integrator.time)
+                if self._guard is not None:
+                    self._guard.end(integrator.state)
             if not integrator.has_stats:
                 self._steps += done
                 self._raise_if_diverged(check)
