@@ -151,7 +151,7 @@ def adjoint_step(dev, cfg: ti.template(), adj, src, dt, t, slot, symplectic: ti.
         adj.w[i] = h * mu
         if ti.static(wants.pins):
             pin_adjoint(i, dev, cfg, adj, h)
-    acceleration_adjoint(dev, cfg, adj, src.x, src.v, wants)
+    acceleration_adjoint(dev, cfg, adj, src.x, src.v, wants, src.x, False)
     for i in range(n):
         lx = adj.lx[i]
         lv = ti.Vector.zero(ti.f64, 3)

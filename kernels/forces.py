@@ -45,19 +45,33 @@ def spring_direction(d, real: ti.template()):
 def spring_forces(dev, cfg: ti.template(), x, v, rhs: ti.template()):
     """``dev.fs[s]``: spring s's force on its first end (N), the sum of the spring
     terms' ``tension`` (``rhs_tension`` with ``rhs``: Eq. 15's f - D v) times n."""
+    lagged_spring_forces(dev, cfg, x, v, rhs, x, False)
+
+
+@ti.func
+def lagged_spring_forces(dev, cfg: ti.template(), x, v, rhs: ti.template(), xs, lagged: ti.template()):
+    """``spring_forces``; with ``lagged``, the rate-dependent terms' tension along the
+    springs' directions at the positions ``xs`` (the Newton-solved steps' prediction,
+    ``kernels/newton.py``)."""
     if ti.static(cfg.has_springs):
         for s in range(dev.size[1]):
             i = dev.ends[s][0]
             j = dev.ends[s][1]
             n, length = spring_direction(x[j] - x[i], cfg.real)
+            m = n
+            if ti.static(lagged):
+                m, _ = spring_direction(xs[j] - xs[i], cfg.real)
             t = ti.cast(0, cfg.real)
-            if length > tiny_length(cfg.real):
-                for term in ti.static(cfg.spring_terms):
+            rate = ti.cast(0, cfg.real)
+            for term in ti.static(cfg.spring_terms):
+                if ti.static(lagged and term.rate_dependent):
+                    rate += term.tension(s, dev, i, j, x, v, m, length)
+                elif length > tiny_length(cfg.real):
                     if ti.static(rhs):
                         t += term.rhs_tension(s, dev, i, j, x, v, n, length)
                     else:
                         t += term.tension(s, dev, i, j, x, v, n, length)
-            dev.fs[s] = t * n
+            dev.fs[s] = t * n + rate * m
 
 
 @ti.func
@@ -96,7 +110,7 @@ def spring_sum(i, dev, values):
 
 
 @ti.func
-def acceleration_adjoint(dev, cfg: ti.template(), adj, x, v, wants: ti.template()):
+def acceleration_adjoint(dev, cfg: ti.template(), adj, x, v, wants: ti.template(), xs, lagged: ti.template()):
     """The adjoint of the accelerations a_i = f_i(x, v) / m_i (``massspring.gradients``): on
     entry ``adj.w[i]`` holds dL/da_i (ignored at pinned particles); on exit it holds
     w_i = dL/da_i / m_i (0 at pins), ``adj.sx[s]``, ``adj.sv[s]`` the gradients of
@@ -105,11 +119,14 @@ def acceleration_adjoint(dev, cfg: ti.template(), adj, x, v, wants: ti.template(
     ``adj.px[i]``, ``adj.pv[i]`` those of the particle terms' in x_i and v_i (add them as
     they are), and the parameters' gradients added: every spring term's, dL/dm_i -= w_i . (f_i -
     m_i g) / m_i (with ``wants.masses``), dL/dg += dL/da_i (``adj.gg`` per particle).
-    ``wants``: ``massspring.gradients.Wants``."""
+    ``wants``: ``massspring.gradients.Wants``. With ``lagged`` (a Newton-solved step,
+    ``kernels/newton.py``), the rate-dependent terms act along the directions at the
+    positions ``xs`` (the step's prediction): their gradient in that d goes to
+    ``adj.sl[s]`` (gather it as sx, into the prediction's positions)."""
     n = dev.size[0]
     g = uniform_acceleration(dev, cfg)
     if ti.static(wants.masses):
-        spring_forces(dev, cfg, x, v, False)
+        lagged_spring_forces(dev, cfg, x, v, False, xs, lagged)
     for i in range(n):
         w = ti.Vector.zero(ti.f64, 3)
         if is_free(i, dev, cfg):
@@ -138,12 +155,26 @@ def acceleration_adjoint(dev, cfg: ti.template(), adj, x, v, wants: ti.template(
             unit, length = spring_direction(d, ti.f64)
             gx = ti.Vector.zero(ti.f64, 3)
             gv = ti.Vector.zero(ti.f64, 3)
+            if ti.static(lagged):
+                ds = xs[j] - xs[i]
+                lag, lag_length = spring_direction(ds, ti.f64)
+                gl = ti.Vector.zero(ti.f64, 3)
+                if lag_length > tiny_length(ti.f64):
+                    for term in ti.static(cfg.spring_terms):
+                        if ti.static(term.rate_dependent):
+                            tx, tv = term.adjoint(s, dev, adj, u, ds, r, lag, lag_length)
+                            gl += tx
+                            gv += tv
+                    if ti.static(wants.rate_gradient):
+                        SpringDamping.rate_gradient(s, adj, u, r, lag)
+                adj.sl[s] = gl
             if length > tiny_length(ti.f64):
                 for term in ti.static(cfg.spring_terms):
-                    tx, tv = term.adjoint(s, dev, adj, u, d, r, unit, length)
-                    gx += tx
-                    gv += tv
-                if ti.static(wants.rate_gradient):
+                    if ti.static(not (lagged and term.rate_dependent)):
+                        tx, tv = term.adjoint(s, dev, adj, u, d, r, unit, length)
+                        gx += tx
+                        gv += tv
+                if ti.static(wants.rate_gradient and not lagged):
                     SpringDamping.rate_gradient(s, adj, u, r, unit)
             adj.sx[s] = gx
             adj.sv[s] = gv

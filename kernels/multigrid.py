@@ -41,7 +41,7 @@ import taichi as ti
 
 from .blocks import BLOCK, block_count, block_end, ordered_sum
 from .constraints import constrain, is_free, is_pinned, projector
-from .operator import apply_row, diagonal_block, spring_block
+from .operator import apply_row, diagonal_block, entry_block, entry_times
 from .pair_penalty import pair_diagonal
 
 BS = 6  # unknowns per coarse node
@@ -279,7 +279,7 @@ def fine_inverse(dev: ti.template(), cfg: ti.template(), serial: ti.template()) 
             row = ti.cast(_inf_norm(inverse @ block), ti.f64)
             if ti.static(cfg.has_springs):
                 for e in range(dev.offsets[i], dev.offsets[i + 1]):
-                    row += ti.cast(_inf_norm(inverse @ spring_block(dev.coef[e], cfg.real)), ti.f64)
+                    row += ti.cast(_inf_norm(inverse @ entry_block(e, dev, cfg)), ti.f64)
             ti.atomic_max(bound, row)
         dev.minv[i] = inverse
     return bound
@@ -294,7 +294,7 @@ def kept_block(i, dev, cfg: ti.template(), g: ti.template(), smoothing: ti.templ
     if ti.static(cfg.has_springs):
         for k in range(g.s0_rows[i], g.s0_rows[i + 1]):
             if ti.static(not smoothing) or g.s0_smooth[k] != 0:
-                block += spring_block(dev.coef[g.s0_entry[k]], cfg.real)
+                block += entry_block(g.s0_entry[k], dev, cfg)
     if ti.static(cfg.self_pairs):
         block += pair_diagonal(i, dev, cfg)
     return block
@@ -320,7 +320,7 @@ def smooth_p0(dev: ti.template(), cfg: ti.template(), g: ti.template(), scale: t
                 target = g.e0_slot[k]
                 if target >= 0:
                     e = g.s0_entry[k]
-                    g.p0[target] = g.p0[target] - spring_times(dev.coef[e], g.t0[dev.other[e]], cfg.real)
+                    g.p0[target] = g.p0[target] - entry_times(e, dev, cfg, g.t0[dev.other[e]])
         for k in range(g.p0_rows[i], g.p0_rows[i + 1]):
             g.p0[k] = -s * (dev.minv[i] @ g.p0[k])
         if slot >= 0:
@@ -329,14 +329,6 @@ def smooth_p0(dev: ti.template(), cfg: ti.template(), g: ti.template(), scale: t
             projection = projector(i, dev, cfg)
             for k in range(g.p0_rows[i], g.p0_rows[i + 1]):
                 g.p0[k] = projection @ g.p0[k]
-
-
-@ti.func
-def spring_times(c, p, real: ti.template()):
-    """S p for a spring block S = a I + b n n^T (coefficients ``c`` = (n, a, b)) and a 3x6
-    block p: a p + b n (n^T p), a rank-one update (no 3x3 product)."""
-    n = ti.Vector([c[0], c[1], c[2]], real)
-    return c[3] * p + (c[4] * n).outer_product(p.transpose() @ n)
 
 
 @ti.kernel
@@ -357,10 +349,9 @@ def ap0(dev: ti.template(), cfg: ti.template(), g: ti.template(), serial: ti.tem
             for s in range(g.s0_rows[i], g.s0_rows[i + 1]):
                 e = g.s0_entry[s]
                 j = dev.other[e]
-                c = dev.coef[e]
                 for k in range(g.p0_rows[j], g.p0_rows[j + 1]):
                     target = g.apt0_ap[t]
-                    g.ap0[target] = g.ap0[target] - spring_times(c, g.p0[k], cfg.real)
+                    g.ap0[target] = g.ap0[target] - entry_times(e, dev, cfg, g.p0[k])
                     t += 1
 
 

@@ -106,13 +106,48 @@ def residual_sums(dev, cfg: ti.template(), h):
                 for e in range(dev.offsets[i], dev.offsets[i + 1]):
                     c = dev.coef[e]
                     length = (dev.xk[dev.other[e]] - dev.xk[i]).norm()
-                    scale += (ti.abs(c[3]) + ti.abs(c[4])) * length / h
+                    size = ti.abs(c[3]) + ti.abs(c[4])
+                    if ti.static(cfg.lagged):
+                        size += ti.abs(dev.lag_coef[e][3])
+                    scale += size * length / h
             if ti.static(cfg.has_uniform):
                 scale += h * dev.mass[i] * ti.cast(uniform_acceleration(dev, cfg), cfg.real).norm()
             r = ti.cast(dev.res[i], ti.f64)
             acc += ti.Vector([r.dot(r), ti.cast(scale, ti.f64) ** 2, 0.0], ti.f64)
         dev.partial[blk] = acc
     return ordered_sum(dev.partial, block_count(n))
+
+
+@ti.func
+def directions(dev, cfg: ti.template(), xs):
+    """``dev.lag[s]``'s direction m: spring s's unit vector at the positions ``xs`` (m = 0
+    where it has no length there)."""
+    for s in range(dev.size[1]):
+        i = dev.ends[s][0]
+        j = dev.ends[s][1]
+        m, _ = spring_direction(xs[j] - xs[i], cfg.real)
+        dev.lag[s] = ti.Vector([m[0], m[1], m[2], 0], cfg.real)
+
+
+@ti.func
+def lagged_directions(dev, cfg: ti.template(), ahead):
+    """The directions of ``cfg.lagged``'s rate-dependent terms through a step: the
+    springs' at its prediction x_n + ``ahead`` v_n (a pin: x_n + ahead times its pin
+    velocity), held in ``dev.xk`` until the first refresh."""
+    for i in range(dev.size[0]):
+        v = dev.keep[i]
+        if is_pinned(i, dev, cfg):
+            v = ti.Vector.zero(cfg.real, 3)
+            if ti.static(cfg.moving_pins):
+                v = dev.pin_velocity[i]
+        dev.xk[i] = dev.x[i] + ahead * v
+    directions(dev, cfg, dev.xk)
+
+
+@ti.kernel
+def newton_lag(dev: ti.template(), cfg: ti.template(), ahead: ti.f64):
+    """``lagged_directions`` at x_n + ``ahead`` v_n (``ahead`` in s), once a step, before its first refresh."""
+    lagged_directions(dev, cfg, ti.cast(ahead, cfg.real))
 
 
 @ti.func
@@ -172,11 +207,12 @@ def spring_change(s, dev, cfg: ti.template(), h):
     change = ti.cast(0, cfg.real)
     if old_length + new_length > tiny_length(cfg.real):
         change = step.dot(old + new) / (old_length + new_length)  # l' - l without cancellation
-    c = dev.spring_coef[s]
-    n = ti.Vector([c[0], c[1], c[2]], cfg.real)
     for term in ti.static(cfg.spring_terms):
         out += term.potential_change(s, dev, old_length, new_length, change)
-        out += h * term.dissipation_change(s, dev, n, dev.vk[j] - dev.vk[i], dev.v[j] - dev.v[i])
+        if ti.static(term.rate_dependent):
+            lag = dev.lag[s]
+            m = ti.Vector([lag[0], lag[1], lag[2]], cfg.real)
+            out += h * term.dissipation_change(s, dev, m, dev.vk[j] - dev.vk[i], dev.v[j] - dev.v[i])
     return out
 
 

@@ -35,7 +35,8 @@ h mu: at the converged iterate h f / m = u - v_n, so its masses' share is the on
 import taichi as ti
 
 from .constraints import is_free, is_pinned, pin_adjoint, prescribed
-from .forces import acceleration_adjoint, spring_direction, spring_sum, tiny_length
+from .forces import acceleration_adjoint, spring_sum
+from .newton import directions
 from .operator import LINEARISED, apply_row, refresh
 
 
@@ -81,9 +82,27 @@ def solve_side(dev, cfg: ti.template(), h, t, values):
 
 
 @ti.func
-def rhs(dev, cfg: ti.template(), adj, h, hx, t, slot, midpoint: ti.template(), wants: ti.template()):
+def prediction(dev, cfg: ti.template(), adj, slot, ahead):
+    """``adj.xs`` = x_n + ahead v_n from the history (a pin: its pin velocity), where the
+    step's rate-dependent terms took their directions (``newton.lagged_directions``), and
+    with ``cfg.lagged`` those directions in ``dev.lag`` for the operator."""
+    stride = adj.stride[None]
+    for i in range(dev.size[0]):
+        v = adj.hv[slot * stride + i]
+        if is_pinned(i, dev, cfg):
+            v = ti.Vector.zero(ti.f64, 3)
+            if ti.static(cfg.moving_pins):
+                v = dev.pin_velocity[i]
+        adj.xs[i] = adj.hx[slot * stride + i] + ahead * v
+    if ti.static(cfg.lagged):
+        directions(dev, cfg, adj.xs)
+
+
+@ti.func
+def rhs(dev, cfg: ti.template(), adj, h, hx, t, slot, midpoint: ti.template(), wants: ti.template(), ahead):
     n = dev.size[0]
     stride = adj.stride[None]
+    prediction(dev, cfg, adj, slot, ahead)
     for i in range(n):
         x, u = evaluation_point(dev, cfg, adj, i, slot, stride, h, midpoint)
         dev.x[i] = x
@@ -101,8 +120,10 @@ def rhs(dev, cfg: ti.template(), adj, h, hx, t, slot, midpoint: ti.template(), w
 
 @ti.kernel
 def newton_adjoint_rhs(dev: ti.template(), cfg: ti.template(), adj: ti.template(), h: ti.f64, hx: ti.f64,
-                       t: ti.f64, slot: ti.i32, midpoint: ti.template(), wants: ti.template(), serial: ti.template()):
-    """``dev.x``, ``dev.v`` = the converged iterate's (x_n + h u, u) from the history; the
+                       t: ti.f64, slot: ti.i32, midpoint: ti.template(), wants: ti.template(), ahead: ti.f64,
+                       serial: ti.template()):
+    """The step's prediction x_n + ``ahead`` v_n (``prediction``);
+    ``dev.x``, ``dev.v`` = the converged iterate's (x_n + h u, u) from the history; the
     pins' share of the pin velocities' gradient (``wants.pins``); the operator refreshed
     there (``cfg``: the step's own, with its definiteness fix: S); ``dev.b`` = dL/du =
     dL/dv' + hx dL/dx' on free rows (hx: x' moves by hx u from the base: dt, or BDF2's
@@ -111,34 +132,9 @@ def newton_adjoint_rhs(dev: ti.template(), cfg: ti.template(), adj: ti.template(
     if ti.static(serial):
         ti.loop_config(serialize=True)
         for _ in range(1):
-            rhs(dev, cfg, adj, h, hx, t, slot, midpoint, wants)
+            rhs(dev, cfg, adj, h, hx, t, slot, midpoint, wants, ahead)
     else:
-        rhs(dev, cfg, adj, h, hx, t, slot, midpoint, wants)
-
-
-@ti.func
-def rate_stiffness(dev, cfg: ti.template(), adj, h, slot, midpoint: ti.template(), mu):
-    """``adj.sx[s]``: each spring's gradient in d of (mu_i - mu_j) . f through n alone
-    (``rate_stiffness_adjoint``; mu 0 at pins): -spring_sum gathers (df/dx)^T mu of the
-    force's x-derivative the operator leaves out."""
-    stride = adj.stride[None]
-    for s in range(dev.size[1]):
-        i = dev.ends[s][0]
-        j = dev.ends[s][1]
-        mi = ti.Vector.zero(ti.f64, 3)
-        mj = ti.Vector.zero(ti.f64, 3)
-        if is_free(i, dev, cfg):
-            mi = mu[i]
-        if is_free(j, dev, cfg):
-            mj = mu[j]
-        _, ui = evaluation_point(dev, cfg, adj, i, slot, stride, h, midpoint)
-        _, uj = evaluation_point(dev, cfg, adj, j, slot, stride, h, midpoint)
-        unit, length = spring_direction(dev.x[j] - dev.x[i], ti.f64)
-        g = ti.Vector.zero(ti.f64, 3)
-        if length > tiny_length(ti.f64):
-            for term in ti.static(cfg.spring_terms):
-                g += term.rate_stiffness_adjoint(s, dev, mi - mj, uj - ui, unit, length)
-        adj.sx[s] = g
+        rhs(dev, cfg, adj, h, hx, t, slot, midpoint, wants, ahead)
 
 
 @ti.func
@@ -150,14 +146,10 @@ def product(dev, exact: ti.template(), fixed: ti.template(), adj, h, t, slot, mi
         _, u = evaluation_point(dev, exact, adj, i, slot, stride, h, midpoint)
         dev.v[i] = u
     refresh(dev, exact, dev.x, dev.v, h, t, LINEARISED)
-    if ti.static(exact.rate_stiffness):
-        rate_stiffness(dev, exact, adj, h, slot, midpoint, adj.y)
     for i in range(n):
         jy = ti.Vector.zero(ti.f64, 3)
         if is_free(i, dev, exact):
             jy = apply_row(i, dev, exact, adj.y)
-            if ti.static(exact.rate_stiffness):
-                jy += h * h * spring_sum(i, dev, adj.sx)
         adj.jy[i] = jy
     solve_side(dev, fixed, h, t, adj.jy)
     for i in range(n):
@@ -181,7 +173,8 @@ def newton_adjoint_product(dev: ti.template(), exact: ti.template(), fixed: ti.t
 
 
 @ti.func
-def gather(dev, cfg: ti.template(), adj, h, t, slot, midpoint: ti.template(), wants: ti.template()):
+def gather(dev, cfg: ti.template(), adj, h, t, slot, midpoint: ti.template(), wants: ti.template(), ahead,
+           split: ti.template()):
     n = dev.size[0]
     stride = adj.stride[None]
     for i in range(n):
@@ -194,15 +187,10 @@ def gather(dev, cfg: ti.template(), adj, h, t, slot, midpoint: ti.template(), wa
         adj.ue[i] = u
     if ti.static(wants.pins):  # u = vp at a pin: -(J^T mu)_p, mu = 0 at pins (module docstring)
         refresh(dev, cfg, dev.x, adj.ue, h, t, LINEARISED)  # J's coefficients (a solve may have left S's)
-        if ti.static(cfg.rate_stiffness):
-            rate_stiffness(dev, cfg, adj, h, slot, midpoint, adj.mu)
         for i in range(n):
             if is_pinned(i, dev, cfg):
-                share = apply_row(i, dev, cfg, adj.mu)
-                if ti.static(cfg.rate_stiffness):
-                    share += h * h * spring_sum(i, dev, adj.sx)
-                adj.gp[i] = adj.gp[i] - share
-    acceleration_adjoint(dev, cfg, adj, dev.x, adj.ue, wants)
+                adj.gp[i] = adj.gp[i] - apply_row(i, dev, cfg, adj.mu)
+    acceleration_adjoint(dev, cfg, adj, dev.x, adj.ue, wants, adj.xs, cfg.lagged or wants.rate_gradient)
     for i in range(n):
         lx = adj.lx[i] + adj.px[i]
         if ti.static(cfg.has_springs):
@@ -212,22 +200,38 @@ def gather(dev, cfg: ti.template(), adj, h, t, slot, midpoint: ti.template(), wa
             lv = dev.mass[i] * adj.mu[i]
             if ti.static(midpoint):
                 lv -= adj.lv[i]
+        if ti.static(cfg.lagged):  # x* = x_n + ahead v_n: straight to the state before the step
+            ox = -spring_sum(i, dev, adj.sl)
+            ov = ahead * ox
+            if is_pinned(i, dev, cfg):
+                if ti.static(wants.pins):
+                    adj.gp[i] = adj.gp[i] + ov
+                ov = ti.Vector.zero(ti.f64, 3)
+            if ti.static(split):
+                adj.ox[i] = ox
+                adj.ov[i] = ov
+            else:
+                lx += ox
+                lv += ov
         adj.lx[i] = lx
         adj.lv[i] = lv
 
 
 @ti.kernel
 def newton_adjoint_gather(dev: ti.template(), cfg: ti.template(), adj: ti.template(), h: ti.f64, t: ti.f64, slot: ti.i32,
-                          midpoint: ti.template(), wants: ti.template(), serial: ti.template()):
+                          midpoint: ti.template(), wants: ti.template(), ahead: ti.f64, split: ti.template(),
+                          serial: ti.template()):
     """After the adjoint solve (mu in ``dev.v``): dL/dx_n, dL/dv_n into ``adj.lx``,
     ``adj.lv``, mu kept in ``adj.mu`` (the next solve's warm start), the parameters'
-    shares added (module docstring)."""
+    shares added (module docstring); with ``split`` (BDF2, whose ``adj.lx``, ``adj.lv``
+    are then its base's), the prediction's share kept in ``adj.ox``, ``adj.ov`` for
+    ``bdf2_split``."""
     if ti.static(serial):
         ti.loop_config(serialize=True)
         for _ in range(1):
-            gather(dev, cfg, adj, h, t, slot, midpoint, wants)
+            gather(dev, cfg, adj, h, t, slot, midpoint, wants, ahead, split)
     else:
-        gather(dev, cfg, adj, h, t, slot, midpoint, wants)
+        gather(dev, cfg, adj, h, t, slot, midpoint, wants, ahead, split)
 
 
 @ti.kernel
@@ -253,6 +257,9 @@ def bdf2_split(dev: ti.template(), cfg: ti.template(), adj: ti.template(), histo
                 lv = 4 * lv / 3
             elif ti.static(wants.pins):
                 adj.gp[i] = adj.gp[i] + third * lx
+        if ti.static(cfg.lagged):
+            lx += adj.ox[i]
+            lv += adj.ov[i]
         adj.lx[i] = lx + adj.kx[i]
         adj.lv[i] = lv + adj.kv[i]
         adj.kx[i] = kx

@@ -46,17 +46,32 @@ def spring_coefficients(dev, cfg: ti.template(), x, v, h, full: ti.template()):
             a = ti.cast(0, cfg.real)
             b = ti.cast(0, cfg.real)
             t = ti.cast(0, cfg.real)
+            m = ti.Vector.zero(cfg.real, 3)
+            c = ti.cast(0, cfg.real)
+            rate = ti.cast(0, cfg.real)
+            if ti.static(cfg.lagged):
+                lag = dev.lag[s]
+                m = ti.Vector([lag[0], lag[1], lag[2]], cfg.real)
             for term in ti.static(cfg.spring_terms):
-                da, db = term.coefficients(s, dev, n, length, h, cfg.fix)
-                a += da
-                b += db
-                if length > tiny_length(cfg.real):
+                if ti.static(cfg.lagged and term.rate_dependent):  # along m (``lagged_directions``)
+                    da, dc = term.coefficients(s, dev, m, length, h, cfg.fix)
+                    a += da
+                    c += dc
                     if ti.static(full):
-                        t += term.tension(s, dev, i, j, x, v, n, length)
-                    else:
-                        t += term.rhs_tension(s, dev, i, j, x, v, n, length)
+                        rate += term.tension(s, dev, i, j, x, v, m, length)
+                else:
+                    da, db = term.coefficients(s, dev, n, length, h, cfg.fix)
+                    a += da
+                    b += db
+                    if length > tiny_length(cfg.real):
+                        if ti.static(full):
+                            t += term.tension(s, dev, i, j, x, v, n, length)
+                        else:
+                            t += term.rhs_tension(s, dev, i, j, x, v, n, length)
             dev.spring_coef[s] = ti.Vector([n[0], n[1], n[2], a, b], cfg.real)
-            dev.fs[s] = t * n
+            dev.fs[s] = t * n + rate * m
+            if ti.static(cfg.lagged):
+                dev.lag[s] = ti.Vector([m[0], m[1], m[2], c], cfg.real)
 
 
 @ti.func
@@ -67,6 +82,8 @@ def gather_coefficients(i, dev, cfg: ti.template()):
         if s < 0:
             s = -1 - s
         dev.coef[e] = dev.spring_coef[s]
+        if ti.static(cfg.lagged):
+            dev.lag_coef[e] = dev.lag[s]
 
 
 @ti.func
@@ -79,19 +96,39 @@ def diagonal_scalar(i, dev, cfg: ti.template(), h):
 
 
 @ti.func
-def spring_block(c, real: ti.template()):
-    """A spring's 3x3 block S = a I + b n n^T from its coefficients c = (n, a, b)."""
-    n = ti.Vector([c[0], c[1], c[2]], real)
-    return c[3] * ti.Matrix.identity(real, 3) + c[4] * n.outer_product(n)
+def entry_block(e, dev, cfg: ti.template()):
+    """Entry e's 3x3 spring block S = a I + b n n^T (+ c m m^T with ``cfg.lagged``)."""
+    c = dev.coef[e]
+    n = ti.Vector([c[0], c[1], c[2]], cfg.real)
+    block = c[3] * ti.Matrix.identity(cfg.real, 3) + c[4] * n.outer_product(n)
+    if ti.static(cfg.lagged):
+        lag = dev.lag_coef[e]
+        m = ti.Vector([lag[0], lag[1], lag[2]], cfg.real)
+        block += lag[3] * m.outer_product(m)
+    return block
+
+
+@ti.func
+def entry_times(e, dev, cfg: ti.template(), p):
+    """S p for entry e's spring block S (``entry_block``) and a vector or a 3 x k block p:
+    a p + b n (n^T p) (+ c m (m^T p)), rank-one updates (no 3x3 product)."""
+    c = dev.coef[e]
+    n = ti.Vector([c[0], c[1], c[2]], cfg.real)
+    out = c[3] * p + (c[4] * n).outer_product(p.transpose() @ n)
+    if ti.static(cfg.lagged):
+        lag = dev.lag_coef[e]
+        m = ti.Vector([lag[0], lag[1], lag[2]], cfg.real)
+        out += (lag[3] * m).outer_product(p.transpose() @ m)
+    return out
 
 
 @ti.func
 def diagonal_block(i, dev, cfg: ti.template()):
-    """The 3x3 block A_ii = d_i I + sum_s (a_s I + b_s n_s n_s^T)."""
+    """The 3x3 block A_ii = d_i I + sum_s S_s (``entry_block``)."""
     block = dev.diag[i] * ti.Matrix.identity(cfg.real, 3)
     if ti.static(cfg.has_springs):
         for e in range(dev.offsets[i], dev.offsets[i + 1]):
-            block += spring_block(dev.coef[e], cfg.real)
+            block += entry_block(e, dev, cfg)
     if ti.static(cfg.self_pairs):
         block += pair_diagonal(i, dev, cfg)
     return block
@@ -172,6 +209,10 @@ def apply_row(i, dev, cfg: ti.template(), p):
             n = ti.Vector([c[0], c[1], c[2]], cfg.real)
             dp = pi - p[dev.other[e]]
             out += c[3] * dp + c[4] * n.dot(dp) * n
+            if ti.static(cfg.lagged):
+                lag = dev.lag_coef[e]
+                m = ti.Vector([lag[0], lag[1], lag[2]], cfg.real)
+                out += lag[3] * m.dot(dp) * m
     if ti.static(cfg.self_pairs):
         out += pair_row(i, dev, cfg, p)
     return out

@@ -172,9 +172,9 @@ def adjoint_step(dev, cfg: ti.template(), adj, src, stage, h, t, slot, wants: ti
                 stage.x[i] = adj.xs[(k - 1) * stride + i]
                 stage.v[i] = adj.vs[(k - 1) * stride + i]
         if ti.static(k == 0):
-            acceleration_adjoint(dev, cfg, adj, src.x, src.v, wants)
+            acceleration_adjoint(dev, cfg, adj, src.x, src.v, wants, src.x, False)
         else:
-            acceleration_adjoint(dev, cfg, adj, stage.x, stage.v, wants)
+            acceleration_adjoint(dev, cfg, adj, stage.x, stage.v, wants, stage.x, False)
         for i in range(n):
             yx = adj.px[i]
             yv = adj.kx[i] + adj.pv[i]

@@ -138,7 +138,10 @@ class Config:
     collider kind present (``colliders.collider_groups``); moving_pins: whether
     some pin has a velocity; contact_filter: whether contacts are constraints of the
     implicit solve (``kernels/constraints.py``); self_pairs: whether self-collision
-    pairs are penalties of the implicit solve (``kernels/pair_penalty.py``).
+    pairs are penalties of the implicit solve (``kernels/pair_penalty.py``); lagged:
+    whether the rate-dependent spring terms (damping) act along each spring's direction
+    at the step's prediction, a second direction in the operator's blocks (the
+    Newton-solved steps, ``kernels/newton.py``).
     """
 
     real: object
@@ -151,6 +154,7 @@ class Config:
     moving_pins: bool = False
     contact_filter: bool = False
     self_pairs: bool = False
+    lagged: bool = False
 
     @property
     def has_springs(self):

@@ -177,7 +177,8 @@ class Simulation:
                                       extra=cls.extra_bytes + self_collision.PASS_BYTES * model.has_self_collision
                                       + self_collision.SOLVE_BYTES * cls.pairs_in_solve(model)
                                       + 4 * model.has_strain_limit,
-                                      spring_extra=strain_limit.PASS_BYTES_PER_SPRING * model.has_strain_limit),
+                                      spring_extra=cls.spring_extra_bytes
+                                      + strain_limit.PASS_BYTES_PER_SPRING * model.has_strain_limit),
                      f"model: {model.n_particles:,} particles and {model.n_springs:,} springs; "
                      f"a run of it ({integrator})")
         self._order = ordering.plan(model)

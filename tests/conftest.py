@@ -176,25 +176,34 @@ def spring_geometry(x, i, j):
     return d / length, length
 
 
-def numpy_forces(model, x, v, magnitude=False):
+def numpy_forces(model, x, v, magnitude=False, damping_at=None):
     """Total force (n, 3) of Eq. 1-3: spring + damping + gravity, plus air drag
     -drag (v - wind). With ``magnitude``, also the per-particle sum of the terms'
-    absolute values (n,) (the scale of the round-off in summing them)."""
+    absolute values (n,) (the scale of the round-off in summing them). With
+    ``damping_at`` (positions (n, 3)), spring damping acts along the springs'
+    directions there (the Newton-solved steps' lagged damping: ``predicted``)."""
     air = -model.drag * (v - model.wind[None, :])
     f = model.masses[:, None] * model.gravity[None, :] + air
     mag = model.masses * np.linalg.norm(model.gravity) + np.linalg.norm(air, axis=1)
     for s, (i, j) in enumerate(model.springs):
         nvec, length = spring_geometry(x, i, j)
-        if nvec is None:
-            continue
-        fs = model.stiffness[s] * (length - model.rest_lengths[s]) * nvec
-        fd = model.damping[s] * np.dot(v[j] - v[i], nvec) * nvec
+        mvec = nvec if damping_at is None else spring_geometry(damping_at, i, j)[0]
+        fs = np.zeros(3) if nvec is None else model.stiffness[s] * (length - model.rest_lengths[s]) * nvec
+        fd = np.zeros(3) if mvec is None else model.damping[s] * np.dot(v[j] - v[i], mvec) * mvec
         f[i] += fs + fd
         f[j] -= fs + fd
         size = np.linalg.norm(fs) + np.linalg.norm(fd)
         mag[i] += size
         mag[j] += size
     return (f, mag) if magnitude else f
+
+
+def predicted(model, x, v, ahead):
+    """x + ahead v, pins moving with their pin velocity: where the Newton-solved steps take
+    spring damping's directions (``kernels/newton.py``, ``lagged_directions``)."""
+    out = x + ahead * v
+    out[model.fixed] = x[model.fixed] + ahead * model.pin_velocity
+    return out
 
 
 def dense_jacobians(model, x, definiteness_fix):

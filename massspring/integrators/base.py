@@ -32,6 +32,7 @@ solver's options, ``options.Option`` records: ``integrators.OPTIONS``). ``serial
     newton = False
     ladder = None  # stability ladder: (the Prediction attribute dt is relative to, multiples), None: none
     extra_bytes = 0  # bytes per particle beyond the linearised step's (memory.run_bytes)
+    spring_extra_bytes = 0  # and per spring
     ladder_without_fix = False  # also run the ladder without the definiteness fix
     options = ()  # options.Option records: the solver's Simulation arguments (none by default)
     swept = None  # the option the study sweeps (a tolerance: its Option.sweep), None: none

@@ -31,6 +31,9 @@ class Midpoint(BackwardEuler):
     description = "implicit midpoint (second order, symplectic) solved by Newton's method with a line search"
     half_step = True
 
+    def ahead(self, h):
+        return h
+
     def step_size(self, touching):
         return self.settings.dt if touching else 0.5 * self.settings.dt
 

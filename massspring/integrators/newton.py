@@ -67,6 +67,7 @@ class BackwardEuler(ImplicitEuler):
     carries = False  # whether a step's commit keeps the state it replaces (BDF2's history)
     ladder_without_fix = False
     extra_bytes = 7 * 24  # xb, vb, xk, vk, dir, res and a contact's carrier: f64 3-vectors
+    spring_extra_bytes = 3 * 32  # damping's lagged direction and coefficient, per spring and per entry (2 a spring)
 
     @classmethod
     def declare(cls, layout, model, settings):
@@ -76,6 +77,9 @@ class BackwardEuler(ImplicitEuler):
             layout.vectors(name, real)
         if model.has_colliders:
             layout.vectors("carrier", real)
+        if cls.config(model, settings).lagged:  # kernels/newton.py lagged_directions
+            layout.vectors("lag", real, "spring", k=4)
+            layout.vectors("lag_coef", real, "entry", k=4)
 
     @classmethod
     def declare_adjoint(cls, layout, stride):
@@ -84,8 +88,9 @@ class BackwardEuler(ImplicitEuler):
         (filled even when the bundle comes from the pool: a gradient never depends on the
         one before it)."""
         layout.vectors("mu", layout.real, values=np.zeros((layout.n, 3)))
-        for name in ("ue", "y", "jy"):
+        for name in ("ue", "y", "jy", "xs"):  # xs: the step's prediction (kernels/newton_adjoint.py)
             layout.vectors(name, layout.real)
+        layout.vectors("sl", layout.real, "spring")
 
     def adjoint(self, adj, slot, wants):
         """The adjoint of (*) at the converged iterate (``kernels/newton_adjoint.py``):
@@ -97,10 +102,10 @@ class BackwardEuler(ImplicitEuler):
         h = 0.5 * s.dt if self.half_step else self.step_size(touching=0)
         hx = s.dt if self.half_step else h  # x' = base + hx u
         newton_adjoint.newton_adjoint_rhs(self.dev, self.cfg, adj, h, hx, self.time, slot, self.half_step, wants,
-                                          self.serial)
+                                          self.ahead(h), self.serial)
         stats = self._adjoint_solve(adj, exact, h, slot)
         newton_adjoint.newton_adjoint_gather(self.dev, exact, adj, h, self.time, slot, self.half_step, wants,
-                                             self.serial)
+                                             self.ahead(h), self.carries, self.serial)
         return stats
 
     def _adjoint_solve(self, adj, exact, h, slot):
@@ -111,7 +116,7 @@ class BackwardEuler(ImplicitEuler):
         s = self.settings
         stats = solve(self.dev, self.cfg, self.preconditioner, h, s.cg_tol, s.cg_max_iter, self.serial, self.time,
                       mode=operator.REFRESHED)
-        if not (exact.rate_stiffness or self.cfg.fix) or not stats.converged:
+        if not self.cfg.fix or not stats.converged:
             return stats
         inner = [stats]
         # the free rows (a solve sets pins to their velocities; mu is 0 there)
@@ -136,6 +141,17 @@ class BackwardEuler(ImplicitEuler):
                                    residual=out.residual if not out.converged else stats.residual,
                                    reason="converged" if out.converged else "GMRES not converging")
 
+    @classmethod
+    def config(cls, model, settings):
+        """The linearised step's, with the rate-dependent terms ``lagged``."""
+        cfg = super().config(model, settings)
+        return dataclasses.replace(cfg, lagged=cfg.rate_stiffness)
+
+    def ahead(self, h) -> float:
+        """How far ahead (s) of x_n the rate-dependent terms take their directions:
+        x_n + ahead v_n is within O(dt^2) of where (*) evaluates the forces."""
+        return self.settings.dt
+
     def step_size(self, touching) -> float:
         """h of (*) in ``kernels/newton.py`` for the step being taken (``touching``: its
         particles in contact)."""
@@ -159,6 +175,8 @@ class BackwardEuler(ImplicitEuler):
             self.ready = False
             newton.newton_start(dev, cfg, s.dt, t, False, serial)
         h = self.step_size(touching)
+        if cfg.lagged:
+            newton.newton_lag(dev, cfg, self.ahead(h))
         g2, scale2, _, _ = newton.newton_refresh(dev, cfg, h, t, serial)
         first = norm = math.sqrt(g2)
         norms = [norm]
@@ -263,6 +281,8 @@ class BDF2(BackwardEuler):
         super().declare_adjoint(layout, stride)
         for name in ("kx", "kv"):
             layout.vectors(name, layout.real, values=np.zeros((layout.n, 3)))
+        for name in ("ox", "ov"):  # the prediction's share (newton_adjoint.newton_adjoint_gather)
+            layout.vectors(name, layout.real)
 
     def adjoint(self, adj, slot, wants):
         """Backward Euler's adjoint from BDF2's base, shared between the two states it is

@@ -331,11 +331,13 @@ class Scene:
         solver = None
         if INTEGRATORS.get(integrator) is not None and INTEGRATORS[integrator].linear_solver:
             solver = preconditioners.resolve_for_count(options.get("preconditioner", "auto"), particles)
-        extra = INTEGRATORS[integrator].extra_bytes if integrator in INTEGRATORS else 0
+        known = INTEGRATORS.get(integrator)
+        extra = known.extra_bytes if known is not None else 0
         extra += PASS_BYTES if self.self_collision is not None else 0
         limited = bool(self.common["strain_limit"])
+        spring_extra = (known.spring_extra_bytes if known is not None else 0) + PASS_BYTES_PER_SPRING * limited
         self.check_memory(memory.run_bytes(particles, springs, solver, extra=extra + 4 * limited,
-                                           spring_extra=PASS_BYTES_PER_SPRING * limited), particles, springs,
+                                           spring_extra=spring_extra), particles, springs,
                           f"a run of it ({integrator}{f', {solver}' if solver else ''})")
         dt = self.default_dt(integrator) if dt is None else dt
         return Simulation(self.model(), integrator=integrator, dt=dt, **options)
