@@ -20,13 +20,24 @@ CG solve of A v' = b (warm-started from v) gives the Newton iterate v'.
     E(v) = 1/2 (v - v^)^T M (v - v^) + U(x^ + h v) + h Psi(v) + 1/2 v^T C v - v^T F_0
 
 (U: the terms' potential energy, ``potential_change``; Psi: their Rayleigh
-dissipation, ``dissipation_change``, spring directions held at the iterate's;
-C, F_0: friction's damper and impulse), whose gradient is g. ``newton_trial`` gives
+dissipation, ``dissipation_change``, along the directions m below;
+C, F_0: friction's damper and impulse), whose gradient is g. That holds because the
+rate-dependent spring terms (damping, ``cfg.lagged``) act along each spring's direction
+m at the step's prediction x_n + ``ahead`` v_n (``lagged_directions``: ``ahead`` = dt
+for backward Euler and BDF2, dt / 2 for midpoint, so x_n + ahead v_n is within O(dt^2)
+of where f is evaluated and the orders are kept): Psi = 1/2 kd (m . (v_j - v_i))^2 with
+m fixed through the step. Along the iterate's own direction the damping force turns
+with its spring and g has no potential (no line search could then be trusted: a cloth
+with damping 1e9 at dt 1 s ran away). The operator carries m as a second direction in
+each spring's block (``operator.entry_block``), so Newton's linear model is exact for
+damping. ``newton_trial`` gives
 E(v + a d) - E(v) for the line search, each element's change computed from the
 difference of its lengths and velocities (not as a difference of two energies), so
 it keeps its relative precision when the change is tiny.
 
-Fields (n particles, vec3 in the run's precision): ``xb``, ``vb`` (x^, v^), ``xk``,
+Fields (n particles, vec3 in the run's precision; m springs): ``lag`` (m,) and
+``lag_coef`` (2m, adjacency order) 4-vectors (m, c), c = h kd the damping block's
+coefficient (``cfg.lagged``); ``xb``, ``vb`` (x^, v^), ``xk``,
 ``vk`` (the iterate's positions and velocity), ``dir`` (the Newton direction d =
 v' - v), ``res`` (g at the iterate, filtered); with colliders ``carrier`` (the
 velocity of the collider each particle touches, from ``contact.detect``); BDF2's

@@ -11,21 +11,23 @@ it is the derivative of g, not the Newton iteration's operator):
     dL/dx_n = dL/dx' + h K mu,   dL/dv_n = M mu   (midpoint: - dL/dv' too)
     dL/dtheta += h mu . df/dtheta at (x_n + h u, u),   dL/dm += -mu . (u - v_n - h g)
     dL/dvp += -(J^T mu)_p at a pin p (u = vp there), with each step's h dL/dx' + dL/dv'
+    dL/dx_n += G,   dL/dv_n += ahead G   (G = h (df/dx*)^T mu: spring damping's direction
+                                          at the prediction x* = x_n + ahead v_n; a pin's to dL/dvp)
 
 BDF2 is backward Euler from the base (x^, v^) = (4/3 x_n - 1/3 x_{n-1}, 4/3 v_n - 1/3
 v_{n-1}) with h = 2 dt / 3: the same adjoint gives dL/d(x^, v^), which ``bdf2_split``
-shares between the two states before the step.
+shares between the two states before the step; the prediction's share G goes to
+(x_n, v_n) directly (``newton_adjoint_gather``'s ``split``).
 
 (free rows; mu = 0 at pins; K the force's whole x-derivative). J is the operator
-refreshed without the definiteness fix, plus, with spring damping, the damping force's
-turning with its spring (an x-derivative the seed's Eq. 14 leaves out, not symmetric:
-``rate_stiffness``). Where no spring is compressed and nothing is damped, J is the step's
-own symmetric positive definite operator S and one CG solve gives mu. Otherwise J may be
-nonsymmetric and, where compressed springs lose their transverse stiffness, indefinite:
+refreshed without the definiteness fix (damping along the prediction's directions, as
+the forward step has it: linear in u). Where no spring is compressed, J is the step's
+own symmetric positive definite operator S and one CG solve gives mu. Otherwise J,
+where compressed springs lose their transverse stiffness, may be indefinite:
 J^T mu = dL/du is solved as S^-1 J^T mu = S^-1 dL/du by GMRES
 (``massspring.solvers.gmres``) with S the operator with the fix, each product one CG
 solve with the run's preconditioner (``newton_adjoint_product``); S^-1 J^T is the
-identity plus what the fix and the turning change, so few products are needed. Where
+identity plus what the fix changes, so few products are needed. Where
 GMRES does not converge within its products (J singular or nearly),
 ``massspring.errors.GradientError`` names the step. ``newton_adjoint_rhs`` sets up the solve, the run's CG solves it,
 ``newton_adjoint_gather`` does the rest (``forces.acceleration_adjoint`` with weights
@@ -160,8 +162,7 @@ def product(dev, exact: ti.template(), fixed: ti.template(), adj, h, t, slot, mi
 def newton_adjoint_product(dev: ti.template(), exact: ti.template(), fixed: ti.template(), adj: ti.template(),
                            h: ti.f64, t: ti.f64, slot: ti.i32, midpoint: ti.template(), serial: ti.template()):
     """For y in ``dev.v`` (0 at pins): ``dev.b`` = J^T y on free rows, J the residual's
-    true Jacobian (``exact``: the operator without the definiteness fix, plus spring
-    damping's turning, ``rate_stiffness``), the operator then refreshed as ``fixed``
+    true Jacobian (``exact``: the operator without the definiteness fix), the operator then refreshed as ``fixed``
     (the step's own, symmetric positive definite) and ``dev.v`` = 0, so that a solve
     gives S^-1 J^T y (``integrators/newton.py``: GMRES on S^-1 J^T mu = S^-1 b0)."""
     if ti.static(serial):

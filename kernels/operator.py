@@ -19,6 +19,10 @@ gathers (A p)_i over particle i's entries:
 (plus, with self-collision pairs in the solve, their penalty's share,
 ``pair_penalty.pair_row``).
 
+With ``cfg.lagged`` (the Newton-solved steps, ``kernels/newton.py``) the rate-dependent
+terms act along a second direction m per spring, S = a I + b n n^T + c m m^T, their
+(m, c) in ``dev.lag`` and, in adjacency order, ``dev.lag_coef``.
+
 Shapes (n particles, m springs): ``spring_coef`` (m,), ``coef`` (2m,) of
 5-vectors (n_x, n_y, n_z, a, b) in the run's precision; ``diag`` (n,); ``b`` (n,)
 vec3 in kg m/s.

@@ -164,7 +164,8 @@ class Config:
     @property
     def rate_stiffness(self):
         """Whether a spring term's force turns with its spring through the rates (damping:
-        an x-derivative the operator leaves out, ``rate_stiffness_adjoint``)."""
+        an x-derivative the operator leaves out, ``rate_stiffness_adjoint``; the
+        Newton-solved steps hold it along a predicted direction, ``lagged``)."""
         return any(term.rate_dependent for term in self.spring_terms)
 
     @property

@@ -1,7 +1,8 @@
 """Backward Euler, BDF2 and implicit midpoint solved by Newton's method (massspring/integrators/newton.py).
 
 References: the backward-Euler equations M (v1 - v0) = dt f(x0 + dt v1, v1) with an
-independent numpy force (conftest.numpy_forces); the order of accuracy against an RK4
+independent numpy force (conftest.numpy_forces; spring damping along the directions at
+x0 + dt v0, conftest.predicted); the order of accuracy against an RK4
 run at a far smaller dt; the terminal velocity m g / c + wind of a particle with
 linear drag; a cloth resting on a plane; the energy of the undamped stiff chain.
 """

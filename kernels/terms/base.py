@@ -50,8 +50,8 @@ class SpringTerm:
     def rate_stiffness_adjoint(s, dev, u, r, n, length):
         """The gradient in d of u . (tension n) through n alone, of a term whose tension
         depends on the rates r: its force's x-derivative that Eq. 15's operator leaves out
-        (nonsymmetric; the Newton-solved steps' adjoint adds it, ``kernels/newton_adjoint.py``).
-        Zero by default."""
+        (nonsymmetric; the Newton-solved steps take n at their prediction, and their
+        adjoint sends this to it, ``kernels/newton_adjoint.py``). Zero by default."""
         return u * 0
 
     @staticmethod

@@ -18,7 +18,8 @@ class Midpoint(BackwardEuler):
 
     The line search's merit function is backward Euler's incremental potential at h = dt/2,
     E(w) = 1/2 (w - v_n)^T M (w - v_n) + U(x_n + h w) + h Psi(w): its gradient is the
-    midpoint residual divided by 2 (with Rayleigh damping at w), so every solution of the
+    midpoint residual divided by 2 (with Rayleigh damping at w, along the springs'
+    directions at x_n + h v_n: ``kernels/newton.py``), so every solution of the
     step is a stationary point of it, and the Newton direction (from the definite,
     fixed operator) descends on it. A step with a particle in contact is a backward-Euler
     step (h = dt, v' = w), as BDF2's is: an impact makes the velocity jump, and

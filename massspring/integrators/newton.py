@@ -36,7 +36,8 @@ NEWTON_OPTIONS = (
 
 
 class BackwardEuler(ImplicitEuler):
-    """Backward Euler M (v' - v_n) = dt f(x_n + dt v', v'), x' = x_n + dt v', solved by Newton.
+    """Backward Euler M (v' - v_n) = dt f(x_n + dt v', v'), x' = x_n + dt v', solved by Newton
+    (spring damping along the springs' directions at x_n + dt v_n: ``kernels/newton.py``).
 
     Newton starts from v_n. Each iteration solves Eq. 15's system at the iterate (the
     same matrix-free operator, preconditioners, definiteness fix and contact
@@ -50,8 +51,8 @@ class BackwardEuler(ImplicitEuler):
     times the step's velocity change, ‖v_{k+1} - v_k‖_M <= newton_tol ‖v_{k+1} - v^‖_M
     (M-norms: kinetic energy), or when ‖g‖ is at the round-off of the terms it is the
     difference of; at most newton_max_iter linear solves. With the definiteness fix
-    and spring damping the Jacobian is not exact, so convergence is linear where
-    springs are compressed, quadratic elsewhere. Contacts are detected once per step,
+    the Jacobian is not exact where springs are compressed: convergence is linear
+    there, quadratic elsewhere. Contacts are detected once per step,
     from (x_n, v_n), and held through its iterations; friction is decided after the
     last, as in the linearised step.
     """
