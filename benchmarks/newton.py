@@ -13,7 +13,11 @@ Tables (all f64, this machine):
 5. cloth: ``cloth`` at ``--resolution`` (dt 1/60, ks 1e4, multigrid), median step
    time of each integrator over ``--steps`` steps after a warm-up step, measured
    interleaved in one process, mean Newton iterations and CG iterations per step, and
-   the ratio to the linearised step.
+   the ratio to the linearised step;
+6. damping: the shipped ``cloth`` (32 x 32) with its spring damping raised from 2 to
+   2,000 N s/m, 20 backward-Euler and BDF2 steps at dt 1/60, and one at dt 1 s with
+   1e9: Newton iterations per step, steps that missed ``newton_tol`` and the end's
+   kinetic energy (how far the iteration is from stalling or running away).
 
     python benchmarks/newton.py                       # all tables, cloth 128 x 128
     python benchmarks/newton.py --tables cloth --resolution 64 --steps 10
@@ -37,7 +41,7 @@ import massspring as ms  # noqa: E402
 from massspring.io.files import write_json  # noqa: E402
 
 NEWTON = ("backward-euler", "bdf2")
-TABLES = ("energy", "residual", "order", "terminal", "cloth")
+TABLES = ("energy", "residual", "order", "terminal", "cloth", "damping")
 
 
 def parse_args(argv=None):
@@ -184,6 +188,34 @@ def cloth_table(resolution, steps):
     for r in rows:
         print(f"  {r['integrator']:15s} {r['median_ms']:9.1f} {r['ratio_to_implicit']:6.2f} {newton_cells(r)} "
               f"{r['cg_per_step']:8.1f} {r['not_converged']:4d}")
+    return rows
+
+
+def damping_table():
+    cases = [(kd, 1 / 60, 20) for kd in (2.0, 20.0, 200.0, 2000.0)] + [(1e9, 1.0, 3)]
+    rows = []
+    for integrator in NEWTON:
+        for kd, dt, steps in cases:
+            sim = ms.load_scene("cloth").with_settings([f"damping={kd:g}"]).simulation(integrator, dt=dt)
+            newton, missed, outcome = [], 0, "ran"
+            try:
+                for _ in range(steps):
+                    sim.step(1)
+                    newton.append(sim.solver_stats.newton_iterations)
+                    missed += not sim.solver_stats.converged
+            except ms.DivergenceError as error:
+                outcome = str(error).split(": ", 1)[-1].split(";")[0]
+            rows.append({"integrator": integrator, "damping": kd, "dt": dt, "steps": len(newton),
+                         "newton_mean": float(np.mean(newton)) if newton else None,
+                         "newton_max": max(newton) if newton else None, "missed": missed,
+                         "kinetic_J": sim.energy()["kinetic"], "outcome": outcome})
+            sim.close()
+    print("\ncloth 32 x 32, spring damping raised: Newton iterations per step, steps that missed newton_tol")
+    print(f"  {'integrator':15s} {'damping':>8s} {'dt':>7s} {'steps':>5s} {'Newton':>7s} {'max':>4s} {'missed':>6s}"
+          f" {'kinetic J':>10s}  outcome")
+    for r in rows:
+        print(f"  {r['integrator']:15s} {r['damping']:8.3g} {r['dt']:7.3g} {r['steps']:5d} {newton_cells(r)} "
+              f"{r['missed']:6d} {r['kinetic_J']:10.3g}  {r['outcome']}")
     return rows
 
 
