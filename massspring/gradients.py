@@ -99,22 +99,9 @@ def gradient(model, objective, wrt, *, steps, every=1, integrator="symplectic", 
     Returns ``(value, grads)``: the float value and a dict of one float64 array per
     name in ``wrt``. Bad arguments raise ValueError naming them before any step runs.
     """
-    names = _check_wrt(wrt, model)
     if not callable(objective):
         raise ValueError(f"objective: expected a function of the frames, got {type(objective).__name__}")
-    validate.choice("integrator", integrator, tuple(INTEGRATORS))
-    if not INTEGRATORS[integrator].differentiable:
-        raise ValueError(f"integrator: gradients through {integrator!r} steps are not built yet; "
-                         f"they are for: {', '.join(differentiable())}")
-    if precision != "f64":
-        raise ValueError(f"precision: gradients are computed in f64 only, got {precision!r}")
-    terms = [term.name for term in active_terms(model) if not term.kernel.differentiable]
-    for feature, present in (("self-collision", model.has_self_collision), ("a strain limit", model.has_strain_limit),
-                             (" and ".join(terms), bool(terms))):
-        if present:
-            raise ValueError(f"model: gradients through {feature} are not built yet (issue 39); "
-                             f"a model of springs, damping, gravity, drag, pins and colliders has them")
-    _check_colliders(model, integrator)
+    names = check_arguments(model, wrt, integrator, precision)
     steps = validate.count("steps", steps, low=1, high=MAX_STEPS)
     every = validate.count("every", every, low=1, high=MAX_STEPS)
     if checkpoint is None:
@@ -136,6 +123,26 @@ def gradient(model, objective, wrt, *, steps, every=1, integrator="symplectic", 
         sim.close()
         if adj is not None:
             POOL.give(adj)
+
+
+def check_arguments(model, wrt, integrator, precision="f64") -> list:
+    """The names of ``wrt``, once ``model``, ``wrt``, ``integrator`` and ``precision`` are
+    checked as ``gradient`` checks them (a ValueError naming the argument otherwise)."""
+    names = _check_wrt(wrt, model)
+    validate.choice("integrator", integrator, tuple(INTEGRATORS))
+    if not INTEGRATORS[integrator].differentiable:
+        raise ValueError(f"integrator: gradients through {integrator!r} steps are not built yet; "
+                         f"they are for: {', '.join(differentiable())}")
+    if precision != "f64":
+        raise ValueError(f"precision: gradients are computed in f64 only, got {precision!r}")
+    terms = [term.name for term in active_terms(model) if not term.kernel.differentiable]
+    for feature, present in (("self-collision", model.has_self_collision), ("a strain limit", model.has_strain_limit),
+                             (" and ".join(terms), bool(terms))):
+        if present:
+            raise ValueError(f"model: gradients through {feature} are not built yet (issue 39); "
+                             f"a model of springs, damping, gravity, drag, pins and colliders has them")
+    _check_colliders(model, integrator)
+    return names
 
 
 CONTACT_INTEGRATORS = ("explicit", "symplectic", "rk4")  # those whose contact response has an adjoint

@@ -312,6 +312,19 @@ class Model:
         """name -> value of the force terms' parameters (``terms.parameters()``)."""
         return {name: getattr(self, name) for name in terms.parameters()}
 
+    def replaced(self, **changes) -> Model:
+        """A Model built from this one's arguments with ``changes`` (constructor
+        arguments by name) in place of theirs, checked as any Model is."""
+        args = dict(positions=self.positions, springs=self.springs, masses=self.masses, stiffness=self.stiffness,
+                    damping=self.damping, rest_lengths=self.rest_lengths, velocities=self.velocities,
+                    gravity=self.gravity, fixed=self.fixed, triangles=self.triangles, colliders=self.colliders,
+                    pin_velocity=self.pin_velocity, self_collision=self.self_collision, controls=self.controls,
+                    strain_limit=self.strain_limit, **self.term_parameters)
+        unknown = sorted(set(changes) - set(args))
+        if unknown:
+            raise TypeError(f"Model.replaced() got an unexpected keyword argument {unknown[0]!r}")
+        return Model(**{**args, **changes})
+
     def free_mask(self) -> np.ndarray:
         """(n,) bool: True for particles that move."""
         mask = np.ones(self.n_particles, dtype=bool)

@@ -91,12 +91,11 @@ def renumbered(model: Model, particles, springs) -> Model:
         controls = controls.renumbered(np.argsort(inverse[model.fixed], kind="stable"), _inverse(springs))
         if controls.pin_targets is not None:
             pins = None  # the keyframes' first velocities, as the model derived them
-    return Model(model.positions[particles], inverse[model.springs][springs], masses=model.masses[particles],
-                 stiffness=model.stiffness[springs], damping=model.damping[springs],
-                 rest_lengths=model.rest_lengths[springs], velocities=model.velocities[particles],
-                 gravity=model.gravity, fixed=inverse[model.fixed], triangles=inverse[model.triangles],
-                 colliders=model.colliders, pin_velocity=pins, self_collision=model.self_collision,
-                 controls=controls, strain_limit=model.strain_limit, **model.term_parameters)
+    return model.replaced(positions=model.positions[particles], springs=inverse[model.springs][springs],
+                          masses=model.masses[particles], stiffness=model.stiffness[springs],
+                          damping=model.damping[springs], rest_lengths=model.rest_lengths[springs],
+                          velocities=model.velocities[particles], fixed=inverse[model.fixed],
+                          triangles=inverse[model.triangles], pin_velocity=pins, controls=controls)
 
 
 def plan(model: Model) -> Ordering | None:

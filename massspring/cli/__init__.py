@@ -8,7 +8,7 @@ written after the run; 130 interrupted by Ctrl-C, 143 by SIGTERM (the state reac
 so far is still summarised and written).
 
 One module per verb (``run``, ``scenes`` (with ``info``), ``study``, ``stability``,
-``sweep``: its arguments and its command), ``pictures`` (the GIF, PNG and frame
+``sweep``, ``fit``: its arguments and its command), ``pictures`` (the GIF, PNG and frame
 export options of ``run``) and ``common`` (what several verbs share); here the parser
 and ``main``.
 """
@@ -26,6 +26,7 @@ from massspring.cli.pictures import add_export_arguments, add_frame_arguments
 from massspring.cli.run import cmd_run
 from massspring.cli.scenes import cmd_info, cmd_scenes
 from massspring.cli.stability import add_stability_arguments, cmd_stability
+from massspring.cli.fit import add_fit_arguments, cmd_fit
 from massspring.cli.study import add_study_arguments, cmd_study
 from massspring.cli.sweep import add_sweep_arguments, cmd_sweep
 from massspring.text import clipped
@@ -81,11 +82,15 @@ def build_parser():
     sweep = verbs["sweep"] = sub.add_parser(
         "sweep", help="run a scene once per combination of varied parameters, here or on a Dask cluster")
     add_sweep_arguments(sweep, INTEGRATORS)
+
+    fit = verbs["fit"] = sub.add_parser(
+        "fit", help="fit a scene's stiffness, damping, ... to recorded frames (gradients through every step)")
+    add_fit_arguments(fit)
     return parser, verbs
 
 
 COMMANDS = {"run": cmd_run, "scenes": cmd_scenes, "info": cmd_info, "study": cmd_study,
-            "stability": cmd_stability, "sweep": cmd_sweep}
+            "stability": cmd_stability, "sweep": cmd_sweep, "fit": cmd_fit}
 
 
 def _terminate(signum, frame):

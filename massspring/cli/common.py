@@ -57,7 +57,6 @@ def add_option_flag(p, option):
 def make_simulation(args):
     """Scene + options -> (scene, Simulation); raises ValueError on bad input before any kernel runs."""
     from massspring.device import ensure_taichi
-    from massspring.integrators import INTEGRATORS, OPTIONS, takers
     from massspring.scene import load_scene
 
     scene = load_scene(args.scene).with_settings(args.set)
@@ -68,7 +67,18 @@ def make_simulation(args):
         ensure_taichi(args.arch, "--arch")
     except ValueError as exc:
         raise UsageError(str(exc)) from None
-    integrator = args.integrator or scene.integrator
+    check_taken(args.integrator or scene.integrator, options)
+    with progress.phase(f"{args.command} {scene.name}: building the model and the simulation",
+                        show=not getattr(args, "quiet", False)):
+        sim = scene.simulation(integrator=args.integrator, dt=args.dt, precision=args.precision, arch=args.arch,
+                               **options)
+    return scene, sim
+
+
+def check_taken(integrator, options):
+    """A UsageError naming the flags of ``options`` that ``integrator`` does not take."""
+    from massspring.integrators import INTEGRATORS, OPTIONS, takers
+
     taken = {option.name for option in INTEGRATORS[integrator].options}
     refused = {}  # what the integrator lacks -> the flags given for it
     for name in options:
@@ -78,11 +88,6 @@ def make_simulation(args):
         raise UsageError(f"{'/'.join(OPTIONS[n].flag for n in names)}: {integrator} {lacks}; "
                          f"{'these options are' if len(names) > 1 else 'this option is'} for "
                          + ", ".join(takers(names[0])))
-    with progress.phase(f"{args.command} {scene.name}: building the model and the simulation",
-                        show=not getattr(args, "quiet", False)):
-        sim = scene.simulation(integrator=args.integrator, dt=args.dt, precision=args.precision, arch=args.arch,
-                               **options)
-    return scene, sim
 
 
 def solver_options(args):

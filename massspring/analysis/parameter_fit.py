@@ -1,0 +1,151 @@
+"""Fit a model's parameters to recorded frames (``massspring fit``).
+
+One factor per fitted parameter multiplies the model's own values (every spring's
+stiffness by the same factor, and so on), and scipy's L-BFGS-B finds the factors that
+minimise the mean squared distance between the recorded positions and those of a run
+from the recording's first frame, with the gradient of that misfit in each factor from
+``massspring.gradient`` (an adjoint run through every step): the factor's gradient is
+the parameter's gradient summed against the model's values (the chain rule).
+
+A recording is an export of ``massspring run --export DIR --format npz``: every frame a
+state file with positions, velocities, the step and dt. The fit starts from the first
+frame's state, steps with the recording's dt and compares the frames at their steps.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from functools import reduce
+from pathlib import Path
+
+import numpy as np
+
+from massspring.extras import install_hint
+from massspring.gradients import check_arguments, gradient
+from massspring.io.frames import read_frames
+from massspring.io.state import read_state
+from massspring.model import Model
+
+FITTABLE = ("stiffness", "damping", "rest_lengths", "masses", "drag")  # scaled by one factor each
+FACTOR_RANGE = (1e-3, 1e3)  # L-BFGS-B's bounds on every factor
+MAX_ITER = 30  # L-BFGS-B iterations, default
+
+
+@dataclass(frozen=True)
+class Recording:
+    """Frames of one run: ``positions`` (F, n, 3) m at ``steps`` (F,) after the first
+    frame (0 first, increasing), ``velocities`` (n, 3) m/s of the first, ``dt`` s."""
+
+    positions: np.ndarray
+    steps: np.ndarray
+    velocities: np.ndarray
+    dt: float
+    directory: str
+
+
+def check_params(params) -> tuple:
+    """``params`` (names) checked against ``FITTABLE``: a ValueError naming the first
+    unknown or repeated one."""
+    params = tuple(params)
+    if not params:
+        raise ValueError(f"params: name at least one of {', '.join(FITTABLE)}")
+    for name in params:
+        if name not in FITTABLE:
+            raise ValueError(f"params: {name!r} cannot be fitted; one of {', '.join(FITTABLE)}")
+    if len(set(params)) != len(params):
+        raise ValueError(f"params: {params} names a parameter twice")
+    return params
+
+
+def check_fit(model: Model, params, integrator) -> tuple:
+    """``params`` (``check_params``), then the model, names and integrator as
+    ``massspring.gradient`` checks them (its ValueErrors: "wrt", "model", "integrator")."""
+    params = check_params(params)
+    check_arguments(model, list(params), integrator)
+    return params
+
+
+def read_recording(directory, model: Model) -> Recording:
+    """The npz frames of the export in ``directory``, each checked to be a state of
+    ``model``'s size (ValueError naming the file otherwise), at least two, all with
+    one dt and at increasing steps."""
+    frames = read_frames(directory)
+    if len(frames) < 2:
+        raise ValueError(f"{directory}: {len(frames)} frame(s); a fit needs the first and at least one more")
+    positions, steps, first, dt = [], [], None, None
+    for frame in frames:
+        path = Path(directory) / frame["file"]
+        if path.suffix != ".npz":
+            raise ValueError(f"{path}: not an npz frame; record with `massspring run ... --export DIR --format npz`")
+        state = read_state(path, model, "the scene's model")
+        if first is None:
+            first, dt = state, state.dt
+        elif not math.isclose(state.dt, dt, rel_tol=1e-12):
+            raise ValueError(f"{path}: dt {state.dt:g} s, the first frame's {dt:g} s; a fit needs one dt")
+        elif state.steps <= steps[-1] + first.steps:
+            raise ValueError(f"{path}: step {state.steps} is not after the frame before it")
+        positions.append(state.positions)
+        steps.append(state.steps - first.steps)
+    return Recording(np.array(positions), np.array(steps), first.velocities, float(dt), str(directory))
+
+
+def fit_parameters(model: Model, recording: Recording, params, *, integrator, start=1.0, max_iter=MAX_ITER,
+                   progress=None, **options) -> dict:
+    """The factors on ``model``'s ``params`` that make a run of it from the recording's
+    first frame match its frames (module docstring).
+
+    ``start``: every factor's first value; ``max_iter``: L-BFGS-B iterations at most;
+    ``progress(iteration, factors, rms)`` after each; ``options``: the Simulation's
+    solver options. Returns {"factors", "values" (each parameter's fitted mean),
+    "rms_m" (the root mean square distance over the frames after the first), "iterations",
+    "evaluations" (runs with their gradient), "converged", "message"}. Bad arguments
+    raise ValueError before any step runs (``massspring.gradient`` checks the model
+    and integrator before its run).
+    """
+    try:
+        from scipy.optimize import minimize
+    except ImportError:
+        raise ValueError(f"fit: scipy is not installed ({install_hint('fit')})") from None
+    params = check_fit(model, params, integrator)
+    if not (FACTOR_RANGE[0] <= start <= FACTOR_RANGE[1]):
+        raise ValueError(f"start: {start!r} is outside the factors' range {FACTOR_RANGE}")
+    first = model.replaced(positions=recording.positions[0], velocities=recording.velocities)
+    base = {name: np.asarray(getattr(first, name), dtype=np.float64) for name in params}
+    every = int(reduce(math.gcd, (int(k) for k in recording.steps[1:])))
+    total = int(recording.steps[-1])
+    used = recording.steps // every  # the recorded frames among the run's
+    count = (len(recording.steps) - 1) * recording.positions[0].size
+
+    def misfit(frames):
+        diff = frames.positions[used] - recording.positions
+        partial = np.zeros_like(frames.positions)
+        partial[used] = diff / count
+        return 0.5 * float(np.sum(diff * diff)) / count, {"positions": partial}
+
+    values = {}  # factors -> misfit, for the progress line
+    scale = []  # the misfit at the start: L-BFGS-B minimises misfit / scale (its tolerances are absolute)
+
+    def value_and_gradient(factors):
+        scaled = first.replaced(**{name: f * base[name] for name, f in zip(params, factors)})
+        value, grads = gradient(scaled, misfit, list(params), steps=total, every=every, integrator=integrator,
+                                dt=recording.dt, **options)
+        values[tuple(factors)] = value
+        if not scale:
+            scale.append(value if value > 0 else 1.0)
+        return value / scale[0], np.array([float(np.sum(grads[name] * base[name])) for name in params]) / scale[0]
+
+    iteration = [0]
+
+    def report(factors):
+        iteration[0] += 1
+        if progress is not None:
+            progress(iteration[0], dict(zip(params, factors)), math.sqrt(2.0 * values.get(tuple(factors), math.nan)))
+
+    result = minimize(value_and_gradient, np.full(len(params), float(start)), jac=True, method="L-BFGS-B",
+                      bounds=[FACTOR_RANGE] * len(params), callback=report,
+                      options=dict(maxiter=max_iter, ftol=0.0, gtol=1e-14))
+    factors = {name: float(f) for name, f in zip(params, result.x)}
+    return {"factors": factors, "values": {name: float(np.mean(base[name])) * factors[name] for name in params},
+            "rms_m": math.sqrt(2.0 * float(result.fun) * scale[0]), "iterations": int(result.nit),
+            "evaluations": int(result.nfev), "converged": bool(result.success), "message": str(result.message)}

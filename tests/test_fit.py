@@ -1,0 +1,98 @@
+"""``massspring fit`` (massspring/analysis/parameter_fit.py): a scene's parameters fitted to
+frames recorded by ``massspring run --export DIR --format npz`` with other values.
+
+Reference: the values the recording was made with (the fit must find the factors
+between them and the scene's); bad input exits 2 with a one-line message before any run.
+"""
+
+import json
+
+import numpy as np
+import pytest
+
+import massspring as ms
+from conftest import FULL, one_line_error
+from massspring.analysis import parameter_fit
+from massspring.cli import main
+
+CLOTH = ["cloth", "--set", "resolution=5"]
+
+
+def record(tmp_path, *settings, steps=8, every=2, integrator="implicit", fmt="npz"):
+    """A recording of the 5 x 5 cloth with ``settings`` (--set values), tight solves."""
+    out = tmp_path / "recording"
+    extra = {"implicit": ["--cg-tol", "1e-12"], "backward-euler": ["--cg-tol", "1e-12", "--newton-tol", "1e-10"]}
+    extra = extra.get(integrator, [])
+    args = ["run", *CLOTH, *[item for s in settings for item in ("--set", s)], "--integrator", integrator,
+            "--steps", str(steps), "--export", str(out), "--format", fmt, "--every", str(every), "--quiet", *extra]
+    assert main(args) == 0
+    return out
+
+
+def test_fit_recovers_stiffness_and_damping_from_a_recording(tmp_path, capsys):
+    """Recorded with twice the scene's stiffness and three times its damping (implicit,
+    dt 1/60): the fit from the scene's values finds both factors to 1e-4, and writes them."""
+    frames = record(tmp_path, "stiffness=2e4", "damping=6")
+    capsys.readouterr()
+    out = tmp_path / "fit.json"
+    assert main(["fit", *CLOTH, "--frames", str(frames), "--params", "stiffness,damping", "--cg-tol", "1e-12",
+                 "--max-iter", "60", "--out", str(out), "--quiet"]) == 0
+    result = json.loads(out.read_text())
+    assert result["factors"]["stiffness"] == pytest.approx(2.0, rel=1e-4)
+    assert result["factors"]["damping"] == pytest.approx(3.0, rel=1e-4)
+    assert result["rms_m"] < 1e-8
+    assert "stiffness" in capsys.readouterr().out
+
+
+@FULL
+def test_fit_of_masses_and_drag_with_a_frame_step_that_skips(tmp_path):
+    """Masses and drag of a cloth with air drag, backward Euler, frames every 3 steps and
+    the last at step 10 (the runs record every step; steps 0, 3, 6, 9 and 10 are compared)."""
+    frames = record(tmp_path, "mass=1.5", "drag=0.02", steps=10, every=3, integrator="backward-euler")
+    scene = ms.load_scene("cloth").with_params(resolution=5).with_settings(["drag=0.01"])
+    model = scene.model()
+    recording = parameter_fit.read_recording(frames, model)
+    assert recording.steps.tolist() == [0, 3, 6, 9, 10]
+    result = parameter_fit.fit_parameters(model, recording, ["masses", "drag"], integrator="backward-euler",
+                                          max_iter=60, cg_tol=1e-12, newton_tol=1e-10)
+    assert result["factors"]["masses"] == pytest.approx(1.5, rel=1e-4)
+    assert result["factors"]["drag"] == pytest.approx(2.0, rel=1e-4)
+
+
+def test_fit_refuses_bad_input_before_any_run(tmp_path, capsys):
+    frames = record(tmp_path, steps=2, every=1)
+    capsys.readouterr()
+    cases = [
+        (["--params", "stiffness,color"], ("--params", "'color'", "cannot be fitted")),
+        (["--params", "stiffness,stiffness"], ("--params", "twice")),
+        (["--params", "stiffness", "--start", "0"], ("--start",)),
+        (["--params", "stiffness", "--max-iter", "0"], ("--max-iter",)),
+        (["--params", "stiffness", "--integrator", "symplectic", "--cg-tol", "1e-8"], ("--cg-tol", "symplectic")),
+        (["--params", "drag"], ("--params", "drag")),  # the cloth has no air drag
+    ]
+    for extra, words in cases:
+        assert main(["fit", *CLOTH, "--frames", str(frames), *extra]) == 2, extra
+        one_line_error(capsys, *words)
+    assert main(["fit", *CLOTH, "--frames", str(tmp_path / "none"), "--params", "stiffness"]) == 2
+    one_line_error(capsys, "none")
+    assert main(["fit", "cloth", "--set", "resolution=6", "--frames", str(frames), "--params", "stiffness"]) == 2
+    one_line_error(capsys, "frame_00000.npz")
+    assert main(["fit", "drape", "--set", "resolution=5", "--frames", str(frames), "--params", "stiffness"]) == 2
+    one_line_error(capsys, "scene", "strain limit")  # refused before the frames are read
+
+
+def test_fit_refuses_frames_that_are_not_states(tmp_path, capsys):
+    frames = record(tmp_path, steps=2, every=1, fmt="obj")
+    capsys.readouterr()
+    assert main(["fit", *CLOTH, "--frames", str(frames), "--params", "stiffness"]) == 2
+    one_line_error(capsys, "frame_00000.obj", "--format npz")
+
+
+def test_model_replaced_keeps_everything_else():
+    model = ms.load_scene("flag").with_params(resolution=4).model()
+    copy = model.replaced(stiffness=2 * model.stiffness)
+    assert np.array_equal(copy.stiffness, 2 * model.stiffness)
+    assert copy.fingerprint() != model.fingerprint()
+    assert model.replaced(stiffness=model.stiffness).fingerprint() == model.fingerprint()
+    with pytest.raises(TypeError, match="colour"):
+        model.replaced(colour=1)
