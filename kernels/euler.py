@@ -78,10 +78,13 @@ def euler_step(dev: ti.template(), cfg: ti.template(), src: ti.template(), dst: 
 
 @ti.kernel
 def euler_steps(dev: ti.template(), cfg: ti.template(), a: ti.template(), b: ti.template(), dt: ti.f64,
-                t: ti.f64, steps: ti.i32, parity: ti.i32, symplectic: ti.template()) -> ti.types.vector(4, ti.f64):
+                t: ti.f64, steps: ti.i32, parity: ti.i32, symplectic: ti.template(), adj: ti.template(),
+                slot: ti.i32, record: ti.template()) -> ti.types.vector(4, ti.f64):
     """Up to ``steps`` steps from time t (s) in one launch with serial loops, a -> b, b -> a, ...
     from ``a`` if ``parity`` is 0, b -> a, a -> b, ... if it is 1 (one compiled kernel
-    whichever of the two states is current).
+    whichever of the two states is current). With ``record`` (a gradient's forward pass),
+    the k-th new state also goes to ``adj``'s history at slot ``slot`` + k (``state.save_state``);
+    without, ``adj`` is not read (pass any bundle).
 
     Returns (good steps done k, then the ``divergence.verdict`` of the last state
     computed: code, kinetic energy J, bound J). The last good state is the start's if k is
@@ -100,14 +103,27 @@ def euler_steps(dev: ti.template(), cfg: ti.template(), a: ti.template(), b: ti.
                 even = update_particles(dev, cfg, a, b, h, end, symplectic)
                 last = verdict(even, dev.check[None])
                 code = ti.cast(last[0], ti.i32)
+                if ti.static(record):
+                    record_state(dev, adj, b, slot + done)
             else:
                 spring_forces(dev, cfg, b.x, b.v, False)
                 odd = update_particles(dev, cfg, b, a, h, end, symplectic)
                 last = verdict(odd, dev.check[None])
                 code = ti.cast(last[0], ti.i32)
+                if ti.static(record):
+                    record_state(dev, adj, a, slot + done)
             if code == OK:
                 done += 1
     return ti.Vector([done, last[0], last[1], last[2]], ti.f64)
+
+
+@ti.func
+def record_state(dev, adj, src, slot):
+    """``state.save_state`` of ``src`` into ``adj``'s history at ``slot``."""
+    stride = adj.stride[None]
+    for i in range(dev.size[0]):
+        adj.hx[slot * stride + i] = ti.cast(src.x[i], ti.f64)
+        adj.hv[slot * stride + i] = ti.cast(src.v[i], ti.f64)
 
 
 @ti.kernel

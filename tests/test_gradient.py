@@ -201,8 +201,11 @@ def test_checkpointed_gradients_equal_those_of_the_stored_trajectory(integrator)
             np.testing.assert_array_equal(grads[name], results[0][1][name])
 
 
-def test_frames_are_the_run_at_every_kth_step():
-    """The objective sees frame 0 and every ``every``-th step of the run a Simulation takes."""
+@pytest.mark.parametrize("integrator, checkpoint", [("symplectic", None), ("symplectic", 2), ("explicit", 4),
+                                                    ("rk4", None)])
+def test_frames_are_the_run_at_every_kth_step(integrator, checkpoint):
+    """The objective sees frame 0 and every ``every``-th step of the run a Simulation takes
+    (the frames of the last stretch read from the history the serial explicit kernels record)."""
     model = sheet()
     seen = {}
 
@@ -210,12 +213,13 @@ def test_frames_are_the_run_at_every_kth_step():
         seen["frames"] = frames
         return 0.0, {}
 
-    value, grads = ms.gradient(model, keep, ["stiffness"], steps=7, every=3, dt=2e-3, integrator="symplectic")
+    value, grads = ms.gradient(model, keep, ["stiffness"], steps=7, every=3, dt=2e-3, integrator=integrator,
+                               checkpoint=checkpoint)
     frames = seen["frames"]
     assert value == 0.0 and np.all(grads["stiffness"] == 0)
     np.testing.assert_array_equal(frames.steps, [0, 3, 6])
     np.testing.assert_allclose(frames.times, [0, 6e-3, 12e-3], rtol=1e-15)
-    sim = ms.Simulation(model, "symplectic", dt=2e-3)
+    sim = ms.Simulation(model, integrator, dt=2e-3)
     for f, k in enumerate(frames.steps):
         sim.step(int(k) - sim.steps)
         np.testing.assert_array_equal(frames.positions[f], sim.positions)

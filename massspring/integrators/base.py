@@ -77,6 +77,12 @@ solver's options, ``options.Option`` records: ``integrators.OPTIONS``). ``serial
         """
         raise NotImplementedError
 
+    # (adj bundle, first step k) while a gradient's forward pass records its states: the
+    # state after step k + j goes to the history's slot j (``massspring.gradients``), by
+    # ``advance`` where ``records_history``
+    history = None
+    records_history = False
+
     def settle(self):
         """Make ``dev.state`` the current state (it is, unless the integrator swaps states:
         ``SwappingStates``)."""

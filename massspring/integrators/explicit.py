@@ -27,11 +27,19 @@ class ExplicitEuler(SwappingStates):
     grows_undamped = True
     differentiable = True
 
+    @property
+    def records_history(self) -> bool:
+        """Whether ``advance`` can store each new state in a gradient's history (``history``):
+        the serial kernels do, in the launch that makes them."""
+        return self.serial
+
     def advance(self, steps):
         dev, cfg, dt = self.dev, self.cfg, self.settings.dt
         if self.serial:
             a, b = self.states
-            result = euler.euler_steps(dev, cfg, a, b, dt, self.time, steps, int(self.state is b), self.symplectic)
+            adj, slot = (dev, 0) if self.history is None else (self.history[0], self.steps + 1 - self.history[1])
+            result = euler.euler_steps(dev, cfg, a, b, dt, self.time, steps, int(self.state is b), self.symplectic,
+                                       adj, slot, self.history is not None)
             done, check = int(result[0]), read_verdict(result[1:])
             if done % 2:
                 self.state, self.spare = self.spare, self.state
