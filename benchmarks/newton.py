@@ -197,25 +197,32 @@ def damping_table():
     for integrator in NEWTON:
         for kd, dt, steps in cases:
             sim = ms.load_scene("cloth").with_settings([f"damping={kd:g}"]).simulation(integrator, dt=dt)
-            newton, missed, outcome = [], 0, "ran"
+            newton, cg, missed, outcome, cpu = [], [], 0, "ran", 0.0
             try:
                 for _ in range(steps):
+                    start = time.process_time()
                     sim.step(1)
+                    cpu += time.process_time() - start
                     newton.append(sim.solver_stats.newton_iterations)
+                    cg.append(sim.solver_stats.iterations)
                     missed += not sim.solver_stats.converged
             except ms.DivergenceError as error:
                 outcome = str(error).split(": ", 1)[-1].split(";")[0]
             rows.append({"integrator": integrator, "damping": kd, "dt": dt, "steps": len(newton),
                          "newton_mean": float(np.mean(newton)) if newton else None,
                          "newton_max": max(newton) if newton else None, "missed": missed,
+                         "cg_per_step": float(np.mean(cg)) if cg else None,
+                         "cpu_ms_per_step": 1e3 * cpu / len(newton) if newton else None,
                          "kinetic_J": sim.energy()["kinetic"], "outcome": outcome})
             sim.close()
-    print("\ncloth 32 x 32, spring damping raised: Newton iterations per step, steps that missed newton_tol")
+    print("\ncloth 32 x 32, spring damping raised: Newton iterations per step, steps that missed newton_tol, "
+          "CG iterations and CPU ms per step (the first step's compile included)")
     print(f"  {'integrator':15s} {'damping':>8s} {'dt':>7s} {'steps':>5s} {'Newton':>7s} {'max':>4s} {'missed':>6s}"
-          f" {'kinetic J':>10s}  outcome")
+          f" {'CG/step':>8s} {'CPU ms':>8s} {'kinetic J':>10s}  outcome")
     for r in rows:
+        measured = (f"{r['cg_per_step']:8.1f} {r['cpu_ms_per_step']:8.1f}" if r["steps"] else f"{'':8s} {'':8s}")
         print(f"  {r['integrator']:15s} {r['damping']:8.3g} {r['dt']:7.3g} {r['steps']:5d} {newton_cells(r)} "
-              f"{r['missed']:6d} {r['kinetic_J']:10.3g}  {r['outcome']}")
+              f"{r['missed']:6d} {measured} {r['kinetic_J']:10.3g}  {r['outcome']}")
     return rows
 
 
