@@ -28,7 +28,7 @@ family, the cheaper family at each error), and their ratio.
 
     python benchmarks/vbd.py                                   # all cases, about 20 minutes
     python benchmarks/vbd.py --quick                           # smoke run: 32 x 32 drape, two settings each
-    python benchmarks/vbd.py --cases drape32 --plot /tmp/vbd.png
+    python benchmarks/vbd.py --cases drape32 --plot benchmarks/out/vbd.png
     python benchmarks/vbd.py --cases drape32 --vbd 120x20 240x10   # other VBD settings (references unchanged)
     python benchmarks/vbd.py --json benchmarks/results/vbd.json --plot docs/vbd.png
     python benchmarks/vbd.py --analyse benchmarks/results/vbd.json --plot docs/vbd.png   # tables and plot again

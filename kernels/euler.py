@@ -28,7 +28,7 @@ from .divergence import OK, state_sums, verdict
 from .constraints import is_free, pin_adjoint, prescribed
 from .contact import respond, respond_adjoint
 from .forces import acceleration_adjoint, particle_force, spring_forces, spring_sum
-from .state import restore_state
+from .state import restore_state, store_state
 from .terms import uniform_acceleration
 
 
@@ -83,7 +83,7 @@ def euler_steps(dev: ti.template(), cfg: ti.template(), a: ti.template(), b: ti.
     """Up to ``steps`` steps from time t (s) in one launch with serial loops, a -> b, b -> a, ...
     from ``a`` if ``parity`` is 0, b -> a, a -> b, ... if it is 1 (one compiled kernel
     whichever of the two states is current). With ``record`` (a gradient's forward pass),
-    the k-th new state also goes to ``adj``'s history at slot ``slot`` + k (``state.save_state``);
+    the k-th new state also goes to ``adj``'s history at slot ``slot`` + k (``state.store_state``);
     without, ``adj`` is not read (pass any bundle).
 
     Returns (good steps done k, then the ``divergence.verdict`` of the last state
@@ -104,26 +104,17 @@ def euler_steps(dev: ti.template(), cfg: ti.template(), a: ti.template(), b: ti.
                 last = verdict(even, dev.check[None])
                 code = ti.cast(last[0], ti.i32)
                 if ti.static(record):
-                    record_state(dev, adj, b, slot + done)
+                    store_state(adj.hx, adj.hv, b, dev.size[0], slot + done, adj.stride[None])
             else:
                 spring_forces(dev, cfg, b.x, b.v, False)
                 odd = update_particles(dev, cfg, b, a, h, end, symplectic)
                 last = verdict(odd, dev.check[None])
                 code = ti.cast(last[0], ti.i32)
                 if ti.static(record):
-                    record_state(dev, adj, a, slot + done)
+                    store_state(adj.hx, adj.hv, a, dev.size[0], slot + done, adj.stride[None])
             if code == OK:
                 done += 1
     return ti.Vector([done, last[0], last[1], last[2]], ti.f64)
-
-
-@ti.func
-def record_state(dev, adj, src, slot):
-    """``state.save_state`` of ``src`` into ``adj``'s history at ``slot``."""
-    stride = adj.stride[None]
-    for i in range(dev.size[0]):
-        adj.hx[slot * stride + i] = ti.cast(src.x[i], ti.f64)
-        adj.hv[slot * stride + i] = ti.cast(src.v[i], ti.f64)
 
 
 @ti.kernel

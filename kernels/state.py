@@ -35,6 +35,12 @@ def copy_state(dst: ti.template(), src: ti.template(), n: ti.i32):
 
 @ti.kernel
 def save_state(hx: ti.template(), hv: ti.template(), src: ti.template(), n: ti.i32, slot: ti.i32, stride: ti.i32):
+    """``store_state`` as a kernel of its own."""
+    store_state(hx, hv, src, n, slot, stride)
+
+
+@ti.func
+def store_state(hx, hv, src, n, slot, stride):
     """hx[slot * stride + i], hv[...] = src.x[i], src.v[i] for the n particles."""
     for i in range(n):
         hx[slot * stride + i] = ti.cast(src.x[i], ti.f64)
