@@ -460,3 +460,76 @@ def respond_one_adjoint(dev, cfg: ti.template(), kind: ti.template(), k: ti.temp
         elif d < 0:
             gx_in = projection_jacobian(dev, cfg, kind, k, xr, t).transpose() @ gxr
     return gx_in, gv_in, gs_in, gx0
+
+
+@ti.func
+def landing_adjoint(i, dev, cfg: ti.template(), x, t, g):
+    """The transpose of ``landing``'s Jacobian in x (f64) applied to g: for each contact of
+    particle i at distance d > 0, (1 + e) (n n^T + d N) g, N = dn/dx (``curvature``)."""
+    out = ti.Vector.zero(ti.f64, 3)
+    mask = dev.contacts[i]
+    for kind, count, first in ti.static(cfg.colliders):
+        for k in ti.static(range(count)):
+            if mask & ti.static(1 << (first + k)) != 0:
+                d, n_real = kind.distance(dev, cfg, k, x, t)
+                if d > 0:
+                    n = ti.cast(n_real, ti.f64)
+                    jacobian = n.outer_product(n) + ti.cast(d, ti.f64) * kind.curvature(dev, cfg, k, x, t)
+                    out += (1 + ti.cast(restitution(dev, kind, k), ti.f64)) * (jacobian.transpose() @ g)
+    return out
+
+
+@ti.func
+def constraint_adjoint(i, dev, cfg: ti.template(), x, v, v_new, mu_i, unsettled, impulse, t):
+    """The contact constraints' share of the implicit step's adjoint at particle i (f64),
+    its contacts as ``detect`` made them from (x, v) = (x_n, v_n) at time t.
+
+    The step's equations at i are A v' - b = N lam and N^T v' = u, N the normals n_k of
+    its contacts (columns), u_k = n_k . v_c - e min((v_n - v_c) . n_k, 0). With the
+    adjoint solution ``mu_i`` (N^T mu = 0), ``unsettled`` = G - A mu (G: dL/dv' the solve
+    was given) = N beta, and ``impulse`` = A v' - b = N lam, the gradient has, per
+    contact, dL/dn_k = lam_k mu - beta_k v' + beta_k du_k/dn_k (to x through dn/dx:
+    ``curvature``) and dL/dv_n = beta_k du_k/dv_n. Returns (dL/dx_n, dL/dv_n) shares."""
+    mask = dev.contacts[i]
+    normals = ti.Matrix.zero(ti.f64, 3, 3)
+    slot = 0
+    for kind, count, first in ti.static(cfg.colliders):
+        for k in ti.static(range(count)):
+            if mask & ti.static(1 << (first + k)) != 0:
+                _, n = kind.distance(dev, cfg, k, x, t)
+                for c in ti.static(range(3)):
+                    if slot == c:
+                        for r in ti.static(range(3)):
+                            normals[r, c] = ti.cast(n[r], ti.f64)
+                slot += 1
+    gram = normals.transpose() @ normals
+    for c in ti.static(range(3)):
+        if c >= slot:
+            gram[c, c] = 1.0
+    inverse = gram.inverse()
+    lam = inverse @ (normals.transpose() @ impulse)
+    beta = inverse @ (normals.transpose() @ unsettled)
+    gx = ti.Vector.zero(ti.f64, 3)
+    gv = ti.Vector.zero(ti.f64, 3)
+    slot = 0
+    for kind, count, first in ti.static(cfg.colliders):
+        for k in ti.static(range(count)):
+            if mask & ti.static(1 << (first + k)) != 0:
+                _, n_real = kind.distance(dev, cfg, k, x, t)
+                n = ti.cast(n_real, ti.f64)
+                lam_k = 0.0
+                beta_k = 0.0
+                for c in ti.static(range(3)):
+                    if slot == c:
+                        lam_k = lam[c]
+                        beta_k = beta[c]
+                vc = ti.cast(velocity(dev, kind, k), ti.f64)
+                du = vc  # du_k / dn_k
+                if (v - vc).dot(n) < 0:  # arriving: restitution reflects its normal speed
+                    e = ti.cast(restitution(dev, kind, k), ti.f64)
+                    du = vc - e * (v - vc)
+                    gv -= beta_k * e * n
+                gn = lam_k * mu_i + beta_k * (du - v_new)
+                gx += kind.curvature(dev, cfg, k, x, t).transpose() @ gn
+                slot += 1
+    return gx, gv

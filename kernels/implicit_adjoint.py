@@ -19,7 +19,8 @@ gathers the rest spring by spring from each term's ``rhs_adjoint`` and
 
 import taichi as ti
 
-from .constraints import is_free, is_pinned, pin_adjoint, prescribed
+from .constraints import constrain, is_free, is_pinned, pin_adjoint, prescribed
+from .contact import constraint_adjoint, landing, landing_adjoint, project_adjoint
 from .forces import spring_direction, spring_sum, tiny_length
 from .operator import LINEARISED, apply_row, refresh
 from .state import restore_state
@@ -29,20 +30,36 @@ from .terms import SpringDamping, uniform_acceleration
 @ti.func
 def rhs(dev, cfg: ti.template(), adj, h, t, slot, wants: ti.template()):
     n = dev.size[0]
-    restore_state(adj.hx, adj.hv, dev.state, n, slot, adj.stride[None])
+    stride = adj.stride[None]
+    restore_state(adj.hx, adj.hv, dev.state, n, slot, stride)
+    if ti.static(cfg.contact_filter):
+        for i in range(n):  # the contacts released before the step, as it began
+            dev.released[i] = adj.hr[slot * stride + i]
     refresh(dev, cfg, dev.x, dev.v, h, t, LINEARISED)
-    if ti.static(cfg.moving_pins):
-        for i in range(n):  # the solve starts pins at their velocity: their columns of A move to b
+    if ti.static(cfg.moving_pins or cfg.contact_filter):
+        for i in range(n):  # the solve starts constrained directions at their velocity: A's columns move to b
             dev.p[i] = ti.Vector.zero(cfg.real, 3)
             if not is_free(i, dev, cfg):
                 dev.p[i] = prescribed(i, dev, cfg)
+            if ti.static(cfg.contact_filter):
+                dev.q[i] = adj.hv[(slot + 1) * stride + i]  # v', for the contacts' impulses
     for i in range(n):
         if ti.static(wants.pins):
             pin_adjoint(i, dev, cfg, adj, h)
         b = ti.Vector.zero(cfg.real, 3)
-        if is_free(i, dev, cfg):
-            b = adj.lv[i] + h * adj.lx[i]
-            if ti.static(cfg.moving_pins):
+        if not is_pinned(i, dev, cfg):
+            gy = adj.lx[i]
+            if ti.static(cfg.has_colliders):  # x' = P(x + h v' - landing(x)), P the final projection
+                x = dev.x[i]
+                y = x + h * adj.hv[(slot + 1) * stride + i] - landing(i, dev, cfg, x, t)
+                gy = project_adjoint(dev, cfg, y, t + h, ti.static(cfg.collider_count), gy)
+                adj.lx[i] = gy - landing_adjoint(i, dev, cfg, x, t, gy)
+            b = adj.lv[i] + h * gy
+            if ti.static(cfg.contact_filter):
+                if dev.contacts[i] != 0:
+                    dev.impulse[i] = apply_row(i, dev, cfg, dev.q) - dev.b[i]
+                    adj.cg[i] = b
+            if ti.static(cfg.moving_pins or cfg.contact_filter):
                 b += apply_row(i, dev, cfg, dev.p)
         dev.b[i] = b
         dev.v[i] = adj.w[i]
@@ -51,11 +68,16 @@ def rhs(dev, cfg: ti.template(), adj, h, t, slot, wants: ti.template()):
 @ti.kernel
 def adjoint_rhs(dev: ti.template(), cfg: ti.template(), adj: ti.template(), dt: ti.f64, t: ti.f64, slot: ti.i32,
                 wants: ti.template(), serial: ti.template()):
-    """The state kept at ``slot`` restored into ``dev.x``, ``dev.v``; the pins' share of the
-    pin velocities' gradient (with ``wants.pins``, ``constraints.pin_adjoint``); the
-    operator refreshed there (time t, s); ``dev.b`` = dL/dv' + h dL/dx' on free rows (plus A's pin columns
-    times the pin velocities, which the solve's start subtracts again); ``dev.v`` = the
-    last adjoint solution ``adj.w`` (the warm start)."""
+    """The state kept at ``slot`` restored into ``dev.x``, ``dev.v`` (with colliders, the
+    contacts released before it into ``dev.released``); the pins' share of the pin
+    velocities' gradient (with ``wants.pins``, ``constraints.pin_adjoint``); the operator
+    and contacts refreshed there (time t, s); ``dev.b`` = G = dL/dv' + h dL/dx' on rows
+    not pinned (plus A's columns of the constrained directions times their prescribed
+    velocities, which the solve's start subtracts again; with colliders, dL/dx' taken
+    back through the final projection and the landing correction first, the rest of
+    dL/dx kept in ``adj.lx``); at a particle in contact, G in ``adj.cg`` and its impulse
+    A v' - b in ``dev.impulse``; ``dev.v`` = the last adjoint solution ``adj.w`` (the warm
+    start)."""
     if ti.static(serial):
         ti.loop_config(serialize=True)
         for _ in range(1):
@@ -65,15 +87,15 @@ def adjoint_rhs(dev: ti.template(), cfg: ti.template(), adj: ti.template(), dt: 
 
 
 @ti.func
-def gather(dev, cfg: ti.template(), adj, h, slot, wants: ti.template()):
+def gather(dev, cfg: ti.template(), adj, h, t, slot, wants: ti.template()):
     n = dev.size[0]
     stride = adj.stride[None]
     g = uniform_acceleration(dev, cfg)
     for i in range(n):
         mu = ti.Vector.zero(ti.f64, 3)
         px = ti.Vector.zero(ti.f64, 3)
-        if is_free(i, dev, cfg):
-            mu = dev.v[i]
+        if not is_pinned(i, dev, cfg):
+            mu = constrain(i, dev, cfg, dev.v[i])
             if ti.static(wants.masses):
                 change = adj.hv[(slot + 1) * stride + i] - adj.hv[slot * stride + i]
                 adj.gm[i] = adj.gm[i] + mu.dot(h * g - change)
@@ -106,16 +128,24 @@ def gather(dev, cfg: ti.template(), adj, h, slot, wants: ti.template()):
         lx = adj.lx[i]
         if ti.static(cfg.has_springs):
             lx -= spring_sum(i, dev, adj.sx)
+        lv = dev.mass[i] * adj.w[i]
+        if ti.static(cfg.contact_filter):
+            if dev.contacts[i] != 0:
+                unsettled = adj.cg[i] - apply_row(i, dev, cfg, adj.w)
+                cx, cv = constraint_adjoint(i, dev, cfg, dev.x[i], adj.hv[slot * stride + i],
+                                            adj.hv[(slot + 1) * stride + i], adj.w[i], unsettled, dev.impulse[i], t)
+                lx += cx
+                lv += cv
         adj.lx[i] = lx + adj.px[i]
-        adj.lv[i] = dev.mass[i] * adj.w[i]
+        adj.lv[i] = lv
         if ti.static(wants.pins):  # v' = vp at a pin moves A's pin columns times vp to the free rows' b
             if is_pinned(i, dev, cfg):
                 adj.gp[i] = adj.gp[i] - apply_row(i, dev, cfg, adj.w)
 
 
 @ti.kernel
-def implicit_adjoint(dev: ti.template(), cfg: ti.template(), adj: ti.template(), dt: ti.f64, slot: ti.i32,
-                     wants: ti.template(), serial: ti.template()):
+def implicit_adjoint(dev: ti.template(), cfg: ti.template(), adj: ti.template(), dt: ti.f64, t: ti.f64,
+                     slot: ti.i32, wants: ti.template(), serial: ti.template()):
     """After the adjoint solve (mu in ``dev.v``): dL/dx, dL/dv of the step's state into
     ``adj.lx``, ``adj.lv``, mu kept in ``adj.w`` (the next solve's warm start), the step's
     share of each parameter gradient added (module docstring; the masses' with
@@ -124,6 +154,14 @@ def implicit_adjoint(dev: ti.template(), cfg: ti.template(), adj: ti.template(),
     if ti.static(serial):
         ti.loop_config(serialize=True)
         for _ in range(1):
-            gather(dev, cfg, adj, ti.cast(dt, ti.f64), slot, wants)
+            gather(dev, cfg, adj, ti.cast(dt, ti.f64), ti.cast(t, cfg.real), slot, wants)
     else:
-        gather(dev, cfg, adj, ti.cast(dt, ti.f64), slot, wants)
+        gather(dev, cfg, adj, ti.cast(dt, ti.f64), ti.cast(t, cfg.real), slot, wants)
+
+
+@ti.kernel
+def keep_released(dev: ti.template(), adj: ti.template(), n: ti.i32, slot: ti.i32):
+    """adj.hr[slot * stride + i] = dev.released[i]: the contacts released before the state
+    kept at ``slot`` (``contact.detect`` skips them in the step from it)."""
+    for i in range(n):
+        adj.hr[slot * adj.stride[None] + i] = dev.released[i]

@@ -17,7 +17,8 @@ bytes a particle, and one forward step more per step than the forward run.
 
 Built so far (issue 39): the explicit, symplectic, RK4, linearised implicit, backward
 Euler, BDF2 and implicit midpoint integrators, with springs, damping, gravity, drag and wind, pins (fixed or moving,
-with their velocities' gradient), colliders: planes, spheres and boxes (explicit, symplectic and RK4 steps) and
+with their velocities' gradient), colliders: planes, spheres and boxes (explicit, symplectic and RK4 steps; without
+friction, the linearised implicit step) and
 controls over time (keyframed pins, wind, actuated rest lengths: ``ControlShares``). The adjoint kernels are compiled and
 their fields allocated only when a gradient is asked for: a forward run is as before.
 """
@@ -146,15 +147,25 @@ def check_arguments(model, wrt, integrator, precision="f64") -> list:
 
 
 CONTACT_INTEGRATORS = ("explicit", "symplectic", "rk4")  # those whose contact response has an adjoint
+FRICTIONLESS_CONTACT = ("implicit",)  # those whose contact constraints have an adjoint without friction
 
 
 def _check_colliders(model, integrator):
-    """Contact has a gradient (its branches frozen: ``contact.respond_adjoint``) with any
-    colliders in the explicit, symplectic and RK4 steps; another integrator with
+    """Contact has a gradient (its branches frozen) with any colliders in the explicit,
+    symplectic and RK4 steps (``contact.respond_adjoint``) and with frictionless ones in
+    the linearised implicit step (``contact.constraint_adjoint``); anything else with
     colliders is refused."""
-    if model.has_colliders and integrator not in CONTACT_INTEGRATORS:
+    if not model.has_colliders or integrator in CONTACT_INTEGRATORS:
+        return
+    if integrator not in FRICTIONLESS_CONTACT:
         raise ValueError(f"integrator: gradients through contact are built for "
-                         f"{', '.join(CONTACT_INTEGRATORS)} steps, got {integrator!r} (issue 39)")
+                         f"{', '.join(CONTACT_INTEGRATORS + FRICTIONLESS_CONTACT)} steps, got {integrator!r} "
+                         f"(issue 39)")
+    rubbing = [index for index, collider in enumerate(model.colliders) if collider.friction > 0]
+    if rubbing:
+        raise ValueError(f"model: gradients through friction in {integrator!r} steps are not built yet (issue 39): "
+                         f"collider {rubbing[0]} has friction {model.colliders[rubbing[0]].friction:g}; give "
+                         f"the colliders friction=0, or use one of {', '.join(CONTACT_INTEGRATORS)}")
 
 
 @dataclass(frozen=True)
@@ -225,7 +236,7 @@ def _forward(sim, adj, steps, every, checkpoint):
         if done < last and done % checkpoint == 0:
             kept[done] = (sim.positions, sim.velocities, sim.carried_state())
         if done >= last:
-            state_kernels.save_state(adj.hx, adj.hv, integrator.state, n, done - last, stride)
+            integrator.keep(adj, done - last)
         if done % every == 0:
             positions.append(sim.positions)
             velocities.append(sim.velocities)
@@ -291,8 +302,9 @@ def _adjoint_bundle(sim, checkpoint):
     layout = Layout(n, m, ti.f64)
     stride = history_stride(n)
     layout.add("stride", ti.i32, (), values=np.array(stride))
+    rows = capacity(checkpoint + 1, 8) * stride
     for name in ("hx", "hv"):
-        layout.vectors(name, ti.f64, capacity(checkpoint + 1, 8) * stride)
+        layout.vectors(name, ti.f64, rows)
     for name in ("lx", "lv", "gg"):
         layout.vectors(name, ti.f64, values=np.zeros((n, 3)))
     layout.vectors("w", ti.f64, values=np.zeros((n, 3)))
@@ -306,7 +318,7 @@ def _adjoint_bundle(sim, checkpoint):
         layout.add(name, ti.f64, "spring", values=np.zeros(m) if m else None)
     if sim.model.has_colliders:
         layout.vectors("cx", ti.f64)  # the contact response's gradient in the step's start position
-    INTEGRATORS[sim.integrator].declare_adjoint(layout, stride)
+    INTEGRATORS[sim.integrator].declare_adjoint(layout, sim.model, stride, rows)
     return layout.allocate(f"model: {n:,} particles and {m:,} springs; the fields of its gradient "
                            f"with {checkpoint:,} states kept (give a smaller checkpoint)")
 
@@ -382,7 +394,7 @@ def _backward(sim, adj, wants, partials, frame_steps, kept, last, steps, checkpo
             for k in range(start, end + 1):
                 if k > start:
                     sim.step(1)
-                state_kernels.save_state(adj.hx, adj.hv, integrator.state, n, k - start, stride)
+                integrator.keep(adj, k - start)
         for k in reversed(range(start, end)):
             integrator.steps = k  # the step's start time, k dt (moving colliders)
             if shares is not None:

@@ -110,9 +110,15 @@ solver's options, ``options.Option`` records: ``integrators.OPTIONS``). ``serial
                 state_kernels.load_integers(field, values.astype(np.int32))
 
     @classmethod
-    def declare_adjoint(cls, layout, stride):
+    def declare_adjoint(cls, layout, model, stride, rows):
         """Add the fields this integrator's ``adjoint`` needs beyond the gradient's own to
-        ``layout`` (float64; ``stride``: the history's rows per state; none by default)."""
+        ``layout`` (float64) for ``model``; ``stride``: the history's rows per state,
+        ``rows`` its rows in all (none by default)."""
+
+    def keep(self, adj, slot):
+        """Keep the current state in ``adj``'s history at ``slot`` (``massspring.gradients``),
+        with what the adjoint of the step from it needs besides x and v."""
+        state_kernels.save_state(adj.hx, adj.hv, self.state, self.dev.n, slot, int(adj.stride[None]))
 
     def adjoint(self, adj, slot, wants):
         """Run a step backwards (``massspring.gradient``) from the state kept at ``slot``

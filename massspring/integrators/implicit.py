@@ -141,6 +141,21 @@ class ImplicitEuler(Integrator):
         self.steps += accepted
         return int(accepted), check
 
+    @classmethod
+    def declare_adjoint(cls, layout, model, stride, rows):
+        """With colliders: the contacts released before each kept state (``hr``, int32, as
+        the history) and, at a particle in contact, the gradient its solve was given (``cg``)."""
+        if model.has_colliders:
+            layout.add("hr", ti.i32, rows)
+            layout.vectors("cg", layout.real)
+
+    def keep(self, adj, slot):
+        """The base's, and with colliders the contacts released before the state
+        (``implicit_adjoint.keep_released``): the adjoint's step detects its contacts again."""
+        super().keep(adj, slot)
+        if self.cfg.contact_filter:
+            implicit_adjoint.keep_released(self.dev, adj, self.dev.n, slot)
+
     def adjoint(self, adj, slot, wants):
         """The adjoint of Eq. 15 at the state kept at ``slot`` (``kernels/implicit_adjoint.py``):
         one solve with this run's operator, CG and preconditioner at its cg_tol; returns
@@ -149,7 +164,7 @@ class ImplicitEuler(Integrator):
         implicit_adjoint.adjoint_rhs(self.dev, self.cfg, adj, s.dt, self.time, slot, wants, self.serial)
         stats = solve(self.dev, self.cfg, self.preconditioner, s.dt, s.cg_tol, s.cg_max_iter, self.serial,
                       self.time, mode=operator.REFRESHED)
-        implicit_adjoint.implicit_adjoint(self.dev, self.cfg, adj, s.dt, slot, wants, self.serial)
+        implicit_adjoint.implicit_adjoint(self.dev, self.cfg, adj, s.dt, self.time, slot, wants, self.serial)
         return stats
 
     @staticmethod

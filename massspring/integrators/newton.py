@@ -87,7 +87,7 @@ class BackwardEuler(ImplicitEuler):
             layout.vectors("lag_coef", real, "entry", k=4)
 
     @classmethod
-    def declare_adjoint(cls, layout, stride):
+    def declare_adjoint(cls, layout, model, stride, rows):
         """The last adjoint solution (the next one's warm start), the velocity of the point
         its Jacobian is taken at, and a GMRES product's vector and its J^T y. The warm start begins at zero
         (filled even when the bundle comes from the pool: a gradient never depends on the
@@ -284,10 +284,10 @@ class BDF2(BackwardEuler):
         return self.ready
 
     @classmethod
-    def declare_adjoint(cls, layout, stride):
+    def declare_adjoint(cls, layout, model, stride, rows):
         """Backward Euler's, and the share of dL/d(state) a step's adjoint keeps for the
         state two steps back (``newton_adjoint.bdf2_split``), zero to start."""
-        super().declare_adjoint(layout, stride)
+        super().declare_adjoint(layout, model, stride, rows)
         for name in ("kx", "kv"):
             layout.vectors(name, layout.real, values=np.zeros((layout.n, 3)))
         for name in ("ox", "ov"):  # the prediction's share (newton_adjoint.newton_adjoint_gather)

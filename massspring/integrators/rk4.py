@@ -60,7 +60,7 @@ class RK4(SwappingStates):
         layout.vectors("sv", layout.real)
 
     @classmethod
-    def declare_adjoint(cls, layout, stride):
+    def declare_adjoint(cls, layout, model, stride, rows):
         """The stages y2..y4 of the step run backwards (3 slots of ``stride`` rows) and the
         backward pass's per-stage vectors (``rk4.rk4_adjoint``)."""
         for name in ("xs", "vs"):
