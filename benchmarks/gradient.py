@@ -11,8 +11,14 @@ pass), each after one untimed warm-up run (compiles excluded), and their ratio. 
 in a child process, the peak resident memory of a symplectic gradient over ``--long``
 steps against that of a forward run of the same length.
 
+With ``--scene`` another scene (at the same dt; ``--set key=value``
+changes its parameters as the CLI's ``--set`` does), e.g. the cloth draping over a
+sphere with friction, contact and friction in every step's gradient:
+
     python benchmarks/gradient.py
     python benchmarks/gradient.py --resolution 32 --steps 100 --long 1000
+    python benchmarks/gradient.py --scene drape --set strain_limit=0 --resolution 32 --integrators implicit \
+        --solved-steps 60 --long 0 --json benchmarks/out/gradient_drape.json
 """
 
 from __future__ import annotations
@@ -55,6 +61,9 @@ print(json.dumps({"wall_s": time.perf_counter() - start,
 
 def parse_args(argv=None):
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--scene", default="cloth", help="a built-in scene (default cloth)")
+    p.add_argument("--set", dest="sets", action="append", default=[], metavar="KEY=VALUE",
+                   help="a scene parameter (a JSON value or a word), repeatable")
     p.add_argument("--resolution", type=int, default=64)
     p.add_argument("--steps", type=int, default=200, help="steps of the timed explicit runs (default 200)")
     p.add_argument("--solved-steps", type=int, default=20,
@@ -74,12 +83,24 @@ def last_height(frames):
     return float(frames.positions[-1, :, 2].sum()), {"positions": partial}
 
 
+def scene_params(args):
+    """``--resolution`` and the ``--set`` pairs as the scene's parameters."""
+    params = {"resolution": args.resolution}
+    for pair in args.sets:
+        key, _, value = pair.partition("=")
+        try:
+            params[key] = json.loads(value)
+        except json.JSONDecodeError:
+            params[key] = value
+    return params
+
+
 def timed(args, integrator):
     import massspring as ms
     from massspring.analysis.stability import predict
     from massspring.integrators import INTEGRATORS
 
-    scene = ms.load_scene("cloth").with_params(resolution=args.resolution)
+    scene = ms.load_scene(args.scene).with_params(**scene_params(args))
     model = scene.model()
     dt = INTEGRATORS[integrator].suggest_dt(predict(model))
     names = ["stiffness", "damping", "rest_lengths", "masses", "positions", "velocities"]
@@ -116,7 +137,7 @@ def main(argv=None):
 
     integrators = args.integrators or list(differentiable())
     rows = []
-    print(f"cloth {args.resolution}x{args.resolution}, median of {args.repeats}")
+    print(f"{args.scene} {args.resolution}x{args.resolution} {' '.join(args.sets)}, median of {args.repeats}")
     print(f"{'integrator':<12}{'dt s':>10}{'steps':>7}{'forward s':>11}{'gradient s':>12}{'ratio':>7}")
     for integrator in integrators:
         try:
@@ -125,7 +146,8 @@ def main(argv=None):
             print(f"{integrator:<12}{error}")
             rows.append({"integrator": integrator, "resolution": args.resolution, "error": str(error)})
             continue
-        row = {"integrator": integrator, "resolution": args.resolution, "steps": steps, "dt": dt,
+        row = {"integrator": integrator, "scene": args.scene, "sets": args.sets, "resolution": args.resolution,
+               "steps": steps, "dt": dt,
                "forward_s": med["forward"], "gradient_s": med["gradient"], "ratio": med["gradient"] / med["forward"]}
         print(f"{integrator:<12}{dt:>10.2e}{steps:>7}{med['forward']:>11.3f}{med['gradient']:>12.3f}"
               f"{row['ratio']:>7.2f}")

@@ -132,3 +132,160 @@ def contact_friction(dev: ti.template(), cfg: ti.template(), t: ti.f64, serial: 
             settle(dev, cfg, ti.cast(t, cfg.real))
     else:
         settle(dev, cfg, ti.cast(t, cfg.real))
+
+
+@ti.func
+def gram_schmidt_adjoint(i, dev, cfg: ti.template(), x, t, gS, ge):
+    """The transpose of the Jacobian of particle i's contact directions (f64): ``detect``
+    and ``friction_row`` turn its contacts' normals n_k (at x, time t) into orthonormal
+    directions e_k and the filter S = I - sum e_k e_k^T, one ``contact.add_direction``
+    at a time (e = S n / |S n|, then S - e e^T). From gS (3x3) = dL/dS and the columns
+    ge[:, j] = dL/de_j (j counting the contacts in order), back through each step in
+    reverse (S before a step = S after it + e e^T; |S n| = e . n), returns dL/dx through
+    each normal's curvature dn/dx."""
+    mask = dev.contacts[i]
+    S = ti.Matrix.identity(ti.f64, 3)
+    normals = ti.Matrix.zero(ti.f64, 3, 3)
+    directions = ti.Matrix.zero(ti.f64, 3, 3)
+    count = 0
+    for kind, count_k, first in ti.static(cfg.colliders):
+        for k in ti.static(range(count_k)):
+            if mask & ti.static(1 << (first + k)) != 0:
+                _, n_real = kind.distance(dev, cfg, k, x, t)
+                n = ti.cast(n_real, ti.f64)
+                e = S @ n
+                e = e / ti.sqrt(e.dot(e))
+                S = S - e.outer_product(e)
+                for c in ti.static(range(3)):
+                    if count == c:
+                        for r in ti.static(range(3)):
+                            normals[r, c] = n[r]
+                            directions[r, c] = e[r]
+                count += 1
+    g_normals = ti.Matrix.zero(ti.f64, 3, 3)
+    g = gS
+    for back in ti.static(range(3)):
+        j = ti.static(2 - back)
+        if j < count:
+            n = ti.Vector([normals[r, j] for r in ti.static(range(3))], ti.f64)
+            e = ti.Vector([directions[r, j] for r in ti.static(range(3))], ti.f64)
+            S = S + e.outer_product(e)
+            ge_j = ti.Vector([ge[r, j] for r in ti.static(range(3))], ti.f64) - (g + g.transpose()) @ e
+            gm = (ge_j - e.dot(ge_j) * e) / e.dot(n)
+            g = g + gm.outer_product(n)
+            gn = S @ gm
+            for r in ti.static(range(3)):
+                g_normals[r, j] = gn[r]
+    out = ti.Vector.zero(ti.f64, 3)
+    count = 0
+    for kind, count_k, first in ti.static(cfg.colliders):
+        for k in ti.static(range(count_k)):
+            if mask & ti.static(1 << (first + k)) != 0:
+                gn = ti.Vector.zero(ti.f64, 3)
+                for c in ti.static(range(3)):
+                    if count == c:
+                        gn = ti.Vector([g_normals[r, c] for r in ti.static(range(3))], ti.f64)
+                out += kind.curvature(dev, cfg, k, x, t).transpose() @ gn
+                count += 1
+    return out
+
+
+@ti.func
+def friction_adjoint(i, dev, cfg: ti.template(), x, v_solved, g_new, g_fric, t):
+    """The transpose of the Jacobian of ``friction_row`` at particle i (f64), its branch
+    frozen as the step took it, from its inputs as they were (``dev.stick``, ``dev.fric``
+    the step's start, ``dev.impulse`` J = A v' - b, ``v_solved`` v' the solve's velocity,
+    x = x_n) given g_new = dL/dv'' of the velocity after it and g_fric = dL/dfric of the
+    kinetic friction it hands to the next step. With rel = S (v' - v_c), r = rel / |rel|
+    and the bound B = sum_k mu_k e_k . J: a particle that sticks gets v'' = v' - rel; one
+    that slides hands on fric = -B r; in the first step of a contact, a sliding one also
+    gets v'' = v' - (B / m) r. Returns (dL/dv', dL/dJ, dL/dx_n through the normals,
+    dL/dm)."""
+    mask = dev.contacts[i]
+    jump = ti.cast(dev.impulse[i], ti.f64)
+    carrier = ti.Vector.zero(ti.f64, 3)
+    frictions = ti.Vector.zero(ti.f64, 3)  # mu_k by contact, in order
+    S = ti.Matrix.identity(ti.f64, 3)
+    directions = ti.Matrix.zero(ti.f64, 3, 3)
+    bound = 0.0
+    released = False
+    count = 0
+    for kind, count_k, first in ti.static(cfg.colliders):
+        for k in ti.static(range(count_k)):
+            if mask & ti.static(1 << (first + k)) != 0:
+                _, n_real = kind.distance(dev, cfg, k, x, t)
+                e = S @ ti.cast(n_real, ti.f64)
+                e = e / ti.sqrt(e.dot(e))
+                S = S - e.outer_product(e)
+                normal = e.dot(jump)
+                coefficient = ti.cast(mu(dev, kind, k), ti.f64)
+                if normal < 0:
+                    released = True
+                else:
+                    bound += coefficient * normal
+                if count == 0:
+                    carrier = ti.cast(velocity(dev, kind, k), ti.f64)
+                for c in ti.static(range(3)):
+                    if count == c:
+                        frictions[c] = coefficient
+                        for r in ti.static(range(3)):
+                            directions[r, c] = e[r]
+                count += 1
+    g_solved = g_new
+    g_jump = ti.Vector.zero(ti.f64, 3)
+    gx = ti.Vector.zero(ti.f64, 3)
+    gm = 0.0
+    if not released and bound > 0:
+        mass = ti.cast(dev.mass[i], ti.f64)
+        rel = S @ (v_solved - carrier)
+        speed = ti.sqrt(rel.dot(rel))
+        applied = ti.cast(dev.fric[i], ti.f64)
+        sticks = False
+        first_step = False
+        if dev.stick[i] != 0:
+            sticks = STICK * mass * speed <= bound
+        elif applied.dot(applied) > 0:
+            sticks = rel.dot(applied) >= 0
+        else:
+            first_step = True
+            sticks = speed <= bound / mass
+        g_rel = ti.Vector.zero(ti.f64, 3)
+        g_bound = 0.0
+        if sticks:
+            g_rel = -g_new
+        else:
+            r = rel / speed
+            across = g_fric - r.dot(g_fric) * r
+            g_rel = -bound / speed * across
+            g_bound = -r.dot(g_fric)
+            if first_step:
+                across_new = g_new - r.dot(g_new) * r
+                g_rel -= bound / (mass * speed) * across_new
+                g_bound -= r.dot(g_new) / mass
+                gm = bound / (mass * mass) * r.dot(g_new)
+        g_solved += S @ g_rel
+        g_S = g_rel.outer_product(v_solved - carrier)
+        g_directions = ti.Matrix.zero(ti.f64, 3, 3)
+        for c in ti.static(range(3)):
+            if c < count:
+                e = ti.Vector([directions[r, c] for r in ti.static(range(3))], ti.f64)
+                g_jump += frictions[c] * g_bound * e
+                for r in ti.static(range(3)):
+                    g_directions[r, c] = frictions[c] * g_bound * jump[r]
+        gx = gram_schmidt_adjoint(i, dev, cfg, x, t, g_S, g_directions)
+    return g_solved, g_jump, gx, gm
+
+
+@ti.func
+def first_carrier(i, dev, cfg: ti.template()):
+    """The velocity (m/s) of the first collider particle i is in contact with (``detect``'s)."""
+    mask = dev.contacts[i]
+    out = ti.Vector.zero(cfg.real, 3)
+    found = False
+    for kind, count, first in ti.static(cfg.colliders):
+        for k in ti.static(range(count)):
+            if mask & ti.static(1 << (first + k)) != 0:
+                if not found:
+                    out = velocity(dev, kind, k)
+                    found = True
+    return out

@@ -20,11 +20,23 @@ gathers the rest spring by spring from each term's ``rhs_adjoint`` and
 import taichi as ti
 
 from .constraints import constrain, is_free, is_pinned, pin_adjoint, prescribed
-from .contact import constraint_adjoint, landing, landing_adjoint, project_adjoint
+from .contact import STICK, constraint_adjoint, landing, landing_adjoint, project_adjoint
+from .friction import first_carrier, friction_adjoint
 from .forces import spring_direction, spring_sum, tiny_length
 from .operator import LINEARISED, apply_row, refresh
 from .state import restore_state
 from .terms import SpringDamping, uniform_acceleration
+
+
+@ti.func
+def solved(adj, wants: ti.template(), slot, i):
+    """v' of particle i in the step from ``slot``: the solve's velocity (with friction,
+    before ``friction_row`` changed it: ``adj.hw``), else the history's next state's."""
+    stride = adj.stride[None]
+    out = adj.hv[(slot + 1) * stride + i]
+    if ti.static(wants.friction):
+        out = adj.hw[slot * stride + i]
+    return out
 
 
 @ti.func
@@ -33,8 +45,11 @@ def rhs(dev, cfg: ti.template(), adj, h, t, slot, wants: ti.template()):
     stride = adj.stride[None]
     restore_state(adj.hx, adj.hv, dev.state, n, slot, stride)
     if ti.static(cfg.contact_filter):
-        for i in range(n):  # the contacts released before the step, as it began
+        for i in range(n):  # the contact memory as the step began
             dev.released[i] = adj.hr[slot * stride + i]
+            if ti.static(wants.friction):
+                dev.stick[i] = adj.hs[slot * stride + i]
+                dev.fric[i] = adj.hf[slot * stride + i]
     refresh(dev, cfg, dev.x, dev.v, h, t, LINEARISED)
     if ti.static(cfg.moving_pins or cfg.contact_filter):
         for i in range(n):  # the solve starts constrained directions at their velocity: A's columns move to b
@@ -42,14 +57,16 @@ def rhs(dev, cfg: ti.template(), adj, h, t, slot, wants: ti.template()):
             if not is_free(i, dev, cfg):
                 dev.p[i] = prescribed(i, dev, cfg)
             if ti.static(cfg.contact_filter):
-                dev.q[i] = adj.hv[(slot + 1) * stride + i]  # v', for the contacts' impulses
+                dev.q[i] = solved(adj, wants, slot, i)  # v', for the contacts' impulses
     for i in range(n):
         if ti.static(wants.pins):
             pin_adjoint(i, dev, cfg, adj, h)
         b = ti.Vector.zero(cfg.real, 3)
+        if ti.static(wants.friction):
+            adj.cj[i] = ti.Vector.zero(ti.f64, 3)
         if not is_pinned(i, dev, cfg):
             gy = adj.lx[i]
-            if ti.static(cfg.has_colliders):  # x' = P(x + h v' - landing(x)), P the final projection
+            if ti.static(cfg.has_colliders):  # x' = P(x + h v'' - landing(x)), P the final projection
                 x = dev.x[i]
                 y = x + h * adj.hv[(slot + 1) * stride + i] - landing(i, dev, cfg, x, t)
                 gy = project_adjoint(dev, cfg, y, t + h, ti.static(cfg.collider_count), gy)
@@ -58,11 +75,25 @@ def rhs(dev, cfg: ti.template(), adj, h, t, slot, wants: ti.template()):
             if ti.static(cfg.contact_filter):
                 if dev.contacts[i] != 0:
                     dev.impulse[i] = apply_row(i, dev, cfg, dev.q) - dev.b[i]
-                    adj.cg[i] = b
-            if ti.static(cfg.moving_pins or cfg.contact_filter):
-                b += apply_row(i, dev, cfg, dev.p)
+                    if ti.static(wants.friction):  # v'' = friction_row(v', J): back to v' and J
+                        gv, gj, gx, gm = friction_adjoint(i, dev, cfg, dev.x[i], dev.q[i], b, adj.gf[i], t)
+                        b = gv
+                        adj.cj[i] = gj
+                        adj.lx[i] = adj.lx[i] + gx
+                        if ti.static(wants.masses):
+                            adj.gm[i] = adj.gm[i] + gm
         dev.b[i] = b
         dev.v[i] = adj.w[i]
+    if ti.static(cfg.moving_pins or cfg.contact_filter):
+        for i in range(n):
+            if not is_pinned(i, dev, cfg):
+                b = dev.b[i]
+                if ti.static(wants.friction):  # J = A v' - b: dL/dJ's share of dL/dv'
+                    b += apply_row(i, dev, cfg, adj.cj)
+                if ti.static(cfg.contact_filter):
+                    if dev.contacts[i] != 0:
+                        adj.cg[i] = b
+                dev.b[i] = b + apply_row(i, dev, cfg, dev.p)
 
 
 @ti.kernel
@@ -96,13 +127,18 @@ def gather(dev, cfg: ti.template(), adj, h, t, slot, wants: ti.template()):
         px = ti.Vector.zero(ti.f64, 3)
         if not is_pinned(i, dev, cfg):
             mu = constrain(i, dev, cfg, dev.v[i])
+            if ti.static(wants.friction):  # with the impulse's share: mu - dL/dJ
+                mu -= adj.cj[i]
             if ti.static(wants.masses):
-                change = adj.hv[(slot + 1) * stride + i] - adj.hv[slot * stride + i]
+                change = solved(adj, wants, slot, i) - adj.hv[slot * stride + i]
                 adj.gm[i] = adj.gm[i] + mu.dot(h * g - change)
+                if ti.static(wants.friction):  # a sticking particle's damper STICK m in A and b
+                    if dev.contacts[i] != 0 and dev.stick[i] != 0:
+                        adj.gm[i] = adj.gm[i] + STICK * mu.dot(first_carrier(i, dev, cfg) - solved(adj, wants, slot, i))
             adj.gg[i] = adj.gg[i] + h * dev.mass[i] * mu
             for term in ti.static(cfg.particle_terms):
                 px += term.rhs_adjoint(i, dev, adj, h * mu, dev.x, dev.v)
-                px -= term.operator_adjoint(i, dev, adj, mu, adj.hv[(slot + 1) * stride + i], h)
+                px -= term.operator_adjoint(i, dev, adj, mu, solved(adj, wants, slot, i), h)
         adj.px[i] = px
         adj.w[i] = mu
     if ti.static(cfg.has_springs):
@@ -111,7 +147,7 @@ def gather(dev, cfg: ti.template(), adj, h, t, slot, wants: ti.template()):
             j = dev.ends[s][1]
             d = dev.x[j] - dev.x[i]
             u = adj.w[i] - adj.w[j]
-            p = adj.hv[(slot + 1) * stride + i] - adj.hv[(slot + 1) * stride + j]
+            p = solved(adj, wants, slot, i) - solved(adj, wants, slot, j)
             unit, length = spring_direction(d, ti.f64)
             gx = ti.Vector.zero(ti.f64, 3)
             if length > tiny_length(ti.f64):
@@ -131,11 +167,20 @@ def gather(dev, cfg: ti.template(), adj, h, t, slot, wants: ti.template()):
         lv = dev.mass[i] * adj.w[i]
         if ti.static(cfg.contact_filter):
             if dev.contacts[i] != 0:
+                mu = adj.w[i]
                 unsettled = adj.cg[i] - apply_row(i, dev, cfg, adj.w)
+                if ti.static(wants.friction):  # the solve's mu: w + dL/dJ
+                    mu += adj.cj[i]
+                    unsettled -= apply_row(i, dev, cfg, adj.cj)
                 cx, cv = constraint_adjoint(i, dev, cfg, dev.x[i], adj.hv[slot * stride + i],
-                                            adj.hv[(slot + 1) * stride + i], adj.w[i], unsettled, dev.impulse[i], t)
+                                            solved(adj, wants, slot, i), mu, unsettled, dev.impulse[i], t)
                 lx += cx
                 lv += cv
+        if ti.static(wants.friction):  # a sliding particle's kinetic friction in b came from the step before
+            gf = ti.Vector.zero(ti.f64, 3)
+            if dev.contacts[i] != 0 and dev.stick[i] == 0:
+                gf = adj.w[i]
+            adj.gf[i] = gf
         adj.lx[i] = lx + adj.px[i]
         adj.lv[i] = lv
         if ti.static(wants.pins):  # v' = vp at a pin moves A's pin columns times vp to the free rows' b
@@ -160,8 +205,21 @@ def implicit_adjoint(dev: ti.template(), cfg: ti.template(), adj: ti.template(),
 
 
 @ti.kernel
-def keep_released(dev: ti.template(), adj: ti.template(), n: ti.i32, slot: ti.i32):
-    """adj.hr[slot * stride + i] = dev.released[i]: the contacts released before the state
-    kept at ``slot`` (``contact.detect`` skips them in the step from it)."""
+def keep_contacts(dev: ti.template(), adj: ti.template(), n: ti.i32, slot: ti.i32, friction: ti.template()):
+    """The contact memory of the state kept at ``slot``, which the step from it starts
+    with: released contacts (``adj.hr``: ``contact.detect`` skips them) and, with
+    ``friction``, sticking particles and kinetic friction (``adj.hs``, ``adj.hf``)."""
     for i in range(n):
-        adj.hr[slot * adj.stride[None] + i] = dev.released[i]
+        row = slot * adj.stride[None] + i
+        adj.hr[row] = dev.released[i]
+        if ti.static(friction):
+            adj.hs[row] = dev.stick[i]
+            adj.hf[row] = dev.fric[i]
+
+
+@ti.kernel
+def keep_solved(dev: ti.template(), adj: ti.template(), n: ti.i32, slot: ti.i32):
+    """adj.hw[slot * stride + i] = v' of the step from the state kept at ``slot``, as its
+    solve left it in ``dev.v`` (before friction changes it)."""
+    for i in range(n):
+        adj.hw[slot * adj.stride[None] + i] = dev.v[i]

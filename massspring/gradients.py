@@ -17,8 +17,8 @@ bytes a particle, and one forward step more per step than the forward run.
 
 Built so far (issue 39): the explicit, symplectic, RK4, linearised implicit, backward
 Euler, BDF2 and implicit midpoint integrators, with springs, damping, gravity, drag and wind, pins (fixed or moving,
-with their velocities' gradient), colliders: planes, spheres and boxes (explicit, symplectic and RK4 steps; without
-friction, the linearised implicit step) and
+with their velocities' gradient), colliders: planes, spheres and boxes with friction and restitution (explicit,
+symplectic, RK4 and linearised implicit steps) and
 controls over time (keyframed pins, wind, actuated rest lengths: ``ControlShares``). The adjoint kernels are compiled and
 their fields allocated only when a gradient is asked for: a forward run is as before.
 """
@@ -106,7 +106,8 @@ def gradient(model, objective, wrt, *, steps, every=1, integrator="symplectic", 
     steps = validate.count("steps", steps, low=1, high=MAX_STEPS)
     every = validate.count("every", every, low=1, high=MAX_STEPS)
     if checkpoint is None:
-        checkpoint = default_checkpoint(model.n_particles, steps)
+        checkpoint = default_checkpoint(model.n_particles, steps,
+                                        STATE_BYTES + INTEGRATORS[integrator].kept_bytes(model))
     checkpoint = min(validate.count("checkpoint", checkpoint, low=1, high=MAX_STEPS), steps)
 
     sim = Simulation(model, integrator, dt=dt, precision=precision, **options)
@@ -116,7 +117,8 @@ def gradient(model, objective, wrt, *, steps, every=1, integrator="symplectic", 
         frames, kept, last = _forward(sim, adj, steps, every, checkpoint)
         value, partials = _call(objective, frames, model.n_particles)
         wants = Wants(masses="masses" in names, rate_gradient="damping" in names and not model.has_damping,
-                      pins="pin_velocity" in names or "controls.pin_targets" in names)
+                      pins="pin_velocity" in names or "controls.pin_targets" in names,
+                      friction=model.has_friction and integrator in SOLVED_CONTACT)
         shares = ControlShares(sim, adj) if model.controls is not None else None
         _backward(sim, adj, wants, partials, frames.steps, kept, last, steps, checkpoint, shares)
         return value, _read(sim, adj, names, shares)
@@ -147,25 +149,17 @@ def check_arguments(model, wrt, integrator, precision="f64") -> list:
 
 
 CONTACT_INTEGRATORS = ("explicit", "symplectic", "rk4")  # those whose contact response has an adjoint
-FRICTIONLESS_CONTACT = ("implicit",)  # those whose contact constraints have an adjoint without friction
+SOLVED_CONTACT = ("implicit",)  # those whose contact constraints and friction have an adjoint
 
 
 def _check_colliders(model, integrator):
     """Contact has a gradient (its branches frozen) with any colliders in the explicit,
-    symplectic and RK4 steps (``contact.respond_adjoint``) and with frictionless ones in
-    the linearised implicit step (``contact.constraint_adjoint``); anything else with
-    colliders is refused."""
-    if not model.has_colliders or integrator in CONTACT_INTEGRATORS:
-        return
-    if integrator not in FRICTIONLESS_CONTACT:
+    symplectic and RK4 steps (``contact.respond_adjoint``) and in the linearised implicit
+    step (``contact.constraint_adjoint``, ``friction.friction_adjoint``); another
+    integrator with colliders is refused."""
+    if model.has_colliders and integrator not in CONTACT_INTEGRATORS + SOLVED_CONTACT:
         raise ValueError(f"integrator: gradients through contact are built for "
-                         f"{', '.join(CONTACT_INTEGRATORS + FRICTIONLESS_CONTACT)} steps, got {integrator!r} "
-                         f"(issue 39)")
-    rubbing = [index for index, collider in enumerate(model.colliders) if collider.friction > 0]
-    if rubbing:
-        raise ValueError(f"model: gradients through friction in {integrator!r} steps are not built yet (issue 39): "
-                         f"collider {rubbing[0]} has friction {model.colliders[rubbing[0]].friction:g}; give "
-                         f"the colliders friction=0, or use one of {', '.join(CONTACT_INTEGRATORS)}")
+                         f"{', '.join(CONTACT_INTEGRATORS + SOLVED_CONTACT)} steps, got {integrator!r} (issue 39)")
 
 
 @dataclass(frozen=True)
@@ -173,11 +167,12 @@ class Wants:
     """Compile-time switches of an adjoint kernel: ``masses``: add the masses' gradient
     (needs the step's forces again); ``rate_gradient``: add the damping coefficients'
     gradient in a model without a damping term; ``pins``: add the pin velocities'
-    gradient."""
+    gradient; ``friction``: the implicit step's friction (a collider with friction)."""
 
     masses: bool
     rate_gradient: bool
     pins: bool = False
+    friction: bool = False
 
 
 def history_stride(n) -> int:
@@ -186,10 +181,11 @@ def history_stride(n) -> int:
     return capacity(n, 64)
 
 
-def default_checkpoint(n, steps) -> int:
-    """Every state kept if the history of all ``steps`` fits in ``HISTORY_BYTES``, else
-    about sqrt(steps) between kept states (``steps / k + k`` states held)."""
-    if capacity(steps + 1, 8) * history_stride(n) * STATE_BYTES <= HISTORY_BYTES:
+def default_checkpoint(n, steps, state_bytes=STATE_BYTES) -> int:
+    """Every state kept if the history of all ``steps`` (``state_bytes`` a particle a state)
+    fits in ``HISTORY_BYTES``, else about sqrt(steps) between kept states (``steps / k + k``
+    states held)."""
+    if capacity(steps + 1, 8) * history_stride(n) * state_bytes <= HISTORY_BYTES:
         return steps
     return math.isqrt(steps - 1) + 1
 
@@ -244,11 +240,7 @@ def _forward(sim, adj, steps, every, checkpoint):
         if done == steps:
             break
         if done >= last and integrator.records_history:  # the last stretch in launches that record it
-            integrator.history = (adj, last)
-            try:
-                sim.step(steps - done)
-            finally:
-                integrator.history = None
+            _recorded(sim, adj, last, steps - done)
             hx, hv = adj.hx.to_numpy(), adj.hv.to_numpy()
             for k in range(done + 1, steps + 1):
                 if k % every == 0:
@@ -259,10 +251,24 @@ def _forward(sim, adj, steps, every, checkpoint):
             break
         stop = done + 1 if done >= last else min(steps, (done // every + 1) * every, last,
                                                   (done // checkpoint + 1) * checkpoint)
-        sim.step(stop - done)
+        if done >= last:
+            _recorded(sim, adj, last, stop - done)
+        else:
+            sim.step(stop - done)
         done = stop
     at = np.array(at)
     return Frames(np.array(positions), np.array(velocities), at * sim.dt, at), kept, last
+
+
+def _recorded(sim, adj, first, steps):
+    """``sim.step(steps)`` with its integrator recording into ``adj``'s history, whose slot 0
+    is the state after step ``first`` (``Integrator.history``)."""
+    integrator = sim._integrator
+    integrator.history = (adj, first)
+    try:
+        sim.step(steps)
+    finally:
+        integrator.history = None
 
 
 def _call(objective, frames, n):
@@ -393,7 +399,7 @@ def _backward(sim, adj, wants, partials, frame_steps, kept, last, steps, checkpo
             sim.set_state(positions, velocities, steps=start, carried=carried)
             for k in range(start, end + 1):
                 if k > start:
-                    sim.step(1)
+                    _recorded(sim, adj, start, 1)
                 integrator.keep(adj, k - start)
         for k in reversed(range(start, end)):
             integrator.steps = k  # the step's start time, k dt (moving colliders)

@@ -296,6 +296,11 @@ class Model:
         return len(self.colliders) > 0
 
     @property
+    def has_friction(self) -> bool:
+        """Whether some collider has friction (mu > 0)."""
+        return any(collider.friction > 0 for collider in self.colliders)
+
+    @property
     def has_self_collision(self) -> bool:
         return self.self_collision is not None
 

@@ -77,9 +77,10 @@ solver's options, ``options.Option`` records: ``integrators.OPTIONS``). ``serial
         """
         raise NotImplementedError
 
-    # (adj bundle, first step k) while a gradient's forward pass records its states: the
-    # state after step k + j goes to the history's slot j (``massspring.gradients``), by
-    # ``advance`` where ``records_history``
+    # (adj bundle, first step k) while a gradient's run records into its history
+    # (``massspring.gradients``), whose slot j holds the state after step k + j: ``advance``
+    # stores each new state there where ``records_history``, and what else the adjoint
+    # needs of a step that the state does not hold (the implicit step's solve with friction)
     history = None
     records_history = False
 
@@ -114,6 +115,11 @@ solver's options, ``options.Option`` records: ``integrators.OPTIONS``). ``serial
         """Add the fields this integrator's ``adjoint`` needs beyond the gradient's own to
         ``layout`` (float64) for ``model``; ``stride``: the history's rows per state,
         ``rows`` its rows in all (none by default)."""
+
+    @classmethod
+    def kept_bytes(cls, model) -> int:
+        """Bytes a particle that ``keep`` stores with a state besides its x and v (none by default)."""
+        return 0
 
     def keep(self, adj, slot):
         """Keep the current state in ``adj``'s history at ``slot`` (``massspring.gradients``),

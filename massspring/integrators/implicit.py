@@ -64,6 +64,7 @@ class ImplicitEuler(Integrator):
         self.preconditioner = PRECONDITIONERS[settings.preconditioner](dev, model, settings)
         self.preconditioner.bind(self.cfg)
         self._stats = None
+        self.friction = model.has_friction
 
     @classmethod
     def config(cls, model, settings):
@@ -132,6 +133,9 @@ class ImplicitEuler(Integrator):
             self.dev.v.copy_from(self.dev.keep)
             return 0, divergence.NONFINITE_VERDICT
         if self.cfg.contact_filter:
+            if self.friction and self.history is not None:  # a gradient's run: v' before friction
+                adj, first = self.history
+                implicit_adjoint.keep_solved(self.dev, adj, self.dev.n, self.steps - first)
             friction.contact_friction(self.dev, self.cfg, self.time, self.serial)
         check = read_verdict(cg.advance_positions(self.dev, self.cfg, self.dev.x, s.dt, s.dt,
                                                        (self.steps + 1) * s.dt, self.serial, False))
@@ -143,18 +147,32 @@ class ImplicitEuler(Integrator):
 
     @classmethod
     def declare_adjoint(cls, layout, model, stride, rows):
-        """With colliders: the contacts released before each kept state (``hr``, int32, as
-        the history) and, at a particle in contact, the gradient its solve was given (``cg``)."""
+        """With colliders: the contact memory of each kept state (``hr``, with friction
+        ``hs``, ``hf``), as the history, and, at a particle in contact, the gradient its
+        solve was given (``cg``); with friction also each step's solved velocity before
+        friction changed it (``hw``), dL/dJ of the contact impulses (``cj``) and dL/d(the
+        kinetic friction handed to the next step) (``gf``, zero to start)."""
         if model.has_colliders:
             layout.add("hr", ti.i32, rows)
             layout.vectors("cg", layout.real)
+        if model.has_friction:
+            layout.add("hs", ti.i32, rows)
+            for name in ("hf", "hw"):
+                layout.vectors(name, layout.real, rows)
+            layout.vectors("cj", layout.real)
+            layout.vectors("gf", layout.real, values=np.zeros((layout.n, 3)))
+
+    @classmethod
+    def kept_bytes(cls, model):
+        """The contact memory (4 bytes; with friction 32) and, with friction, the solved velocity (24)."""
+        return 4 * model.has_colliders + 52 * model.has_friction
 
     def keep(self, adj, slot):
-        """The base's, and with colliders the contacts released before the state
-        (``implicit_adjoint.keep_released``): the adjoint's step detects its contacts again."""
+        """The base's, and with colliders the contact memory of the state
+        (``implicit_adjoint.keep_contacts``): the adjoint's step detects its contacts again."""
         super().keep(adj, slot)
         if self.cfg.contact_filter:
-            implicit_adjoint.keep_released(self.dev, adj, self.dev.n, slot)
+            implicit_adjoint.keep_contacts(self.dev, adj, self.dev.n, slot, self.friction)
 
     def adjoint(self, adj, slot, wants):
         """The adjoint of Eq. 15 at the state kept at ``slot`` (``kernels/implicit_adjoint.py``):
