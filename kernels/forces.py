@@ -16,7 +16,7 @@ int32; ``fs`` (m,) vec3 N; ``size = (n, m)``; plus each term's own arrays.
 
 import taichi as ti
 
-from .constraints import is_free
+from .constraints import is_pinned
 from .terms import SpringDamping, uniform_acceleration
 
 
@@ -129,7 +129,7 @@ def acceleration_adjoint(dev, cfg: ti.template(), adj, x, v, wants: ti.template(
         lagged_spring_forces(dev, cfg, x, v, False, xs, lagged)
     for i in range(n):
         w = ti.Vector.zero(ti.f64, 3)
-        if is_free(i, dev, cfg):
+        if not is_pinned(i, dev, cfg):
             abar = adj.w[i]
             w = abar / dev.mass[i]
             if ti.static(wants.masses):

@@ -40,6 +40,19 @@ def solved(adj, wants: ti.template(), slot, i):
 
 
 @ti.func
+def position_adjoint(i, dev, cfg: ti.template(), adj, slot, h, t):
+    """With colliders, x' = P(x_n + h v'' - landing(x_n)) of a particle not pinned
+    (``cg.next_position``: P the final projection at t + h, the landing correction at
+    the step's start t, its contacts in ``dev``): from dL/dx' in ``adj.lx``, returns
+    (dL/dy at y = x_n + h v'' - landing, the share of dL/dx_n through y)."""
+    stride = adj.stride[None]
+    x = adj.hx[slot * stride + i]
+    y = x + h * adj.hv[(slot + 1) * stride + i] - landing(i, dev, cfg, x, t)
+    gy = project_adjoint(dev, cfg, y, t + h, ti.static(cfg.collider_count), adj.lx[i])
+    return gy, gy - landing_adjoint(i, dev, cfg, x, t, gy)
+
+
+@ti.func
 def rhs(dev, cfg: ti.template(), adj, h, t, slot, wants: ti.template()):
     n = dev.size[0]
     stride = adj.stride[None]
@@ -66,11 +79,9 @@ def rhs(dev, cfg: ti.template(), adj, h, t, slot, wants: ti.template()):
             adj.cj[i] = ti.Vector.zero(ti.f64, 3)
         if not is_pinned(i, dev, cfg):
             gy = adj.lx[i]
-            if ti.static(cfg.has_colliders):  # x' = P(x + h v'' - landing(x)), P the final projection
-                x = dev.x[i]
-                y = x + h * adj.hv[(slot + 1) * stride + i] - landing(i, dev, cfg, x, t)
-                gy = project_adjoint(dev, cfg, y, t + h, ti.static(cfg.collider_count), gy)
-                adj.lx[i] = gy - landing_adjoint(i, dev, cfg, x, t, gy)
+            if ti.static(cfg.has_colliders):
+                gy, gx = position_adjoint(i, dev, cfg, adj, slot, h, t)
+                adj.lx[i] = gx
             b = adj.lv[i] + h * gy
             if ti.static(cfg.contact_filter):
                 if dev.contacts[i] != 0:
@@ -223,3 +234,15 @@ def keep_solved(dev: ti.template(), adj: ti.template(), n: ti.i32, slot: ti.i32)
     solve left it in ``dev.v`` (before friction changes it)."""
     for i in range(n):
         adj.hw[slot * adj.stride[None] + i] = dev.v[i]
+
+
+@ti.kernel
+def keep_impulses(dev: ti.template(), adj: ti.template(), n: ti.i32, slot: ti.i32):
+    """adj.hj[slot * stride + i] = the contact impulse of the step from the state kept at
+    ``slot`` (``friction.impulses``; 0 without contact): a Newton-solved step's residual
+    at its converged iterate, which its adjoint does not compute again."""
+    for i in range(n):
+        out = ti.Vector.zero(ti.f64, 3)
+        if dev.contacts[i] != 0:
+            out = dev.impulse[i]
+        adj.hj[slot * adj.stride[None] + i] = out

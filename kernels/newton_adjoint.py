@@ -36,30 +36,38 @@ h mu: at the converged iterate h f / m = u - v_n, so its masses' share is the on
 
 import taichi as ti
 
-from .constraints import is_free, is_pinned, pin_adjoint, prescribed
+from .constraints import constrain, is_free, is_pinned, pin_adjoint, prescribed
+from .contact import constraint_adjoint, detect
 from .forces import acceleration_adjoint, spring_sum
+from .friction import friction_adjoint
+from .implicit_adjoint import position_adjoint, solved
 from .newton import directions
-from .operator import LINEARISED, apply_row, refresh
+from .operator import HELD, apply_row, refresh
 
 
 @ti.func
-def evaluation_point(dev, cfg: ti.template(), adj, i, slot, stride, h, midpoint: ti.template()):
+def evaluation_point(dev, cfg: ti.template(), adj, i, slot, stride, h, midpoint: ti.template(),
+                     wants: ti.template()):
     """(x_n + h u, u) of particle i from the history (slots ``slot`` and ``slot + 1``); a
-    midpoint step's pin keeps its velocity u (``newton.midpoint_finish``)."""
-    u = adj.hv[(slot + 1) * stride + i]
+    midpoint step's pin keeps its velocity u (``newton.midpoint_finish``). With colliders
+    x' was moved onto surfaces after the solve, and with friction v' was changed: u is
+    then the solve's velocity (``implicit_adjoint.solved``) and x_n + h u is formed."""
+    u = solved(adj, wants, slot, i)
     x = adj.hx[(slot + 1) * stride + i]
     if ti.static(midpoint):
         if not is_pinned(i, dev, cfg):
             u = 0.5 * (adj.hv[slot * stride + i] + u)
+        x = adj.hx[slot * stride + i] + h * u
+    elif ti.static(cfg.has_colliders):
         x = adj.hx[slot * stride + i] + h * u
     return x, u
 
 
 @ti.func
 def pin_columns(dev, cfg: ti.template()):
-    """``dev.p`` = the pins' velocities at pins, 0 elsewhere: a solve starts pins at
-    their velocity, so J's pin columns times them are added to b (``apply_row``) for the
-    solve's start to take away again."""
+    """``dev.p`` = the prescribed velocities of the constrained directions (pins, contacts),
+    0 elsewhere: a solve starts them there, so the operator's columns times them are
+    added to b (``apply_row``) for the solve's start to take away again."""
     for i in range(dev.size[0]):
         dev.p[i] = ti.Vector.zero(cfg.real, 3)
         if not is_free(i, dev, cfg):
@@ -68,17 +76,17 @@ def pin_columns(dev, cfg: ti.template()):
 
 @ti.func
 def solve_side(dev, cfg: ti.template(), h, t, values):
-    """S, the operator of ``cfg``, refreshed at (``dev.x``, ``dev.v``); ``dev.b`` = ``values``
-    on free rows plus S's pin columns times the pins' velocities (``pin_columns``), 0
-    at pins."""
-    refresh(dev, cfg, dev.x, dev.v, h, t, LINEARISED)
-    if ti.static(cfg.moving_pins):
+    """S, the operator of ``cfg``, refreshed at (``dev.x``, ``dev.v``) with the contacts
+    held; ``dev.b`` = ``values`` on rows not pinned plus S's columns of the constrained
+    directions times their prescribed velocities (``pin_columns``), 0 at pins."""
+    refresh(dev, cfg, dev.x, dev.v, h, t, HELD)
+    if ti.static(cfg.moving_pins or cfg.contact_filter):
         pin_columns(dev, cfg)
     for i in range(dev.size[0]):
         b = ti.Vector.zero(ti.f64, 3)
-        if is_free(i, dev, cfg):
+        if not is_pinned(i, dev, cfg):
             b = values[i]
-            if ti.static(cfg.moving_pins):
+            if ti.static(cfg.moving_pins or cfg.contact_filter):
                 b += apply_row(i, dev, cfg, dev.p)
         dev.b[i] = b
 
@@ -101,56 +109,106 @@ def prediction(dev, cfg: ti.template(), adj, slot, ahead):
 
 
 @ti.func
-def rhs(dev, cfg: ti.template(), adj, h, hx, t, slot, midpoint: ti.template(), wants: ti.template(), ahead):
+def contacts_again(dev, cfg: ti.template(), adj, slot, dt, t, wants: ti.template()):
+    """The step's contacts detected again as ``newton.start`` detected them, from (x_n,
+    v_n) in ``dev.xb``, ``dev.vb`` with the contact memory the step began with; the
+    step's impulses (``adj.hj``) into ``dev.impulse``."""
+    stride = adj.stride[None]
+    for i in range(dev.size[0]):
+        row = slot * stride + i
+        dev.xb[i] = adj.hx[row]
+        dev.vb[i] = adj.hv[row]
+        dev.released[i] = adj.hr[row]
+        if ti.static(wants.friction):
+            dev.stick[i] = adj.hs[row]
+            dev.fric[i] = adj.hf[row]
+        dev.impulse[i] = adj.hj[row]
+    for i in range(dev.size[0]):
+        dev.carrier[i] = detect(i, dev, cfg, dev.xb, dev.vb, dt, t)
+
+
+@ti.func
+def rhs(dev, cfg: ti.template(), exact: ti.template(), adj, h, hx, t, slot, midpoint: ti.template(),
+        wants: ti.template(), ahead):
     n = dev.size[0]
     stride = adj.stride[None]
     prediction(dev, cfg, adj, slot, ahead)
+    if ti.static(cfg.contact_filter):
+        contacts_again(dev, cfg, adj, slot, hx, t, wants)
     for i in range(n):
-        x, u = evaluation_point(dev, cfg, adj, i, slot, stride, h, midpoint)
+        x, u = evaluation_point(dev, cfg, adj, i, slot, stride, h, midpoint, wants)
         dev.x[i] = x
         dev.v[i] = u
         if ti.static(wants.pins):
             pin_adjoint(i, dev, cfg, adj, hx)
-        b = adj.lv[i] + hx * adj.lx[i]
+        gy = adj.lx[i]
+        if ti.static(cfg.has_colliders):
+            if not is_pinned(i, dev, cfg):
+                gy, gx = position_adjoint(i, dev, cfg, adj, slot, hx, t)
+                adj.lx[i] = gx
+        b = adj.lv[i] + hx * gy
         if ti.static(midpoint):
             b += adj.lv[i]
+        if ti.static(wants.friction):
+            adj.cj[i] = ti.Vector.zero(ti.f64, 3)
+            if dev.contacts[i] != 0:  # v'' = friction_row(u, J): back to u and J
+                gv, gj, gx, gm = friction_adjoint(i, dev, cfg, dev.xb[i], u, b, adj.gf[i], t)
+                b = gv
+                adj.cj[i] = gj
+                adj.lx[i] = adj.lx[i] + gx
+                if ti.static(wants.masses):
+                    adj.gm[i] = adj.gm[i] + gm
         adj.jy[i] = b
+    if ti.static(wants.friction):  # J = g(u): dL/dJ's share of dL/du through the true Jacobian
+        refresh(dev, exact, dev.x, dev.v, h, t, HELD)
+        for i in range(n):
+            if not is_pinned(i, dev, cfg):
+                adj.jy[i] = adj.jy[i] + apply_row(i, dev, exact, adj.cj)
+    if ti.static(cfg.contact_filter):
+        for i in range(n):
+            adj.cg[i] = adj.jy[i]
     solve_side(dev, cfg, h, t, adj.jy)
     for i in range(n):
         dev.v[i] = adj.mu[i]
 
 
 @ti.kernel
-def newton_adjoint_rhs(dev: ti.template(), cfg: ti.template(), adj: ti.template(), h: ti.f64, hx: ti.f64,
-                       t: ti.f64, slot: ti.i32, midpoint: ti.template(), wants: ti.template(), ahead: ti.f64,
-                       serial: ti.template()):
+def newton_adjoint_rhs(dev: ti.template(), cfg: ti.template(), exact: ti.template(), adj: ti.template(), h: ti.f64,
+                       hx: ti.f64, t: ti.f64, slot: ti.i32, midpoint: ti.template(), wants: ti.template(),
+                       ahead: ti.f64, serial: ti.template()):
     """The step's prediction x_n + ``ahead`` v_n (``prediction``);
     ``dev.x``, ``dev.v`` = the converged iterate's (x_n + h u, u) from the history; the
     pins' share of the pin velocities' gradient (``wants.pins``); the operator refreshed
     there (``cfg``: the step's own, with its definiteness fix: S); ``dev.b`` = dL/du =
-    dL/dv' + hx dL/dx' on free rows (hx: x' moves by hx u from the base: dt, or BDF2's
-    2 dt / 3; plus S's pin columns times the pin velocities, which the solve's start
-    subtracts again); ``dev.v`` = the last adjoint solution ``adj.mu`` (the warm start)."""
+    dL/dv' + hx dL/dx' on rows not pinned (hx: x' moves by hx u from the base: dt, or
+    BDF2's 2 dt / 3; plus S's columns of the constrained directions times their
+    prescribed velocities, which the solve's start subtracts again); ``dev.v`` = the last
+    adjoint solution ``adj.mu`` (the warm start). With colliders (backward Euler), the
+    step's contacts detected again (``contacts_again``), dL/dx' taken back through the
+    final projection and landing first, and with friction back through
+    ``friction.friction_adjoint`` (its dL/dJ through ``exact``, the true Jacobian, into
+    dL/du); dL/du at a particle in contact kept in ``adj.cg``."""
     if ti.static(serial):
         ti.loop_config(serialize=True)
         for _ in range(1):
-            rhs(dev, cfg, adj, h, hx, t, slot, midpoint, wants, ahead)
+            rhs(dev, cfg, exact, adj, h, hx, t, slot, midpoint, wants, ahead)
     else:
-        rhs(dev, cfg, adj, h, hx, t, slot, midpoint, wants, ahead)
+        rhs(dev, cfg, exact, adj, h, hx, t, slot, midpoint, wants, ahead)
 
 
 @ti.func
-def product(dev, exact: ti.template(), fixed: ti.template(), adj, h, t, slot, midpoint: ti.template()):
+def product(dev, exact: ti.template(), fixed: ti.template(), adj, h, t, slot, midpoint: ti.template(),
+            wants: ti.template()):
     n = dev.size[0]
     stride = adj.stride[None]
     for i in range(n):
         adj.y[i] = dev.v[i]
-        _, u = evaluation_point(dev, exact, adj, i, slot, stride, h, midpoint)
+        _, u = evaluation_point(dev, exact, adj, i, slot, stride, h, midpoint, wants)
         dev.v[i] = u
-    refresh(dev, exact, dev.x, dev.v, h, t, LINEARISED)
+    refresh(dev, exact, dev.x, dev.v, h, t, HELD)
     for i in range(n):
         jy = ti.Vector.zero(ti.f64, 3)
-        if is_free(i, dev, exact):
+        if not is_pinned(i, dev, exact):
             jy = apply_row(i, dev, exact, adj.y)
         adj.jy[i] = jy
     solve_side(dev, fixed, h, t, adj.jy)
@@ -160,17 +218,18 @@ def product(dev, exact: ti.template(), fixed: ti.template(), adj, h, t, slot, mi
 
 @ti.kernel
 def newton_adjoint_product(dev: ti.template(), exact: ti.template(), fixed: ti.template(), adj: ti.template(),
-                           h: ti.f64, t: ti.f64, slot: ti.i32, midpoint: ti.template(), serial: ti.template()):
-    """For y in ``dev.v`` (0 at pins): ``dev.b`` = J^T y on free rows, J the residual's
+                           h: ti.f64, t: ti.f64, slot: ti.i32, midpoint: ti.template(), wants: ti.template(),
+                           serial: ti.template()):
+    """For y in ``dev.v`` (0 at pins, filtered at contacts): ``dev.b`` = J^T y on rows not pinned, J the residual's
     true Jacobian (``exact``: the operator without the definiteness fix), the operator then refreshed as ``fixed``
     (the step's own, symmetric positive definite) and ``dev.v`` = 0, so that a solve
     gives S^-1 J^T y (``integrators/newton.py``: GMRES on S^-1 J^T mu = S^-1 b0)."""
     if ti.static(serial):
         ti.loop_config(serialize=True)
         for _ in range(1):
-            product(dev, exact, fixed, adj, h, t, slot, midpoint)
+            product(dev, exact, fixed, adj, h, t, slot, midpoint, wants)
     else:
-        product(dev, exact, fixed, adj, h, t, slot, midpoint)
+        product(dev, exact, fixed, adj, h, t, slot, midpoint, wants)
 
 
 @ti.func
@@ -180,27 +239,53 @@ def gather(dev, cfg: ti.template(), adj, h, t, slot, midpoint: ti.template(), wa
     stride = adj.stride[None]
     for i in range(n):
         mu = ti.Vector.zero(ti.f64, 3)
-        if is_free(i, dev, cfg):
-            mu = dev.v[i]
+        if not is_pinned(i, dev, cfg):
+            mu = constrain(i, dev, cfg, dev.v[i])
         adj.mu[i] = mu
+        if ti.static(wants.friction):  # the parameters' and state's shares: mu - dL/dJ (J = g(u))
+            mu -= adj.cj[i]
+        adj.y[i] = mu
         adj.w[i] = h * dev.mass[i] * mu  # dL/da: f / m enters g as h f / m per unit mass
-        _, u = evaluation_point(dev, cfg, adj, i, slot, stride, h, midpoint)
+        _, u = evaluation_point(dev, cfg, adj, i, slot, stride, h, midpoint, wants)
         adj.ue[i] = u
+    if ti.static(wants.pins or cfg.contact_filter):  # J's coefficients (a solve may have left S's)
+        refresh(dev, cfg, dev.x, adj.ue, h, t, HELD)
     if ti.static(wants.pins):  # u = vp at a pin: -(J^T mu)_p, mu = 0 at pins (module docstring)
-        refresh(dev, cfg, dev.x, adj.ue, h, t, LINEARISED)  # J's coefficients (a solve may have left S's)
         for i in range(n):
             if is_pinned(i, dev, cfg):
-                adj.gp[i] = adj.gp[i] - apply_row(i, dev, cfg, adj.mu)
+                adj.gp[i] = adj.gp[i] - apply_row(i, dev, cfg, adj.y)
     acceleration_adjoint(dev, cfg, adj, dev.x, adj.ue, wants, adj.xs, cfg.lagged or wants.rate_gradient)
     for i in range(n):
         lx = adj.lx[i] + adj.px[i]
         if ti.static(cfg.has_springs):
             lx -= spring_sum(i, dev, adj.sx)
         lv = ti.Vector.zero(ti.f64, 3)
-        if is_free(i, dev, cfg):
-            lv = dev.mass[i] * adj.mu[i]
+        if not is_pinned(i, dev, cfg):
+            lv = dev.mass[i] * adj.y[i]
             if ti.static(midpoint):
                 lv -= adj.lv[i]
+        if ti.static(cfg.contact_filter):
+            if dev.contacts[i] != 0:
+                u = adj.ue[i]
+                unsettled = adj.cg[i] - apply_row(i, dev, cfg, adj.mu)
+                cx, cv = constraint_adjoint(i, dev, cfg, dev.xb[i], dev.vb[i], u, adj.mu[i], unsettled,
+                                            dev.impulse[i], t)
+                lx += cx
+                lv += cv
+                if ti.static(wants.masses and wants.friction):
+                    # -(mu - dL/dJ) . dg/dm beyond acceleration_adjoint's share, which takes
+                    # g / m = u - v_n - h a: -(mu - dL/dJ) . (g without friction) / m, g = J here
+                    # (mu . J = 0) less its friction (a sticking particle's STICK m (u - v_c),
+                    # whose own m-derivative cancels it; a sliding one's -fric)
+                    extra = adj.cj[i].dot(dev.impulse[i]) / dev.mass[i]
+                    if dev.stick[i] == 0:
+                        extra -= adj.y[i].dot(dev.fric[i]) / dev.mass[i]
+                    adj.gm[i] = adj.gm[i] + extra
+        if ti.static(wants.friction):  # a sliding particle's kinetic friction in g came from the step before
+            gf = ti.Vector.zero(ti.f64, 3)
+            if dev.contacts[i] != 0 and dev.stick[i] == 0:
+                gf = adj.y[i]
+            adj.gf[i] = gf
         if ti.static(cfg.lagged):  # x* = x_n + ahead v_n: straight to the state before the step
             ox = -spring_sum(i, dev, adj.sl)
             ov = ahead * ox

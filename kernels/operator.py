@@ -138,15 +138,17 @@ def diagonal_block(i, dev, cfg: ti.template()):
     return block
 
 
-# refresh modes: Eq. 15; a Newton iteration; none (the caller refreshed)
-LINEARISED, NEWTON, REFRESHED = 0, 1, -1
+# refresh modes: Eq. 15; a Newton iteration; none (the caller refreshed); Eq. 15's operator
+# with the contacts the caller detected held (a Newton-solved step's adjoint)
+LINEARISED, NEWTON, REFRESHED, HELD = 0, 1, -1, 2
 
 
 @ti.func
 def refresh_row(i, dev, cfg: ti.template(), x, v, h, t, mode: ti.template()):
     """Particle i's part of ``refresh`` (after ``spring_coefficients``): its contact
     constraints at time t (``contact.detect``, with colliders; a ``NEWTON`` iteration
-    holds the contacts its step started with, ``kernels/newton.py``), its entries of
+    holds the contacts its step started with, ``kernels/newton.py``, and ``HELD`` those
+    the caller detected), its entries of
     ``coef``, ``diag``, the right-hand side, with a contact's friction
     (``contact.friction_diagonal``, ``friction_impulse``) in both, and, for a
     preconditioner that needs it, its setup from A_ii.
@@ -161,7 +163,7 @@ def refresh_row(i, dev, cfg: ti.template(), x, v, h, t, mode: ti.template()):
         gather_coefficients(i, dev, cfg)
     dev.diag[i] = diagonal_scalar(i, dev, cfg, h)
     if ti.static(cfg.contact_filter):
-        if ti.static(mode == NEWTON):
+        if ti.static(mode == NEWTON or mode == HELD):
             carrier = dev.carrier[i]
         else:
             found = detect(i, dev, cfg, x, v, h, t)

@@ -18,7 +18,7 @@ bytes a particle, and one forward step more per step than the forward run.
 Built so far (issue 39): the explicit, symplectic, RK4, linearised implicit, backward
 Euler, BDF2 and implicit midpoint integrators, with springs, damping, gravity, drag and wind, pins (fixed or moving,
 with their velocities' gradient), colliders: planes, spheres and boxes with friction and restitution (explicit,
-symplectic, RK4 and linearised implicit steps) and
+symplectic, RK4, linearised implicit and backward-Euler steps) and
 controls over time (keyframed pins, wind, actuated rest lengths: ``ControlShares``). The adjoint kernels are compiled and
 their fields allocated only when a gradient is asked for: a forward run is as before.
 """
@@ -149,14 +149,14 @@ def check_arguments(model, wrt, integrator, precision="f64") -> list:
 
 
 CONTACT_INTEGRATORS = ("explicit", "symplectic", "rk4")  # those whose contact response has an adjoint
-SOLVED_CONTACT = ("implicit",)  # those whose contact constraints and friction have an adjoint
+SOLVED_CONTACT = ("implicit", "backward-euler")  # those whose contact constraints and friction have an adjoint
 
 
 def _check_colliders(model, integrator):
     """Contact has a gradient (its branches frozen) with any colliders in the explicit,
     symplectic and RK4 steps (``contact.respond_adjoint``) and in the linearised implicit
-    step (``contact.constraint_adjoint``, ``friction.friction_adjoint``); another
-    integrator with colliders is refused."""
+    and backward-Euler steps (``contact.constraint_adjoint``, ``friction.friction_adjoint``);
+    another integrator with colliders is refused."""
     if model.has_colliders and integrator not in CONTACT_INTEGRATORS + SOLVED_CONTACT:
         raise ValueError(f"integrator: gradients through contact are built for "
                          f"{', '.join(CONTACT_INTEGRATORS + SOLVED_CONTACT)} steps, got {integrator!r} (issue 39)")

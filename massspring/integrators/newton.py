@@ -8,7 +8,7 @@ import math
 import numpy as np
 
 from massspring.device import read_verdict
-from massspring.kernels import cg, divergence, friction, newton, newton_adjoint, operator
+from massspring.kernels import cg, divergence, friction, implicit_adjoint, newton, newton_adjoint, operator
 from massspring.kernels import state as state_kernels
 from massspring.solvers import SolverStats, solve
 from massspring.solvers.cg import EPS32, EPS64, ROUNDOFF
@@ -96,6 +96,14 @@ class BackwardEuler(ImplicitEuler):
         for name in ("ue", "y", "jy", "xs"):  # xs: the step's prediction (kernels/newton_adjoint.py)
             layout.vectors(name, layout.real)
         layout.vectors("sl", layout.real, "spring")
+        super().declare_adjoint(layout, model, stride, rows)  # contact's (the linearised step's)
+        if model.has_colliders:  # and each step's contact impulses, g at the converged iterate
+            layout.vectors("hj", layout.real, rows)
+
+    @classmethod
+    def kept_bytes(cls, model):
+        """The linearised step's, and the contact impulses (24)."""
+        return super().kept_bytes(model) + 24 * model.has_colliders
 
     def adjoint(self, adj, slot, wants):
         """The adjoint of (*) at the converged iterate (``kernels/newton_adjoint.py``):
@@ -106,14 +114,14 @@ class BackwardEuler(ImplicitEuler):
         exact = dataclasses.replace(self.cfg, fix=False)
         h = 0.5 * s.dt if self.half_step else self.step_size(touching=0)
         hx = s.dt if self.half_step else h  # x' = base + hx u
-        newton_adjoint.newton_adjoint_rhs(self.dev, self.cfg, adj, h, hx, self.time, slot, self.half_step, wants,
-                                          self.ahead(h), self.serial)
-        stats = self._adjoint_solve(adj, exact, h, slot)
+        newton_adjoint.newton_adjoint_rhs(self.dev, self.cfg, exact, adj, h, hx, self.time, slot, self.half_step,
+                                          wants, self.ahead(h), self.serial)
+        stats = self._adjoint_solve(adj, exact, h, slot, wants)
         newton_adjoint.newton_adjoint_gather(self.dev, exact, adj, h, self.time, slot, self.half_step, wants,
                                              self.ahead(h), self.carries, self.serial)
         return stats
 
-    def _adjoint_solve(self, adj, exact, h, slot):
+    def _adjoint_solve(self, adj, exact, h, slot, wants):
         """mu = S^-1 b0 by one solve with S, the step's own operator; where J may differ
         from S (the definiteness fix on, or spring damping), GMRES on S^-1 J^T mu = S^-1 b0
         from there, each product one more solve (to ``INNER`` cg_tol), to cg_tol relative (S^-1 J^T is the
@@ -124,18 +132,17 @@ class BackwardEuler(ImplicitEuler):
         if not self.cfg.fix or not stats.converged:
             return stats
         inner = [stats]
-        # the free rows (a solve sets pins to their velocities; mu is 0 there)
-        free = (self.dev.read("free") != 0)[:, None] if exact.fixed else True
+        unconstrained = self._unconstrained(exact)
 
         def product(y):  # S^-1 J^T y
             state_kernels.load_vectors(self.dev.v, np.ascontiguousarray(y))
             newton_adjoint.newton_adjoint_product(self.dev, exact, self.cfg, adj, h, self.time, slot, self.half_step,
-                                                  self.serial)
+                                                  wants, self.serial)
             inner.append(solve(self.dev, self.cfg, self.preconditioner, h, INNER * s.cg_tol, s.cg_max_iter,
                                self.serial, self.time, mode=operator.REFRESHED))
-            return np.where(free, self.dev.read("v"), 0.0)
+            return unconstrained(self.dev.read("v"))
 
-        start = np.where(free, self.dev.read("v"), 0.0)
+        start = unconstrained(self.dev.read("v"))
         out = gmres(product, start, start, s.cg_tol, MAX_PRODUCTS)
         state_kernels.load_vectors(self.dev.v, np.ascontiguousarray(out.x))
         failed = next((one for one in inner if not one.converged), None)
@@ -145,6 +152,22 @@ class BackwardEuler(ImplicitEuler):
         return dataclasses.replace(stats, iterations=total, converged=out.converged,
                                    residual=out.residual if not out.converged else stats.residual,
                                    reason="converged" if out.converged else "GMRES not converging")
+
+    def _unconstrained(self, cfg):
+        """v -> v without its constrained directions (a solve sets them to their prescribed
+        velocities; mu has none): 0 at pins, S_i v_i at a particle in contact."""
+        free = (self.dev.read("free") != 0)[:, None] if cfg.fixed else np.ones((self.dev.n, 1), bool)
+        if not cfg.contact_filter:
+            return lambda v: np.where(free, v, 0.0)
+        touching = self.dev.read("contacts") != 0
+        filters = self.dev.read("cfilter")[touching]
+
+        def unconstrained(v):
+            out = np.where(free, v, 0.0)
+            out[touching] = np.einsum("kij,kj->ki", filters, v[touching])
+            return out
+
+        return unconstrained
 
     @classmethod
     def config(cls, model, settings):
@@ -239,7 +262,11 @@ class BackwardEuler(ImplicitEuler):
             dev.v.copy_from(dev.keep)
             return 0, divergence.NONFINITE_VERDICT
         if cfg.contact_filter:
+            if self.history is not None and self.friction:  # a gradient's run: v' before friction
+                implicit_adjoint.keep_solved(dev, self.history[0], dev.n, self.steps - self.history[1])
             friction.contact_friction(dev, cfg, t, serial)
+            if self.history is not None:  # and the step's impulses
+                implicit_adjoint.keep_impulses(dev, self.history[0], dev.n, self.steps - self.history[1])
         self.finish(h, touching)
         check = read_verdict(cg.advance_positions(dev, cfg, dev.xb, h, s.dt, (self.steps + 1) * s.dt, serial,
                                                        self.carries))
