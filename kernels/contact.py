@@ -480,6 +480,83 @@ def landing_adjoint(i, dev, cfg: ti.template(), x, t, g):
 
 
 @ti.func
+def column(matrix, j):
+    """Column j (a run-time index, 0 to 2) of a 3x3 f64 matrix."""
+    out = ti.Vector.zero(ti.f64, 3)
+    for c in ti.static(range(3)):
+        if j == c:
+            out = ti.Vector([matrix[r, c] for r in ti.static(range(3))], ti.f64)
+    return out
+
+
+@ti.func
+def set_column(matrix, j, vector):
+    """The 3x3 matrix with its column j (a run-time index, 0 to 2) set to ``vector``."""
+    out = matrix
+    for c in ti.static(range(3)):
+        if j == c:
+            for r in ti.static(range(3)):
+                out[r, c] = vector[r]
+    return out
+
+
+@ti.func
+def component(vector, j):
+    """Entry j (a run-time index, 0 to 2) of a 3-vector."""
+    out = ti.cast(0, ti.f64)
+    for c in ti.static(range(3)):
+        if j == c:
+            out = vector[c]
+    return out
+
+
+@ti.func
+def contact_normals(i, dev, cfg: ti.template(), x, t):
+    """The normals (f64) at x, time t, of particle i's contacts (``dev.contacts[i]``, at most
+    3, independent) as the columns of a 3x3 matrix in ``cfg.colliders``' order, and their count."""
+    mask = dev.contacts[i]
+    normals = ti.Matrix.zero(ti.f64, 3, 3)
+    count = 0
+    for kind, kinds, first in ti.static(cfg.colliders):
+        for k in ti.static(range(kinds)):
+            if mask & ti.static(1 << (first + k)) != 0:
+                _, n = kind.distance(dev, cfg, k, x, t)
+                normals = set_column(normals, count, ti.cast(n, ti.f64))
+                count += 1
+    return normals, count
+
+
+@ti.func
+def orthonormal(normals, count):
+    """``add_direction``'s filter and directions for the first ``count`` columns of
+    ``normals``: (S = I - sum e_j e_j^T, the e_j as columns)."""
+    S = ti.Matrix.identity(ti.f64, 3)
+    directions = ti.Matrix.zero(ti.f64, 3, 3)
+    for j in ti.static(range(3)):
+        if j < count:
+            e = S @ column(normals, j)
+            e = e / ti.sqrt(e.dot(e))
+            S = S - e.outer_product(e)
+            directions = set_column(directions, j, e)
+    return S, directions
+
+
+@ti.func
+def normals_adjoint(i, dev, cfg: ti.template(), x, t, g_normals):
+    """dL/dx (f64) through the curvature dn/dx of particle i's contact normals at x, time
+    t, from their gradients as the columns of ``g_normals`` (``contact_normals``' order)."""
+    mask = dev.contacts[i]
+    out = ti.Vector.zero(ti.f64, 3)
+    count = 0
+    for kind, kinds, first in ti.static(cfg.colliders):
+        for k in ti.static(range(kinds)):
+            if mask & ti.static(1 << (first + k)) != 0:
+                out += kind.curvature(dev, cfg, k, x, t).transpose() @ column(g_normals, count)
+                count += 1
+    return out
+
+
+@ti.func
 def constraint_adjoint(i, dev, cfg: ti.template(), x, v, v_new, mu_i, unsettled, impulse, t):
     """The contact constraints' share of the implicit step's adjoint at particle i (f64),
     its contacts as ``detect`` made them from (x, v) = (x_n, v_n) at time t.
@@ -491,45 +568,28 @@ def constraint_adjoint(i, dev, cfg: ti.template(), x, v, v_new, mu_i, unsettled,
     contact, dL/dn_k = lam_k mu - beta_k v' + beta_k du_k/dn_k (to x through dn/dx:
     ``curvature``) and dL/dv_n = beta_k du_k/dv_n. Returns (dL/dx_n, dL/dv_n) shares."""
     mask = dev.contacts[i]
-    normals = ti.Matrix.zero(ti.f64, 3, 3)
-    slot = 0
-    for kind, count, first in ti.static(cfg.colliders):
-        for k in ti.static(range(count)):
-            if mask & ti.static(1 << (first + k)) != 0:
-                _, n = kind.distance(dev, cfg, k, x, t)
-                for c in ti.static(range(3)):
-                    if slot == c:
-                        for r in ti.static(range(3)):
-                            normals[r, c] = ti.cast(n[r], ti.f64)
-                slot += 1
+    normals, count = contact_normals(i, dev, cfg, x, t)
     gram = normals.transpose() @ normals
     for c in ti.static(range(3)):
-        if c >= slot:
+        if c >= count:
             gram[c, c] = 1.0
     inverse = gram.inverse()
     lam = inverse @ (normals.transpose() @ impulse)
     beta = inverse @ (normals.transpose() @ unsettled)
-    gx = ti.Vector.zero(ti.f64, 3)
     gv = ti.Vector.zero(ti.f64, 3)
+    g_normals = ti.Matrix.zero(ti.f64, 3, 3)
     slot = 0
-    for kind, count, first in ti.static(cfg.colliders):
-        for k in ti.static(range(count)):
+    for kind, kinds, first in ti.static(cfg.colliders):
+        for k in ti.static(range(kinds)):
             if mask & ti.static(1 << (first + k)) != 0:
-                _, n_real = kind.distance(dev, cfg, k, x, t)
-                n = ti.cast(n_real, ti.f64)
-                lam_k = 0.0
-                beta_k = 0.0
-                for c in ti.static(range(3)):
-                    if slot == c:
-                        lam_k = lam[c]
-                        beta_k = beta[c]
+                n = column(normals, slot)
+                beta_k = component(beta, slot)
                 vc = ti.cast(velocity(dev, kind, k), ti.f64)
                 du = vc  # du_k / dn_k
                 if (v - vc).dot(n) < 0:  # arriving: restitution reflects its normal speed
                     e = ti.cast(restitution(dev, kind, k), ti.f64)
                     du = vc - e * (v - vc)
                     gv -= beta_k * e * n
-                gn = lam_k * mu_i + beta_k * (du - v_new)
-                gx += kind.curvature(dev, cfg, k, x, t).transpose() @ gn
+                g_normals = set_column(g_normals, slot, component(lam, slot) * mu_i + beta_k * (du - v_new))
                 slot += 1
-    return gx, gv
+    return normals_adjoint(i, dev, cfg, x, t, g_normals), gv

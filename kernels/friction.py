@@ -40,7 +40,7 @@ Arrays: ``dev.impulse`` (n,) vec3 (J_i at particles in contact), ``dev.released`
 
 import taichi as ti
 
-from .contact import STICK, add_direction, mu, velocity
+from .contact import STICK, add_direction, column, contact_normals, mu, normals_adjoint, orthonormal, set_column, velocity
 from .operator import apply_row
 
 
@@ -143,51 +143,21 @@ def gram_schmidt_adjoint(i, dev, cfg: ti.template(), x, t, gS, ge):
     ge[:, j] = dL/de_j (j counting the contacts in order), back through each step in
     reverse (S before a step = S after it + e e^T; |S n| = e . n), returns dL/dx through
     each normal's curvature dn/dx."""
-    mask = dev.contacts[i]
-    S = ti.Matrix.identity(ti.f64, 3)
-    normals = ti.Matrix.zero(ti.f64, 3, 3)
-    directions = ti.Matrix.zero(ti.f64, 3, 3)
-    count = 0
-    for kind, count_k, first in ti.static(cfg.colliders):
-        for k in ti.static(range(count_k)):
-            if mask & ti.static(1 << (first + k)) != 0:
-                _, n_real = kind.distance(dev, cfg, k, x, t)
-                n = ti.cast(n_real, ti.f64)
-                e = S @ n
-                e = e / ti.sqrt(e.dot(e))
-                S = S - e.outer_product(e)
-                for c in ti.static(range(3)):
-                    if count == c:
-                        for r in ti.static(range(3)):
-                            normals[r, c] = n[r]
-                            directions[r, c] = e[r]
-                count += 1
+    normals, count = contact_normals(i, dev, cfg, x, t)
+    S, directions = orthonormal(normals, count)
     g_normals = ti.Matrix.zero(ti.f64, 3, 3)
     g = gS
     for back in ti.static(range(3)):
         j = ti.static(2 - back)
         if j < count:
-            n = ti.Vector([normals[r, j] for r in ti.static(range(3))], ti.f64)
-            e = ti.Vector([directions[r, j] for r in ti.static(range(3))], ti.f64)
+            n = column(normals, j)
+            e = column(directions, j)
             S = S + e.outer_product(e)
-            ge_j = ti.Vector([ge[r, j] for r in ti.static(range(3))], ti.f64) - (g + g.transpose()) @ e
+            ge_j = column(ge, j) - (g + g.transpose()) @ e
             gm = (ge_j - e.dot(ge_j) * e) / e.dot(n)
             g = g + gm.outer_product(n)
-            gn = S @ gm
-            for r in ti.static(range(3)):
-                g_normals[r, j] = gn[r]
-    out = ti.Vector.zero(ti.f64, 3)
-    count = 0
-    for kind, count_k, first in ti.static(cfg.colliders):
-        for k in ti.static(range(count_k)):
-            if mask & ti.static(1 << (first + k)) != 0:
-                gn = ti.Vector.zero(ti.f64, 3)
-                for c in ti.static(range(3)):
-                    if count == c:
-                        gn = ti.Vector([g_normals[r, c] for r in ti.static(range(3))], ti.f64)
-                out += kind.curvature(dev, cfg, k, x, t).transpose() @ gn
-                count += 1
-    return out
+            g_normals = set_column(g_normals, j, S @ gm)
+    return normals_adjoint(i, dev, cfg, x, t, g_normals)
 
 
 @ti.func
@@ -203,34 +173,26 @@ def friction_adjoint(i, dev, cfg: ti.template(), x, v_solved, g_new, g_fric, t):
     dL/dm)."""
     mask = dev.contacts[i]
     jump = ti.cast(dev.impulse[i], ti.f64)
-    carrier = ti.Vector.zero(ti.f64, 3)
+    normals, count = contact_normals(i, dev, cfg, x, t)
+    S, directions = orthonormal(normals, count)
+    carrier = ti.cast(first_carrier(i, dev, cfg), ti.f64)
     frictions = ti.Vector.zero(ti.f64, 3)  # mu_k by contact, in order
-    S = ti.Matrix.identity(ti.f64, 3)
-    directions = ti.Matrix.zero(ti.f64, 3, 3)
     bound = 0.0
     released = False
-    count = 0
-    for kind, count_k, first in ti.static(cfg.colliders):
-        for k in ti.static(range(count_k)):
+    slot = 0
+    for kind, kinds, first in ti.static(cfg.colliders):
+        for k in ti.static(range(kinds)):
             if mask & ti.static(1 << (first + k)) != 0:
-                _, n_real = kind.distance(dev, cfg, k, x, t)
-                e = S @ ti.cast(n_real, ti.f64)
-                e = e / ti.sqrt(e.dot(e))
-                S = S - e.outer_product(e)
-                normal = e.dot(jump)
+                normal = column(directions, slot).dot(jump)
                 coefficient = ti.cast(mu(dev, kind, k), ti.f64)
                 if normal < 0:
                     released = True
                 else:
                     bound += coefficient * normal
-                if count == 0:
-                    carrier = ti.cast(velocity(dev, kind, k), ti.f64)
                 for c in ti.static(range(3)):
-                    if count == c:
+                    if slot == c:
                         frictions[c] = coefficient
-                        for r in ti.static(range(3)):
-                            directions[r, c] = e[r]
-                count += 1
+                slot += 1
     g_solved = g_new
     g_jump = ti.Vector.zero(ti.f64, 3)
     gx = ti.Vector.zero(ti.f64, 3)
@@ -264,15 +226,12 @@ def friction_adjoint(i, dev, cfg: ti.template(), x, v_solved, g_new, g_fric, t):
                 g_bound -= r.dot(g_new) / mass
                 gm = bound / (mass * mass) * r.dot(g_new)
         g_solved += S @ g_rel
-        g_S = g_rel.outer_product(v_solved - carrier)
         g_directions = ti.Matrix.zero(ti.f64, 3, 3)
         for c in ti.static(range(3)):
             if c < count:
-                e = ti.Vector([directions[r, c] for r in ti.static(range(3))], ti.f64)
-                g_jump += frictions[c] * g_bound * e
-                for r in ti.static(range(3)):
-                    g_directions[r, c] = frictions[c] * g_bound * jump[r]
-        gx = gram_schmidt_adjoint(i, dev, cfg, x, t, g_S, g_directions)
+                g_jump += frictions[c] * g_bound * column(directions, c)
+                g_directions = set_column(g_directions, c, frictions[c] * g_bound * jump)
+        gx = gram_schmidt_adjoint(i, dev, cfg, x, t, g_rel.outer_product(v_solved - carrier), g_directions)
     return g_solved, g_jump, gx, gm
 
 
