@@ -15,6 +15,15 @@ and warm start, the Simulation's CG driver and preconditioner solve it
 (``massspring.solvers.solve`` with the operator refreshed), and ``implicit_adjoint``
 gathers the rest spring by spring from each term's ``rhs_adjoint`` and
 ``operator_adjoint`` (``kernels/terms``). Arrays of ``adj``: see ``massspring.gradients``.
+
+With colliders (docs/gradients.md): the step's contacts are detected again from the
+contact memory kept with the state (``keep_contacts``); dL/dx' goes back through the
+final projection and the landing correction (``position_adjoint``), with friction
+through ``friction.friction_adjoint`` to the solve's velocity (kept before friction
+changed it: ``keep_solved``) and the contact impulses J = A v' - b (their gradient
+``adj.cj`` joins G as A cj, and the parameters' shares are mu - cj's); the solve is
+the step's filtered one, and ``contact.constraint_adjoint`` adds the constraints'
+share through the normals and the arriving velocity.
 """
 
 import taichi as ti

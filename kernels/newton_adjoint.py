@@ -32,6 +32,14 @@ GMRES does not converge within its products (J singular or nearly),
 ``massspring.errors.GradientError`` names the step. ``newton_adjoint_rhs`` sets up the solve, the run's CG solves it,
 ``newton_adjoint_gather`` does the rest (``forces.acceleration_adjoint`` with weights
 h mu: at the converged iterate h f / m = u - v_n, so its masses' share is the one above).
+
+With colliders (backward Euler; BDF2 and midpoint refuse them): the contacts the step
+held are detected again from (x_n, v_n) (``contacts_again``) and held by every refresh
+(``operator.HELD``); the adjoint solve runs on the free directions of the particles
+in contact, and the contact and friction pieces are the linearised step's
+(``implicit_adjoint``) with J in place of A and the impulses the residual's
+constrained part at the converged iterate (kept with the history), where g is not 0
+and h f / m = u - v_n fails: the masses' share gets what that identity missed.
 """
 
 import taichi as ti
