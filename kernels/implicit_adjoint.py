@@ -49,15 +49,16 @@ def solved(adj, wants: ti.template(), slot, i):
 
 
 @ti.func
-def position_adjoint(i, dev, cfg: ti.template(), adj, slot, h, t):
-    """With colliders, x' = P(x_n + h v'' - landing(x_n)) of a particle not pinned
-    (``cg.next_position``: P the final projection at t + h, the landing correction at
-    the step's start t, its contacts in ``dev``): from dL/dx' in ``adj.lx``, returns
-    (dL/dy at y = x_n + h v'' - landing, the share of dL/dx_n through y)."""
+def position_adjoint(i, dev, cfg: ti.template(), adj, slot, xb, h, t, dt):
+    """With colliders, x' = P(x^ + h v'' - landing(x_n)) of a particle not pinned
+    (``cg.next_position``: x^ = ``xb``, P the final projection at the step's end t + dt,
+    the landing correction at its start t, its contacts in ``dev``): from dL/dx' in
+    ``adj.lx``, returns (dL/dy at y = x^ + h v'' - landing, the share of dL/dx_n through
+    the landing and dL/dx^, y less the landing's)."""
     stride = adj.stride[None]
     x = adj.hx[slot * stride + i]
-    y = x + h * adj.hv[(slot + 1) * stride + i] - landing(i, dev, cfg, x, t)
-    gy = project_adjoint(dev, cfg, y, t + h, ti.static(cfg.collider_count), adj.lx[i])
+    y = xb + h * adj.hv[(slot + 1) * stride + i] - landing(i, dev, cfg, x, t)
+    gy = project_adjoint(dev, cfg, y, t + dt, ti.static(cfg.collider_count), adj.lx[i])
     return gy, gy - landing_adjoint(i, dev, cfg, x, t, gy)
 
 
@@ -89,7 +90,7 @@ def rhs(dev, cfg: ti.template(), adj, h, t, slot, wants: ti.template()):
         if not is_pinned(i, dev, cfg):
             gy = adj.lx[i]
             if ti.static(cfg.has_colliders):
-                gy, gx = position_adjoint(i, dev, cfg, adj, slot, h, t)
+                gy, gx = position_adjoint(i, dev, cfg, adj, slot, dev.x[i], h, t, h)
                 adj.lx[i] = gx
             b = adj.lv[i] + h * gy
             if ti.static(cfg.contact_filter):
@@ -243,6 +244,14 @@ def keep_solved(dev: ti.template(), adj: ti.template(), n: ti.i32, slot: ti.i32)
     solve left it in ``dev.v`` (before friction changes it)."""
     for i in range(n):
         adj.hw[slot * adj.stride[None] + i] = dev.v[i]
+
+
+@ti.kernel
+def keep_base(dev: ti.template(), adj: ti.template(), n: ti.i32, slot: ti.i32):
+    """adj.hb[slot * stride + i] = x^ of the step from the state kept at ``slot``, as its
+    positions are committed from (``dev.xb``: x' = x^ + h v', then onto surfaces)."""
+    for i in range(n):
+        adj.hb[slot * adj.stride[None] + i] = dev.xb[i]
 
 
 @ti.kernel

@@ -56,18 +56,21 @@ from .operator import HELD, apply_row, refresh
 @ti.func
 def evaluation_point(dev, cfg: ti.template(), adj, i, slot, stride, h, midpoint: ti.template(),
                      wants: ti.template()):
-    """(x_n + h u, u) of particle i from the history (slots ``slot`` and ``slot + 1``); a
-    midpoint step's pin keeps its velocity u (``newton.midpoint_finish``). With colliders
-    x' was moved onto surfaces after the solve, and with friction v' was changed: u is
-    then the solve's velocity (``implicit_adjoint.solved``) and x_n + h u is formed."""
+    """(x^ + h u, u) of particle i from the history (slots ``slot`` and ``slot + 1``; x^ =
+    x_n but for BDF2's base); a midpoint step's pin keeps its velocity u
+    (``newton.midpoint_finish``). With colliders x' was moved onto surfaces after the
+    solve, and with friction v' was changed: u is then the solve's velocity
+    (``implicit_adjoint.solved``) and x^ + h u is formed from the base kept with the
+    history (``adj.hb``)."""
     u = solved(adj, wants, slot, i)
     x = adj.hx[(slot + 1) * stride + i]
     if ti.static(midpoint):
-        if not is_pinned(i, dev, cfg):
-            u = 0.5 * (adj.hv[slot * stride + i] + u)
+        if ti.static(not wants.friction):  # (kept with friction: the solution w of (*) itself)
+            if not is_pinned(i, dev, cfg):
+                u = 0.5 * (adj.hv[slot * stride + i] + u)
         x = adj.hx[slot * stride + i] + h * u
-    elif ti.static(cfg.has_colliders):
-        x = adj.hx[slot * stride + i] + h * u
+    elif ti.static(cfg.has_colliders):  # the base x^ kept with the history: x^ + h u
+        x = adj.hb[slot * stride + i] + h * u
     return x, u
 
 
@@ -136,13 +139,13 @@ def contacts_again(dev, cfg: ti.template(), adj, slot, dt, t, wants: ti.template
 
 
 @ti.func
-def rhs(dev, cfg: ti.template(), exact: ti.template(), adj, h, hx, t, slot, midpoint: ti.template(),
+def rhs(dev, cfg: ti.template(), exact: ti.template(), adj, h, hx, dt, t, slot, midpoint: ti.template(),
         wants: ti.template(), ahead):
     n = dev.size[0]
     stride = adj.stride[None]
     prediction(dev, cfg, adj, slot, ahead)
     if ti.static(cfg.contact_filter):
-        contacts_again(dev, cfg, adj, slot, hx, t, wants)
+        contacts_again(dev, cfg, adj, slot, dt, t, wants)
     for i in range(n):
         x, u = evaluation_point(dev, cfg, adj, i, slot, stride, h, midpoint, wants)
         dev.x[i] = x
@@ -152,7 +155,10 @@ def rhs(dev, cfg: ti.template(), exact: ti.template(), adj, h, hx, t, slot, midp
         gy = adj.lx[i]
         if ti.static(cfg.has_colliders):
             if not is_pinned(i, dev, cfg):
-                gy, gx = position_adjoint(i, dev, cfg, adj, slot, hx, t)
+                xb = adj.hb[slot * stride + i]
+                if ti.static(midpoint):  # x' = x_n + dt w = (x_n + h v_n) + h v'
+                    xb = adj.hx[slot * stride + i] + h * adj.hv[slot * stride + i]
+                gy, gx = position_adjoint(i, dev, cfg, adj, slot, xb, h, t, dt)
                 adj.lx[i] = gx
         b = adj.lv[i] + hx * gy
         if ti.static(midpoint):
@@ -182,7 +188,7 @@ def rhs(dev, cfg: ti.template(), exact: ti.template(), adj, h, hx, t, slot, midp
 
 @ti.kernel
 def newton_adjoint_rhs(dev: ti.template(), cfg: ti.template(), exact: ti.template(), adj: ti.template(), h: ti.f64,
-                       hx: ti.f64, t: ti.f64, slot: ti.i32, midpoint: ti.template(), wants: ti.template(),
+                       hx: ti.f64, dt: ti.f64, t: ti.f64, slot: ti.i32, midpoint: ti.template(), wants: ti.template(),
                        ahead: ti.f64, serial: ti.template()):
     """The step's prediction x_n + ``ahead`` v_n (``prediction``);
     ``dev.x``, ``dev.v`` = the converged iterate's (x_n + h u, u) from the history; the
@@ -199,9 +205,9 @@ def newton_adjoint_rhs(dev: ti.template(), cfg: ti.template(), exact: ti.templat
     if ti.static(serial):
         ti.loop_config(serialize=True)
         for _ in range(1):
-            rhs(dev, cfg, exact, adj, h, hx, t, slot, midpoint, wants, ahead)
+            rhs(dev, cfg, exact, adj, h, hx, dt, t, slot, midpoint, wants, ahead)
     else:
-        rhs(dev, cfg, exact, adj, h, hx, t, slot, midpoint, wants, ahead)
+        rhs(dev, cfg, exact, adj, h, hx, dt, t, slot, midpoint, wants, ahead)
 
 
 @ti.func

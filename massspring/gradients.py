@@ -17,8 +17,8 @@ bytes a particle, and one forward step more per step than the forward run.
 
 Built so far (issue 39): the explicit, symplectic, RK4, linearised implicit, backward
 Euler, BDF2 and implicit midpoint integrators, with springs, damping, gravity, drag and wind, pins (fixed or moving,
-with their velocities' gradient), colliders: planes, spheres and boxes with friction and restitution (explicit,
-symplectic, RK4, linearised implicit and backward-Euler steps) and
+with their velocities' gradient), colliders: planes, spheres and boxes with friction and restitution (every one of
+those integrators) and
 controls over time (keyframed pins, wind, actuated rest lengths: ``ControlShares``). The adjoint kernels are compiled and
 their fields allocated only when a gradient is asked for: a forward run is as before.
 """
@@ -118,7 +118,7 @@ def gradient(model, objective, wrt, *, steps, every=1, integrator="symplectic", 
         value, partials = _call(objective, frames, model.n_particles)
         wants = Wants(masses="masses" in names, rate_gradient="damping" in names and not model.has_damping,
                       pins="pin_velocity" in names or "controls.pin_targets" in names,
-                      friction=model.has_friction and integrator in SOLVED_CONTACT)
+                      friction=model.has_friction and INTEGRATORS[integrator].linear_solver)
         shares = ControlShares(sim, adj) if model.controls is not None else None
         _backward(sim, adj, wants, partials, frames.steps, kept, last, steps, checkpoint, shares)
         return value, _read(sim, adj, names, shares)
@@ -144,22 +144,7 @@ def check_arguments(model, wrt, integrator, precision="f64") -> list:
         if present:
             raise ValueError(f"model: gradients through {feature} are not built yet (issue 39); "
                              f"a model of springs, damping, gravity, drag, pins and colliders has them")
-    _check_colliders(model, integrator)
     return names
-
-
-CONTACT_INTEGRATORS = ("explicit", "symplectic", "rk4")  # those whose contact response has an adjoint
-SOLVED_CONTACT = ("implicit", "backward-euler")  # those whose contact constraints and friction have an adjoint
-
-
-def _check_colliders(model, integrator):
-    """Contact has a gradient (its branches frozen) with any colliders in the explicit,
-    symplectic and RK4 steps (``contact.respond_adjoint``) and in the linearised implicit
-    and backward-Euler steps (``contact.constraint_adjoint``, ``friction.friction_adjoint``);
-    another integrator with colliders is refused."""
-    if model.has_colliders and integrator not in CONTACT_INTEGRATORS + SOLVED_CONTACT:
-        raise ValueError(f"integrator: gradients through contact are built for "
-                         f"{', '.join(CONTACT_INTEGRATORS + SOLVED_CONTACT)} steps, got {integrator!r} (issue 39)")
 
 
 @dataclass(frozen=True)
@@ -167,7 +152,8 @@ class Wants:
     """Compile-time switches of an adjoint kernel: ``masses``: add the masses' gradient
     (needs the step's forces again); ``rate_gradient``: add the damping coefficients'
     gradient in a model without a damping term; ``pins``: add the pin velocities'
-    gradient; ``friction``: the implicit step's friction (a collider with friction)."""
+    gradient; ``friction``: friction after a solve (the implicit integrators' with a collider
+    with friction: ``friction.friction_adjoint``)."""
 
     masses: bool
     rate_gradient: bool

@@ -97,13 +97,18 @@ class BackwardEuler(ImplicitEuler):
             layout.vectors(name, layout.real)
         layout.vectors("sl", layout.real, "spring")
         super().declare_adjoint(layout, model, stride, rows)  # contact's (the linearised step's)
-        if model.has_colliders:  # and each step's contact impulses, g at the converged iterate
+        if model.has_colliders:  # and each step's contact impulses (g at the converged iterate) and base x^
             layout.vectors("hj", layout.real, rows)
+            layout.vectors("hb", layout.real, rows)
 
     @classmethod
     def kept_bytes(cls, model):
-        """The linearised step's, and the contact impulses (24)."""
-        return super().kept_bytes(model) + 24 * model.has_colliders
+        """The linearised step's, and the contact impulses and base positions (48)."""
+        return super().kept_bytes(model) + 48 * model.has_colliders
+
+    def __init__(self, dev, model, settings):
+        super().__init__(dev, model, settings)
+        self.taken = {}  # step -> (a particle touched, BDF2's base used): a gradient's record of each step
 
     def adjoint(self, adj, slot, wants):
         """The adjoint of (*) at the converged iterate (``kernels/newton_adjoint.py``):
@@ -112,16 +117,18 @@ class BackwardEuler(ImplicitEuler):
         operator); returns the ``SolverStats`` of it all."""
         s = self.settings
         exact = dataclasses.replace(self.cfg, fix=False)
-        h = 0.5 * s.dt if self.half_step else self.step_size(touching=0)
-        hx = s.dt if self.half_step else h  # x' = base + hx u
-        newton_adjoint.newton_adjoint_rhs(self.dev, self.cfg, exact, adj, h, hx, self.time, slot, self.half_step,
+        touching = self.taken[self.steps][0]
+        half = self.half_step and not touching  # the midpoint rule takes a backward-Euler step at a contact
+        h = 0.5 * s.dt if half else self.step_size(touching)
+        hx = s.dt if half else h  # x' = base + hx u
+        newton_adjoint.newton_adjoint_rhs(self.dev, self.cfg, exact, adj, h, hx, s.dt, self.time, slot, half,
                                           wants, self.ahead(h), self.serial)
-        stats = self._adjoint_solve(adj, exact, h, slot, wants)
-        newton_adjoint.newton_adjoint_gather(self.dev, exact, adj, h, self.time, slot, self.half_step, wants,
+        stats = self._adjoint_solve(adj, exact, h, slot, wants, half)
+        newton_adjoint.newton_adjoint_gather(self.dev, exact, adj, h, self.time, slot, half, wants,
                                              self.ahead(h), self.carries, self.serial)
         return stats
 
-    def _adjoint_solve(self, adj, exact, h, slot, wants):
+    def _adjoint_solve(self, adj, exact, h, slot, wants, half):
         """mu = S^-1 b0 by one solve with S, the step's own operator; where J may differ
         from S (the definiteness fix on, or spring damping), GMRES on S^-1 J^T mu = S^-1 b0
         from there, each product one more solve (to ``INNER`` cg_tol), to cg_tol relative (S^-1 J^T is the
@@ -136,8 +143,8 @@ class BackwardEuler(ImplicitEuler):
 
         def product(y):  # S^-1 J^T y
             state_kernels.load_vectors(self.dev.v, np.ascontiguousarray(y))
-            newton_adjoint.newton_adjoint_product(self.dev, exact, self.cfg, adj, h, self.time, slot, self.half_step,
-                                                  wants, self.serial)
+            newton_adjoint.newton_adjoint_product(self.dev, exact, self.cfg, adj, h, self.time, slot, half, wants,
+                                                  self.serial)
             inner.append(solve(self.dev, self.cfg, self.preconditioner, h, INNER * s.cg_tol, s.cg_max_iter,
                                self.serial, self.time, mode=operator.REFRESHED))
             return unconstrained(self.dev.read("v"))
@@ -203,6 +210,8 @@ class BackwardEuler(ImplicitEuler):
             self.ready = False
             newton.newton_start(dev, cfg, s.dt, t, False, serial)
         h = self.step_size(touching)
+        if self.history is not None:
+            self.taken[self.steps] = (touching > 0, self.base_is_bdf2())
         if cfg.lagged:
             newton.newton_lag(dev, cfg, self.ahead(h))
         g2, scale2, _, _ = newton.newton_refresh(dev, cfg, h, t, serial)
@@ -268,6 +277,8 @@ class BackwardEuler(ImplicitEuler):
             if self.history is not None:  # and the step's impulses
                 implicit_adjoint.keep_impulses(dev, self.history[0], dev.n, self.steps - self.history[1])
         self.finish(h, touching)
+        if cfg.contact_filter and self.history is not None:  # x' = x^ + h v' from here
+            implicit_adjoint.keep_base(dev, self.history[0], dev.n, self.steps - self.history[1])
         check = read_verdict(cg.advance_positions(dev, cfg, dev.xb, h, s.dt, (self.steps + 1) * s.dt, serial,
                                                        self.carries))
         accepted = check[0] == divergence.OK
@@ -322,9 +333,9 @@ class BDF2(BackwardEuler):
 
     def adjoint(self, adj, slot, wants):
         """Backward Euler's adjoint from BDF2's base, shared between the two states it is
-        made of. A gradient's run starts without a history, so every step but the first
-        used it (contact, which breaks it, has no gradient with BDF2)."""
-        self.ready = self.steps > 0
+        made of, where the step used it (``taken``: not the first step, nor a step with a
+        particle in contact or following one)."""
+        self.ready = self.taken[self.steps][1]
         stats = super().adjoint(adj, slot, wants)
         newton_adjoint.bdf2_split(self.dev, self.cfg, adj, int(self.ready), self.settings.dt / 3, wants)
         return stats
