@@ -38,11 +38,14 @@ class GradientError(RuntimeError):
 
     Attributes: ``step`` (0-based number of the step whose adjoint failed, from the
     run's start), ``reason`` (the CG's: "max_iter", "indefinite", "stalled",
-    "non-finite") and ``residual`` (its true relative residual at exit).
+    "non-finite", or a Newton-solved step's "GMRES not converging") and ``residual`` (its
+    true relative residual at exit).
     """
 
     def __init__(self, step, reason, residual, integrator):
         self.step, self.reason, self.residual = int(step), reason, float(residual)
+        advice = ("Give a smaller dt, or use the linearised 'implicit' integrator (its adjoint is one solve "
+                  "with its own operator): the residual's Jacobian is nearly singular at this step"
+                  if reason == "GMRES not converging" else "Give a larger cg_max_iter or a looser cg_tol, or a smaller dt")
         super().__init__(f"{integrator} gradient: the adjoint solve of step {self.step + 1} stopped "
-                         f"({reason}, relative residual {self.residual:.3g}); no gradient is returned. "
-                         f"Give a larger cg_max_iter or a looser cg_tol, or a smaller dt")
+                         f"({reason}, relative residual {self.residual:.3g}); no gradient is returned. {advice}")

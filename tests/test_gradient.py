@@ -9,6 +9,7 @@ import pytest
 
 import massspring as ms
 from conftest import FULL, PATHS
+from massspring.errors import GradientError
 from massspring.gradients import PARAMETERS as ALL_PARAMETERS, differentiable
 
 DIFFERENTIABLE = differentiable()
@@ -575,6 +576,16 @@ def test_solved_gradients_at_a_frame_step(integrator, options):
         numeric = directional_difference(sheet, values, name, direction, integrator, run)
         exact = float(np.sum(grads[name] * direction))
         assert abs(exact - numeric) <= 1e-6 * abs(numeric), (name, exact, numeric)
+
+
+@pytest.mark.parametrize("reason, advice", [("max_iter", "larger cg_max_iter"),
+                                             ("GMRES not converging", "linearised 'implicit' integrator")])
+def test_a_gradient_error_says_what_to_change(reason, advice):
+    """A CG that ran out of iterations can be given more; a GMRES around a nearly singular
+    Jacobian (a Newton-solved step where the cloth folds or lands) cannot: its advice is
+    another dt or integrator."""
+    error = GradientError(8, reason, 0.11, "backward-euler")
+    assert "step 9" in str(error) and advice in str(error), str(error)
 
 
 def test_an_adjoint_solve_that_stops_short_is_an_error():
