@@ -307,12 +307,19 @@ def pytest_runtest_teardown(item, nextitem):
     so far would otherwise stay in memory to the end. Below it, the next modules reuse them.
     A module whose tests share no Taichi objects and compile a configuration each (it sets
     ``RESET_BETWEEN_TESTS = True``) is also reset after any test that leaves more than
-    ``TEST_RESET_ABOVE``: test_cli.py's scene x integrator runs grew a worker by 13 MB a
-    test, to 1.9 GB."""
+    ``TEST_RESET_ABOVE`` (or the bytes it sets instead of True): test_cli.py's scene x
+    integrator runs grew a worker by 13 MB a test, to 1.9 GB; test_gradient.py's adjoint
+    kernels of every integrator, contact and friction configuration to 1.54 GB."""
     yield
     limit = WORKER_RESET_ABOVE if os.environ.get("PYTEST_XDIST_WORKER") else RESET_ABOVE
     if nextitem is not None and nextitem.module is item.module:  # within a module
-        limit = max(limit, TEST_RESET_ABOVE) if getattr(item.module, "RESET_BETWEEN_TESTS", False) else math.inf
+        between = getattr(item.module, "RESET_BETWEEN_TESTS", False)
+        if between is True:
+            limit = max(limit, TEST_RESET_ABOVE)
+        elif between:  # a module's own threshold (bytes)
+            limit = max(limit, between)
+        else:
+            limit = math.inf
     if resident_bytes() > limit:
         reset_taichi()
 

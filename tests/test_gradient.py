@@ -12,6 +12,9 @@ from conftest import FULL, PATHS
 from massspring.errors import GradientError
 from massspring.gradients import PARAMETERS as ALL_PARAMETERS, differentiable
 
+# conftest: Taichi is reset after a test that leaves this process above 1 GB (each test
+# compiles the adjoints of its own configuration and shares no simulation)
+RESET_BETWEEN_TESTS = 1.0e9
 DIFFERENTIABLE = differentiable()
 PARAMETERS = [name for name, kind in ALL_PARAMETERS.items() if kind != "control"]  # the model's (test_controls: the rest)
 SIDE = 4  # a 4 x 4 sheet with shear springs: 16 particles, 33 springs
