@@ -135,16 +135,15 @@ def contact_friction(dev: ti.template(), cfg: ti.template(), t: ti.f64, serial: 
 
 
 @ti.func
-def gram_schmidt_adjoint(i, dev, cfg: ti.template(), x, t, gS, ge):
+def gram_schmidt_adjoint(i, dev, cfg: ti.template(), x, t, normals, count, S, directions, gS, ge):
     """The transpose of the Jacobian of particle i's contact directions (f64): ``detect``
     and ``friction_row`` turn its contacts' normals n_k (at x, time t) into orthonormal
     directions e_k and the filter S = I - sum e_k e_k^T, one ``contact.add_direction``
     at a time (e = S n / |S n|, then S - e e^T). From gS (3x3) = dL/dS and the columns
     ge[:, j] = dL/de_j (j counting the contacts in order), back through each step in
     reverse (S before a step = S after it + e e^T; |S n| = e . n), returns dL/dx through
-    each normal's curvature dn/dx."""
-    normals, count = contact_normals(i, dev, cfg, x, t)
-    S, directions = orthonormal(normals, count)
+    each normal's curvature dn/dx. ``normals``, ``count``: ``contact.contact_normals`` at
+    x; ``S``, ``directions``: ``contact.orthonormal`` of them."""
     g_normals = ti.Matrix.zero(ti.f64, 3, 3)
     g = gS
     for back in ti.static(range(3)):
@@ -231,7 +230,8 @@ def friction_adjoint(i, dev, cfg: ti.template(), x, v_solved, g_new, g_fric, t):
             if c < count:
                 g_jump += frictions[c] * g_bound * column(directions, c)
                 g_directions = set_column(g_directions, c, frictions[c] * g_bound * jump)
-        gx = gram_schmidt_adjoint(i, dev, cfg, x, t, g_rel.outer_product(v_solved - carrier), g_directions)
+        gx = gram_schmidt_adjoint(i, dev, cfg, x, t, normals, count, S, directions,
+                                  g_rel.outer_product(v_solved - carrier), g_directions)
     return g_solved, g_jump, gx, gm
 
 
