@@ -590,15 +590,16 @@ def cheb_start0(dev: ti.template(), cfg: ti.template(), first: ti.template(), in
                 serial: ti.template()):
     """Level 0, start of a smoothing: with ``first`` the pre-smoothing from x = 0 (residual =
     the input r); else the post-smoothing from the current x (residual = r - A x). Then
-    d = D^-1 res / theta. Vectors: ``dev.mg_x``, ``mg_res``, ``mg_d``; input ``dev.r``."""
+    d = D^-1 res / theta. Vectors: ``dev.mg_x``, ``mg_res``, ``mg_d``; input ``dev.r``
+    (CG's, read in the cycle's precision ``cfg.real``: ``Narrowed``)."""
     it = ti.cast(inv_theta, cfg.real)
     loops(serial)
     for i in range(dev.size[0]):
-        res = dev.r[i]
+        res = ti.cast(dev.r[i], cfg.real)
         if ti.static(first):
             dev.mg_x[i] = ti.Vector.zero(cfg.real, 3)
         else:
-            res = constrain(i, dev, cfg, dev.r[i] - apply_row(i, dev, cfg, dev.mg_x))
+            res = constrain(i, dev, cfg, res - apply_row(i, dev, cfg, dev.mg_x))
         dev.mg_res[i] = res
         dev.mg_d[i] = constrain(i, dev, cfg, it * (dev.minv[i] @ res))
 
@@ -656,7 +657,7 @@ def up0(dev: ti.template(), cfg: ti.template(), g: ti.template(), coef: COEF, de
         for i in range(dev.size[0]):
             acc = ti.Vector.zero(cfg.real, 3)
             for k in range(g.p0_rows[i], g.p0_rows[i + 1]):
-                acc += g.p0[k] @ g.c_x[g.p0_cols[k]]
+                acc += g.p0[k] @ ti.cast(g.c_x[g.p0_cols[k]], cfg.real)
             dev.mg_x[i] = dev.mg_x[i] + constrain(i, dev, cfg, acc)
     smooth0(dev, cfg, False, coef, degree, serial)
     n = dev.size[0]
@@ -664,9 +665,8 @@ def up0(dev: ti.template(), cfg: ti.template(), g: ti.template(), coef: COEF, de
     for blk in range(block_count(n)):
         acc = ti.Vector.zero(ti.f64, 3)
         for i in range(blk * BLOCK, block_end(blk, n)):
-            z = constrain(i, dev, cfg, dev.mg_x[i])
-            dev.z[i] = z
-            acc[0] += ti.cast(dev.r[i].dot(z), ti.f64)
+            dev.z[i] = constrain(i, dev, cfg, dev.mg_x[i])
+            acc[0] += ti.cast(dev.r[i].dot(dev.z[i]), ti.f64)  # z as stored: CG's precision
         dev.partial[blk] = acc
     return ordered_sum(dev.partial, block_count(n))[0]
 
@@ -770,3 +770,29 @@ def solve_coarsest(cfg: ti.template(), g: ti.template(), base: ti.i32, nodes: ti
             g.chol_y[r] = s / g.chol[r * size + r]
         for r in range(size):
             g.c_x[base + r // BS][r % BS] = g.chol_y[r]
+
+
+# ------------------------------------------------------------- mixed precision
+
+
+@ti.kernel
+def narrow(dev: ti.template(), cfg: ti.template(), fine: ti.template(), g: ti.template(), fine_g: ti.template(),
+           coarse: ti.template(), serial: ti.template()):
+    """After the setup: ``fine``, the f32 copy of what level 0's part of the cycle reads
+    (``massspring.solvers.multigrid_f32``), from the run's fields (``cfg``: the run's
+    switches): d_i (kg), the coefficients (n, a, b) in adjacency order (and the lagged
+    (m, c)), the contact filters S_i, D^-1 (1/kg); with ``coarse``, P0 into ``fine_g``."""
+    loops(serial)
+    for i in range(dev.size[0]):
+        fine.diag[i] = ti.cast(dev.diag[i], ti.f32)
+        fine.minv[i] = ti.cast(dev.minv[i], ti.f32)
+        if ti.static(cfg.contact_filter):
+            fine.cfilter[i] = ti.cast(dev.cfilter[i], ti.f32)
+        if ti.static(cfg.has_springs):
+            for e in range(dev.offsets[i], dev.offsets[i + 1]):
+                fine.coef[e] = ti.cast(dev.coef[e], ti.f32)
+                if ti.static(cfg.lagged):
+                    fine.lag_coef[e] = ti.cast(dev.lag_coef[e], ti.f32)
+        if ti.static(coarse):
+            for k in range(g.p0_rows[i], g.p0_rows[i + 1]):
+                fine_g.p0[k] = ti.cast(g.p0[k], ti.f32)

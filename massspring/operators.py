@@ -114,7 +114,7 @@ class SystemOperator:
         dt = validate.positive_float("dt", dt)
         x = _state("positions", positions, model.positions)
         v = _state("velocities", velocities, model.velocities)
-        preconditioner = resolve(preconditioner, model)
+        preconditioner = resolve(preconditioner, model, ImplicitEuler.finest_f32(model, precision))
         ensure_taichi()
         self.model, self.dt = model, float(dt)
         settings = SimpleNamespace(precision=precision, definiteness_fix=bool(definiteness_fix),

@@ -155,7 +155,7 @@ class Simulation:
         if precision == "f32":
             _check_f32_range(model)
         ensure_taichi(arch)
-        preconditioner = resolve(preconditioner, model)
+        preconditioner = resolve(preconditioner, model, INTEGRATORS[integrator].finest_f32(model, precision))
         if loops == "auto":
             below = SERIAL_BELOW
             if INTEGRATORS[integrator].linear_solver:

@@ -511,16 +511,25 @@ def test_one_cycle_per_iteration_and_per_cg_start_that_goes_on(loops, monkeypatc
 
 
 def test_auto_picks_multigrid_from_the_crossover(monkeypatch):
-    """"auto" is multigrid from solvers.MULTIGRID_FROM free particles on, block-Jacobi
-    below; the Simulation reports the one picked, and a name is taken as given."""
+    """"auto" is multigrid from solvers.MULTIGRID_FROM free particles on (its finest level
+    in f32 for the linearised step of an f64 run without self-collision pairs in its
+    solve, else f64), block-Jacobi below; the Simulation reports the one picked, and a name is taken as given."""
     from massspring import solvers
 
     model = ms.load_scene("cloth").with_params(resolution=12).model()
     free = int(model.free_mask().sum())
-    for threshold, expected in ((free, "multigrid"), (free + 1, "block-jacobi")):
+    for threshold, precision, integrator, expected in (
+            (free, "f64", "implicit", "multigrid-f32"), (free, "f32", "implicit", "multigrid"),
+            (free, "f64", "bdf2", "multigrid"), (free + 1, "f64", "implicit", "block-jacobi")):
         monkeypatch.setattr(solvers, "MULTIGRID_FROM", threshold)
-        sim = ms.Simulation(model, dt=DT)
+        sim = ms.Simulation(model, integrator=integrator, dt=DT, precision=precision)
         assert sim.preconditioner == expected and sim.info()["preconditioner"] == expected
+        sim.close()
+    sheets = ms.load_scene("sheets")
+    monkeypatch.setattr(solvers, "MULTIGRID_FROM", 1)
+    for integrator, expected in (("implicit", "multigrid"), ("backward-euler", "multigrid")):
+        sim = sheets.simulation(integrator=integrator)
+        assert sim.preconditioner == expected, integrator
         sim.close()
     sim = ms.Simulation(model, dt=DT, preconditioner="multigrid")
     assert sim.preconditioner == "multigrid"

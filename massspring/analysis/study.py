@@ -216,7 +216,9 @@ def run_study(scene, *, integrators=DEFAULT_INTEGRATORS, duration=None, rungs=DE
     for name in preconditioners:
         validate.choice("preconditioners", name, solvers.CHOICES)
     model = scene.model()
-    preconditioners = list(dict.fromkeys(solvers.resolve(name, model) for name in preconditioners)) or ["auto"]
+    finest_f32 = INTEGRATORS["implicit"].finest_f32(model, "f64")  # the preconditioners are the implicit lines'
+    preconditioners = list(dict.fromkeys(solvers.resolve(name, model, finest_f32)
+                                         for name in preconditioners)) or ["auto"]
     if ladders is None:
         tops = ladder_tops(scene, model, integrators, duration)
         times = save_instants(duration, list(tops.values()))

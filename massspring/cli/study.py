@@ -24,7 +24,7 @@ def add_study_arguments(p):
                    "tolerances")
     p.add_argument("--preconditioners", default="auto",
                    help="implicit: comma-separated preconditioners, a line each (auto, block-jacobi, multigrid, "
-                   "none; default auto)")
+                   "multigrid-f32, none; default auto)")
     p.add_argument("--repeats", type=int, default=3, help="timed runs per configuration, at most (default 3)")
     p.add_argument("--cache-dir", help="RK4 reference cache (default $MASSSPRING_CACHE, "
                    "else $XDG_CACHE_HOME/massspring or ~/.cache/massspring)")

@@ -60,6 +60,12 @@ solver's options, ``options.Option`` records: ``integrators.OPTIONS``). ``serial
         return Config.of(model, settings.precision)
 
     @classmethod
+    def finest_f32(cls, model, precision) -> bool:
+        """Whether ``preconditioner="auto"`` takes multigrid with its finest level in f32
+        (``multigrid-f32``) where it takes multigrid (none by default)."""
+        return False
+
+    @classmethod
     def pairs_in_solve(cls, model) -> bool:
         """Whether self-collision pairs enter this integrator's solve (none by default)."""
         return False

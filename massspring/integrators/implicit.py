@@ -17,7 +17,8 @@ LINEAR_SOLVER = "solves no linear system"
 LINEAR_OPTIONS = (
     Option("preconditioner", "choice", "auto", "the CG's preconditioner (`solvers.PRECONDITIONERS`); \"auto\" "
            f"picks multigrid from {MULTIGRID_FROM:,} free particles on (its iteration count stays flat with "
-           "resolution), block-Jacobi below; the Simulation's `preconditioner` reports the one picked",
+           "resolution; `\"multigrid-f32\"`, its finest level in f32, for the linearised implicit step in f64 "
+           "without self-collision pairs in its solve), block-Jacobi below; the Simulation's `preconditioner` reports the one picked",
            LINEAR_SOLVER, choices=CHOICES),
     Option("cg_tol", "fraction", 1e-6, "CG's relative tolerance on the true residual ‖b − A v‖, relative to the "
            "first residual of its warm start (for the linearised step, the right-hand side of Eq. 15's "
@@ -73,6 +74,15 @@ class ImplicitEuler(Integrator):
                          contact_filter=model.has_colliders, self_pairs=cls.pairs_in_solve(model))
 
     @classmethod
+    def finest_f32(cls, model, precision):
+        """The linearised step in f64 without self-collision pairs in its solve (which the
+        f32 level does not take): one setup and 7-14 cycles a step, the cycles 0.71-0.86
+        of the f64 ones' step time from 128 x 128 on. Not the Newton-solved steps: a setup
+        (and its narrowing) per Newton iteration for 2-3 cycles each, 1.07x slower at
+        128 x 128 (``benchmarks/results/multigrid_precision.json``)."""
+        return precision == "f64" and not cls.newton and not cls.pairs_in_solve(model)
+
+    @classmethod
     def pairs_in_solve(cls, model):
         """Whether self-collision pairs are penalties of Eq. 15 (``kernels/pair_penalty.py``):
         with self-collision, in the linearised step (the Newton-solved steps leave them
@@ -99,7 +109,7 @@ class ImplicitEuler(Integrator):
             layout.vectors("fric", real, values=np.zeros((model.n_particles, 3)))
         if cls.pairs_in_solve(model):
             self_collision.declare_solve(layout, model)
-        PRECONDITIONERS[settings.preconditioner].declare(layout, model, settings)
+        PRECONDITIONERS[settings.preconditioner].declare(layout, model, settings, cls.config(model, settings))
 
     @property
     def stats(self):

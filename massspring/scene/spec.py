@@ -20,7 +20,7 @@ lists every key. A generator scene file looks like::
     resolution = 32                  # generator parameters; see generators.PARAMETERS
 
     [solver]                         # optional: solver options (integrators.OPTIONS; Simulation arguments)
-    preconditioner = "auto"          # or "block-jacobi", "multigrid", "none"
+    preconditioner = "auto"          # or "block-jacobi", "multigrid", "multigrid-f32", "none"
     cg_tol = 1e-6                    # CG tolerance, relative to the first residual of each solve
     newton_tol = 1e-3                # Newton-solved integrators: Newton tolerance (see Simulation)
     newton_max_iter = 50             # Newton-solved integrators: Newton iterations per step at most

@@ -23,8 +23,10 @@ class Preconditioner:
         self.dev = dev
 
     @classmethod
-    def declare(cls, layout, model, settings):
-        """Add the fields this preconditioner needs to ``layout``."""
+    def declare(cls, layout, model, settings, cfg):
+        """Add the fields this preconditioner needs to ``layout`` (``cfg``: the integrator's
+        compile-time switches, ``device.Config``). A combination it cannot serve is a
+        ValueError naming it, raised here: before any field is allocated or kernel run."""
 
     def bind(self, cfg):
         """The compile-time switches (``device.Config``) of the integrator's kernels."""

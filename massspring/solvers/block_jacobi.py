@@ -14,5 +14,5 @@ class BlockJacobi(Preconditioner):
     kernel = preconditioners.BlockJacobi
 
     @classmethod
-    def declare(cls, layout, model, settings):
+    def declare(cls, layout, model, settings, cfg):
         layout.add("minv", layout.real, "particle", (3, 3))

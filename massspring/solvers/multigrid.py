@@ -72,7 +72,7 @@ class Multigrid(Preconditioner):
     serial_below = 64_000
 
     @classmethod
-    def declare(cls, layout, model, settings):
+    def declare(cls, layout, model, settings, cfg):
         real = layout.real
         layout.add("minv", real, "particle", (3, 3))
         for name in ("mg_x", "mg_res", "mg_d", "mg_d2"):
@@ -85,13 +85,17 @@ class Multigrid(Preconditioner):
         self.hierarchy = aggregation.build(model, settings.dt)
         self.cfg = None  # the integrator's Config, set by ``bind``
         self.plan = _Plan(self.hierarchy)
-        layout = self.plan.layout(dev.x.dtype) if len(self.hierarchy.levels) > 1 else None
+        layout = self.hierarchy_layout(dev.x.dtype) if len(self.hierarchy.levels) > 1 else None
         self.nbytes = layout.nbytes() if layout is not None else 0
         self.g = layout.allocate() if layout is not None else None
         self.rho = [1.0] * len(self.hierarchy.levels)
         self.cheb = [None] * len(self.hierarchy.levels)  # (coefficients, degree): ``_set_rho``
         self.factor_failed = 0
         self.lanczos_steps = []  # Lanczos steps of each coarse level in the last setup
+
+    def hierarchy_layout(self, real) -> Layout:
+        """The declarations of the hierarchy's fields (``_Plan.layout``)."""
+        return self.plan.layout(real)
 
     def bind(self, cfg):
         self.cfg = cfg
@@ -179,13 +183,19 @@ class Multigrid(Preconditioner):
     # ------------------------------------------------------------------ cycle
     def apply(self):
         """z = B r (one V-cycle) into ``dev.z`` from ``dev.r``; returns r . z."""
-        dev, cfg, g, serial = self.dev, self.cfg, self.g, self.serial
+        dev, cfg, g = self.level0()
+        serial = self.serial
         coarse = g is not None
         coef, degree = self.cheb[0]
         mg.down0(dev, cfg, g, coef, degree, coarse, self.plan.node_range[1][1] if coarse else 0, serial)
         if coarse:
             self._visits(1)
         return float(mg.up0(dev, cfg, g, coef, degree, coarse, serial))
+
+    def level0(self):
+        """(fields, Config, hierarchy fields) that level 0's part of the cycle runs on: the
+        run's (``multigrid_f32``: f32 copies)."""
+        return self.dev, self.cfg, self.g
 
     def _visits(self, level):
         """The coarse correction from ``level``: one cycle (two under ``W_CYCLE`` unless it is the last)."""
