@@ -119,19 +119,32 @@ def euler_steps(dev: ti.template(), cfg: ti.template(), a: ti.template(), b: ti.
 
 @ti.kernel
 def euler_adjoint(dev: ti.template(), cfg: ti.template(), adj: ti.template(), src: ti.template(), dt: ti.f64,
-                  t: ti.f64, slot: ti.i32, symplectic: ti.template(), wants: ti.template(), serial: ti.template()):
+                  t: ti.f64, slot: ti.i32, symplectic: ti.template(), wants: ti.template(),
+                  masses_from_history: ti.template(), serial: ti.template()):
     """``adjoint_step`` as parallel loops, or with ``serial`` in one serial loop (small
     systems, as ``euler_steps``)."""
     if ti.static(serial):
         ti.loop_config(serialize=True)
         for _ in range(1):
-            adjoint_step(dev, cfg, adj, src, dt, t, slot, symplectic, wants)
+            adjoint_step(dev, cfg, adj, src, dt, t, slot, symplectic, wants, masses_from_history)
     else:
-        adjoint_step(dev, cfg, adj, src, dt, t, slot, symplectic, wants)
+        adjoint_step(dev, cfg, adj, src, dt, t, slot, symplectic, wants, masses_from_history)
+
+
+@ti.kernel
+def euler_adjoints(dev: ti.template(), cfg: ti.template(), adj: ti.template(), src: ti.template(), dt: ti.f64,
+                   slot: ti.i32, count: ti.i32, symplectic: ti.template(), wants: ti.template(),
+                   masses_from_history: ti.template()):
+    """``count`` steps backwards in one serial launch, from the step kept at ``slot`` down to
+    ``slot - count + 1`` (without colliders: the steps' times are not read)."""
+    ti.loop_config(serialize=True)
+    for k in range(count):
+        adjoint_step(dev, cfg, adj, src, dt, 0.0, slot - k, symplectic, wants, masses_from_history)
 
 
 @ti.func
-def adjoint_step(dev, cfg: ti.template(), adj, src, dt, t, slot, symplectic: ti.template(), wants: ti.template()):
+def adjoint_step(dev, cfg: ti.template(), adj, src, dt, t, slot, symplectic: ti.template(), wants: ti.template(),
+                 masses_from_history: ti.template()):
     """One step backwards, in f64, from the state kept in ``adj``'s history at ``slot``
     (``state.save_state``; restored into ``src`` first), the step ending at time ``t``
     (s; where moving colliders are): on entry ``adj.lx``, ``adj.lv``
@@ -145,12 +158,19 @@ def adjoint_step(dev, cfg: ti.template(), adj, src, dt, t, slot, symplectic: ti.
     K w and D w gathered spring by spring and particle by particle
     (``forces.acceleration_adjoint``, which adds the parameters' shares; K and D are
     symmetric, their transposes themselves). With colliders, ``contact_adjoint`` first
-    takes the contact response's share (its branches frozen)."""
+    takes the contact response's share (its branches frozen).
+
+    With ``masses_from_history`` (f64, no colliders; ``wants.masses`` then off) the
+    masses' share -w_i . (f_i / m_i - g) comes from the history instead of a force pass:
+    a free particle's step is v' = v + h f / m, so f / m = (v' - v) / h with v' the
+    state after the step, kept at ``slot + 1``."""
     h = ti.cast(dt, ti.f64)
     n = dev.size[0]
-    restore_state(adj.hx, adj.hv, src, n, slot, adj.stride[None])
+    stride = adj.stride[None]
+    restore_state(adj.hx, adj.hv, src, n, slot, stride)
     if ti.static(cfg.has_colliders):
         contact_adjoint(dev, cfg, adj, src, h, t, symplectic)
+    g = uniform_acceleration(dev, cfg)
     for i in range(n):
         mu = adj.lv[i]
         if ti.static(symplectic):
@@ -158,6 +178,10 @@ def adjoint_step(dev, cfg: ti.template(), adj, src, dt, t, slot, symplectic: ti.
         adj.w[i] = h * mu
         if ti.static(wants.pins):
             pin_adjoint(i, dev, cfg, adj, h)
+        if ti.static(masses_from_history):
+            if is_free(i, dev, cfg):
+                accel = (adj.hv[(slot + 1) * stride + i] - src.v[i]) / h
+                adj.gm[i] = adj.gm[i] - (h * mu / dev.mass[i]).dot(accel - g)
     acceleration_adjoint(dev, cfg, adj, src.x, src.v, wants, src.x, False)
     for i in range(n):
         lx = adj.lx[i]

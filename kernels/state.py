@@ -39,6 +39,19 @@ def save_state(hx: ti.template(), hv: ti.template(), src: ti.template(), n: ti.i
     store_state(hx, hv, src, n, slot, stride)
 
 
+@ti.kernel
+def read_states(hx: ti.template(), hv: ti.template(), slots: ti.types.ndarray(dtype=ti.i32, ndim=1),
+                xs: ti.types.ndarray(dtype=ti.f64, ndim=3), vs: ti.types.ndarray(dtype=ti.f64, ndim=3), n: ti.i32,
+                stride: ti.i32):
+    """xs[f], vs[f] (n, 3) = the states kept at slots[f] (m, m/s): the frames a gradient's
+    run reads from its history, without copying the whole history out."""
+    for f, i in ti.ndrange(slots.shape[0], n):
+        row = slots[f] * stride + i
+        for c in ti.static(range(3)):
+            xs[f, i, c] = hx[row][c]
+            vs[f, i, c] = hv[row][c]
+
+
 @ti.func
 def store_state(hx, hv, src, n, slot, stride):
     """hx[slot * stride + i], hv[...] = src.x[i], src.v[i] for the n particles."""

@@ -227,13 +227,14 @@ def _forward(sim, adj, steps, every, checkpoint):
             break
         if done >= last and integrator.records_history:  # the last stretch in launches that record it
             _recorded(sim, adj, last, steps - done)
-            hx, hv = adj.hx.to_numpy(), adj.hv.to_numpy()
-            for k in range(done + 1, steps + 1):
-                if k % every == 0:
-                    rows = slice((k - last) * stride, (k - last) * stride + n)
-                    positions.append(sim._to_user(hx[rows]))
-                    velocities.append(sim._to_user(hv[rows]))
-                    at.append(k)
+            frames = [k for k in range(done + 1, steps + 1) if k % every == 0]
+            xs, vs = np.empty((len(frames), n, 3)), np.empty((len(frames), n, 3))
+            if frames:
+                state_kernels.read_states(adj.hx, adj.hv, np.array(frames, dtype=np.int32) - last, xs, vs, n, stride)
+            for k, x, v in zip(frames, xs, vs):
+                positions.append(sim._to_user(x))
+                velocities.append(sim._to_user(v))
+                at.append(k)
             break
         stop = done + 1 if done >= last else min(steps, (done // every + 1) * every, last,
                                                   (done // checkpoint + 1) * checkpoint)
@@ -387,17 +388,23 @@ def _backward(sim, adj, wants, partials, frame_steps, kept, last, steps, checkpo
                 if k > start:
                     _recorded(sim, adj, start, 1)
                 integrator.keep(adj, k - start)
-        for k in reversed(range(start, end)):
-            integrator.steps = k  # the step's start time, k dt (moving colliders)
-            if shares is not None:
-                shares.schedule.apply(k)
-            stats = integrator.adjoint(adj, k - start, wants)
-            if stats is not None and not stats.converged:
-                raise GradientError(k, stats.reason, stats.residual, sim.integrator)
-            if shares is not None:
-                shares.after(k)
+        k = end - 1
+        while k >= start:
+            low = max((f for f in frame_of if start <= f <= k), default=start)  # down to a frame's step
+            if shares is None and k > low and integrator.adjoint_steps(adj, k - start, k - low + 1, wants):
+                k = integrator.steps = low
+            else:
+                integrator.steps = k  # the step's start time, k dt (moving colliders)
+                if shares is not None:
+                    shares.schedule.apply(k)
+                stats = integrator.adjoint(adj, k - start, wants)
+                if stats is not None and not stats.converged:
+                    raise GradientError(k, stats.reason, stats.residual, sim.integrator)
+                if shares is not None:
+                    shares.after(k)
             if k in frame_of:
                 add_frame(k, adj.read("lx", n), adj.read("lv", n))
+            k -= 1
 
 
 def _read(sim, adj, names, shares=None):

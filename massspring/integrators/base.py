@@ -140,6 +140,12 @@ solver's options, ``options.Option`` records: ``integrators.OPTIONS``). ``serial
         Returns the ``SolverStats`` of a step's adjoint solve, None where it has none."""
         raise NotImplementedError
 
+    def adjoint_steps(self, adj, slot, count, wants) -> bool:
+        """``adjoint`` of ``count`` steps in a row, from the one kept at ``slot`` down to
+        ``slot - count + 1``, in one launch where the integrator can (then True; the
+        current step count is not read), else False: the caller steps one at a time."""
+        return False
+
     @property
     def stats(self):
         """The last step's solver outcome (implicit integrators), else None."""

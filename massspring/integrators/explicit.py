@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 from massspring.defaults import FALLBACK_DT
@@ -57,8 +58,25 @@ class ExplicitEuler(SwappingStates):
 
     def adjoint(self, adj, slot, wants):
         """``euler.euler_adjoint`` of the step from the state kept at ``slot`` (no solve: None)."""
+        wants, own = self._masses(wants)
         euler.euler_adjoint(self.dev, self.cfg, adj, self.state, self.settings.dt, self.time + self.settings.dt, slot,
-                            self.symplectic, wants, self.serial)
+                            self.symplectic, wants, own, self.serial)
+
+    def adjoint_steps(self, adj, slot, count, wants):
+        """With serial loops and no colliders (whose places depend on the time): the steps
+        in one launch (``euler.euler_adjoints``)."""
+        if not self.serial or self.cfg.has_colliders:
+            return False
+        wants, own = self._masses(wants)
+        euler.euler_adjoints(self.dev, self.cfg, adj, self.state, self.settings.dt, slot, count, self.symplectic,
+                             wants, own)
+        return True
+
+    def _masses(self, wants):
+        """(``wants`` for the kernel, whether it takes the masses' gradient from the kept
+        states: in f64 without colliders, ``euler.adjoint_step``)."""
+        own = wants.masses and not self.cfg.has_colliders and self.settings.precision == "f64"
+        return (dataclasses.replace(wants, masses=False) if own else wants), own
 
     @staticmethod
     def stability_limit(prediction):
