@@ -28,7 +28,7 @@ import output
 CASES = [("cloth", "resolution", 150), ("cloth", "resolution", 300), ("chain", "count", 40000),
          ("chain", "count", 160000), ("cube", "resolution", 25), ("cube", "resolution", 40)]
 ROOT = Path(__file__).resolve().parent.parent  # the repository: messages name files relative to it
-SOLVERS = [("explicit", None), ("implicit", "block-jacobi"), ("implicit", "multigrid")]
+SOLVERS = [("explicit", None), ("implicit", "block-jacobi"), ("implicit", "multigrid"), ("implicit", "multigrid-f32")]
 
 
 def parse_args(argv=None):
