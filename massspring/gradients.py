@@ -25,6 +25,7 @@ their fields allocated only when a gradient is asked for: a forward run is as be
 
 from __future__ import annotations
 
+import bisect
 import math
 from dataclasses import dataclass
 
@@ -369,6 +370,7 @@ def _backward(sim, adj, wants, partials, frame_steps, kept, last, steps, checkpo
     controls' gradients."""
     integrator, n, stride = sim._integrator, sim.model.n_particles, int(adj.stride[None])
     frame_of = {int(k): f for f, k in enumerate(frame_steps)}
+    ordered = sorted(frame_of)
 
     def add_frame(k, lx, lv):
         f = frame_of[k]
@@ -390,7 +392,8 @@ def _backward(sim, adj, wants, partials, frame_steps, kept, last, steps, checkpo
                 integrator.keep(adj, k - start)
         k = end - 1
         while k >= start:
-            low = max((f for f in frame_of if start <= f <= k), default=start)  # down to a frame's step
+            below = bisect.bisect_right(ordered, k) - 1  # down to the last frame's step at or before k
+            low = max(ordered[below], start) if below >= 0 else start
             if shares is None and k > low and integrator.adjoint_steps(adj, k - start, k - low + 1, wants):
                 k = integrator.steps = low
             else:
