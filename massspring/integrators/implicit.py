@@ -18,7 +18,8 @@ LINEAR_OPTIONS = (
     Option("preconditioner", "choice", "auto", "the CG's preconditioner (`solvers.PRECONDITIONERS`); \"auto\" "
            f"picks multigrid from {MULTIGRID_FROM:,} free particles on (its iteration count stays flat with "
            "resolution; `\"multigrid-f32\"`, its finest level in f32, for the linearised implicit step in f64 "
-           "without self-collision pairs in its solve), block-Jacobi below; the Simulation's `preconditioner` reports the one picked",
+           "without self-collision pairs in its solve), block-Jacobi below; the Simulation's `preconditioner` "
+           "reports the one picked",
            LINEAR_SOLVER, choices=CHOICES),
     Option("cg_tol", "fraction", 1e-6, "CG's relative tolerance on the true residual ‖b − A v‖, relative to the "
            "first residual of its warm start (for the linearised step, the right-hand side of Eq. 15's "
