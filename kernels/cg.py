@@ -172,6 +172,18 @@ def cg_precondition(dev: ti.template(), cfg: ti.template()):
 
 
 @ti.kernel
+def precondition_vectors(dev: ti.template(), cfg: ti.template(), r: ti.types.ndarray(dtype=ti.f64, ndim=2),
+                         out: ti.types.ndarray(dtype=ti.f64, ndim=2)):
+    """out = S P S r for r (n, 3) with a pointwise preconditioner, host arrays in and out
+    (``integrators/newton.py``'s MINRES)."""
+    for i in range(dev.size[0]):
+        ri = ti.Vector([ti.cast(r[i, c], cfg.real) for c in ti.static(range(3))])
+        zi = constrain(i, dev, cfg, precondition(i, dev, cfg, constrain(i, dev, cfg, ri)))
+        for c in ti.static(range(3)):
+            out[i, c] = ti.cast(zi[c], ti.f64)
+
+
+@ti.kernel
 def cg_refresh(dev: ti.template(), cfg: ti.template(), x: ti.template(), dt: ti.f64, t: ti.f64,
                mode: ti.template()):
     """``operator.refresh`` at the state (``x``, ``dev.v``) at time t (s), in ``mode``

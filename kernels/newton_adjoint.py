@@ -21,19 +21,19 @@ shares between the two states before the step; the prediction's share G goes to
 
 (free rows; mu = 0 at pins; K the force's whole x-derivative). J is the operator
 refreshed without the definiteness fix (damping along the prediction's directions, as
-the forward step has it: linear in u). Where no spring is compressed, J is the step's
-own symmetric positive definite operator S and one CG solve gives mu. Otherwise J,
-where compressed springs lose their transverse stiffness, may be indefinite:
-J^T mu = dL/du is solved as S^-1 J^T mu = S^-1 dL/du by GMRES
-(``massspring.solvers.gmres``) with S the operator with the fix, each product one CG
-solve with the run's preconditioner (``newton_adjoint_product``); S^-1 J^T is the
-identity plus what the fix changes, so few products are needed. Where
-GMRES does not converge within its products (J singular or nearly),
-``massspring.errors.GradientError`` names the step. ``newton_adjoint_rhs`` sets up the solve, the run's CG solves it,
+the forward step has it: linear in u), symmetric. Without the fix J is the step's own
+symmetric positive definite operator S and one CG solve gives mu. With it, J, where
+compressed springs lose their transverse stiffness, may be indefinite: J mu = dL/du is solved by preconditioned MINRES
+(``massspring.solvers.minres``) with the run's preconditioner of S, each product
+``jacobian_product``: S's product less what the fix added (``fix_difference``), so S
+stays refreshed for the preconditioner. Where MINRES does not converge within
+cg_max_iter iterations or stalls, ``massspring.errors.GradientError`` names the step.
+``newton_adjoint_rhs`` sets up the solve, CG or MINRES solves it,
 ``newton_adjoint_gather`` does the rest (``forces.acceleration_adjoint`` with weights
 h mu: at the converged iterate h f / m = u - v_n, so its masses' share is the one above).
 
-With colliders (backward Euler; BDF2 and midpoint refuse them): the contacts the step
+With colliders (a backward-Euler step: BDF2 and the midpoint rule take one where a
+particle touches a collider): the contacts the step
 held are detected again from (x_n, v_n) (``contacts_again``) and held by every refresh
 (``operator.HELD``); the adjoint solve runs on the free directions of the particles
 in contact, and the contact and friction pieces are the linearised step's
@@ -45,8 +45,9 @@ and h f / m = u - v_n fails: the masses' share gets what that identity missed.
 import taichi as ti
 
 from .constraints import constrain, is_free, is_pinned, pin_adjoint, prescribed
+from .cg import apply
 from .contact import constraint_adjoint, detect
-from .forces import acceleration_adjoint, spring_sum
+from .forces import acceleration_adjoint, spring_direction, spring_sum
 from .friction import friction_adjoint
 from .implicit_adjoint import position_adjoint, solved
 from .newton import directions
@@ -211,39 +212,50 @@ def newton_adjoint_rhs(dev: ti.template(), cfg: ti.template(), exact: ti.templat
 
 
 @ti.func
-def product(dev, exact: ti.template(), fixed: ti.template(), adj, h, t, slot, midpoint: ti.template(),
-            wants: ti.template()):
-    n = dev.size[0]
-    stride = adj.stride[None]
-    for i in range(n):
-        adj.y[i] = dev.v[i]
-        _, u = evaluation_point(dev, exact, adj, i, slot, stride, h, midpoint, wants)
-        dev.v[i] = u
-    refresh(dev, exact, dev.x, dev.v, h, t, HELD)
-    for i in range(n):
-        jy = ti.Vector.zero(ti.f64, 3)
-        if not is_pinned(i, dev, exact):
-            jy = apply_row(i, dev, exact, adj.y)
-        adj.jy[i] = jy
-    solve_side(dev, fixed, h, t, adj.jy)
-    for i in range(n):
-        dev.v[i] = ti.Vector.zero(ti.f64, 3)
+def fix_difference(dev, cfg: ti.template(), h):
+    """``dev.q`` -= S_i ((S - J) p)_i for p in ``dev.p`` (filtered), rows not pinned: after
+    ``dev.q`` = S p (S the step's operator, refreshed with the definiteness fix at the
+    positions ``dev.x``), ``dev.q`` = J p, J the same operator without the fix. S - J is
+    each spring term's block with the fix less the one without (``coefficients``: k c (I
+    - n n^T) for a compressed spring, c = l0/l - 1 > 0, zero elsewhere), so J p costs a
+    product with S and a pass over the springs, and S stays in place for the
+    preconditioner. Each particle gathers its own entries: the same bits for any thread
+    count."""
+    step = ti.cast(h, cfg.real)
+    for i in range(dev.size[0]):
+        out = ti.Vector.zero(cfg.real, 3)
+        if ti.static(cfg.has_springs):
+            if not is_pinned(i, dev, cfg):
+                for e in range(dev.offsets[i], dev.offsets[i + 1]):
+                    s = dev.entry[e]
+                    if s < 0:
+                        s = -1 - s
+                    n, length = spring_direction(dev.x[dev.other[e]] - dev.x[i], cfg.real)
+                    da = ti.cast(0, cfg.real)
+                    db = ti.cast(0, cfg.real)
+                    for term in ti.static(cfg.spring_terms):
+                        if ti.static(not (cfg.lagged and term.rate_dependent)):  # along m: no fix
+                            fa, fb = term.coefficients(s, dev, n, length, step, True)
+                            ea, eb = term.coefficients(s, dev, n, length, step, False)
+                            da += fa - ea
+                            db += fb - eb
+                    dp = dev.p[i] - dev.p[dev.other[e]]
+                    out += da * dp + db * n * n.dot(dp)
+        dev.q[i] -= constrain(i, dev, cfg, out)
 
 
 @ti.kernel
-def newton_adjoint_product(dev: ti.template(), exact: ti.template(), fixed: ti.template(), adj: ti.template(),
-                           h: ti.f64, t: ti.f64, slot: ti.i32, midpoint: ti.template(), wants: ti.template(),
-                           serial: ti.template()):
-    """For y in ``dev.v`` (0 at pins, filtered at contacts): ``dev.b`` = J^T y on rows not pinned, J the residual's
-    true Jacobian (``exact``: the operator without the definiteness fix), the operator then refreshed as ``fixed``
-    (the step's own, symmetric positive definite) and ``dev.v`` = 0, so that a solve
-    gives S^-1 J^T y (``integrators/newton.py``: GMRES on S^-1 J^T mu = S^-1 b0)."""
-    if ti.static(serial):
-        ti.loop_config(serialize=True)
-        for _ in range(1):
-            product(dev, exact, fixed, adj, h, t, slot, midpoint, wants)
-    else:
-        product(dev, exact, fixed, adj, h, t, slot, midpoint, wants)
+def jacobian_product(dev: ti.template(), cfg: ti.template(), h: ti.f64, y: ti.types.ndarray(dtype=ti.f64, ndim=2),
+                     out: ti.types.ndarray(dtype=ti.f64, ndim=2)):
+    """out = J y for y (n, 3) on the free directions (``integrators/newton.py``'s MINRES):
+    ``cg.apply``'s S y through ``dev.p``, ``dev.q``, then ``fix_difference``; filtered."""
+    for i in range(dev.size[0]):
+        dev.p[i] = ti.Vector([ti.cast(y[i, c], cfg.real) for c in ti.static(range(3))])
+    apply(dev, cfg)
+    fix_difference(dev, cfg, h)
+    for i in range(dev.size[0]):
+        for c in ti.static(range(3)):
+            out[i, c] = ti.cast(dev.q[i][c], ti.f64)
 
 
 @ti.func

@@ -37,15 +37,17 @@ class GradientError(RuntimeError):
     """A backward pass could not solve a step's adjoint system (``massspring.gradients``).
 
     Attributes: ``step`` (0-based number of the step whose adjoint failed, from the
-    run's start), ``reason`` (the CG's: "max_iter", "indefinite", "stalled",
-    "non-finite", or a Newton-solved step's "GMRES not converging") and ``residual`` (its
-    true relative residual at exit).
+    run's start), ``reason`` (the solver's: "max_iter", "indefinite", "stalled" or
+    "non-finite"; CG's, or for a Newton-solved step with the definiteness fix MINRES's)
+    and ``residual`` (its true relative residual at exit).
     """
 
     def __init__(self, step, reason, residual, integrator):
         self.step, self.reason, self.residual = int(step), reason, float(residual)
-        advice = ("Give a smaller dt, or use the linearised 'implicit' integrator (its adjoint is one solve "
-                  "with its own operator): the residual's Jacobian is nearly singular at this step"
-                  if reason == "GMRES not converging" else "Give a larger cg_max_iter or a looser cg_tol, or a smaller dt")
+        advice = "Give a larger cg_max_iter or a looser cg_tol, or a smaller dt"
+        if reason == "stalled":
+            advice = ("Give a looser cg_tol or a smaller dt, or use the linearised 'implicit' integrator (its adjoint "
+                      "is one solve with its own positive definite operator): the solve no longer reduces its residual, "
+                      "at round-off or where a Newton-solved step's Jacobian is nearly singular")
         super().__init__(f"{integrator} gradient: the adjoint solve of step {self.step + 1} stopped "
                          f"({reason}, relative residual {self.residual:.3g}); no gradient is returned. {advice}")

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import time
 
 import numpy as np
 
@@ -12,15 +13,13 @@ from massspring.kernels import cg, divergence, friction, implicit_adjoint, newto
 from massspring.kernels import state as state_kernels
 from massspring.solvers import SolverStats, solve
 from massspring.solvers.cg import EPS32, EPS64, ROUNDOFF
-from massspring.solvers.gmres import gmres
+from massspring.solvers.minres import minres
 
 from .implicit import LINEAR_OPTIONS, ImplicitEuler
 from .options import Option
 
 NEWTON_TOL = 1e-3  # default newton_tol: a full Newton step this small relative to the step's velocity change ends it
 NEWTON_MAX_ITER = 50  # default newton_max_iter: linear solves per step
-MAX_PRODUCTS = 120  # GMRES products (each a solve) of a Newton step's adjoint (kernels/newton_adjoint.py)
-INNER = 0.1  # a GMRES product's solve to this times cg_tol: the products' error stays below GMRES's own
 ARMIJO = 1e-4  # sufficient decrease: E(v + a d) - E(v) <= ARMIJO a g . d
 MAX_CUTS = 12  # halvings of a line search before it takes the shortest step tried
 ETA_FIRST = 1e-2  # CG tolerance of the first linear solve of a step (relative to its first residual)
@@ -129,36 +128,42 @@ class BackwardEuler(ImplicitEuler):
         return stats
 
     def _adjoint_solve(self, adj, exact, h, slot, wants, half):
-        """mu = S^-1 b0 by one solve with S, the step's own operator; where J may differ
-        from S (the definiteness fix on, or spring damping), GMRES on S^-1 J^T mu = S^-1 b0
-        from there, each product one more solve (to ``INNER`` cg_tol), to cg_tol relative (S^-1 J^T is the
-        identity where J = S: one product confirms it)."""
+        """mu for J mu = dL/du (J symmetric: K and D are, spring damping acting along fixed
+        directions). Without the definiteness fix J is the step's own operator S: one CG
+        solve. With it, J = S less what the fix adds where springs are compressed, and may
+        be indefinite: preconditioned MINRES (``solvers.minres``) on the free directions,
+        each iteration one product with J (``newton_adjoint.jacobian_product``: S's, less
+        what the fix added) and one with the run's preconditioner of S
+        (symmetric positive definite), from the last step's mu, to cg_tol in the
+        preconditioner's norm, at most cg_max_iter iterations."""
         s = self.settings
-        stats = solve(self.dev, self.cfg, self.preconditioner, h, s.cg_tol, s.cg_max_iter, self.serial, self.time,
-                      mode=operator.REFRESHED)
-        if not self.cfg.fix or not stats.converged:
-            return stats
-        inner = [stats]
+        dev, cfg, pre = self.dev, self.cfg, self.preconditioner
+        if not cfg.fix:
+            return solve(dev, cfg, pre, h, s.cg_tol, s.cg_max_iter, self.serial, self.time, mode=operator.REFRESHED)
+        start = time.perf_counter()
+        pre.setup(h)  # a pointwise one was set up by the refresh
+        setup_s = time.perf_counter() - start
         unconstrained = self._unconstrained(exact)
 
-        def product(y):  # S^-1 J^T y
-            state_kernels.load_vectors(self.dev.v, np.ascontiguousarray(y))
-            newton_adjoint.newton_adjoint_product(self.dev, exact, self.cfg, adj, h, self.time, slot, half, wants,
-                                                  self.serial)
-            inner.append(solve(self.dev, self.cfg, self.preconditioner, h, INNER * s.cg_tol, s.cg_max_iter,
-                               self.serial, self.time, mode=operator.REFRESHED))
-            return unconstrained(self.dev.read("v"))
+        def product(y):  # J y
+            out = np.empty_like(y)
+            newton_adjoint.jacobian_product(dev, cfg, h, y, out)
+            return out
 
-        start = unconstrained(self.dev.read("v"))
-        out = gmres(product, start, start, s.cg_tol, MAX_PRODUCTS)
-        state_kernels.load_vectors(self.dev.v, np.ascontiguousarray(out.x))
-        failed = next((one for one in inner if not one.converged), None)
-        total = sum(one.iterations for one in inner)
-        if failed is not None:
-            return dataclasses.replace(failed, iterations=total)
-        return dataclasses.replace(stats, iterations=total, converged=out.converged,
-                                   residual=out.residual if not out.converged else stats.residual,
-                                   reason="converged" if out.converged else "GMRES not converging")
+        def precondition(r):  # B r
+            if pre.kernel is not None:
+                out = np.empty_like(r)
+                cg.precondition_vectors(dev, cfg, r, out)
+                return out
+            state_kernels.load_vectors(dev.r, r)
+            pre.apply()
+            return unconstrained(dev.read("z"))
+
+        eps = EPS64 if s.precision == "f64" else EPS32
+        out = minres(product, precondition, unconstrained(adj.read("jy", dev.n)), unconstrained(dev.read("v")), s.cg_tol,
+                     s.cg_max_iter, floor=ROUNDOFF * eps)
+        state_kernels.load_vectors(dev.v, out.x)
+        return SolverStats(out.iterations, out.residual, out.converged, out.reason, setup_s)
 
     def _unconstrained(self, cfg):
         """v -> v without its constrained directions (a solve sets them to their prescribed
