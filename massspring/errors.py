@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 from massspring.text import format_seconds
 
 
@@ -51,3 +53,18 @@ class GradientError(RuntimeError):
                       "at round-off or where a Newton-solved step's Jacobian is nearly singular")
         super().__init__(f"{integrator} gradient: the adjoint solve of step {self.step + 1} stopped "
                          f"({reason}, relative residual {self.residual:.3g}); no gradient is returned. {advice}")
+
+
+class SelfCollisionGradientError(GradientError):
+    """A gradient's run in which the self-collision pass changed the state (``step``: the
+    0-based number of the first such step): gradients through self-collision are built
+    only where the pass changes nothing (``massspring.gradients``). ``reason`` is
+    "self-collision", ``residual`` NaN."""
+
+    def __init__(self, step, integrator):
+        self.step, self.reason, self.residual = int(step), "self-collision", math.nan
+        RuntimeError.__init__(self, f"{integrator} gradient: self-collision acted in step {self.step + 1} (a pair "
+                              f"of the mesh within the thickness, or closing faster than the pass allows); "
+                              f"gradients through its impulses and bounds are not built yet (issue 39), only "
+                              f"through runs in which it changes nothing. No gradient is returned: take fewer "
+                              f"steps, or start from a state whose parts stay apart")

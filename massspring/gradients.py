@@ -35,7 +35,7 @@ import taichi as ti
 from massspring import validate
 from massspring.defaults import MAX_STEPS
 from massspring.device import POOL, Layout, capacity
-from massspring.errors import GradientError
+from massspring.errors import GradientError, SelfCollisionGradientError
 from massspring.integrators import INTEGRATORS
 from massspring.kernels import state as state_kernels
 from massspring.model import Model
@@ -115,7 +115,11 @@ def gradient(model, objective, wrt, *, steps, every=1, integrator="symplectic", 
     adj = None
     try:
         adj = _adjoint_bundle(sim, checkpoint)
+        if sim._guard is not None:  # self-collision: a gradient only where its pass changes nothing
+            sim._guard.acted = []
         frames, kept, last = _forward(sim, adj, steps, every, checkpoint)
+        if sim._guard is not None and sim._guard.acted:
+            raise SelfCollisionGradientError(min(sim._guard.acted), sim.integrator)
         value, partials = _call(objective, frames, model.n_particles)
         wants = Wants(masses="masses" in names, rate_gradient="damping" in names and not model.has_damping,
                       pins="pin_velocity" in names or "controls.pin_targets" in names,
@@ -140,7 +144,7 @@ def check_arguments(model, wrt, integrator, precision="f64") -> list:
     if precision != "f64":
         raise ValueError(f"precision: gradients are computed in f64 only, got {precision!r}")
     terms = [term.name for term in active_terms(model) if not term.kernel.differentiable]
-    for feature, present in (("self-collision", model.has_self_collision), ("a strain limit", model.has_strain_limit),
+    for feature, present in (("a strain limit", model.has_strain_limit),
                              (" and ".join(terms), bool(terms))):
         if present:
             raise ValueError(f"model: gradients through {feature} are not built yet (issue 39); "

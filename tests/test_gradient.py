@@ -318,11 +318,74 @@ def test_bad_arguments_are_refused_before_any_step(kwargs, words):
     assert not calls
 
 
-def test_self_collision_is_refused():
-    model = ms.Model([[0.0, 0.0, 1.0], [0.1, 0.0, 1.0], [0.0, 0.1, 1.0]], [[0, 1], [1, 2]], triangles=[[0, 1, 2]],
-                     self_collision=ms.SelfCollision(0.01))
-    with pytest.raises(ValueError, match="model: gradients through self-collision are not built yet"):
-        ms.gradient(model, objective, "stiffness", steps=2, integrator="symplectic")
+def two_sheets(gap, thickness, thrown=0.0, seed=4, **changes):
+    """Two 3 x 3 damped sheets with shear springs, ``gap`` (m) apart in z, falling and
+    moving sideways together at 3 m/s (farther a step than the pass's free distances:
+    it runs in full every step), with random per-item values and triangles; the upper
+    one moving down at ``thrown`` m/s more."""
+    rng = np.random.default_rng(seed)
+    positions, springs = sheet_grid()
+    triangles = [[a, a + 1, a + 4] for a in (0, 1, 3, 4)] + [[a, a + 4, a + 3] for a in (0, 1, 3, 4)]
+    positions = np.vstack([positions, positions + [0.0, 0.0, gap]])
+    springs = springs + [[a + 9, b + 9] for a, b in springs]
+    triangles = triangles + [[a + 9, b + 9, c + 9] for a, b, c in triangles]
+    values = sheet_values(rng, positions, rng.normal(0, 0.05, (18, 3)), len(springs))
+    values["velocities"][:, 0] += 3.0
+    values["velocities"][9:, 2] -= thrown
+    values.update(changes)
+    return ms.Model(values.pop("positions"), springs, triangles=triangles, **values)
+
+
+SHEETS_RUN = dict(steps=10, every=5, dt=2e-3, checkpoint=4)
+
+
+@pytest.mark.fast_sample(integrator=["symplectic"])
+@pytest.mark.parametrize("integrator", DIFFERENTIABLE)
+def test_self_collision_that_changes_nothing_leaves_the_gradient(integrator):
+    """Two sheets 5 cm apart moving together, self-collision thickness 1 cm: the pass runs
+    in full every step but never acts (no pair within the thickness, none closing too
+    fast), so the run and its
+    gradient, every parameter kind, are those of the same sheets without self-collision
+    (whose gradients the tests above check against differences)."""
+    run = dict(SHEETS_RUN, integrator=integrator, **SOLVED.get(integrator, {}))
+    names = [name for name in PARAMETERS if name not in ("drag", "wind", "pin_velocity")]
+    model = two_sheets(0.05, 0.01, self_collision=ms.SelfCollision(0.01))
+    sim = ms.Simulation(model, integrator, dt=run["dt"])
+    sim.step(run["steps"])
+    assert sim.self_collision_stats["passes"] == run["steps"] and sim.self_collision_stats["repelled"] == 0
+    sim.close()
+    value, grads = ms.gradient(model, objective, names, **run)
+    plain_value, plain = ms.gradient(two_sheets(0.05, 0.01), objective, names, **run)
+    assert value == pytest.approx(plain_value, rel=1e-13)
+    for name in names:
+        np.testing.assert_allclose(grads[name], plain[name], rtol=1e-10, atol=1e-13 * np.abs(plain[name]).max(),
+                                   err_msg=name)
+
+
+@pytest.mark.fast_sample(integrator=["implicit"])
+@pytest.mark.parametrize("integrator", ["symplectic", "implicit", "backward-euler"])
+def test_a_run_where_self_collision_acts_has_no_gradient(integrator):
+    """The upper sheet thrown at the lower one at 4 m/s (3 cm apart, thickness 1 cm): the
+    pass acts within the run (on the implicit step from its first: pairs in its solve),
+    and the gradient is refused with SelfCollisionGradientError naming the first step it
+    acted in, before the objective is called; a model whose sheets start within the
+    thickness is refused at step 1."""
+    from massspring.errors import GradientError, SelfCollisionGradientError
+
+    calls = []
+
+    def counted(frames):
+        calls.append(frames)
+        return objective(frames)
+
+    run = dict(SHEETS_RUN, integrator=integrator, **SOLVED.get(integrator, {}))
+    with pytest.raises(SelfCollisionGradientError, match=r"self-collision acted in step \d+") as info:
+        ms.gradient(two_sheets(0.03, 0.01, thrown=4.0, self_collision=ms.SelfCollision(0.01)), counted, "stiffness",
+                    **run)
+    assert isinstance(info.value, GradientError) and 1 <= info.value.step + 1 <= 10 and not calls
+    with pytest.raises(SelfCollisionGradientError, match=r"self-collision acted in step 1 "):
+        ms.gradient(two_sheets(0.005, 0.01, self_collision=ms.SelfCollision(0.01)), counted, "stiffness", **run)
+    assert not calls
 
 
 def sheet_grid(side=3):
