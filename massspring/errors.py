@@ -56,9 +56,9 @@ class GradientError(RuntimeError):
 
 
 class SelfCollisionGradientError(GradientError):
-    """A gradient's run in which the self-collision pass changed the state (``step``: the
-    0-based number of the first such step): gradients through self-collision are built
-    only where the pass changes nothing (``massspring.gradients``). ``reason`` is
+    """A gradient's run in which the self-collision pass changed the state, stopped at the
+    first such step (``step``, 0-based): gradients through self-collision are built only
+    where the pass changes nothing (``massspring.gradients``). ``reason`` is
     "self-collision", ``residual`` NaN."""
 
     def __init__(self, step, integrator):

@@ -39,6 +39,7 @@ from massspring.errors import GradientError, SelfCollisionGradientError
 from massspring.integrators import INTEGRATORS
 from massspring.kernels import state as state_kernels
 from massspring.model import Model
+from massspring.self_collision import Acted
 from massspring.simulation import Simulation
 from massspring.terms import active_terms
 
@@ -116,10 +117,11 @@ def gradient(model, objective, wrt, *, steps, every=1, integrator="symplectic", 
     try:
         adj = _adjoint_bundle(sim, checkpoint)
         if sim._guard is not None:  # self-collision: a gradient only where its pass changes nothing
-            sim._guard.acted = []
-        frames, kept, last = _forward(sim, adj, steps, every, checkpoint)
-        if sim._guard is not None and sim._guard.acted:
-            raise SelfCollisionGradientError(min(sim._guard.acted), sim.integrator)
+            sim._guard.watch()
+        try:
+            frames, kept, last = _forward(sim, adj, steps, every, checkpoint)
+        except Acted as exc:
+            raise SelfCollisionGradientError(exc.step, sim.integrator) from None
         value, partials = _call(objective, frames, model.n_particles)
         wants = Wants(masses="masses" in names, rate_gradient="damping" in names and not model.has_damping,
                       pins="pin_velocity" in names or "controls.pin_targets" in names,

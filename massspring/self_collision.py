@@ -182,6 +182,14 @@ def declare_solve(layout, model):
     layout.vectors("sp_friction", ti.i64, k=4)
 
 
+class Acted(Exception):
+    """A watched run's pass acted in step ``step`` (0-based): ``Pass.watch``."""
+
+    def __init__(self, step):
+        super().__init__(step)
+        self.step = step
+
+
 class Pass:
     """The self-collision pass of one simulation around each step of its integrator
     (``kernels/self_collision.py``): ``begin(state)`` before the step, ``end(state)``
@@ -203,7 +211,7 @@ class Pass:
         self.last = (0, 0, 0, 0.0, math.inf, self.capacity)
         self.passes = self.steps = self.grown = self.left_out = 0
         self.fresh = True  # x0 and the anchors are not set yet
-        self.acted = None  # a gradient's run: the steps (0-based) in which the pass or the solve's pairs acted
+        self.watched = False  # a gradient's run: stop with ``Acted`` where the pass acts (``watch``)
 
     @property
     def capacity(self) -> int:
@@ -245,8 +253,8 @@ class Pass:
                 self._list(state)
             self_collision_begin(self.dev, state, True, self.serial)
             self.fresh = False
-        if self.acted is not None and self.cfg.self_pairs and int(self.dev.sp_count[0]) > 0:
-            self.acted.append(self.steps)  # penalty springs in this step's solve
+        if self.watched and self.cfg.self_pairs and int(self.dev.sp_count[0]) > 0:
+            raise Acted(self.steps)  # penalty springs in this step's solve
     def end(self, state):
         from massspring.kernels.self_collision import (BOUND_ROUNDS, self_collision_bound, self_collision_check,
                                                        self_collision_detect, self_collision_restore)
@@ -264,13 +272,18 @@ class Pass:
         while marked:  # each round sets more pairs to bound their own particles (step 3 of the kernels)
             marked, held = self_collision_bound(self.dev, self.cfg, self.list, state, self.dt, thickness,
                                                 int(rounds == 0), int(rounds >= BOUND_ROUNDS), self.serial)
-            if self.acted is not None and (marked or int(out[1])):  # repelled, projected or held back
-                self.acted.append(self.steps - 1)
+            if self.watched and (marked or int(out[1])):  # repelled, projected or held back
+                raise Acted(self.steps - 1)
             rounds += 1
         self._solve_pairs(state)
         self.last = (int(out[0]), int(out[1]), int(held), float(out[3]), float(out[4]), self.capacity)
         if self.cfg.self_pairs:
             self.left_out = int(self.dev.sp_count[1])
+
+    def watch(self):
+        """From now on, stop the run with ``Acted`` at the first step in which the pass or
+        the implicit solve's pairs act (a gradient's run: ``massspring.gradients``)."""
+        self.watched = True
 
     def release(self):
         """Hand the pair list back to the pool."""

@@ -366,10 +366,9 @@ def test_self_collision_that_changes_nothing_leaves_the_gradient(integrator):
 @pytest.mark.parametrize("integrator", ["symplectic", "implicit", "backward-euler"])
 def test_a_run_where_self_collision_acts_has_no_gradient(integrator):
     """The upper sheet thrown at the lower one at 4 m/s (3 cm apart, thickness 1 cm): the
-    pass acts within the run (on the implicit step from its first: pairs in its solve),
-    and the gradient is refused with SelfCollisionGradientError naming the first step it
-    acted in, before the objective is called; a model whose sheets start within the
-    thickness is refused at step 1."""
+    pass acts within the run, which stops there: SelfCollisionGradientError names the
+    step, the objective is not called; a model whose sheets start within the thickness
+    is refused at step 1 (the implicit step: pairs in its first solve)."""
     from massspring.errors import GradientError, SelfCollisionGradientError
 
     calls = []
