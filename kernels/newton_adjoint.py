@@ -23,8 +23,9 @@ shares between the two states before the step; the prediction's share G goes to
 refreshed without the definiteness fix (damping along the prediction's directions, as
 the forward step has it: linear in u), symmetric. Without the fix J is the step's own
 symmetric positive definite operator S and one CG solve gives mu. With it, J, where
-compressed springs lose their transverse stiffness, may be indefinite: J mu = dL/du is solved by preconditioned MINRES
-(``massspring.solvers.minres``) with the run's preconditioner of S, each product
+compressed springs lose their transverse stiffness, may be indefinite: J mu = dL/du is
+solved by preconditioned MINRES (``massspring.solvers.minres``) with the run's
+preconditioner of S, each product
 ``jacobian_product``: S's product less what the fix added (``fix_difference``), so S
 stays refreshed for the preconditioner. Where MINRES does not converge within
 cg_max_iter iterations or stalls, ``massspring.errors.GradientError`` names the step.

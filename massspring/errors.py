@@ -49,8 +49,8 @@ class GradientError(RuntimeError):
         advice = "Give a larger cg_max_iter or a looser cg_tol, or a smaller dt"
         if reason == "stalled":
             advice = ("Give a looser cg_tol or a smaller dt, or use the linearised 'implicit' integrator (its adjoint "
-                      "is one solve with its own positive definite operator): the solve no longer reduces its residual, "
-                      "at round-off or where a Newton-solved step's Jacobian is nearly singular")
+                      "is one solve with its own positive definite operator): the solve no longer reduces its "
+                      "residual, at round-off or where a Newton-solved step's Jacobian is nearly singular")
         super().__init__(f"{integrator} gradient: the adjoint solve of step {self.step + 1} stopped "
                          f"({reason}, relative residual {self.residual:.3g}); no gradient is returned. {advice}")
 

@@ -255,6 +255,7 @@ class Pass:
             self.fresh = False
         if self.watched and self.cfg.self_pairs and int(self.dev.sp_count[0]) > 0:
             raise Acted(self.steps)  # penalty springs in this step's solve
+
     def end(self, state):
         from massspring.kernels.self_collision import (BOUND_ROUNDS, self_collision_bound, self_collision_check,
                                                        self_collision_detect, self_collision_restore)
@@ -268,11 +269,13 @@ class Pass:
             self_collision_restore(self.dev, state, self.serial)
             self._grow(int(out[0]))
             out = self_collision_detect(self.dev, self.cfg, self.list, state, self.dt, *self.parameters, self.serial)
+        if self.watched and int(out[1]):  # pairs repelled
+            raise Acted(self.steps - 1)
         thickness, rounds, marked = self.parameters[0], 0, 1
         while marked:  # each round sets more pairs to bound their own particles (step 3 of the kernels)
             marked, held = self_collision_bound(self.dev, self.cfg, self.list, state, self.dt, thickness,
                                                 int(rounds == 0), int(rounds >= BOUND_ROUNDS), self.serial)
-            if self.watched and (marked or int(out[1])):  # repelled, projected or held back
+            if self.watched and marked:  # pairs projected, particles held back
                 raise Acted(self.steps - 1)
             rounds += 1
         self._solve_pairs(state)

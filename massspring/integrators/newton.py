@@ -160,8 +160,8 @@ class BackwardEuler(ImplicitEuler):
             return unconstrained(dev.read("z"))
 
         eps = EPS64 if s.precision == "f64" else EPS32
-        out = minres(product, precondition, unconstrained(adj.read("jy", dev.n)), unconstrained(dev.read("v")), s.cg_tol,
-                     s.cg_max_iter, floor=ROUNDOFF * eps)
+        rhs, start = unconstrained(adj.read("jy", dev.n)), unconstrained(dev.read("v"))
+        out = minres(product, precondition, rhs, start, s.cg_tol, s.cg_max_iter, floor=ROUNDOFF * eps)
         state_kernels.load_vectors(dev.v, out.x)
         return SolverStats(out.iterations, out.residual, out.converged, out.reason, setup_s)
 
