@@ -52,6 +52,17 @@ def read_states(hx: ti.template(), hv: ti.template(), slots: ti.types.ndarray(dt
             vs[f, i, c] = hv[row][c]
 
 
+@ti.kernel
+def write_state(hx: ti.template(), hv: ti.template(), x: ti.types.ndarray(dtype=ti.f64, ndim=2),
+                v: ti.types.ndarray(dtype=ti.f64, ndim=2), n: ti.i32, slot: ti.i32, stride: ti.i32):
+    """The inverse of ``read_states`` for one slot: the state kept at ``slot`` = x, v (n, 3)."""
+    for i in range(n):
+        row = slot * stride + i
+        for c in ti.static(range(3)):
+            hx[row][c] = x[i, c]
+            hv[row][c] = v[i, c]
+
+
 @ti.func
 def store_state(hx, hv, src, n, slot, stride):
     """hx[slot * stride + i], hv[...] = src.x[i], src.v[i] for the n particles."""

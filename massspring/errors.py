@@ -56,15 +56,21 @@ class GradientError(RuntimeError):
 
 
 class SelfCollisionGradientError(GradientError):
-    """A gradient's run in which the self-collision pass changed the state, stopped at the
-    first such step (``step``, 0-based): gradients through self-collision are built only
-    where the pass changes nothing (``massspring.gradients``). ``reason`` is
-    "self-collision", ``residual`` NaN."""
+    """A gradient's run in which the self-collision pass did what its gradient is not built
+    for, stopped at the first such step (``step``, 0-based): it set pairs to bound their
+    particles (projections, particles held back), or the linearised step's solve held
+    pairs; or (``why``) its repulsion could not be run backwards. Gradients through
+    self-collision are built where the pass repels pairs or changes nothing
+    (``massspring.gradients``). ``reason`` is "self-collision", ``residual`` NaN."""
 
-    def __init__(self, step, integrator):
+    def __init__(self, step, integrator, why=None):
         self.step, self.reason, self.residual = int(step), "self-collision", math.nan
-        RuntimeError.__init__(self, f"{integrator} gradient: self-collision acted in step {self.step + 1} (a pair "
-                              f"of the mesh within the thickness, or closing faster than the pass allows); "
-                              f"gradients through its impulses and bounds are not built yet (issue 39), only "
-                              f"through runs in which it changes nothing. No gradient is returned: take fewer "
-                              f"steps, or start from a state whose parts stay apart")
+        if why is None:
+            what = (f"self-collision bounded the motion of pairs in step {self.step + 1} (closing faster than "
+                    f"the pass allows: particles projected or held back), or held pairs in the linearised "
+                    f"step's solve; gradients through its repulsion impulses are built, through its bounds "
+                    f"and the solve's pairs not yet (issue 39)")
+        else:
+            what = f"the self-collision pass of step {self.step + 1} could not be run backwards: {why}"
+        RuntimeError.__init__(self, f"{integrator} gradient: {what}. No gradient is returned: take fewer steps, "
+                              f"a smaller dt, or start from a state whose parts stay apart")

@@ -40,6 +40,7 @@ from massspring.integrators import INTEGRATORS
 from massspring.kernels import state as state_kernels
 from massspring.model import Model
 from massspring.self_collision import Acted
+from massspring.self_collision_adjoint import Record, Replay, ReplayError
 from massspring.simulation import Simulation
 from massspring.terms import active_terms
 
@@ -116,10 +117,12 @@ def gradient(model, objective, wrt, *, steps, every=1, integrator="symplectic", 
     adj = None
     try:
         adj = _adjoint_bundle(sim, checkpoint)
-        if sim._guard is not None:  # self-collision: a gradient only where its pass changes nothing
-            sim._guard.watch()
+        repulsions = None
+        if sim._guard is not None:  # self-collision: a gradient where its pass repels pairs or changes nothing
+            repulsions = Repulsions(sim, adj)
+            sim._guard.watch(repulsions)
         try:
-            frames, kept, last = _forward(sim, adj, steps, every, checkpoint)
+            frames, kept, last = _forward(sim, adj, steps, every, checkpoint, repulsions)
         except Acted as exc:
             raise SelfCollisionGradientError(exc.step, sim.integrator) from None
         value, partials = _call(objective, frames, model.n_particles)
@@ -127,8 +130,11 @@ def gradient(model, objective, wrt, *, steps, every=1, integrator="symplectic", 
                       pins="pin_velocity" in names or "controls.pin_targets" in names,
                       friction=model.has_friction and INTEGRATORS[integrator].linear_solver)
         shares = ControlShares(sim, adj) if model.controls is not None else None
-        _backward(sim, adj, wants, partials, frames.steps, kept, last, steps, checkpoint, shares)
-        return value, _read(sim, adj, names, shares)
+        _backward(sim, adj, wants, partials, frames.steps, kept, last, steps, checkpoint, shares, repulsions)
+        grads = _read(sim, adj, names, shares)
+        if repulsions is not None and "stiffness" in grads:
+            repulsions.add_stiffness(grads["stiffness"])
+        return value, grads
     finally:
         sim.close()
         if adj is not None:
@@ -211,14 +217,16 @@ def _check_wrt(wrt, model):
     return names
 
 
-def _forward(sim, adj, steps, every, checkpoint):
+def _forward(sim, adj, steps, every, checkpoint, repulsions=None):
     """Run ``steps`` steps: the frames; the states (numpy, with what the integrator carries:
     BDF2's previous state) at the starts of the stretches of
     ``checkpoint`` steps but the last, whose states (its end's too) go to the history as
-    the run passes them; the start of that last stretch."""
+    the run passes them (and to ``repulsions`` its steps' records); the start of that last stretch."""
     n, stride = sim.model.n_particles, int(adj.stride[None])
     integrator = sim._integrator
     last = (steps - 1) // checkpoint * checkpoint
+    if repulsions is not None:
+        repulsions.start(last)
     positions, velocities, at, kept = [], [], [], {}
     done = 0
     while True:
@@ -370,10 +378,11 @@ class ControlShares:
         return grads
 
 
-def _backward(sim, adj, wants, partials, frame_steps, kept, last, steps, checkpoint, shares=None):
+def _backward(sim, adj, wants, partials, frame_steps, kept, last, steps, checkpoint, shares=None, repulsions=None):
     """Run the steps backwards, stretch by stretch: each but the last run again from its
     kept state into the history first; ``shares`` (a ``ControlShares``) collects the
-    controls' gradients."""
+    controls' gradients; ``repulsions`` (``Repulsions``) runs the self-collision pass's
+    repulsion backwards in the steps where it acted."""
     integrator, n, stride = sim._integrator, sim.model.n_particles, int(adj.stride[None])
     frame_of = {int(k): f for f, k in enumerate(frame_steps)}
     ordered = sorted(frame_of)
@@ -390,6 +399,8 @@ def _backward(sim, adj, wants, partials, frame_steps, kept, last, steps, checkpo
     for start in reversed(range(0, steps, checkpoint)):
         end = min(start + checkpoint, steps)
         if start != last:
+            if repulsions is not None:
+                repulsions.start(start)
             positions, velocities, carried = kept[start]
             sim.set_state(positions, velocities, steps=start, carried=carried)
             for k in range(start, end + 1):
@@ -400,20 +411,105 @@ def _backward(sim, adj, wants, partials, frame_steps, kept, last, steps, checkpo
         while k >= start:
             below = bisect.bisect_right(ordered, k) - 1  # down to the last frame's step at or before k
             low = max(ordered[below], start) if below >= 0 else start
-            if shares is None and k > low and integrator.adjoint_steps(adj, k - start, k - low + 1, wants):
+            plain = repulsions is None or not repulsions.any_in(low, k)
+            if shares is None and plain and k > low and integrator.adjoint_steps(adj, k - start, k - low + 1, wants):
                 k = integrator.steps = low
             else:
                 integrator.steps = k  # the step's start time, k dt (moving colliders)
                 if shares is not None:
                     shares.schedule.apply(k)
+                repelled = None if repulsions is None else repulsions.before(k, k - start)
                 stats = integrator.adjoint(adj, k - start, wants)
                 if stats is not None and not stats.converged:
                     raise GradientError(k, stats.reason, stats.residual, sim.integrator)
+                if repelled is not None:
+                    repulsions.after(repelled, wants)
                 if shares is not None:
                     shares.after(k)
             if k in frame_of:
                 add_frame(k, adj.read("lx", n), adj.read("lv", n))
             k -= 1
+
+
+class Repulsions:
+    """The steps of a gradient's run in which the self-collision pass repelled pairs
+    (``Pass.watch`` hands them in): the ``Record`` of each step from ``start``'s on, run
+    backwards by the pass's ``Replay`` (``massspring.self_collision_adjoint``), and
+    dL/d(the repulsion stiffness) so far (``k_r``)."""
+
+    def __init__(self, sim, adj):
+        self.sim, self.adj = sim, adj
+        guard, dev = sim._guard, sim._integrator.dev
+        self.n, self.stride = sim.model.n_particles, int(adj.stride[None])
+        free = dev.read("free") != 0 if sim._integrator.cfg.fixed else np.ones(self.n, bool)
+        thickness, friction, k_r = guard.parameters
+        self.replay = Replay(dev.read("mass"), free, sim.dt, thickness, friction, k_r)
+        self.records, self.first, self.k_r = {}, 0, 0.0
+
+    def start(self, first):
+        """Keep the records of step ``first`` on (those before are dropped)."""
+        self.records, self.first = {}, first
+
+    def __call__(self, guard, state, pairs):
+        """A step in which ``guard`` (the pass) repelled pairs: ``state`` as it left it,
+        ``pairs`` listed. An integrator that stored the step's state in the history
+        before the pass (``records_history``) gets it replaced by the pass's."""
+        k, integrator, dev = self.sim._steps, self.sim._integrator, guard.dev
+        if integrator.history is not None:
+            adj, first = integrator.history
+            state_kernels.save_state(adj.hx, adj.hv, state, self.n, k + 1 - first, self.stride)
+        if k >= self.first:
+            plist = guard.list
+            self.records[k] = Record(dev.read("sc_end"), dev.read("sc_vend"), plist.pidx.to_numpy()[:pairs],
+                                     plist.pw.to_numpy()[:pairs], plist.pkind.to_numpy()[:pairs])
+
+    def any_in(self, low, high) -> bool:
+        """Whether a step from ``low`` to ``high`` has a record."""
+        return any(low <= k <= high for k in self.records)
+
+    def before(self, k, slot):
+        """Before step k's adjoint (kept at ``slot``), if it has a record: dL/d(the state
+        the pass left) in ``adj.lx``, ``adj.lv`` turned into dL/d(the step's own), which
+        goes to the history at ``slot + 1`` for the integrator's adjoint; returns what
+        goes to the state before the step (``after``), else None."""
+        record = self.records.get(k)
+        if record is None:
+            return None
+        n, adj = self.n, self.adj
+        xs, vs = np.empty((2, n, 3)), np.empty((2, n, 3))
+        state_kernels.read_states(adj.hx, adj.hv, np.array([slot, slot + 1], dtype=np.int32), xs, vs, n, self.stride)
+        try:
+            gx, gv, gx0, gm, gk = self.replay.backward(record, xs[0], xs[1], vs[1], adj.read("lx", n),
+                                                       adj.read("lv", n))
+        except ReplayError as exc:
+            raise SelfCollisionGradientError(k, self.sim.integrator, str(exc)) from None
+        state_kernels.load_vectors(adj.lx, gx)
+        state_kernels.load_vectors(adj.lv, gv)
+        state_kernels.write_state(adj.hx, adj.hv, record.x, record.v, n, slot + 1, self.stride)
+        return gx0, gm, gk
+
+    def after(self, repelled, wants):
+        """After the step's adjoint: ``before``'s share of dL/dx0 and of the masses' gradient added."""
+        gx0, gm, gk = repelled
+        n, adj = self.n, self.adj
+        state_kernels.load_vectors(adj.lx, adj.read("lx", n) + gx0)
+        if wants.masses:
+            state_kernels.load_reals(adj.gm, adj.read("gm", n) + gm)
+        self.k_r += gk
+
+    def add_stiffness(self, stiffness):
+        """Add dL/dk_r to ``stiffness`` (the springs' gradient, the user's numbering) where
+        the repulsion stiffness is the model's median spring stiffness (``SelfCollision``):
+        to the median spring, shared equally among springs of the median's value (and half
+        to each middle value of an even count)."""
+        model = self.sim.model
+        if model.self_collision.stiffness is not None or self.k_r == 0.0:
+            return
+        values = model.stiffness[model.stiffness > 0]
+        middle = np.sort(values)[[(len(values) - 1) // 2, len(values) // 2]]
+        for value in middle:
+            tied = model.stiffness == value
+            stiffness[tied] += 0.5 * self.k_r / tied.sum()
 
 
 def _read(sim, adj, names, shares=None):

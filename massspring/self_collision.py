@@ -212,6 +212,7 @@ class Pass:
         self.passes = self.steps = self.grown = self.left_out = 0
         self.fresh = True  # x0 and the anchors are not set yet
         self.watched = False  # a gradient's run: stop with ``Acted`` where the pass acts (``watch``)
+        self.recorder = None  # ... and hand the steps it repelled in to this (``watch``)
 
     @property
     def capacity(self) -> int:
@@ -269,7 +270,8 @@ class Pass:
             self_collision_restore(self.dev, state, self.serial)
             self._grow(int(out[0]))
             out = self_collision_detect(self.dev, self.cfg, self.list, state, self.dt, *self.parameters, self.serial)
-        if self.watched and int(out[1]):  # pairs repelled
+        repelled = self.watched and int(out[1]) > 0
+        if repelled and (self.recorder is None or self.cfg.self_pairs):
             raise Acted(self.steps - 1)
         thickness, rounds, marked = self.parameters[0], 0, 1
         while marked:  # each round sets more pairs to bound their own particles (step 3 of the kernels)
@@ -278,15 +280,20 @@ class Pass:
             if self.watched and marked:  # pairs projected, particles held back
                 raise Acted(self.steps - 1)
             rounds += 1
+        if repelled:
+            self.recorder(self, state, int(out[0]))
         self._solve_pairs(state)
         self.last = (int(out[0]), int(out[1]), int(held), float(out[3]), float(out[4]), self.capacity)
         if self.cfg.self_pairs:
             self.left_out = int(self.dev.sp_count[1])
 
-    def watch(self):
+    def watch(self, recorder=None):
         """From now on, stop the run with ``Acted`` at the first step in which the pass or
-        the implicit solve's pairs act (a gradient's run: ``massspring.gradients``)."""
-        self.watched = True
+        the implicit solve's pairs act (a gradient's run: ``massspring.gradients``), but
+        for a step in which the pass only repelled pairs (step 2 of the kernels; no pair
+        set to bound its particles, no pairs in the solve), which goes on to
+        ``recorder(pass, state, pairs listed)`` at its end if given."""
+        self.watched, self.recorder = True, recorder
 
     def release(self):
         """Hand the pair list back to the pool."""

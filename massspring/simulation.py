@@ -443,6 +443,7 @@ class Simulation:
                     self._limit.end(integrator.state, integrator.time)
                 if self._guard is not None:
                     self._guard.end(integrator.state)
+                integrator.changed()
             if not integrator.has_stats:
                 self._steps += done
                 self._raise_if_diverged(check)

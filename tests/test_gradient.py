@@ -364,11 +364,12 @@ def test_self_collision_that_changes_nothing_leaves_the_gradient(integrator):
 
 @pytest.mark.fast_sample(integrator=["implicit"])
 @pytest.mark.parametrize("integrator", ["symplectic", "implicit", "backward-euler"])
-def test_a_run_where_self_collision_acts_has_no_gradient(integrator):
+def test_a_run_where_self_collision_bounds_pairs_has_no_gradient(integrator):
     """The upper sheet thrown at the lower one at 4 m/s (3 cm apart, thickness 1 cm): the
-    pass acts within the run, which stops there: SelfCollisionGradientError names the
-    step, the objective is not called; a model whose sheets start within the thickness
-    is refused at step 1 (the implicit step: pairs in its first solve)."""
+    pass sets pairs closing too fast to bound their particles within the run, which
+    stops there: SelfCollisionGradientError names the step, the objective is not called;
+    a model whose sheets start at half the thickness (where a pair may not approach at
+    all) is refused at step 1."""
     from massspring.errors import GradientError, SelfCollisionGradientError
 
     calls = []
@@ -378,13 +379,115 @@ def test_a_run_where_self_collision_acts_has_no_gradient(integrator):
         return objective(frames)
 
     run = dict(SHEETS_RUN, integrator=integrator, **SOLVED.get(integrator, {}))
-    with pytest.raises(SelfCollisionGradientError, match=r"self-collision acted in step \d+") as info:
+    with pytest.raises(SelfCollisionGradientError, match=r"self-collision bounded the motion of pairs in step \d+") \
+            as info:
         ms.gradient(two_sheets(0.03, 0.01, thrown=4.0, self_collision=ms.SelfCollision(0.01)), counted, "stiffness",
                     **run)
     assert isinstance(info.value, GradientError) and 1 <= info.value.step + 1 <= 10 and not calls
-    with pytest.raises(SelfCollisionGradientError, match=r"self-collision acted in step 1 "):
+    with pytest.raises(SelfCollisionGradientError, match=r"in step 1 "):
         ms.gradient(two_sheets(0.005, 0.01, self_collision=ms.SelfCollision(0.01)), counted, "stiffness", **run)
     assert not calls
+
+
+def straddling(friction=0.05, k_r=1e5, seed=5, **changes):
+    """A small triangle 7 mm over a square of two triangles (thickness 1 cm), straddling
+    their shared edge, sliding sideways at 0.3 m/s, both falling: every step the pass
+    repels its corners from the face below them and its two edges crossing the shared
+    one (face and inside regions, the closest points 1.5 cm and more from their
+    regions' borders, the pairs' distances 3 mm and more from the thickness), with
+    friction ``friction``, the repulsion stiffness ``k_r`` (N/m; None: the springs'
+    median); its springs stretched (rest lengths 5-15% short) so that each parameter
+    kind moves the run. Random per-item values."""
+    rng = np.random.default_rng(seed)
+    lower = np.array([[0, 0, 0], [0.3, 0, 0], [0.3, 0.3, 0], [0, 0.3, 0]], float)
+    angles = np.array([0.3, 2.5, 4.4])
+    upper = [0.15, 0.15, 0.007] + 0.045 * np.stack([np.cos(angles), np.sin(angles), 0 * angles], axis=1)
+    positions = np.vstack([lower, upper])
+    springs = np.array([[0, 1], [1, 2], [2, 3], [3, 0], [0, 2], [4, 5], [5, 6], [6, 4]])
+    velocities = rng.normal(0, 0.05, (7, 3)) + np.array([[0.0, 0.0, 0.0]] * 4 + [[0.3, 0.0, 0.0]] * 3)
+    lengths = np.linalg.norm(positions[springs[:, 0]] - positions[springs[:, 1]], axis=1)
+    values = dict(positions=positions, masses=rng.uniform(0.5, 1.5, 7), stiffness=rng.uniform(50, 150, 8),
+                  damping=rng.uniform(0.1, 1, 8), rest_lengths=lengths * rng.uniform(0.85, 0.95, 8),
+                  velocities=velocities, gravity=np.array([0.0, 0.0, -9.8]))
+    values.update(changes)
+    return ms.Model(values.pop("positions"), springs, triangles=[[0, 1, 2], [0, 2, 3], [4, 5, 6]],
+                    self_collision=ms.SelfCollision(0.01, friction=friction, stiffness=k_r), **values)
+
+
+def richardson_difference(make, values, name, direction, run, eps):
+    """Central differences of the runs at steps eps and 2 eps, Richardson-combined."""
+    def central(e):
+        ends = [run_value(make(**{name: values[name] + sign * e * direction}), objective, run) for sign in (1, -1)]
+        return (ends[0] - ends[1]) / (2 * e)
+
+    return (4 * central(eps) - central(2 * eps)) / 3
+
+
+STRADDLING_RUN = dict(steps=10, every=5, dt=2e-3, checkpoint=4)
+# The pass sums its impulses in fixed point (2^-40 m/s): runs that differ by a step of
+# 1e-5 of a parameter differ by its rounding too, which lifts the central differences'
+# error to 4e-6 of the smaller derivatives (measured), so the parameters step 1e-4 of
+# their largest value and damping, whose derivative is the smallest here (3e-9 noise in
+# 1e-3 measured at 1e-4), 1e-3; the initial state steps 1e-5 m (m/s), which moves the
+# pairs' normal speeds by 1e-5 / dt, within the branches of the step as taken
+STRADDLING_STEP = {"positions": 1e-5, "velocities": 1e-5, "damping": 1e-3}
+
+
+@pytest.mark.fast_sample(integrator=["symplectic"], friction=[0.05])
+@pytest.mark.parametrize("friction", [0.05, 5.0])
+@pytest.mark.parametrize("integrator", [name for name in DIFFERENTIABLE if name != "implicit"])
+def test_gradients_through_self_collision_repulsion_match_differences(integrator, friction):
+    """The straddling triangle repelled every step, friction sliding (0.05) or sticking
+    (5): the gradient of every parameter kind against central differences of the runs,
+    to 1e-6 relative. (The linearised implicit step puts such pairs in its solve: refused
+    above.)"""
+    from massspring.gradients import PARAMETERS as ALL
+
+    run = dict(STRADDLING_RUN, integrator=integrator, **SOLVED.get(integrator, {}))
+    names = [name for name in ALL if name not in ("drag", "wind", "pin_velocity") and ALL[name] != "control"]
+    model = straddling(friction)
+    sim = ms.Simulation(model, integrator, dt=run["dt"])
+    sim.step(1)
+    assert sim.self_collision_stats["repelled"] >= 4  # (each full pass's count: three corners, two edges)
+    sim.close()
+    value, grads = ms.gradient(model, objective, names, **run)
+    values = model_values(model)
+    rng = np.random.default_rng(3)
+
+    def make(**changes):
+        return straddling(friction, **changes)
+
+    for name in names:
+        direction = rng.normal(size=np.shape(values[name]))
+        direction /= np.abs(direction).max()
+        eps = STRADDLING_STEP.get(name, 1e-4) * max(1.0, np.abs(values[name]).max())
+        numeric = richardson_difference(make, values, name, direction, run, eps)
+        exact = float(np.sum(grads[name] * direction))
+        assert abs(exact - numeric) <= 1e-6 * abs(numeric), (name, exact, numeric)
+
+
+def test_the_repulsion_stiffness_as_the_springs_median_has_its_gradient():
+    """With no stiffness of its own the repulsion's is the springs' median (the mean of
+    the two middle ones of eight distinct values), and the impulse is the spring's bound:
+    the stiffness gradient includes the median's share (to those two springs), checked
+    against differences; without it, it would not match."""
+    run = dict(STRADDLING_RUN, integrator="symplectic")
+    model = straddling(0.05, k_r=None)
+    value, grads = ms.gradient(model, objective, "stiffness", **run)
+    values = model_values(model)
+    direction = np.random.default_rng(3).normal(size=8)
+    direction /= np.abs(direction).max()
+    numeric = richardson_difference(lambda **c: straddling(0.05, k_r=None, **c), values, "stiffness", direction, run,
+                                    1e-4 * values["stiffness"].max())
+    exact = float(np.sum(grads["stiffness"] * direction))
+    assert abs(exact - numeric) <= 1e-6 * abs(numeric), (exact, numeric)
+    middle = np.argsort(values["stiffness"])[3:5]
+    shares = np.zeros(8)
+    shares[middle] = 1.0
+    _, fixed = ms.gradient(straddling(0.05, k_r=float(np.median(values["stiffness"]))), objective, "stiffness", **run)
+    np.testing.assert_allclose(grads["stiffness"] - fixed["stiffness"], shares * (grads["stiffness"] -
+                               fixed["stiffness"])[middle].mean(), rtol=1e-9, atol=1e-15)
+    assert abs((grads["stiffness"] - fixed["stiffness"])[middle[0]]) > 1e-3 * np.abs(fixed["stiffness"]).max()
 
 
 def sheet_grid(side=3):

@@ -94,6 +94,10 @@ solver's options, ``options.Option`` records: ``integrators.OPTIONS``). ``serial
         """Make ``dev.state`` the current state (it is, unless the integrator swaps states:
         ``SwappingStates``)."""
 
+    def changed(self):
+        """The current state was changed after a step (a strain limit's or the self-collision
+        pass's positions and velocities): update what the integrator keeps of it (nothing by default)."""
+
     def carried(self) -> dict:
         """The arrays of ``carried_names`` at the current state (numpy, a row per particle)."""
         return {name: self.dev.read(name).astype(dtype) for name, (dtype, _) in self.carried_names().items()}

@@ -134,6 +134,11 @@ class ImplicitEuler(Integrator):
                 getattr(self.dev, name).fill(0)
             self.dev.fric.fill(0)
 
+    def changed(self):
+        """v_n for the next step and for a failed one to fall back to (``dev.keep``, set by a
+        step's commit) = the changed state's velocities."""
+        self.dev.keep.copy_from(self.dev.v)
+
     def advance(self, steps):
         """One implicit step (``steps`` must be 1: each step has its own solver stats)."""
         assert steps == 1

@@ -1,0 +1,139 @@
+"""The self-collision repulsion's adjoint (``massspring.self_collision_adjoint``) against
+central differences of its own replay, on pairs of every closest-point region (a
+triangle's face, edge and corner; edges crossing inside and at an end), sliding and
+sticking friction, both bounds on the normal impulse, clipped coordinates and a pinned
+particle. Host arrays only: no kernel runs. The gradients through whole runs are in
+``tests/test_gradient.py``."""
+
+import numpy as np
+import pytest
+
+from massspring.self_collision_adjoint import Record, Replay, ReplayError, regions
+
+H, THICKNESS = 2e-3, 0.01
+
+
+def closest_weights(x, idx, kind):
+    """Signed weights of a pair's closest points at x, by brute force over a fine grid of
+    each primitive's parameters refined by least squares: an independent reference for
+    the regions the tests set up (face, edge, corner; inside, end)."""
+    p = x[idx]
+    if kind == 1:
+        grid = np.linspace(0, 1, 401)
+        s, t = np.meshgrid(grid, grid, indexing="ij")
+        gaps = (p[0] + s[..., None] * (p[1] - p[0])) - (p[2] + t[..., None] * (p[3] - p[2]))
+        i, j = np.unravel_index(np.argmin(np.sum(gaps ** 2, axis=-1)), s.shape)
+        return np.array([1 - grid[i], grid[i], grid[j] - 1, -grid[j]])
+    grid = np.linspace(0, 1, 401)
+    u, v = np.meshgrid(grid, grid, indexing="ij")
+    inside = u + v <= 1
+    points = p[1] + u[..., None] * (p[2] - p[1]) + v[..., None] * (p[3] - p[1])
+    d2 = np.where(inside, np.sum((p[0] - points) ** 2, axis=-1), np.inf)
+    i, j = np.unravel_index(np.argmin(d2), u.shape)
+    return np.array([1, -(1 - grid[i] - grid[j]), -grid[i], -grid[j]])
+
+
+def pairs_case():
+    """Particles and pairs: a point over a triangle's face, one beyond an edge, one beyond
+    a corner (all within the thickness); two edges crossing inside, and two meeting at an
+    end; their candidate positions moved from x0 towards each other (0.5 m/s) and sideways (1 m/s)."""
+    tri = [[0, 0, 0], [0.2, 0, 0], [0, 0.2, 0]]
+    x0 = np.array(tri + [[0.05, 0.06, 0.006],  # 3: over the face
+                         [0.105, 0.105, 0.004],  # 4: beyond edge 1-2 (its projection outside, past the hypotenuse)
+                         [-0.004, -0.003, 0.005],  # 5: beyond corner 0
+                         [0.3, 0.0, 0.0], [0.5, 0.0, 0.0],  # 6-7: an edge
+                         [0.38, -0.1, 0.007], [0.42, 0.1, 0.007],  # 8-9: crossing over it inside
+                         [0.7, 0.0, 0.0], [0.9, 0.0, 0.0],  # 10-11: an edge
+                         [0.903, -0.1, 0.006], [0.909, 0.1, 0.006]])  # 12-13: passing beyond its end 11
+    rng = np.random.default_rng(7)
+    sideways = np.where(np.arange(len(x0))[:, None] >= 12, [0.0, 2e-3, 0.0], [1.4e-3, -1.4e-3, 0.0])
+    x = x0 + rng.normal(0, 4e-4, x0.shape) + (sideways + [0.0, 0.0, -1e-3]) * (x0[:, 2:] > 0)
+    idx = np.array([[3, 0, 1, 2], [4, 0, 1, 2], [5, 0, 1, 2], [6, 7, 8, 9], [10, 11, 12, 13]])
+    kind = np.array([-1, -1, -1, 1, 1])
+    w = np.array([closest_weights(x0, i, k) for i, k in zip(idx, kind)])
+    return x0, x, idx, kind, w
+
+
+def refine(x0, idx, kind, w):
+    """The weights on their regions solved exactly (the grid's closest points are within
+    1/400 of them): what the pass's narrow phase gives."""
+    w0, e = regions(w, kind)
+    a = np.einsum("pk,pkc->pc", w0, x0[idx])
+    bmat = np.einsum("pkj,pkc->pcj", e, x0[idx])
+    gram = np.einsum("pcj,pcl->pjl", bmat, bmat) + np.eye(2) * (~e.any(axis=1))[:, None, :]
+    theta = np.linalg.solve(gram, -np.einsum("pcj,pc->pj", bmat, a)[..., None])[..., 0]
+    return w0 + np.einsum("pkj,pj->pk", e, theta)
+
+
+def test_regions_are_read_from_the_weights():
+    x0, _, idx, kind, w = pairs_case()
+    w0, e = regions(w, kind)
+    assert [int(np.count_nonzero(e[p].any(axis=0))) for p in range(5)] == [2, 1, 0, 2, 1]
+    exact = refine(x0, idx, kind, w)
+    np.testing.assert_allclose(exact, w, atol=5e-3)  # the grid's answer, refined on its region
+    np.testing.assert_allclose(exact.sum(axis=1), 0.0, atol=1e-15)  # p - q: weights of each side sum to +-1
+
+
+@pytest.mark.parametrize("mu, k_r, pinned, clip", [
+    (0.05, 1e6, False, False),  # sliding; the impulse that separates at 0.1 (thickness - d) / dt
+    (50.0, 1e6, False, False),  # sticking
+    (0.05, 30.0, True, False),  # the spring's bound on the impulse; a pinned corner
+    (0.05, 1e6, False, True),  # coordinates clipped to the path boxes
+])
+def test_adjoint_matches_differences_of_the_replay(mu, k_r, pinned, clip):
+    x0, x, idx, kind, w = pairs_case()
+    w = refine(x0, idx, kind, w)
+    n = len(x0)
+    rng = np.random.default_rng(1)
+    v = rng.normal(0, 0.1, (n, 3))
+    masses = rng.uniform(0.5, 1.5, n)
+    free = np.ones(n, bool)
+    if pinned:
+        free[0] = False
+    if clip:  # a heavy point thrown at a still triangle: its corners pushed beyond their boxes (+- thickness / 2)
+        x = x0 + rng.normal(0, 1e-5, x0.shape)  # (still corners would sit on the kink of their boxes' min(x0, x))
+        x[3] += [1e-4, 2e-4, -6e-3]
+        masses[3] = 50.0
+        idx, kind, w = idx[:1], kind[:1], w[:1]  # the point over the face alone (the others would share the hits)
+    replay = Replay(masses, free, H, THICKNESS, mu, k_r)
+    record = Record(x, v, idx, w, kind)
+    x2, v2, parts = replay.forward(record, x0)
+    branches = parts["branches"]
+    assert branches["act"].all()
+    if not clip:  # (the clipped case's pair hardly moves sideways: it sticks)
+        assert (branches["sliding"].all() if mu < 1 else not branches["sliding"].any())
+    assert (branches["need"].all() if k_r > 1e3 else not branches["need"].any())
+    assert parts["clipped"].any() == clip
+    lx, lv = rng.normal(size=(n, 3)), rng.normal(size=(n, 3))
+    gx, gv, gx0, gm, gk = replay.backward(record, x0, x2, v2, lx, lv)
+
+    def objective(x0_, x_, v_, m_, k_):
+        out_x, out_v, _ = Replay(m_, free, H, THICKNESS, mu, k_).forward(Record(x_, v_, idx, w, kind), x0_)
+        return np.sum(lx * out_x) + np.sum(lv * out_v)
+
+    directions = [rng.normal(size=(n, 3)) for _ in range(3)] + [rng.normal(size=n), 1.0]
+    grads = [gx0, gx, gv, gm, gk]
+    base = [x0, x, v, masses, k_r]
+    for slot, (direction, grad) in enumerate(zip(directions, grads)):
+        eps = 1e-7 * (k_r if slot == 4 else 1.0)
+
+        def moved(sign):
+            args = list(base)
+            args[slot] = base[slot] + sign * eps * direction
+            return objective(*args)
+
+        numeric = (moved(1) - moved(-1)) / (2 * eps)
+        exact = float(np.sum(grad * direction))
+        assert abs(exact - numeric) <= 1e-6 * max(abs(numeric), 1e-3), (slot, exact, numeric)
+
+
+def test_a_replay_that_differs_from_the_pass_is_refused():
+    x0, x, idx, kind, w = pairs_case()
+    w = refine(x0, idx, kind, w)
+    n = len(x0)
+    replay = Replay(np.ones(n), np.ones(n, bool), H, THICKNESS, 0.2, 1e6)
+    record = Record(x, np.zeros((n, 3)), idx, w, kind)
+    x2, v2, _ = replay.forward(record, x0)
+    replay.backward(record, x0, x2, v2, np.zeros((n, 3)), np.zeros((n, 3)))
+    with pytest.raises(ReplayError, match="differs from the pass by"):
+        replay.backward(record, x0, x2 + 1e-6, v2, np.zeros((n, 3)), np.zeros((n, 3)))
