@@ -59,7 +59,8 @@ is, else ``self_collision_detect`` and ``self_collision_bound`` run the full pas
    on: each may move towards the other side by at most GAMMA (d - OFFSET thickness),
    which meets the first bound too. A displacement that goes further first loses that
    excess along n (averaged over its pairs, within its box), and then, if a pair still
-   objects, is scaled down until all agree (a smaller scale keeps every such bound
+   objects (by more than ``BOUND_SLACK`` x thickness: not a particle the push left on
+   its bound, to round-off), is scaled down until all agree (a smaller scale keeps every such bound
    met: each holds at x0). Holding particles back can make another pair approach too
    fast, so rounds repeat until one sets no new pair (after ``BOUND_ROUNDS`` every
    pair bounds its own). The primitives of a listed pair then stay on their sides of
@@ -105,6 +106,7 @@ OFFSET = 0.5  # pairs closer than this fraction of the thickness may not approac
 REUSE_BELOW = 0.05  # a step whose particles moved less than this x thickness lists pairs for reuse
 BOUND_ROUNDS = 8  # rounds of step 3 before every pair bounds its own particles
 REUSE_MARGIN = 1.5  # ... in boxes grown by this x thickness (unlisted pairs then end > 2 x thickness apart)
+BOUND_SLACK = 1e-9  # x thickness: a particle this little past its bound is not held back (step 3)
 
 
 @ti.func
@@ -177,8 +179,10 @@ def pair(dev, cfg: ti.template(), pl, state, idx, w, d, h, thickness, mu, ks, si
     repulsion impulse if d < ``thickness``. ``BOUND``: each
     of its particles k, of side sign s_k, may move at most GAMMA d towards the other
     side, s_k n . dx_k >= -GAMMA d with n = (p - q) / d: a particle whose displacement
-    dx_k (the state's, less x0) breaks it gets the scale that meets it (``sc_scale``,
-    the smallest over its pairs; a displacement scaled down keeps every bound it met)."""
+    dx_k (the state's, less x0) breaks it by more than ``BOUND_SLACK`` x thickness (not
+    one that ``PROJECT`` left on it, to round-off) gets the scale that meets it
+    (``sc_scale``, the smallest over its pairs; a displacement scaled down keeps every
+    bound it met)."""
     gap_vector = ti.Vector.zero(cfg.real, 3)
     for k in ti.static(range(4)):
         gap_vector += w[k] * dev.sc_start[idx[k]]
@@ -187,10 +191,13 @@ def pair(dev, cfg: ti.template(), pl, state, idx, w, d, h, thickness, mu, ks, si
         if length > 0:
             normal = gap_vector / length
             allowed = GAMMA * ti.max(length - OFFSET * thickness, 0)
+            slack = allowed  # a push leaves a particle on its bound to round-off: it stands
+            if ti.static(phase == BOUND):
+                slack += BOUND_SLACK * thickness
             for k in ti.static(range(4)):
                 i = idx[k]
                 toward = -sides[k] * normal.dot(state.x[i] - dev.sc_start[i])
-                if toward > allowed and not is_pinned(i, dev, cfg):
+                if toward > slack and not is_pinned(i, dev, cfg):
                     if ti.static(phase == PROJECT):
                         ti.atomic_add(dev.sc_dv[i], fixed_point((toward - allowed) * sides[k] * normal))
                         ti.atomic_add(dev.sc_hits[i], 1)

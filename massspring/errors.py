@@ -56,21 +56,22 @@ class GradientError(RuntimeError):
 
 
 class SelfCollisionGradientError(GradientError):
-    """A gradient's run in which the self-collision pass did what its gradient is not built
-    for, stopped at the first such step (``step``, 0-based): it set pairs to bound their
-    particles (projections, particles held back), or the linearised step's solve held
-    pairs; or (``why``) its repulsion could not be run backwards. Gradients through
-    self-collision are built where the pass repels pairs or changes nothing
-    (``massspring.gradients``). ``reason`` is "self-collision", ``residual`` NaN."""
+    """A gradient's run stopped at a step (``step``, 0-based) whose self-collision it
+    cannot run backwards: with the linearised ``implicit`` integrator, the first step in
+    which the pass acted or the solve held self-collision pairs (their gradients are not
+    built); with any (``why``), a step whose pass the host could not replay. Every other
+    integrator has gradients through the pass (``massspring.gradients``). ``reason`` is
+    "self-collision", ``residual`` NaN."""
 
     def __init__(self, step, integrator, why=None):
         self.step, self.reason, self.residual = int(step), "self-collision", math.nan
         if why is None:
-            what = (f"self-collision bounded the motion of pairs in step {self.step + 1} (closing faster than "
-                    f"the pass allows: particles projected or held back), or held pairs in the linearised "
-                    f"step's solve; gradients through its repulsion impulses are built, through its bounds "
-                    f"and the solve's pairs not yet (issue 39)")
+            what = (f"self-collision acted in step {self.step + 1} (pairs of the mesh within the thickness or "
+                    f"closing fast); the linearised step holds such pairs in its solve, and gradients through "
+                    f"them are not built yet (issue 39). No gradient is returned: use another integrator "
+                    f"(explicit, symplectic, rk4, backward-euler, bdf2 or midpoint have them), or a run "
+                    f"whose parts stay apart")
         else:
-            what = f"the self-collision pass of step {self.step + 1} could not be run backwards: {why}"
-        RuntimeError.__init__(self, f"{integrator} gradient: {what}. No gradient is returned: take fewer steps, "
-                              f"a smaller dt, or start from a state whose parts stay apart")
+            what = (f"the self-collision pass of step {self.step + 1} could not be run backwards: {why}. "
+                    f"No gradient is returned: take fewer steps or a smaller dt")
+        RuntimeError.__init__(self, f"{integrator} gradient: {what}")

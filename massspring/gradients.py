@@ -117,12 +117,12 @@ def gradient(model, objective, wrt, *, steps, every=1, integrator="symplectic", 
     adj = None
     try:
         adj = _adjoint_bundle(sim, checkpoint)
-        repulsions = None
-        if sim._guard is not None:  # self-collision: a gradient where its pass repels pairs or changes nothing
-            repulsions = Repulsions(sim, adj)
-            sim._guard.watch(repulsions)
+        pass_steps = None
+        if sim._guard is not None:  # self-collision: run backwards where its pass acted
+            pass_steps = PassSteps(sim, adj)
+            sim._guard.watch(pass_steps)
         try:
-            frames, kept, last = _forward(sim, adj, steps, every, checkpoint, repulsions)
+            frames, kept, last = _forward(sim, adj, steps, every, checkpoint, pass_steps)
         except Acted as exc:
             raise SelfCollisionGradientError(exc.step, sim.integrator) from None
         value, partials = _call(objective, frames, model.n_particles)
@@ -130,10 +130,10 @@ def gradient(model, objective, wrt, *, steps, every=1, integrator="symplectic", 
                       pins="pin_velocity" in names or "controls.pin_targets" in names,
                       friction=model.has_friction and INTEGRATORS[integrator].linear_solver)
         shares = ControlShares(sim, adj) if model.controls is not None else None
-        _backward(sim, adj, wants, partials, frames.steps, kept, last, steps, checkpoint, shares, repulsions)
+        _backward(sim, adj, wants, partials, frames.steps, kept, last, steps, checkpoint, shares, pass_steps)
         grads = _read(sim, adj, names, shares)
-        if repulsions is not None and "stiffness" in grads:
-            repulsions.add_stiffness(grads["stiffness"])
+        if pass_steps is not None and "stiffness" in grads:
+            pass_steps.add_stiffness(grads["stiffness"])
         return value, grads
     finally:
         sim.close()
@@ -217,16 +217,16 @@ def _check_wrt(wrt, model):
     return names
 
 
-def _forward(sim, adj, steps, every, checkpoint, repulsions=None):
+def _forward(sim, adj, steps, every, checkpoint, pass_steps=None):
     """Run ``steps`` steps: the frames; the states (numpy, with what the integrator carries:
     BDF2's previous state) at the starts of the stretches of
     ``checkpoint`` steps but the last, whose states (its end's too) go to the history as
-    the run passes them (and to ``repulsions`` its steps' records); the start of that last stretch."""
+    the run passes them (and to ``pass_steps`` its steps' records); the start of that last stretch."""
     n, stride = sim.model.n_particles, int(adj.stride[None])
     integrator = sim._integrator
     last = (steps - 1) // checkpoint * checkpoint
-    if repulsions is not None:
-        repulsions.start(last)
+    if pass_steps is not None:
+        pass_steps.start(last)
     positions, velocities, at, kept = [], [], [], {}
     done = 0
     while True:
@@ -378,11 +378,11 @@ class ControlShares:
         return grads
 
 
-def _backward(sim, adj, wants, partials, frame_steps, kept, last, steps, checkpoint, shares=None, repulsions=None):
+def _backward(sim, adj, wants, partials, frame_steps, kept, last, steps, checkpoint, shares=None, pass_steps=None):
     """Run the steps backwards, stretch by stretch: each but the last run again from its
     kept state into the history first; ``shares`` (a ``ControlShares``) collects the
-    controls' gradients; ``repulsions`` (``Repulsions``) runs the self-collision pass's
-    repulsion backwards in the steps where it acted."""
+    controls' gradients; ``pass_steps`` (``PassSteps``) runs the self-collision pass
+    backwards in the steps where it acted."""
     integrator, n, stride = sim._integrator, sim.model.n_particles, int(adj.stride[None])
     frame_of = {int(k): f for f, k in enumerate(frame_steps)}
     ordered = sorted(frame_of)
@@ -399,8 +399,8 @@ def _backward(sim, adj, wants, partials, frame_steps, kept, last, steps, checkpo
     for start in reversed(range(0, steps, checkpoint)):
         end = min(start + checkpoint, steps)
         if start != last:
-            if repulsions is not None:
-                repulsions.start(start)
+            if pass_steps is not None:
+                pass_steps.start(start)
             positions, velocities, carried = kept[start]
             sim.set_state(positions, velocities, steps=start, carried=carried)
             for k in range(start, end + 1):
@@ -411,19 +411,19 @@ def _backward(sim, adj, wants, partials, frame_steps, kept, last, steps, checkpo
         while k >= start:
             below = bisect.bisect_right(ordered, k) - 1  # down to the last frame's step at or before k
             low = max(ordered[below], start) if below >= 0 else start
-            plain = repulsions is None or not repulsions.any_in(low, k)
+            plain = pass_steps is None or not pass_steps.any_in(low, k)
             if shares is None and plain and k > low and integrator.adjoint_steps(adj, k - start, k - low + 1, wants):
                 k = integrator.steps = low
             else:
                 integrator.steps = k  # the step's start time, k dt (moving colliders)
                 if shares is not None:
                     shares.schedule.apply(k)
-                repelled = None if repulsions is None else repulsions.before(k, k - start)
+                acted = None if pass_steps is None else pass_steps.before(k, k - start)
                 stats = integrator.adjoint(adj, k - start, wants)
                 if stats is not None and not stats.converged:
                     raise GradientError(k, stats.reason, stats.residual, sim.integrator)
-                if repelled is not None:
-                    repulsions.after(repelled, wants)
+                if acted is not None:
+                    pass_steps.after(acted, wants)
                 if shares is not None:
                     shares.after(k)
             if k in frame_of:
@@ -431,11 +431,11 @@ def _backward(sim, adj, wants, partials, frame_steps, kept, last, steps, checkpo
             k -= 1
 
 
-class Repulsions:
-    """The steps of a gradient's run in which the self-collision pass repelled pairs
-    (``Pass.watch`` hands them in): the ``Record`` of each step from ``start``'s on, run
-    backwards by the pass's ``Replay`` (``massspring.self_collision_adjoint``), and
-    dL/d(the repulsion stiffness) so far (``k_r``)."""
+class PassSteps:
+    """The steps of a gradient's run in which the self-collision pass acted (``Pass.watch``
+    hands them in): the ``Record`` of each step from ``start``'s on, run backwards by the
+    pass's ``Replay`` (``massspring.self_collision_adjoint``), and dL/d(the repulsion
+    stiffness) so far (``k_r``)."""
 
     def __init__(self, sim, adj):
         self.sim, self.adj = sim, adj
@@ -450,18 +450,22 @@ class Repulsions:
         """Keep the records of step ``first`` on (those before are dropped)."""
         self.records, self.first = {}, first
 
-    def __call__(self, guard, state, pairs):
-        """A step in which ``guard`` (the pass) repelled pairs: ``state`` as it left it,
-        ``pairs`` listed. An integrator that stored the step's state in the history
-        before the pass (``records_history``) gets it replaced by the pass's."""
+    def __call__(self, guard, state, pairs, bounding):
+        """A step in which ``guard`` (the pass) acted: ``state`` as it left it, ``pairs``
+        listed, ``bounding`` the pairs set to bound their particles after each round of
+        step 3 that set some (``Pass.watch``). An integrator that stored the step's state
+        in the history before the pass (``records_history``) gets it replaced by the pass's."""
         k, integrator, dev = self.sim._steps, self.sim._integrator, guard.dev
         if integrator.history is not None:
             adj, first = integrator.history
             state_kernels.save_state(adj.hx, adj.hv, state, self.n, k + 1 - first, self.stride)
         if k >= self.first:
             plist = guard.list
+            rounds = np.full(pairs, -1, dtype=np.int32)
+            for r, flags in reversed(list(enumerate(bounding))):
+                rounds[flags] = r
             self.records[k] = Record(dev.read("sc_end"), dev.read("sc_vend"), plist.pidx.to_numpy()[:pairs],
-                                     plist.pw.to_numpy()[:pairs], plist.pkind.to_numpy()[:pairs])
+                                     plist.pw.to_numpy()[:pairs], plist.pkind.to_numpy()[:pairs], rounds)
 
     def any_in(self, low, high) -> bool:
         """Whether a step from ``low`` to ``high`` has a record."""
@@ -488,9 +492,9 @@ class Repulsions:
         state_kernels.write_state(adj.hx, adj.hv, record.x, record.v, n, slot + 1, self.stride)
         return gx0, gm, gk
 
-    def after(self, repelled, wants):
+    def after(self, acted, wants):
         """After the step's adjoint: ``before``'s share of dL/dx0 and of the masses' gradient added."""
-        gx0, gm, gk = repelled
+        gx0, gm, gk = acted
         n, adj = self.n, self.adj
         state_kernels.load_vectors(adj.lx, adj.read("lx", n) + gx0)
         if wants.masses:

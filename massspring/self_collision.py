@@ -197,7 +197,8 @@ class Pass:
     (``Settings.loops``). ``end`` runs the full pass only when a particle left its free
     distance of its anchor (step 0 of the kernels' docstring). ``last``: the last full
     pass's (pairs within reach, pairs repelled, particles held back, the largest
-    displacement in m, the smallest distance of a pair in m, the pair list's capacity);
+    displacement in m, the smallest distance of a pair in m, the pair list's capacity,
+    pairs set to bound their own particles);
     ``passes`` and ``steps``: full passes and steps so far; ``left_out``: pairs within
     the thickness the last pass left out of the implicit solve (beyond its capacity);
     ``grown``: times the pair list grew (a pass that finds more pairs than it holds is undone and run again with
@@ -208,7 +209,7 @@ class Pass:
         sc = model.self_collision
         self.parameters = (sc.thickness, sc.friction, sc.repulsion_stiffness(model))
         self.list = pair_list(PAIRS_PER_PARTICLE * model.n_particles, cfg.real)
-        self.last = (0, 0, 0, 0.0, math.inf, self.capacity)
+        self.last = (0, 0, 0, 0.0, math.inf, self.capacity, 0)
         self.passes = self.steps = self.grown = self.left_out = 0
         self.fresh = True  # x0 and the anchors are not set yet
         self.watched = False  # a gradient's run: stop with ``Acted`` where the pass acts (``watch``)
@@ -258,8 +259,9 @@ class Pass:
             raise Acted(self.steps)  # penalty springs in this step's solve
 
     def end(self, state):
-        from massspring.kernels.self_collision import (BOUND_ROUNDS, self_collision_bound, self_collision_check,
-                                                       self_collision_detect, self_collision_restore)
+        from massspring.kernels.self_collision import (BOUND_ROUNDS, OWN, self_collision_bound,
+                                                       self_collision_check, self_collision_detect,
+                                                       self_collision_restore)
 
         self.steps += 1
         if self_collision_check(self.dev, state, self.serial) == 0:
@@ -270,29 +272,35 @@ class Pass:
             self_collision_restore(self.dev, state, self.serial)
             self._grow(int(out[0]))
             out = self_collision_detect(self.dev, self.cfg, self.list, state, self.dt, *self.parameters, self.serial)
-        repelled = self.watched and int(out[1]) > 0
-        if repelled and (self.recorder is None or self.cfg.self_pairs):
+        recording = self.watched and self.recorder is not None and not self.cfg.self_pairs
+        acted = self.watched and int(out[1]) > 0  # pairs repelled
+        if acted and not recording:
             raise Acted(self.steps - 1)
-        thickness, rounds, marked = self.parameters[0], 0, 1
+        thickness, rounds, marked, bounded, bounding = self.parameters[0], 0, 1, 0, []
         while marked:  # each round sets more pairs to bound their own particles (step 3 of the kernels)
             marked, held = self_collision_bound(self.dev, self.cfg, self.list, state, self.dt, thickness,
                                                 int(rounds == 0), int(rounds >= BOUND_ROUNDS), self.serial)
-            if self.watched and marked:  # pairs projected, particles held back
-                raise Acted(self.steps - 1)
+            bounded += int(marked)
+            if self.watched and marked:  # pairs pushed, particles held back
+                if not recording:
+                    raise Acted(self.steps - 1)
+                bounding.append(self.list.pbound.to_numpy()[:int(out[0])] == OWN)
+                acted = True
             rounds += 1
-        if repelled:
-            self.recorder(self, state, int(out[0]))
+        if acted:
+            self.recorder(self, state, int(out[0]), bounding)
         self._solve_pairs(state)
-        self.last = (int(out[0]), int(out[1]), int(held), float(out[3]), float(out[4]), self.capacity)
+        self.last = (int(out[0]), int(out[1]), int(held), float(out[3]), float(out[4]), self.capacity, bounded)
         if self.cfg.self_pairs:
             self.left_out = int(self.dev.sp_count[1])
 
     def watch(self, recorder=None):
         """From now on, stop the run with ``Acted`` at the first step in which the pass or
-        the implicit solve's pairs act (a gradient's run: ``massspring.gradients``), but
-        for a step in which the pass only repelled pairs (step 2 of the kernels; no pair
-        set to bound its particles, no pairs in the solve), which goes on to
-        ``recorder(pass, state, pairs listed)`` at its end if given."""
+        the implicit solve's pairs act (a gradient's run: ``massspring.gradients``); with a
+        ``recorder`` (and no pairs in the solve), a step in which the pass acted goes on
+        to ``recorder(pass, state, pairs listed, bounding)`` at its end, ``bounding`` a
+        list with, for each round of step 3 that set pairs to bound their own particles,
+        the listed pairs' flags (bool (pairs,)) of those set so far."""
         self.watched, self.recorder = True, recorder
 
     def release(self):

@@ -1,32 +1,49 @@
-"""The adjoint of the self-collision pass's repulsion, with its active set frozen.
+"""The adjoint of the self-collision pass (repulsion and displacement bounds), with its
+active set frozen.
 
-Step 2 of the pass (``kernels/self_collision.py``) turns the state an integrator's step
-left, positions x and velocities v (n, 3), into x', v' given the step's start positions
-x0 (n, 3), the masses (n,) and dt = h (s). For each listed pair of particles ``idx``
-(4,) with signed weights w (4,) of its closest points at x0 (sum_k w_k x0_k = g, its
-distance L = |g|, normal n = g / L) closer than the thickness:
+The pass (``kernels/self_collision.py``) turns the state an integrator's step left,
+positions x and velocities v (n, 3), into x', v', given the step's start positions x0
+(n, 3), the masses (n,) and dt = h (s). Each listed pair of particles ``idx`` (4,) has
+signed weights w (4,) of its closest points at x0 (sum_k w_k x0_k = g, its distance
+L = |g|, normal n = g / L), its particles' sides s_k (+1: A, -1: B) and the distance each
+may move towards the other side, a = GAMMA max(L - OFFSET thickness, 0).
 
-    r = sum_k w_k (x_k - x0_k) / h, vn = r . n, s = sum_k w_k^2 / m_k (free k),
-    dvn = min(0.1 (thickness - L) / h - vn, max(-vn, 0) + h k_r (thickness - L) s),
-    t = r - vn n, c = dvn n - min(mu dvn, |t|) t / |t|, dv_k = w_k c / (s m_k) (free k),
+Step 2, repulsion, of each pair closer than the thickness:
 
-k_r the repulsion stiffness; each particle's dv are averaged over the pairs that touch
-it (du), then x' = x + h du, v' = v + du, each coordinate clipped to the particle's
-path box grown by thickness / 2 (v' changed with x'). The weights are the closest points'
-on the region of the two primitives where they lie (a triangle's face, edge or corner;
-each edge's inside or end), where they are smooth functions of x0: the least-squares
-solution over the region's free parameters.
+    r = sum_k w_k (x_k - x0_k) / h, vn = r . n, S = sum_k w_k^2 / m_k (free k),
+    dvn = min(0.1 (thickness - L) / h - vn, max(-vn, 0) + h k_r (thickness - L) S),
+    t = r - vn n, c = dvn n - min(mu dvn, |t|) t / |t|, dv_k = w_k c / (S m_k) (free k).
 
-Frozen active set: which pairs repel, the min and max above, sticking or sliding,
-which coordinates are clipped, and each closest point's region are those of the step
-as taken; within them the pass is smooth and this is its exact Jacobian, transposed.
-Where one of them switches, a derivative is not defined and none is claimed.
+Step 3, displacement bounds, in rounds: the pairs set to bound their own particles in
+the first round push each particle k that moves towards the other side by more than a,
+by toward_k = -s_k n . (x_k - x0_k), back by (toward_k - a) along s_k n, as the velocity
+change dv_k = (toward_k - a) s_k n / h; then in every round a particle that still moves
+towards the other side of a pair set in that round by more than a + BOUND_SLACK
+thickness has its displacement scaled by sigma = a / toward_k, the smallest over such
+pairs: x' = x0 + sigma (x - x0), v' = sigma (x - x0) / h.
 
-Each repelling pair's Jacobian of its four dv_k (12 values) in its 29 inputs (x0 and x of
-its particles, their masses, k_r) is taken by complex-step differentiation of the
-formulas above (f(z + i e) imaginary part / e with e = 1e-30: exact to round-off, no
-difference quotient), vectorised over the pairs; the averaging and the clip are linear
-and done by hand. Host arrays (numpy), a step at a time: ``Replay.backward``.
+A step's velocity changes (repulsion, then the first round's push) are averaged per
+particle over the pairs that touch it (du), then x' = x + h du, v' = v + du, each
+coordinate clipped to the particle's path box (from x0 to the step's candidate x) grown
+by thickness / 2 (v' changed with x'). The weights are the closest points' on the region
+of the two primitives where they lie (a triangle's face, edge or corner; each edge's
+inside or end), where they are smooth functions of x0: the least-squares solution over
+the region's free parameters.
+
+Frozen active set: which pairs repel, the min and max above, sticking or sliding, the
+round in which each pair is set to bound its particles, which particles are pushed,
+which pair sets each scale, which coordinates are clipped and each closest point's
+region are those of the step as taken; within them the pass is smooth and this is its
+exact Jacobian, transposed. Where one of them switches, a derivative is not defined and
+none is claimed.
+
+Each pair's Jacobian of its velocity changes (12 values) in its inputs (x0 and x of its
+particles, for the repulsion also their masses and k_r), and each scale's in its pair's
+x0 and its particle's x, is taken by complex-step differentiation of the formulas above
+(f(z + i e) imaginary part / e with e = 1e-30: exact to round-off, no difference
+quotient), vectorised over the pairs; the averaging, the clip and the scaling are
+linear in those and done by hand. Host arrays (numpy), a step at a time:
+``Replay.backward``.
 """
 
 from __future__ import annotations
@@ -35,32 +52,34 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from massspring.kernels.self_collision import SEPARATION
+from massspring.kernels.self_collision import BOUND_SLACK, EDGE_EDGE, GAMMA, OFFSET, POINT_TRIANGLE, SEPARATION
 
 STEP = 1e-30  # the complex step
-INPUTS = 29  # a pair's inputs: x0 (4 x 3), x (4 x 3), masses (4), the repulsion stiffness
 REPLAY_TOLERANCE = 1e-9  # of the thickness (m) and the thickness a step (m/s): the replay against the pass
 
 
 @dataclass(frozen=True)
 class Record:
-    """What the backward pass needs of a step in which the repulsion acted, besides the
-    states before and after it: the step's candidate state ``x``, ``v`` (n, 3; before the
-    pass) and the pass's listed pairs ``idx`` (P, 4) int, ``w`` (P, 4) (signed weights at
-    x0), ``kind`` (P,) (1: edge-edge, -1: point-triangle)."""
+    """What the backward pass needs of a step in which the pass acted, besides the states
+    before and after it: the step's candidate state ``x``, ``v`` (n, 3; before the pass),
+    the pass's listed pairs ``idx`` (P, 4) int, ``w`` (P, 4) (signed weights at x0),
+    ``kind`` (P,) (1: edge-edge, -1: point-triangle) and ``rounds`` (P,) int: the round of
+    step 3 in which each pair was set to bound its own particles (-1: never)."""
 
     x: np.ndarray
     v: np.ndarray
     idx: np.ndarray
     w: np.ndarray
     kind: np.ndarray
+    rounds: np.ndarray
 
 
 class ReplayError(RuntimeError):
-    """The repulsion replayed on the host does not give the pass's x', v' (by ``error`` m)."""
+    """The pass replayed on the host does not give the pass's x', v' (by ``error`` m), or
+    meets a pair it cannot run backwards (``why``)."""
 
-    def __init__(self, error):
-        super().__init__(f"the self-collision pass replayed on the host differs from the pass by {error:.3g} m")
+    def __init__(self, error=np.nan, why=None):
+        super().__init__(why or f"the self-collision pass replayed on the host differs from the pass by {error:.3g} m")
         self.error = float(error)
 
 
@@ -97,12 +116,10 @@ def regions(w, kind):
     return w0, e
 
 
-def pair_changes(x0, x, masses, free, w0, e, k_r, h, thickness, mu, branches=None):
-    """Each pair's velocity changes dv (P, 4, 3) by the module docstring's formulas:
-    ``x0``, ``x`` (P, 4, 3) and ``masses`` (P, 4) of its particles, ``free`` (P, 4) bool,
-    region ``w0``, ``e`` (``regions``), ``k_r`` (P,) N/m; real or complex inputs.
-    ``branches``: the frozen choices (from a real evaluation, which returns them as
-    ``(dv, branches)``); the pairs that do not act get dv = 0."""
+def closest(x0, w0, e):
+    """(w, g, L, n): each pair's weights (P, 4) solved on their region at ``x0`` (P, 4, 3),
+    gap vector g = sum_k w_k x0_k (P, 3), distance L (P,) and normal n = g / L (P, 3);
+    real or complex."""
     a = np.einsum("pk,pkc->pc", w0, x0)
     bmat = np.einsum("pkj,pkc->pcj", e, x0)
     gram = np.einsum("pcj,pcl->pjl", bmat, bmat) + np.eye(2) * (~e.any(axis=1))[:, None, :]
@@ -110,120 +127,252 @@ def pair_changes(x0, x, masses, free, w0, e, k_r, h, thickness, mu, branches=Non
     w = w0 + np.einsum("pkj,pj->pk", e, theta)
     g = a + np.einsum("pcj,pj->pc", bmat, theta)
     length = np.sqrt(np.sum(g * g, axis=1))
-    safe = np.where(length.real > 0, length, 1.0)
-    normal = g / safe[:, None]
+    return w, g, length, g / np.where(length.real > 0, length, 1.0)[:, None]
+
+
+def repulsion_changes(x0, x, masses, k_r, free, w0, e, h, thickness, mu, branches=None):
+    """Each pair's repulsion dv (P, 4, 3) by the module docstring's formulas: ``x0``,
+    ``x`` (P, 4, 3), ``masses`` (P, 4) of its particles, ``k_r`` (P,) N/m, ``free`` (P, 4)
+    bool, region ``w0``, ``e`` (``regions``); real or complex inputs. ``branches``: the
+    frozen choices (from a real evaluation, which returns them as ``(dv, branches)``);
+    pairs that do not act get dv = 0."""
+    w, _, length, normal = closest(x0, w0, e)
     rel = np.einsum("pk,pkc->pc", w, x - x0) / h
     inverse = np.sum(np.where(free, w * w / masses, 0.0), axis=1)
     vn = np.sum(rel * normal, axis=1)
     gap = thickness - length
     need = SEPARATION * gap / h - vn
-    if branches is None:
-        approach = vn.real < 0
-        cap = np.where(approach, -vn, 0.0) + h * k_r * gap * inverse
-        use_need = need.real <= cap.real
-        dvn = np.where(use_need, need, cap)
-    else:
-        approach, use_need = branches["approach"], branches["need"]
-        cap = np.where(approach, -vn, 0.0) + h * k_r * gap * inverse
-        dvn = np.where(use_need, need, cap)
+    real = branches is None
+    if real:
+        branches = {"approach": vn.real < 0}
+    cap = np.where(branches["approach"], -vn, 0.0) + h * k_r * gap * inverse
+    if real:
+        branches["need"] = need.real <= cap.real
+    dvn = np.where(branches["need"], need, cap)
     tangent = rel - vn[:, None] * normal
     vt = np.sqrt(np.sum(tangent * tangent, axis=1))
-    if branches is None:
-        act = (length.real < thickness) & (length.real > 0) & (inverse.real > 0) & (dvn.real > 0)
-        moving = vt.real > 0
-        sliding = mu * dvn.real < vt.real
-        branches = {"approach": approach, "need": use_need, "act": act, "moving": moving, "sliding": sliding}
-        real = True
-    else:
-        act, moving, sliding = branches["act"], branches["moving"], branches["sliding"]
-        real = False
-    safe_vt = np.where(moving, vt, 1.0)
-    coefficient = np.where(moving, np.where(sliding, mu * dvn / safe_vt, 1.0), 0.0)
+    if real:
+        branches.update(act=(length.real < thickness) & (length.real > 0) & (inverse.real > 0) & (dvn.real > 0),
+                        moving=vt.real > 0, sliding=mu * dvn.real < vt.real)
+    act, moving = branches["act"], branches["moving"]
+    coefficient = np.where(moving, np.where(branches["sliding"], mu * dvn / np.where(moving, vt, 1.0), 1.0), 0.0)
     change = dvn[:, None] * normal - coefficient[:, None] * tangent
     impulse = change / np.where(act, inverse, 1.0)[:, None]
-    dv = np.where((free & act[:, None])[..., None], w[..., None] * impulse[:, None, :] / masses[..., None], 0.0)
+    mask = free & act[:, None]
+    dv = np.where(mask[..., None], w[..., None] * impulse[:, None, :] / masses[..., None], 0.0)
     return (dv, branches) if real else dv
 
 
+def sides(kind):
+    """Each pair's particles' sides (P, 4): ``POINT_TRIANGLE`` or ``EDGE_EDGE``."""
+    return np.where((kind == 1)[:, None], np.array(EDGE_EDGE, float), np.array(POINT_TRIANGLE, float))
+
+
+def allowance(x0, x, kind, w0, e, thickness, far=None):
+    """(toward (P, 4), a (P,), n (P, 3)): how far each particle of each pair moved towards
+    the other side, how far it may, and the pair's normal (step 3); ``far`` (P,) bool: the
+    frozen choice L > OFFSET thickness (from a real evaluation, which returns it last)."""
+    _, _, length, normal = closest(x0, w0, e)
+    toward = -sides(kind) * np.einsum("pc,pkc->pk", normal, x - x0)
+    if far is None:
+        far = length.real > OFFSET * thickness
+        return toward, GAMMA * np.where(far, length - OFFSET * thickness, 0.0), normal, far
+    return toward, GAMMA * np.where(far, length - OFFSET * thickness, 0.0), normal
+
+
+def push_changes(x0, x, kind, w0, e, h, thickness, branches=None):
+    """Each pair's first-round push as velocity changes dv (P, 4, 3) (step 3): each
+    particle that moves towards the other side by more than it may goes back to it along
+    the normal; ``branches`` as ``repulsion_changes``'s: ``far`` (L > OFFSET thickness)
+    and ``pushed`` (P, 4) (the caller leaves pinned particles out of it)."""
+    real = branches is None
+    if real:
+        toward, allowed, normal, far = allowance(x0, x, kind, w0, e, thickness)
+        branches = {"far": far, "pushed": toward.real > allowed.real[:, None]}
+    else:
+        toward, allowed, normal = allowance(x0, x, kind, w0, e, thickness, branches["far"])
+    excess = (toward - allowed[:, None]) * sides(kind)
+    dv = np.where(branches["pushed"][..., None], excess[..., None] * normal[:, None, :] / h, 0.0)
+    return (dv, branches) if real else dv
+
+
+def scale_of(x0, xi, kind, w0, e, k, thickness, far):
+    """sigma = a / toward (P,) of particle ``k`` (P,) of each pair at position ``xi`` (P, 3)."""
+    _, _, length, normal = closest(x0, w0, e)
+    rows = np.arange(len(x0))
+    toward = -sides(kind)[rows, k] * np.sum(normal * (xi - x0[rows, k]), axis=1)
+    return GAMMA * np.where(far, length - OFFSET * thickness, 0.0) / toward
+
+
 class Replay:
-    """The repulsion of one model's pass: ``masses`` (n,) kg, ``free`` (n,) bool (not
-    pinned), dt ``h`` (s), ``thickness`` (m), friction ``mu``, repulsion stiffness
-    ``k_r`` (N/m), in the device's particle numbering."""
+    """The pass of one model: ``masses`` (n,) kg, ``free`` (n,) bool (not pinned), dt
+    ``h`` (s), ``thickness`` (m), friction ``mu``, repulsion stiffness ``k_r`` (N/m), in
+    the device's particle numbering."""
 
     def __init__(self, masses, free, h, thickness, mu, k_r):
         self.masses, self.free = np.asarray(masses, dtype=np.float64), np.asarray(free, dtype=bool)
         self.h, self.thickness, self.mu, self.k_r = float(h), float(thickness), float(mu), float(k_r)
 
-    def _pairs(self, record, x0):
-        idx = record.idx
-        w0, e = regions(record.w, record.kind)
-        args = (x0[idx], record.x[idx], self.masses[idx], self.free[idx], w0, e, np.full(len(idx), self.k_r))
-        return args, pair_changes(*args, self.h, self.thickness, self.mu)
-
     def forward(self, record, x0):
-        """The repulsion of ``record``'s step from start positions ``x0`` (n, 3), replayed:
-        ``(x', v', parts)``, ``parts`` what ``backward`` needs of it."""
+        """The pass of ``record``'s step from start positions ``x0`` (n, 3), replayed:
+        ``(x', v', tape)``, ``tape`` its stages in order, what ``backward`` needs of them."""
+        idx, kind, h, thickness = record.idx, record.kind, self.h, self.thickness
+        w0, e = regions(record.w, kind)
+        starts = x0[idx]
+        inputs = (starts, record.x[idx], self.masses[idx], np.full(len(idx), self.k_r))
+        fixed = (self.free[idx], w0, e, h, thickness, self.mu)
+        dv, branches = repulsion_changes(*inputs, *fixed)
+        counted = self.free[idx] & branches["act"][:, None]
+        x, v, spread = self._spread(record, x0, record.x, record.v, idx, dv, counted)
+        tape = [dict(stage="repulsion", inputs=inputs, fixed=fixed, branches=branches, spread=spread)]
+        for r in range(int(record.rounds.max(initial=-1)) + 1):
+            chosen = record.rounds == r
+            pair = (idx[chosen], starts[chosen], kind[chosen], w0[chosen], e[chosen])
+            if r == 0:
+                inputs = (pair[1], x[pair[0]])
+                fixed = (pair[2], pair[3], pair[4], h, thickness)
+                dv, branches = push_changes(*inputs, *fixed)
+                branches["pushed"] &= self.free[pair[0]]
+                x, v, spread = self._spread(record, x0, x, v, pair[0], dv, branches["pushed"])
+                tape.append(dict(stage="push", pair=pair, inputs=inputs, fixed=fixed, branches=branches,
+                                 spread=spread))
+            x_in = x
+            x, v, scaled = self._scale(x0, x, v, pair)
+            tape.append(dict(stage="scale", pair=pair, x=x_in, scaled=scaled))
+        return x, v, tape
+
+    def _spread(self, record, x0, x, v, idx, dv, counted):
+        """x' = x + h du, v' = v + du, du the average of the pairs' ``dv`` (P, 4, 3) over
+        the ``counted`` (P, 4) entries at each particle (``idx`` (P, 4)), clipped to the
+        path boxes (x0 to ``record.x``, grown by thickness / 2)."""
         n, h, half = len(x0), self.h, 0.5 * self.thickness
-        args, (dv, branches) = self._pairs(record, x0)
-        counted = self.free[record.idx] & branches["act"][:, None]
-        hits = np.bincount(record.idx[counted], minlength=n).astype(np.float64)
+        hits = np.bincount(idx[counted], minlength=n).astype(np.float64)
         touched = (hits > 0) & self.free
         du = np.zeros((n, 3))
-        np.add.at(du, record.idx[counted], dv[counted])
+        np.add.at(du, idx[counted], dv[counted])
         du[touched] /= hits[touched, None]
-        x1 = np.where(touched[:, None], record.x + h * du, record.x)
-        v1 = np.where(touched[:, None], record.v + du, record.v)
+        x1 = np.where(touched[:, None], x + h * du, x)
+        v1 = np.where(touched[:, None], v + du, v)
         low = np.minimum(x0, record.x) - half
         high = np.maximum(x0, record.x) + half
         below, above = touched[:, None] & (x1 < low), touched[:, None] & (x1 > high)
         x2 = np.where(below, low, np.where(above, high, x1))
         v2 = v1 + (x2 - x1) / h
         from_start = np.where(below, x0 < record.x, x0 > record.x)
-        parts = dict(args=args, branches=branches, counted=counted, hits=hits, touched=touched, clipped=below | above,
-                     from_start=from_start)
-        return x2, v2, parts
+        return x2, v2, dict(idx=idx, counted=counted, hits=hits, touched=touched, clipped=below | above,
+                            from_start=from_start)
+
+    def _scale(self, x0, x, v, pair):
+        """A round's scales (step 3) from the pairs set in it (``pair``: their particles,
+        x0, kinds and regions): each particle's smallest a / toward, and which pair and
+        which of its particles gave it."""
+        idx, starts, kind, w0, e = pair
+        n = len(x0)
+        toward, allowed, _, far = allowance(starts, x[idx], kind, w0, e, self.thickness)
+        if np.any(closest(starts, w0, e)[2] == 0):
+            raise ReplayError(why="a pair set to bound its particles has its primitives touching at the step's start")
+        over = (toward > allowed[:, None] + BOUND_SLACK * self.thickness) & self.free[idx]
+        ratio = np.where(over, allowed[:, None] / np.where(over, toward, 1.0), np.inf)
+        best = np.ones(n)
+        np.minimum.at(best, idx, ratio)
+        scaled = best < 1
+        hits = np.flatnonzero((ratio == best[idx]) & scaled[idx])  # flat (pair, k) entries giving a particle's scale
+        particle = idx.reshape(-1)[hits]
+        _, first = np.unique(particle, return_index=True)
+        entries = hits[first]
+        p_of, k_of = entries // 4, entries % 4
+        s = best[:, None]
+        x2 = np.where(scaled[:, None], x0 + s * (x - x0), x)
+        v2 = np.where(scaled[:, None], s * (x - x0) / self.h, v)
+        return x2, v2, dict(best=best, scaled=scaled, pair=p_of, k=k_of, particle=particle[first], far=far)
 
     def backward(self, record, x0, after_x, after_v, lx, lv):
         """dL/d(x, v) of the step's candidate state, dL/dx0, dL/d(masses) (n,) and
         dL/dk_r from dL/d(x', v') ``lx``, ``lv`` (n, 3) of the state after the pass, at
         ``x0`` (the step's start positions) with the pass's own ``after_x``, ``after_v``
         (n, 3), which the replay must give (``ReplayError`` if not)."""
-        n, h, idx = len(x0), self.h, record.idx
-        x2, v2, parts = self.forward(record, x0)
+        h = self.h
+        x2, v2, tape = self.forward(record, x0)
         error = max(np.max(np.abs(x2 - after_x), initial=0.0), h * np.max(np.abs(v2 - after_v), initial=0.0))
         if not error <= REPLAY_TOLERANCE * self.thickness:
             raise ReplayError(error)
-        clipped, from_start, counted, hits = parts["clipped"], parts["from_start"], parts["counted"], parts["hits"]
-        gx = np.where(clipped, -lv / h, lx)  # through x', v' directly (a clipped x' is its bound)
-        gv = lv.copy()
-        bound = np.where(clipped, lx + lv / h, 0.0)  # dL/d(the bound a clipped coordinate took)
-        gx0 = np.where(from_start, bound, 0.0)
-        gx += np.where(from_start, 0.0, bound)
-        gdu = np.where(parts["touched"][:, None] & ~clipped, h * lx + lv, 0.0) / np.maximum(hits, 1.0)[:, None]
-        gm = np.zeros(n)
-        gk = 0.0
-        acting = np.flatnonzero(parts["branches"]["act"])
-        if acting.size:
-            jac = self._jacobian([arg[acting] for arg in parts["args"]],
-                                 {key: b[acting] for key, b in parts["branches"].items()})
-            gdv = np.where(counted[acting][..., None], gdu[idx[acting]], 0.0).reshape(len(acting), 12)
-            grad = np.einsum("po,poi->pi", gdv, jac)
-            np.add.at(gx0, idx[acting], grad[:, :12].reshape(-1, 4, 3))
-            np.add.at(gx, idx[acting], grad[:, 12:24].reshape(-1, 4, 3))
-            np.add.at(gm, idx[acting], grad[:, 24:28])
-            gk = float(grad[:, 28].sum())
-        return gx, gv, gx0, gm, gk
+        gx, gv = lx.copy(), lv.copy()
+        gx0, gxc, gm, gk = np.zeros_like(lx), np.zeros_like(lx), np.zeros(len(x0)), 0.0
+        for stage in reversed(tape):
+            if stage["stage"] == "scale":
+                gx, gv, gs = self._scale_back(x0, stage["x"], stage["scaled"], gx, gv, gx0)
+                if gs.size:
+                    self._scale_sources(stage["pair"], stage["x"], stage["scaled"], gs, gx, gx0)
+                continue
+            gx, gv, gdv = self._spread_back(stage["spread"], gx, gv, gx0, gxc)
+            branches, idx = stage["branches"], stage["spread"]["idx"]
+            if stage["stage"] == "push":
+                grad = self._pull(push_changes, stage["inputs"], stage["fixed"], branches, gdv)
+                np.add.at(gx0, idx, grad[:, :12].reshape(-1, 4, 3))
+                np.add.at(gx, idx, grad[:, 12:].reshape(-1, 4, 3))
+                continue
+            gxc += gx  # the repulsion changed the candidate state itself
+            acting = np.flatnonzero(branches["act"])
+            if acting.size:
+                grad = self._pull(repulsion_changes, [a[acting] for a in stage["inputs"]],
+                                  tuple(f[acting] if isinstance(f, np.ndarray) else f for f in stage["fixed"]),
+                                  {key: b[acting] for key, b in branches.items()}, gdv[acting])
+                np.add.at(gx0, idx[acting], grad[:, :12].reshape(-1, 4, 3))
+                np.add.at(gxc, idx[acting], grad[:, 12:24].reshape(-1, 4, 3))
+                np.add.at(gm, idx[acting], grad[:, 24:28])
+                gk = float(grad[:, 28].sum())
+        return gxc, gv, gx0, gm, gk
 
-    def _jacobian(self, args, branches):
-        """(P, 12, 29): d(dv) / d(x0, x, masses, k_r) of each pair, by complex steps."""
-        x0, x, masses, free, w0, e, k_r = args
-        p = len(x0)
-        flat = np.concatenate([x0.reshape(p, 12), x.reshape(p, 12), masses, k_r[:, None]], axis=1)
-        jac = np.empty((p, 12, INPUTS))
-        for j in range(INPUTS):
+    def _spread_back(self, spread, gx, gv, gx0, gxc):
+        """``_spread`` backwards from dL/d(x', v'): dL/d(x, v) of the state it changed,
+        dL/d(dv) (P, 4, 3); the clipped coordinates' bounds' shares added to ``gx0`` and
+        ``gxc`` (the candidate's)."""
+        h, clipped, from_start = self.h, spread["clipped"], spread["from_start"]
+        bound = np.where(clipped, gx + gv / h, 0.0)  # dL/d(the bound a clipped coordinate took)
+        gx0 += np.where(from_start, bound, 0.0)
+        gxc += np.where(from_start, 0.0, bound)
+        gdu = np.where(spread["touched"][:, None] & ~clipped, h * gx + gv, 0.0)
+        gdu /= np.maximum(spread["hits"], 1.0)[:, None]
+        gdv = np.where(spread["counted"][..., None], gdu[spread["idx"]], 0.0)
+        return np.where(clipped, -gv / h, gx), gv, gdv
+
+    def _scale_back(self, x0, x_in, scaled, gx, gv, gx0):
+        """``_scale`` backwards: dL/d(x, v) before it, dL/d(sigma) of each scaled particle
+        (in ``scaled["particle"]``'s order); x0's direct share added to ``gx0``."""
+        h, s, on = self.h, scaled["best"][:, None], scaled["scaled"][:, None]
+        through = gx + gv / h
+        gs = np.sum(through * (x_in - x0), axis=1)[scaled["particle"]]
+        gx0 += np.where(on, (1 - s) * gx - s * gv / h, 0.0)
+        return np.where(on, s * through, gx), np.where(on, 0.0, gv), gs
+
+    def _scale_sources(self, pair, x_in, scaled, gs, gx, gx0):
+        """Each scale's share through its pair's x0 and its particle's position."""
+        idx, starts, kind, w0, e = pair
+        p, k, particle = scaled["pair"], scaled["k"], scaled["particle"]
+        z = np.concatenate([starts[p].reshape(-1, 12), x_in[particle]], axis=1)
+        jac = np.empty((len(p), 15))
+        for j in range(15):
+            dz = z.astype(np.complex128)
+            dz[:, j] += 1j * STEP
+            jac[:, j] = scale_of(dz[:, :12].reshape(-1, 4, 3), dz[:, 12:], kind[p], w0[p], e[p], k, self.thickness,
+                                 scaled["far"][p]).imag / STEP
+        grad = gs[:, None] * jac
+        np.add.at(gx0, idx[p], grad[:, :12].reshape(-1, 4, 3))
+        np.add.at(gx, particle, grad[:, 12:])
+
+    @staticmethod
+    def _pull(changes, inputs, fixed, branches, gdv):
+        """gdv (P, 4, 3) pulled back through ``changes(*inputs, *fixed, branches=...)``:
+        (P, I), I the inputs' sizes per pair, by one complex step per input."""
+        p = len(inputs[0])
+        shapes = [a.shape[1:] for a in inputs]
+        bounds = np.cumsum([0] + [int(np.prod(shape)) for shape in shapes])
+        flat = np.concatenate([a.reshape(p, -1) for a in inputs], axis=1)
+        grad = np.empty((p, flat.shape[1]))
+        for j in range(flat.shape[1]):
             z = flat.astype(np.complex128)
             z[:, j] += 1j * STEP
-            dv = pair_changes(z[:, :12].reshape(p, 4, 3), z[:, 12:24].reshape(p, 4, 3), z[:, 24:28], free, w0, e,
-                              z[:, 28], self.h, self.thickness, self.mu, branches)
-            jac[:, :, j] = dv.reshape(p, 12).imag / STEP
-        return jac
+            args = [z[:, a:b].reshape((p,) + shape) for a, b, shape in zip(bounds[:-1], bounds[1:], shapes)]
+            dv = changes(*args, *fixed, branches=branches).imag / STEP
+            grad[:, j] = np.sum(dv * gdv, axis=(1, 2))
+        return grad

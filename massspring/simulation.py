@@ -287,17 +287,17 @@ class Simulation:
         """The self-collision pass so far (None without self-collision): "steps", "passes"
         (steps that ran the full pass), "grown" (times its pair list grew) and
         "capacity" (pairs the list holds); of the last full pass: "pairs" (listed),
-        "repelled" (closer than the thickness), "held" (particles held back),
-        "displacement" (largest, m), "closest" (smallest pair distance, m) and
+        "repelled" (closer than the thickness), "bounded" (closing too fast: set to bound
+        their own particles), "held" (particles held back), "displacement" (largest, m), "closest" (smallest pair distance, m) and
         "left_out" (pairs within the thickness left out of the implicit solve because
         they passed its capacity; 0 if none)."""
         guard = self._guard
         if guard is None:
             return None
-        pairs, repelled, held, displacement, closest, capacity = guard.last
+        pairs, repelled, held, displacement, closest, capacity, bounded = guard.last
         return {"steps": guard.steps, "passes": guard.passes, "grown": guard.grown, "capacity": capacity,
-                "pairs": pairs, "repelled": repelled, "held": held, "displacement": displacement,
-                "closest": closest, "left_out": guard.left_out}
+                "pairs": pairs, "repelled": repelled, "bounded": bounded, "held": held,
+                "displacement": displacement, "closest": closest, "left_out": guard.left_out}
 
     @property
     def strain_limit_stats(self) -> dict | None:
