@@ -288,9 +288,9 @@ class Simulation:
         (steps that ran the full pass), "grown" (times its pair list grew) and
         "capacity" (pairs the list holds); of the last full pass: "pairs" (listed),
         "repelled" (closer than the thickness), "bounded" (closing too fast: set to bound
-        their own particles), "held" (particles held back), "displacement" (largest, m), "closest" (smallest pair distance, m) and
-        "left_out" (pairs within the thickness left out of the implicit solve because
-        they passed its capacity; 0 if none)."""
+        their own particles), "held" (particles held back), "displacement" (largest, m),
+        "closest" (smallest pair distance, m) and "left_out" (pairs within the thickness
+        left out of the implicit solve because they passed its capacity; 0 if none)."""
         guard = self._guard
         if guard is None:
             return None
