@@ -658,3 +658,18 @@ def self_collision_solve_pairs(dev: ti.template(), cfg: ti.template(), pl: ti.te
             collect(dev, cfg, pl, state.x, ti.cast(dt, cfg.real))
     else:
         collect(dev, cfg, pl, state.x, ti.cast(dt, cfg.real))
+
+
+@ti.kernel
+def self_collision_read_pairs(pl: ti.template(), count: ti.i32, idx: ti.types.ndarray(dtype=ti.i32, ndim=2),
+                              w: ti.types.ndarray(dtype=ti.f64, ndim=2), kind: ti.types.ndarray(dtype=ti.i32, ndim=1),
+                              bound: ti.types.ndarray(dtype=ti.i32, ndim=1)):
+    """The first ``count`` pairs of the pair list ``pl``: particles ``idx`` (count, 4),
+    weights ``w`` (count, 4), ``kind`` and ``bound`` (count,) (``pkind``, ``pbound``), without
+    copying the whole list out (a gradient's record of a step: ``massspring.gradients``)."""
+    for slot in range(count):
+        for c in ti.static(range(4)):
+            idx[slot, c] = pl.pidx[slot][c]
+            w[slot, c] = ti.cast(pl.pw[slot][c], ti.f64)
+        kind[slot] = pl.pkind[slot]
+        bound[slot] = pl.pbound[slot]

@@ -460,12 +460,11 @@ class PassSteps:
             adj, first = integrator.history
             state_kernels.save_state(adj.hx, adj.hv, state, self.n, k + 1 - first, self.stride)
         if k >= self.first:
-            plist = guard.list
+            idx, w, kind, _ = guard.pairs(pairs)
             rounds = np.full(pairs, -1, dtype=np.int32)
             for r, flags in reversed(list(enumerate(bounding))):
                 rounds[flags] = r
-            self.records[k] = Record(dev.read("sc_end"), dev.read("sc_vend"), plist.pidx.to_numpy()[:pairs],
-                                     plist.pw.to_numpy()[:pairs], plist.pkind.to_numpy()[:pairs], rounds)
+            self.records[k] = Record(dev.read("sc_end"), dev.read("sc_vend"), idx, w, kind, rounds)
 
     def any_in(self, low, high) -> bool:
         """Whether a step from ``low`` to ``high`` has a record."""

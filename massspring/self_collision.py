@@ -284,7 +284,7 @@ class Pass:
             if self.watched and marked:  # pairs pushed, particles held back
                 if not recording:
                     raise Acted(self.steps - 1)
-                bounding.append(self.list.pbound.to_numpy()[:int(out[0])] == OWN)
+                bounding.append(self.pairs(int(out[0]))[3] == OWN)
                 acted = True
             rounds += 1
         if acted:
@@ -293,6 +293,18 @@ class Pass:
         self.last = (int(out[0]), int(out[1]), int(held), float(out[3]), float(out[4]), self.capacity, bounded)
         if self.cfg.self_pairs:
             self.left_out = int(self.dev.sp_count[1])
+
+    def pairs(self, count):
+        """The pair list's first ``count`` pairs: particles (count, 4) int32, weights
+        (count, 4) float64, kinds and bounds (count,) int32 (``pidx``, ``pw``, ``pkind``,
+        ``pbound`` of ``kernels/self_collision.py``)."""
+        from massspring.kernels.self_collision import self_collision_read_pairs
+
+        out = (np.empty((count, 4), np.int32), np.empty((count, 4)), np.empty(count, np.int32),
+               np.empty(count, np.int32))
+        if count:
+            self_collision_read_pairs(self.list, count, *out)
+        return out
 
     def watch(self, recorder=None):
         """From now on, stop the run with ``Acted`` at the first step in which the pass or

@@ -56,6 +56,7 @@ from massspring.kernels.self_collision import BOUND_SLACK, EDGE_EDGE, GAMMA, OFF
 
 STEP = 1e-30  # the complex step
 REPLAY_TOLERANCE = 1e-9  # of the thickness (m) and the thickness a step (m/s): the replay against the pass
+NEAR = 1e-9  # of the thickness: the pairs the replay's repulsion looks at are this near it, to round-off
 
 
 @dataclass(frozen=True)
@@ -154,8 +155,9 @@ def repulsion_changes(x0, x, masses, k_r, free, w0, e, h, thickness, mu, branche
     if real:
         branches.update(act=(length.real < thickness) & (length.real > 0) & (inverse.real > 0) & (dvn.real > 0),
                         moving=vt.real > 0, sliding=mu * dvn.real < vt.real)
-    act, moving = branches["act"], branches["moving"]
-    coefficient = np.where(moving, np.where(branches["sliding"], mu * dvn / np.where(moving, vt, 1.0), 1.0), 0.0)
+    act, moving, sliding = branches["act"], branches["moving"], branches["moving"] & branches["sliding"]
+    divisor = np.where(sliding & (vt != 0), vt, 1.0)  # (|t| at round-off: it sticks, or slides with mu = 0)
+    coefficient = np.where(sliding, mu * dvn / divisor, np.where(moving, 1.0, 0.0))
     change = dvn[:, None] * normal - coefficient[:, None] * tangent
     impulse = change / np.where(act, inverse, 1.0)[:, None]
     mask = free & act[:, None]
@@ -219,11 +221,13 @@ class Replay:
         idx, kind, h, thickness = record.idx, record.kind, self.h, self.thickness
         w0, e = regions(record.w, kind)
         starts = x0[idx]
-        inputs = (starts, record.x[idx], self.masses[idx], np.full(len(idx), self.k_r))
-        fixed = (self.free[idx], w0, e, h, thickness, self.mu)
+        gaps = np.einsum("pk,pkc->pc", record.w, starts)  # (the pairs the pass found within the thickness)
+        near = np.flatnonzero(np.sum(gaps * gaps, axis=1) < (thickness * (1 + NEAR)) ** 2)
+        inputs = (starts[near], record.x[idx[near]], self.masses[idx[near]], np.full(len(near), self.k_r))
+        fixed = (self.free[idx[near]], w0[near], e[near], h, thickness, self.mu)
         dv, branches = repulsion_changes(*inputs, *fixed)
-        counted = self.free[idx] & branches["act"][:, None]
-        x, v, spread = self._spread(record, x0, record.x, record.v, idx, dv, counted)
+        counted = self.free[idx[near]] & branches["act"][:, None]
+        x, v, spread = self._spread(record, x0, record.x, record.v, idx[near], dv, counted)
         tape = [dict(stage="repulsion", inputs=inputs, fixed=fixed, branches=branches, spread=spread)]
         for r in range(int(record.rounds.max(initial=-1)) + 1):
             chosen = record.rounds == r
@@ -349,13 +353,8 @@ class Replay:
         """Each scale's share through its pair's x0 and its particle's position."""
         idx, starts, kind, w0, e = pair
         p, k, particle = scaled["pair"], scaled["k"], scaled["particle"]
-        z = np.concatenate([starts[p].reshape(-1, 12), x_in[particle]], axis=1)
-        jac = np.empty((len(p), 15))
-        for j in range(15):
-            dz = z.astype(np.complex128)
-            dz[:, j] += 1j * STEP
-            jac[:, j] = scale_of(dz[:, :12].reshape(-1, 4, 3), dz[:, 12:], kind[p], w0[p], e[p], k, self.thickness,
-                                 scaled["far"][p]).imag / STEP
+        jac = complex_jacobian(scale_of, (starts[p], x_in[particle]),
+                               (kind[p], w0[p], e[p], k, self.thickness, scaled["far"][p]))
         grad = gs[:, None] * jac
         np.add.at(gx0, idx[p], grad[:, :12].reshape(-1, 4, 3))
         np.add.at(gx, particle, grad[:, 12:])
@@ -363,16 +362,31 @@ class Replay:
     @staticmethod
     def _pull(changes, inputs, fixed, branches, gdv):
         """gdv (P, 4, 3) pulled back through ``changes(*inputs, *fixed, branches=...)``:
-        (P, I), I the inputs' sizes per pair, by one complex step per input."""
-        p = len(inputs[0])
-        shapes = [a.shape[1:] for a in inputs]
-        bounds = np.cumsum([0] + [int(np.prod(shape)) for shape in shapes])
-        flat = np.concatenate([a.reshape(p, -1) for a in inputs], axis=1)
-        grad = np.empty((p, flat.shape[1]))
-        for j in range(flat.shape[1]):
-            z = flat.astype(np.complex128)
-            z[:, j] += 1j * STEP
-            args = [z[:, a:b].reshape((p,) + shape) for a, b, shape in zip(bounds[:-1], bounds[1:], shapes)]
-            dv = changes(*args, *fixed, branches=branches).imag / STEP
-            grad[:, j] = np.sum(dv * gdv, axis=(1, 2))
-        return grad
+        (P, I), I the inputs' sizes per pair."""
+        jac = complex_jacobian(changes, inputs, fixed, {"branches": branches})
+        return np.einsum("pkc,pkci->pi", gdv, jac)
+
+
+def complex_jacobian(function, inputs, fixed=(), keywords=None):
+    """d function / d inputs by complex steps, all in one call: ``function(*inputs,
+    *fixed, **keywords)`` of arrays (P, ...) per pair returns (P, ...) values; the
+    result is (P, ..., I), I the inputs' sizes per pair. ``fixed`` and ``keywords``'
+    arrays (a dict's values too) are per pair; the call sees I copies of every pair,
+    copy j with input j moved by i e (e = ``STEP``)."""
+    p = len(inputs[0])
+    shapes = [a.shape[1:] for a in inputs]
+    bounds = np.cumsum([0] + [int(np.prod(shape)) for shape in shapes])
+    size = int(bounds[-1])
+    z = np.repeat(np.concatenate([a.reshape(p, -1) for a in inputs], axis=1)[None].astype(np.complex128), size,
+                  axis=0)
+    z[np.arange(size), :, np.arange(size)] += 1j * STEP
+    z = z.reshape(size * p, size)
+
+    def copies(value):
+        if isinstance(value, dict):
+            return {key: copies(item) for key, item in value.items()}
+        return np.tile(value, (size,) + (1,) * (value.ndim - 1)) if isinstance(value, np.ndarray) else value
+
+    args = [z[:, a:b].reshape((size * p,) + shape) for a, b, shape in zip(bounds[:-1], bounds[1:], shapes)]
+    out = function(*args, *(copies(value) for value in fixed), **copies(keywords or {})).imag / STEP
+    return np.moveaxis(out.reshape((size, p) + out.shape[1:]), 0, -1)
