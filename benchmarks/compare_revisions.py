@@ -13,7 +13,8 @@ solves capped at k and 2k iterations); explicit and symplectic ms per step at 32
 128, 256 (dt = 2e-4 / res); multigrid-preconditioned implicit ms per step (setup
 included, dt = 1/60) at 128 and 256; cold first step (Simulation built, kernels compiled
 with an empty Taichi offline cache, one step) of the implicit and symplectic
-32 x 32 cloth.
+32 x 32 cloth; the sheets scene at 16 x 16 (self-collision every step, the upper
+sheet landing) with the implicit, backward-Euler and symplectic steps, ms per step.
 
     python benchmarks/compare_revisions.py --base f17ee13
     python benchmarks/compare_revisions.py --base f17ee13 --cases symplectic-128 --repeats 3
@@ -37,7 +38,7 @@ ROOT = HERE.parent
 sys.path.insert(0, str(ROOT))
 CASES = ["implicit-32", "implicit-128", "implicit-512", "explicit-32", "explicit-128", "explicit-256",
          "symplectic-32", "symplectic-128", "symplectic-256", "multigrid-128", "multigrid-256", "cold-implicit-32",
-         "cold-symplectic-32"]
+         "cold-symplectic-32", "sheets-implicit-16", "sheets-backward-euler-16", "sheets-symplectic-16"]
 
 
 def parse_args(argv=None):
@@ -92,7 +93,8 @@ def main(argv=None):
     head = subprocess.run(["git", "-C", str(ROOT), "rev-parse", "--short", "HEAD"], capture_output=True,
                           text=True).stdout.strip()
     print(f"base {sha[:10]} vs current {head} (+ working tree); {args.repeats} processes each, interleaved")
-    print(f"{'case':20s} {'unit':>8s} {'base':>10s} {'new':>10s} {'new/base':>9s}")
+    width = max(20, *(len(case) for case in args.cases))
+    print(f"{'case':{width}s} {'unit':>8s} {'base':>10s} {'new':>10s} {'new/base':>9s}")
     rows = []
     for case in args.cases:
         samples = {"base": [], "new": []}
@@ -104,7 +106,7 @@ def main(argv=None):
         base, new = statistics.median(samples["base"]), statistics.median(samples["new"])
         rows.append({"case": case, "unit": unit, "base": base, "new": new, "ratio": new / base,
                      "samples": samples})
-        print(f"{case:20s} {unit:>8s} {base:10.4f} {new:10.4f} {new / base:9.3f}", flush=True)
+        print(f"{case:{width}s} {unit:>8s} {base:10.4f} {new:10.4f} {new / base:9.3f}", flush=True)
     write_json(args.json, {"base": sha, "current": head, "repeats": args.repeats, "cases": rows})
     print(f"wrote {args.json}")
 

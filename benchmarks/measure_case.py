@@ -67,6 +67,14 @@ def multigrid_ms_per_step(resolution, steps=4):
     return ms_per_step(sim, 1, steps)
 
 
+def sheets_ms_per_step(integrator, resolution):
+    """The ``sheets`` scene (two sheets, the upper one landing on the lower, self-collision
+    every step) at its dt: ms per step over 3 x 40 steps from step 2 on (they land about
+    step 45 at 1/240 s)."""
+    sim = ms.load_scene("sheets").with_params(resolution=resolution).simulation(integrator=integrator)
+    return ms_per_step(sim, 40, 3)
+
+
 def cold_first_step(integrator, resolution):
     """Seconds from building the Simulation to the end of its first step (kernels
     compiled: run with an empty Taichi offline cache)."""
@@ -88,6 +96,8 @@ def main(case):
         value = explicit_ms_per_step(kind, resolution)
     elif kind == "multigrid":
         value = multigrid_ms_per_step(resolution)
+    elif kind.startswith("sheets-"):
+        value = sheets_ms_per_step(kind[len("sheets-"):], resolution)
     elif kind.startswith("cold-"):
         value = cold_first_step(kind[len("cold-"):], resolution)
     else:
