@@ -52,7 +52,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from massspring.kernels.self_collision import BOUND_SLACK, EDGE_EDGE, GAMMA, OFFSET, POINT_TRIANGLE, SEPARATION
+from massspring.kernels.self_collision import (BOUND_SLACK, DV_LIMIT, EDGE_EDGE, GAMMA, OFFSET, POINT_TRIANGLE, SCALE,
+                                               SEPARATION)
 
 STEP = 1e-30  # the complex step
 REPLAY_TOLERANCE = 1e-9  # of the thickness (m) and the thickness a step (m/s): the replay against the pass
@@ -82,6 +83,13 @@ class ReplayError(RuntimeError):
     def __init__(self, error=np.nan, why=None):
         super().__init__(why or f"the self-collision pass replayed on the host differs from the pass by {error:.3g} m")
         self.error = float(error)
+
+
+def fixed_point(values):
+    """``values`` as the pass sums them (``kernels/self_collision.py``'s ``fixed_point``):
+    clipped to +-DV_LIMIT and rounded to multiples of 1 / SCALE, so that the replay's sums
+    are the pass's (the rounding's derivative is taken as 1)."""
+    return np.round(np.clip(values, -DV_LIMIT, DV_LIMIT) * SCALE) / SCALE
 
 
 def regions(w, kind):
@@ -209,11 +217,14 @@ def scale_of(x0, xi, kind, w0, e, k, thickness, far):
 class Replay:
     """The pass of one model: ``masses`` (n,) kg, ``free`` (n,) bool (not pinned), dt
     ``h`` (s), ``thickness`` (m), friction ``mu``, repulsion stiffness ``k_r`` (N/m), in
-    the device's particle numbering."""
+    the device's particle numbering; ``rounded``: each pair's velocity changes rounded
+    as the pass's fixed-point sums round them (False: exact, for differences of the
+    replay itself; the pass's scales can lift that rounding, 1e-12 m, to 4e-11 m)."""
 
-    def __init__(self, masses, free, h, thickness, mu, k_r):
+    def __init__(self, masses, free, h, thickness, mu, k_r, rounded=True):
         self.masses, self.free = np.asarray(masses, dtype=np.float64), np.asarray(free, dtype=bool)
         self.h, self.thickness, self.mu, self.k_r = float(h), float(thickness), float(mu), float(k_r)
+        self.rounded = rounded
 
     def forward(self, record, x0):
         """The pass of ``record``'s step from start positions ``x0`` (n, 3), replayed:
@@ -226,6 +237,8 @@ class Replay:
         inputs = (starts[near], record.x[idx[near]], self.masses[idx[near]], np.full(len(near), self.k_r))
         fixed = (self.free[idx[near]], w0[near], e[near], h, thickness, self.mu)
         dv, branches = repulsion_changes(*inputs, *fixed)
+        if self.rounded:
+            dv = fixed_point(dv)
         counted = self.free[idx[near]] & branches["act"][:, None]
         x, v, spread = self._spread(record, x0, record.x, record.v, idx[near], dv, counted)
         tape = [dict(stage="repulsion", inputs=inputs, fixed=fixed, branches=branches, spread=spread)]
@@ -236,6 +249,8 @@ class Replay:
                 inputs = (pair[1], x[pair[0]])
                 fixed = (pair[2], pair[3], pair[4], h, thickness)
                 dv, branches = push_changes(*inputs, *fixed)
+                if self.rounded:
+                    dv = fixed_point(dv * h) / h  # (the kernels sum the push's displacements)
                 branches["pushed"] &= self.free[pair[0]]
                 x, v, spread = self._spread(record, x0, x, v, pair[0], dv, branches["pushed"])
                 tape.append(dict(stage="push", pair=pair, inputs=inputs, fixed=fixed, branches=branches,

@@ -95,7 +95,7 @@ def test_adjoint_matches_differences_of_the_replay(mu, k_r, pinned, clip):
         x[3] += [1e-4, 2e-4, -6e-3]
         masses[3] = 50.0
         idx, kind, w = idx[:1], kind[:1], w[:1]  # the point over the face alone (the others would share the hits)
-    replay = Replay(masses, free, H, THICKNESS, mu, k_r)
+    replay = Replay(masses, free, H, THICKNESS, mu, k_r, rounded=False)
     record = Record(x, v, idx, w, kind, np.full(len(idx), -1))
     x2, v2, tape = replay.forward(record, x0)
     branches = tape[0]["branches"]
@@ -117,7 +117,7 @@ def check_against_differences(replay, record, x0, rng):
     gx, gv, gx0, gm, gk = replay.backward(record, x0, x2, v2, lx, lv)
 
     def objective(x0_, x_, v_, m_, k_):
-        moved = Replay(m_, replay.free, replay.h, replay.thickness, replay.mu, k_)
+        moved = Replay(m_, replay.free, replay.h, replay.thickness, replay.mu, k_, rounded=False)
         out_x, out_v, _ = moved.forward(Record(x_, v_, record.idx, record.w, record.kind, record.rounds), x0_)
         return np.sum(lx * out_x) + np.sum(lv * out_v)
 
@@ -149,7 +149,7 @@ def test_bounds_adjoint_matches_differences_of_the_replay():
     rng = np.random.default_rng(2)
     x = x + [0.0, 0.0, -1e-3]  # with the upper ones' 1 mm: 2 mm down in all
     x[12:14, 2] -= 1.5e-3  # the edge beyond the other's end 3.5 mm
-    replay = Replay(rng.uniform(0.5, 1.5, n), np.arange(n) != 6, H, THICKNESS, 0.05, 30.0)
+    replay = Replay(rng.uniform(0.5, 1.5, n), np.arange(n) != 6, H, THICKNESS, 0.05, 30.0, rounded=False)
     record = Record(x, rng.normal(0, 0.1, (n, 3)), idx, w, kind, np.array([0, -1, -1, 0, 1]))
     _, _, tape = replay.forward(record, x0)
     assert [stage["stage"] for stage in tape] == ["repulsion", "push", "scale", "scale"]
