@@ -450,20 +450,17 @@ class PassSteps:
         """Keep the records of step ``first`` on (those before are dropped)."""
         self.records, self.first = {}, first
 
-    def __call__(self, guard, state, pairs, bounding):
-        """A step in which ``guard`` (the pass) acted: ``state`` as it left it, ``pairs``
-        listed, ``bounding`` the pairs set to bound their particles after each round of
-        step 3 that set some (``Pass.watch``). An integrator that stored the step's state
-        in the history before the pass (``records_history``) gets it replaced by the pass's."""
-        k, integrator, dev = self.sim._steps, self.sim._integrator, guard.dev
-        if integrator.history is not None:
+    def __call__(self, state, idx, w, kind, rounds):
+        """A step in which the pass acted (``Pass.watch``): ``state`` as it left it, its
+        listed pairs and the round each was set to bound its particles. An integrator that
+        stored the step's state in the history before the pass (``records_history``) gets
+        it replaced by the pass's; the others keep it after the step."""
+        k, integrator = self.sim._steps, self.sim._integrator
+        if integrator.history is not None and integrator.records_history:
             adj, first = integrator.history
             state_kernels.save_state(adj.hx, adj.hv, state, self.n, k + 1 - first, self.stride)
         if k >= self.first:
-            idx, w, kind, _ = guard.pairs(pairs)
-            rounds = np.full(pairs, -1, dtype=np.int32)
-            for r, flags in reversed(list(enumerate(bounding))):
-                rounds[flags] = r
+            dev = integrator.dev
             self.records[k] = Record(dev.read("sc_end"), dev.read("sc_vend"), idx, w, kind, rounds)
 
     def any_in(self, low, high) -> bool:

@@ -213,7 +213,7 @@ class Pass:
         self.passes = self.steps = self.grown = self.left_out = 0
         self.fresh = True  # x0 and the anchors are not set yet
         self.watched = False  # a gradient's run: stop with ``Acted`` where the pass acts (``watch``)
-        self.recorder = None  # ... and hand the steps it repelled in to this (``watch``)
+        self.recorder = None  # ... and hand the steps it acted in to this (``watch``)
 
     @property
     def capacity(self) -> int:
@@ -276,7 +276,9 @@ class Pass:
         acted = self.watched and int(out[1]) > 0  # pairs repelled
         if acted and not recording:
             raise Acted(self.steps - 1)
-        thickness, rounds, marked, bounded, bounding = self.parameters[0], 0, 1, 0, []
+        count = int(out[0])
+        set_in = np.full(count if recording else 0, -1, np.int32)  # the round each pair was set in (-1: never)
+        thickness, rounds, marked, bounded = self.parameters[0], 0, 1, 0
         while marked:  # each round sets more pairs to bound their own particles (step 3 of the kernels)
             marked, held = self_collision_bound(self.dev, self.cfg, self.list, state, self.dt, thickness,
                                                 int(rounds == 0), int(rounds >= BOUND_ROUNDS), self.serial)
@@ -284,11 +286,11 @@ class Pass:
             if self.watched and marked:  # pairs pushed, particles held back
                 if not recording:
                     raise Acted(self.steps - 1)
-                bounding.append(self.pairs(int(out[0]))[3] == OWN)
+                set_in[(self.pairs(count)[3] == OWN) & (set_in < 0)] = rounds
                 acted = True
             rounds += 1
         if acted:
-            self.recorder(self, state, int(out[0]), bounding)
+            self.recorder(state, *self.pairs(count)[:3], set_in)
         self._solve_pairs(state)
         self.last = (int(out[0]), int(out[1]), int(held), float(out[3]), float(out[4]), self.capacity, bounded)
         if self.cfg.self_pairs:
@@ -310,9 +312,9 @@ class Pass:
         """From now on, stop the run with ``Acted`` at the first step in which the pass or
         the implicit solve's pairs act (a gradient's run: ``massspring.gradients``); with a
         ``recorder`` (and no pairs in the solve), a step in which the pass acted goes on
-        to ``recorder(pass, state, pairs listed, bounding)`` at its end, ``bounding`` a
-        list with, for each round of step 3 that set pairs to bound their own particles,
-        the listed pairs' flags (bool (pairs,)) of those set so far."""
+        to ``recorder(state, idx, w, kind, rounds)`` at its end: its listed pairs
+        (``pairs``) and the round of step 3 in which each was set to bound its own
+        particles (int32 (pairs,), -1: never)."""
         self.watched, self.recorder = True, recorder
 
     def release(self):

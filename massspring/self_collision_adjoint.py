@@ -178,16 +178,22 @@ def sides(kind):
     return np.where((kind == 1)[:, None], np.array(EDGE_EDGE, float), np.array(POINT_TRIANGLE, float))
 
 
+def allowed_distance(length, far, thickness):
+    """a = GAMMA (L - OFFSET thickness) where ``far`` (the frozen choice L > OFFSET
+    thickness), else 0: how far a pair's particles may move towards the other side."""
+    return GAMMA * np.where(far, length - OFFSET * thickness, 0.0)
+
+
 def allowance(x0, x, kind, w0, e, thickness, far=None):
-    """(toward (P, 4), a (P,), n (P, 3)): how far each particle of each pair moved towards
-    the other side, how far it may, and the pair's normal (step 3); ``far`` (P,) bool: the
-    frozen choice L > OFFSET thickness (from a real evaluation, which returns it last)."""
+    """(toward (P, 4), a (P,), n (P, 3), far (P,), L (P,)): how far each particle of each
+    pair moved towards the other side, how far it may, the pair's normal, the choice
+    L > OFFSET thickness (``far``: frozen, else from this real evaluation) and its distance
+    (step 3)."""
     _, _, length, normal = closest(x0, w0, e)
     toward = -sides(kind) * np.einsum("pc,pkc->pk", normal, x - x0)
     if far is None:
         far = length.real > OFFSET * thickness
-        return toward, GAMMA * np.where(far, length - OFFSET * thickness, 0.0), normal, far
-    return toward, GAMMA * np.where(far, length - OFFSET * thickness, 0.0), normal
+    return toward, allowed_distance(length, far, thickness), normal, far, length
 
 
 def push_changes(x0, x, kind, w0, e, h, thickness, branches=None):
@@ -196,11 +202,9 @@ def push_changes(x0, x, kind, w0, e, h, thickness, branches=None):
     the normal; ``branches`` as ``repulsion_changes``'s: ``far`` (L > OFFSET thickness)
     and ``pushed`` (P, 4) (the caller leaves pinned particles out of it)."""
     real = branches is None
+    toward, allowed, normal, far, _ = allowance(x0, x, kind, w0, e, thickness, None if real else branches["far"])
     if real:
-        toward, allowed, normal, far = allowance(x0, x, kind, w0, e, thickness)
         branches = {"far": far, "pushed": toward.real > allowed.real[:, None]}
-    else:
-        toward, allowed, normal = allowance(x0, x, kind, w0, e, thickness, branches["far"])
     excess = (toward - allowed[:, None]) * sides(kind)
     dv = np.where(branches["pushed"][..., None], excess[..., None] * normal[:, None, :] / h, 0.0)
     return (dv, branches) if real else dv
@@ -211,7 +215,7 @@ def scale_of(x0, xi, kind, w0, e, k, thickness, far):
     _, _, length, normal = closest(x0, w0, e)
     rows = np.arange(len(x0))
     toward = -sides(kind)[rows, k] * np.sum(normal * (xi - x0[rows, k]), axis=1)
-    return GAMMA * np.where(far, length - OFFSET * thickness, 0.0) / toward
+    return allowed_distance(length, far, thickness) / toward
 
 
 class Replay:
@@ -287,8 +291,8 @@ class Replay:
         which of its particles gave it."""
         idx, starts, kind, w0, e = pair
         n = len(x0)
-        toward, allowed, _, far = allowance(starts, x[idx], kind, w0, e, self.thickness)
-        if np.any(closest(starts, w0, e)[2] == 0):
+        toward, allowed, _, far, length = allowance(starts, x[idx], kind, w0, e, self.thickness)
+        if np.any(length == 0):
             raise ReplayError(why="a pair set to bound its particles has its primitives touching at the step's start")
         over = (toward > allowed[:, None] + BOUND_SLACK * self.thickness) & self.free[idx]
         ratio = np.where(over, allowed[:, None] / np.where(over, toward, 1.0), np.inf)
