@@ -24,7 +24,9 @@ particles: ``pair_row`` then sums a particle's share in one fixed order, so A p 
 the same bits for any thread count, without atomics. If the pairs overflow ``sp_idx``
 (``SOLVE_PAIRS_PER_PARTICLE`` per particle), none enters the solve that step (which
 would fit depends on the threads' order), the pass alone handles them, and
-``sp_count[1]`` says how many there were.
+``sp_count[1]`` says how many there were. ``pair_penalty_read`` and
+``pair_penalty_write`` copy a step's pairs out and back in (a gradient's adjoint solve
+of that step runs with them: ``massspring.pair_penalty_adjoint``).
 
 Fields (``massspring/self_collision.py``'s ``declare_solve``; n particles, P pair
 capacity): ``sp_param`` (2,) real: t (m), k (N/m); ``sp_count`` (2,) i32: pairs in the
@@ -156,3 +158,44 @@ def pair_force(i, dev, cfg: ti.template()):
         nf = dev.sp_nf[item // 4]
         f += nf[4] * dev.sp_w[item // 4][item % 4] * ti.Vector([nf[0], nf[1], nf[2]], cfg.real)
     return f
+
+
+@ti.kernel
+def pair_penalty_read(dev: ti.template(), idx: ti.types.ndarray(dtype=ti.i32, ndim=2),
+                      w: ti.types.ndarray(dtype=ti.f64, ndim=2), nf: ti.types.ndarray(dtype=ti.f64, ndim=2),
+                      first: ti.types.ndarray(dtype=ti.i32, ndim=1), entry: ti.types.ndarray(dtype=ti.i32, ndim=1)):
+    """The solve's pairs as they stand (a gradient's record of a step): the first
+    ``idx.shape[0]`` pairs' particles (P, 4), weights (P, 4), ``sp_nf`` (P, 5), the
+    particles' ``sp_first`` (n + 1,) and the first ``entry.shape[0]`` entries."""
+    for a in range(idx.shape[0]):
+        for c in ti.static(range(4)):
+            idx[a, c] = dev.sp_idx[a][c]
+            w[a, c] = ti.cast(dev.sp_w[a][c], ti.f64)
+        for c in ti.static(range(5)):
+            nf[a, c] = ti.cast(dev.sp_nf[a][c], ti.f64)
+    for i in range(first.shape[0]):
+        first[i] = dev.sp_first[i]
+    for e in range(entry.shape[0]):
+        entry[e] = dev.sp_entry[e]
+
+
+@ti.kernel
+def pair_penalty_write(dev: ti.template(), count: ti.i32, entries: ti.i32,
+                       idx: ti.types.ndarray(dtype=ti.i32, ndim=2), w: ti.types.ndarray(dtype=ti.f64, ndim=2),
+                       nf: ti.types.ndarray(dtype=ti.f64, ndim=2),
+                       first: ti.types.ndarray(dtype=ti.i32, ndim=1), entry: ti.types.ndarray(dtype=ti.i32, ndim=1)):
+    """``pair_penalty_read``'s arrays back into the solve's fields (a gradient's adjoint
+    solve of that step): ``count`` pairs, ``entries`` entries, ``sp_count`` = (count, 0);
+    count 0 and ``first`` zero: no pairs."""
+    dev.sp_count[0] = count
+    dev.sp_count[1] = 0
+    for a in range(count):
+        for c in ti.static(range(4)):
+            dev.sp_idx[a][c] = idx[a, c]
+            dev.sp_w[a][c] = w[a, c]
+        for c in ti.static(range(5)):
+            dev.sp_nf[a][c] = nf[a, c]
+    for i in range(first.shape[0]):
+        dev.sp_first[i] = first[i]
+    for e in range(entries):
+        dev.sp_entry[e] = entry[e]

@@ -57,20 +57,16 @@ class GradientError(RuntimeError):
 
 class SelfCollisionGradientError(GradientError):
     """A gradient's run stopped at a step (``step``, 0-based) whose self-collision it
-    cannot run backwards: with the linearised ``implicit`` integrator, the first step in
-    which the pass acted or the solve held self-collision pairs (their gradients are not
-    built); with any (``why``), a step whose pass the host could not replay. Every other
-    integrator has gradients through the pass (``massspring.gradients``). ``reason`` is
-    "self-collision", ``residual`` NaN."""
+    cannot run backwards (``why``): a pass the host could not replay as the run took it,
+    or pairs of the linearised step's solve that it could not solve again
+    (``massspring.gradients``); without ``why``, a step in which the pass acted in a run
+    watched without a recorder. ``reason`` is "self-collision", ``residual`` NaN."""
 
     def __init__(self, step, integrator, why=None):
         self.step, self.reason, self.residual = int(step), "self-collision", math.nan
         if why is None:
             what = (f"self-collision acted in step {self.step + 1} (pairs of the mesh within the thickness or "
-                    f"closing fast); the linearised step holds such pairs in its solve, and gradients through "
-                    f"them are not built yet (issue 39). No gradient is returned: use another integrator "
-                    f"(explicit, symplectic, rk4, backward-euler, bdf2 or midpoint have them), or a run "
-                    f"whose parts stay apart")
+                    f"closing fast) and the run was not recording it. No gradient is returned")
         else:
             what = (f"the self-collision pass of step {self.step + 1} could not be run backwards: {why}. "
                     f"No gradient is returned: take fewer steps or a smaller dt")

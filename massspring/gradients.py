@@ -15,12 +15,13 @@ runs each stretch between two kept states forward again from the earlier one int
 history, then backwards. Peak: about (steps / checkpoint + checkpoint) states of 48
 bytes a particle, and one forward step more per step than the forward run.
 
-Built so far (issue 39): the explicit, symplectic, RK4, linearised implicit, backward
-Euler, BDF2 and implicit midpoint integrators, with springs, damping, gravity, drag and wind, pins (fixed or moving,
-with their velocities' gradient), colliders: planes, spheres and boxes with friction and restitution (every one of
-those integrators) and
-controls over time (keyframed pins, wind, actuated rest lengths: ``ControlShares``). The adjoint kernels are compiled and
-their fields allocated only when a gradient is asked for: a forward run is as before.
+Built (issue 39): the explicit, symplectic, RK4, linearised implicit, backward Euler,
+BDF2 and implicit midpoint integrators, with springs, damping, gravity, drag and wind,
+pins (fixed or moving, with their velocities' gradient), colliders: planes, spheres and
+boxes with friction and restitution, self-collision (``PassSteps``; every one of those
+integrators), and controls over time (keyframed pins, wind, actuated rest lengths:
+``ControlShares``). The adjoint kernels are compiled and their fields allocated only
+when a gradient is asked for: a forward run is as before.
 """
 
 from __future__ import annotations
@@ -39,6 +40,7 @@ from massspring.errors import GradientError, SelfCollisionGradientError
 from massspring.integrators import INTEGRATORS
 from massspring.kernels import state as state_kernels
 from massspring.model import Model
+from massspring.pair_penalty_adjoint import SolvePairs, penalty_adjoint
 from massspring.self_collision import Acted
 from massspring.self_collision_adjoint import Record, Replay, ReplayError
 from massspring.simulation import Simulation
@@ -120,7 +122,7 @@ def gradient(model, objective, wrt, *, steps, every=1, integrator="symplectic", 
         pass_steps = None
         if sim._guard is not None:  # self-collision: run backwards where its pass acted
             pass_steps = PassSteps(sim, adj)
-            sim._guard.watch(pass_steps)
+            sim._guard.watch(pass_steps, pass_steps.solve_pairs if pass_steps.penalty else None)
         try:
             frames, kept, last = _forward(sim, adj, steps, every, checkpoint, pass_steps)
         except Acted as exc:
@@ -435,20 +437,25 @@ class PassSteps:
     """The steps of a gradient's run in which the self-collision pass acted (``Pass.watch``
     hands them in): the ``Record`` of each step from ``start``'s on, run backwards by the
     pass's ``Replay`` (``massspring.self_collision_adjoint``), and dL/d(the repulsion
-    stiffness) so far (``k_r``)."""
+    stiffness) so far (``k_r``). With the linearised implicit step (``penalty``), also the
+    pairs its solve held in each step (``SolvePairs``), restored for the step's adjoint
+    solve, and their share of its gradient (``massspring.pair_penalty_adjoint``)."""
 
     def __init__(self, sim, adj):
         self.sim, self.adj = sim, adj
         guard, dev = sim._guard, sim._integrator.dev
         self.n, self.stride = sim.model.n_particles, int(adj.stride[None])
-        free = dev.read("free") != 0 if sim._integrator.cfg.fixed else np.ones(self.n, bool)
-        thickness, friction, k_r = guard.parameters
-        self.replay = Replay(dev.read("mass"), free, sim.dt, thickness, friction, k_r)
-        self.records, self.first, self.k_r = {}, 0, 0.0
+        self.free = dev.read("free") != 0 if sim._integrator.cfg.fixed else np.ones(self.n, bool)
+        self.thickness, friction, self.repulsion = guard.parameters
+        self.penalty = sim._integrator.cfg.self_pairs
+        self.replay = Replay(dev.read("mass"), self.free, sim.dt, self.thickness, friction, self.repulsion,
+                             penalty=self.penalty)
+        self.records, self.solves, self.first, self.k_r = {}, {}, 0, 0.0
+        self.loaded = False  # the step whose solve's pairs the device holds (None: none; False: unknown)
 
     def start(self, first):
         """Keep the records of step ``first`` on (those before are dropped)."""
-        self.records, self.first = {}, first
+        self.records, self.solves, self.first, self.loaded = {}, {}, first, False
 
     def __call__(self, state, idx, w, kind, rounds):
         """A step in which the pass acted (``Pass.watch``): ``state`` as it left it, its
@@ -461,41 +468,80 @@ class PassSteps:
             state_kernels.save_state(adj.hx, adj.hv, state, self.n, k + 1 - first, self.stride)
         if k >= self.first:
             dev = integrator.dev
-            self.records[k] = Record(dev.read("sc_end"), dev.read("sc_vend"), idx, w, kind, rounds)
+            order = np.lexsort(idx.T[::-1])  # by their particles (the list's order depends on the threads')
+            self.records[k] = Record(dev.read("sc_end"), dev.read("sc_vend"), idx[order], w[order], kind[order],
+                                     rounds[order])
+
+    def solve_pairs(self):
+        """A step whose implicit solve holds pairs, as it begins (``Pass.watch``)."""
+        k = self.sim._steps
+        if k >= self.first:
+            self.solves[k] = SolvePairs.read(self.sim._integrator.dev, self.n)
 
     def any_in(self, low, high) -> bool:
         """Whether a step from ``low`` to ``high`` has a record."""
-        return any(low <= k <= high for k in self.records)
+        return any(low <= k <= high for k in (*self.records, *self.solves))
 
     def before(self, k, slot):
-        """Before step k's adjoint (kept at ``slot``), if it has a record: dL/d(the state
-        the pass left) in ``adj.lx``, ``adj.lv`` turned into dL/d(the step's own), which
-        goes to the history at ``slot + 1`` for the integrator's adjoint; returns what
-        goes to the state before the step (``after``), else None."""
+        """Before step k's adjoint (kept at ``slot``): with the linearised implicit step,
+        the solve's pairs of step k restored; if the pass acted in it, dL/d(the state the
+        pass left) in ``adj.lx``, ``adj.lv`` turned into dL/d(the step's own), which goes to
+        the history at ``slot + 1`` for the integrator's adjoint. Returns what ``after``
+        needs (None: nothing)."""
+        pairs = self.solves.get(k)
+        if self.penalty and self.loaded != (k if pairs is not None else None):
+            if pairs is None:
+                SolvePairs.clear(self.sim._integrator.dev, self.n)
+            else:
+                pairs.write(self.sim._integrator.dev)
+            self.loaded = k if pairs is not None else None
         record = self.records.get(k)
         if record is None:
-            return None
+            return None if pairs is None else (None, pairs, slot, k)
         n, adj = self.n, self.adj
         xs, vs = np.empty((2, n, 3)), np.empty((2, n, 3))
         state_kernels.read_states(adj.hx, adj.hv, np.array([slot, slot + 1], dtype=np.int32), xs, vs, n, self.stride)
         try:
-            gx, gv, gx0, gm, gk = self.replay.backward(record, xs[0], xs[1], vs[1], adj.read("lx", n),
-                                                       adj.read("lv", n))
+            shares = self.replay.backward(record, xs[0], xs[1], vs[1], adj.read("lx", n), adj.read("lv", n))
         except ReplayError as exc:
             raise SelfCollisionGradientError(k, self.sim.integrator, str(exc)) from None
-        state_kernels.load_vectors(adj.lx, gx)
-        state_kernels.load_vectors(adj.lv, gv)
+        state_kernels.load_vectors(adj.lx, shares[0])
+        state_kernels.load_vectors(adj.lv, shares[1])
         state_kernels.write_state(adj.hx, adj.hv, record.x, record.v, n, slot + 1, self.stride)
-        return gx0, gm, gk
+        return shares[2:], pairs, slot, k
 
     def after(self, acted, wants):
-        """After the step's adjoint: ``before``'s share of dL/dx0 and of the masses' gradient added."""
-        gx0, gm, gk = acted
+        """After the step's adjoint: ``before``'s share of dL/dx0, of the masses' and the
+        repulsion stiffness's gradients added, and the solve's pairs' shares."""
+        shares, pairs, slot, k = acted
         n, adj = self.n, self.adj
-        state_kernels.load_vectors(adj.lx, adj.read("lx", n) + gx0)
-        if wants.masses:
-            state_kernels.load_reals(adj.gm, adj.read("gm", n) + gm)
-        self.k_r += gk
+        lx = adj.read("lx", n)
+        if shares is not None:
+            gx0, gm, gk = shares
+            lx += gx0
+            if wants.masses:
+                state_kernels.load_reals(adj.gm, adj.read("gm", n) + gm)
+            self.k_r += gk
+        if pairs is not None:
+            x, _ = self._row(adj.hx, adj.hv, slot)
+            _, v = self._row(adj.hw, adj.hw, slot) if wants.friction else self._row(adj.hx, adj.hv, slot + 1)
+            try:
+                gx, gk, gpin = penalty_adjoint(pairs, x, v, adj.read("w", n), self.free, self.sim.dt,
+                                               self.thickness, self.repulsion)
+            except ReplayError as exc:
+                raise SelfCollisionGradientError(k, self.sim.integrator, str(exc)) from None
+            lx += gx
+            self.k_r += gk
+            if wants.pins:
+                state_kernels.load_vectors(adj.gp, adj.read("gp", n) + gpin)
+        state_kernels.load_vectors(adj.lx, lx)
+
+    def _row(self, xs, vs, slot):
+        """Slot ``slot`` of history fields ``xs``, ``vs``: (n, 3) each (with friction, ``adj.hw``
+        holds the solve's v' before friction changed it)."""
+        x, v = np.empty((1, self.n, 3)), np.empty((1, self.n, 3))
+        state_kernels.read_states(xs, vs, np.array([slot], dtype=np.int32), x, v, self.n, self.stride)
+        return x[0], v[0]
 
     def add_stiffness(self, stiffness):
         """Add dL/dk_r to ``stiffness`` (the springs' gradient, the user's numbering) where

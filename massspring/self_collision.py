@@ -214,6 +214,7 @@ class Pass:
         self.fresh = True  # x0 and the anchors are not set yet
         self.watched = False  # a gradient's run: stop with ``Acted`` where the pass acts (``watch``)
         self.recorder = None  # ... and hand the steps it acted in to this (``watch``)
+        self.solve_recorder = None  # ... and the steps whose implicit solve holds pairs to this (``watch``)
 
     @property
     def capacity(self) -> int:
@@ -256,7 +257,9 @@ class Pass:
             self_collision_begin(self.dev, state, True, self.serial)
             self.fresh = False
         if self.watched and self.cfg.self_pairs and int(self.dev.sp_count[0]) > 0:
-            raise Acted(self.steps)  # penalty springs in this step's solve
+            if self.solve_recorder is None:
+                raise Acted(self.steps)  # penalty springs in this step's solve
+            self.solve_recorder()
 
     def end(self, state):
         from massspring.kernels.self_collision import (BOUND_ROUNDS, OWN, self_collision_bound,
@@ -272,7 +275,7 @@ class Pass:
             self_collision_restore(self.dev, state, self.serial)
             self._grow(int(out[0]))
             out = self_collision_detect(self.dev, self.cfg, self.list, state, self.dt, *self.parameters, self.serial)
-        recording = self.watched and self.recorder is not None and not self.cfg.self_pairs
+        recording = self.watched and self.recorder is not None
         acted = self.watched and int(out[1]) > 0  # pairs repelled
         if acted and not recording:
             raise Acted(self.steps - 1)
@@ -308,14 +311,15 @@ class Pass:
             self_collision_read_pairs(self.list, count, *out)
         return out
 
-    def watch(self, recorder=None):
+    def watch(self, recorder=None, solve_recorder=None):
         """From now on, stop the run with ``Acted`` at the first step in which the pass or
         the implicit solve's pairs act (a gradient's run: ``massspring.gradients``); with a
-        ``recorder`` (and no pairs in the solve), a step in which the pass acted goes on
-        to ``recorder(state, idx, w, kind, rounds)`` at its end: its listed pairs
-        (``pairs``) and the round of step 3 in which each was set to bound its own
-        particles (int32 (pairs,), -1: never)."""
-        self.watched, self.recorder = True, recorder
+        ``recorder``, a step in which the pass acted goes on to ``recorder(state, idx, w,
+        kind, rounds)`` at its end: its listed pairs (``pairs``) and the round of step 3 in
+        which each was set to bound its own particles (int32 (pairs,), -1: never); with a
+        ``solve_recorder``, a step whose implicit solve holds pairs calls
+        ``solve_recorder()`` as it begins (the pairs in the device's ``sp_*`` fields)."""
+        self.watched, self.recorder, self.solve_recorder = True, recorder, solve_recorder
 
     def release(self):
         """Hand the pair list back to the pool."""

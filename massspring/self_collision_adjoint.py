@@ -139,16 +139,23 @@ def closest(x0, w0, e):
     return w, g, length, g / np.where(length.real > 0, length, 1.0)[:, None]
 
 
+def relative_motion(x0, x, masses, free, w0, e, h):
+    """(w, L, n, r, S, vn) of each pair (module docstring, step 2): its closest points'
+    weights, distance and normal at ``x0``, relative velocity r over the step, S and the
+    normal speed vn; real or complex."""
+    w, _, length, normal = closest(x0, w0, e)
+    rel = np.einsum("pk,pkc->pc", w, x - x0) / h
+    inverse = np.sum(np.where(free, w * w / masses, 0.0), axis=1)
+    return w, length, normal, rel, inverse, np.sum(rel * normal, axis=1)
+
+
 def repulsion_changes(x0, x, masses, k_r, free, w0, e, h, thickness, mu, branches=None):
     """Each pair's repulsion dv (P, 4, 3) by the module docstring's formulas: ``x0``,
     ``x`` (P, 4, 3), ``masses`` (P, 4) of its particles, ``k_r`` (P,) N/m, ``free`` (P, 4)
     bool, region ``w0``, ``e`` (``regions``); real or complex inputs. ``branches``: the
     frozen choices (from a real evaluation, which returns them as ``(dv, branches)``);
     pairs that do not act get dv = 0."""
-    w, _, length, normal = closest(x0, w0, e)
-    rel = np.einsum("pk,pkc->pc", w, x - x0) / h
-    inverse = np.sum(np.where(free, w * w / masses, 0.0), axis=1)
-    vn = np.sum(rel * normal, axis=1)
+    w, length, normal, rel, inverse, vn = relative_motion(x0, x, masses, free, w0, e, h)
     gap = thickness - length
     need = SEPARATION * gap / h - vn
     real = branches is None
@@ -171,6 +178,39 @@ def repulsion_changes(x0, x, masses, k_r, free, w0, e, h, thickness, mu, branche
     mask = free & act[:, None]
     dv = np.where(mask[..., None], w[..., None] * impulse[:, None, :] / masses[..., None], 0.0)
     return (dv, branches) if real else dv
+
+
+def penalty_friction_items(x0, x, masses, k_r, free, w0, e, h, thickness, branches=None):
+    """With the linearised implicit step's pairs in its solve (``kernels/pair_penalty.py``),
+    the friction of their penalty impulse: each pair's items (P, 4, 4) for its free
+    particles k, (J |w_k| u_k, J |w_k|) with the impulse J = h k_r max(thickness - L -
+    h vn, 0) and the velocity u_k = -w_k t / (S m_k) that stops the pair's tangential
+    motion t; the pass sums them per particle (``penalty_friction_velocity``). Inputs
+    and ``branches`` ("pressed": J > 0 of a pair closer than the thickness) as
+    ``repulsion_changes``'s."""
+    w, length, normal, rel, inverse, vn = relative_motion(x0, x, masses, free, w0, e, h)
+    impulse = h * k_r * (thickness - length - h * vn)
+    real = branches is None
+    if real:
+        branches = {"pressed": (length.real < thickness) & (length.real > 0) & (inverse.real > 0)
+                    & (impulse.real > 0)}
+    pressed = branches["pressed"]
+    tangent = rel - vn[:, None] * normal
+    weight = impulse[:, None] * np.sign(w.real) * w
+    want = -w[..., None] / (np.where(pressed, inverse, 1.0)[:, None, None] * masses[..., None]) * tangent[:, None, :]
+    items = np.concatenate([weight[..., None] * want, weight[..., None]], axis=2)
+    items = np.where((free & pressed[:, None])[..., None], items, 0.0)
+    return (items, branches) if real else items
+
+
+def penalty_friction_velocity(sums, weight, masses, mu, clamped):
+    """A particle's velocity change from its summed items (``penalty_friction_items``):
+    ``sums`` (n, 3), ``weight`` (n,) > 0, ``masses`` (n,): u = sums / weight, scaled to the
+    Coulomb bound mu weight / m where it exceeds it (``clamped`` (n,) bool, frozen)."""
+    want = sums / weight[:, None]
+    size = np.sqrt(np.sum(want * want, axis=1))
+    limit = mu * weight / masses
+    return np.where(clamped[:, None], want * (limit / np.where(clamped, size, 1.0))[:, None], want)
 
 
 def sides(kind):
@@ -223,12 +263,14 @@ class Replay:
     ``h`` (s), ``thickness`` (m), friction ``mu``, repulsion stiffness ``k_r`` (N/m), in
     the device's particle numbering; ``rounded``: each pair's velocity changes rounded
     as the pass's fixed-point sums round them (False: exact, for differences of the
-    replay itself; the pass's scales can lift that rounding, 1e-12 m, to 4e-11 m)."""
+    replay itself; the pass's scales can lift that rounding, 1e-12 m, to 4e-11 m);
+    ``penalty``: the pass follows a linearised implicit step whose solve held the pairs
+    (``penalty_friction_items``: their friction joins the repulsion's changes)."""
 
-    def __init__(self, masses, free, h, thickness, mu, k_r, rounded=True):
+    def __init__(self, masses, free, h, thickness, mu, k_r, rounded=True, penalty=False):
         self.masses, self.free = np.asarray(masses, dtype=np.float64), np.asarray(free, dtype=bool)
         self.h, self.thickness, self.mu, self.k_r = float(h), float(thickness), float(mu), float(k_r)
-        self.rounded = rounded
+        self.rounded, self.penalty = rounded, penalty
 
     def forward(self, record, x0):
         """The pass of ``record``'s step from start positions ``x0`` (n, 3), replayed:
@@ -244,8 +286,10 @@ class Replay:
         if self.rounded:
             dv = fixed_point(dv)
         counted = self.free[idx[near]] & branches["act"][:, None]
-        x, v, spread = self._spread(record, x0, record.x, record.v, idx[near], dv, counted)
-        tape = [dict(stage="repulsion", inputs=inputs, fixed=fixed, branches=branches, spread=spread)]
+        penalty = self._penalty_friction(idx[near], inputs, fixed[:-1]) if self.penalty else None
+        x, v, spread = self._spread(record, x0, record.x, record.v, idx[near], dv, counted, penalty)
+        tape = [dict(stage="repulsion", inputs=inputs, fixed=fixed, branches=branches, spread=spread,
+                     penalty=penalty)]
         for r in range(int(record.rounds.max(initial=-1)) + 1):
             chosen = record.rounds == r
             pair = (idx[chosen], starts[chosen], kind[chosen], w0[chosen], e[chosen])
@@ -264,16 +308,37 @@ class Replay:
             tape.append(dict(stage="scale", pair=pair, x=x_in, scaled=scaled))
         return x, v, tape
 
-    def _spread(self, record, x0, x, v, idx, dv, counted):
+    def _penalty_friction(self, idx, inputs, fixed):
+        """The friction of the solve's penalty impulses (``penalty_friction_items``) of the
+        pairs ``idx`` (P, 4) with the repulsion's ``inputs`` and ``fixed``: per particle,
+        whether it has any (``on``) and its velocity change ``du`` (n, 3)."""
+        n = len(self.masses)
+        items, branches = penalty_friction_items(*inputs, *fixed)
+        if self.rounded:
+            items = fixed_point(items)
+        sums = np.zeros((n, 4))
+        np.add.at(sums, idx, items)
+        on = sums[:, 3] > 0
+        want = sums[on, :3] / sums[on, 3, None]
+        clamped = np.sqrt(np.sum(want * want, axis=1)) > self.mu * sums[on, 3] / self.masses[on]
+        du = np.zeros((n, 3))
+        du[on] = penalty_friction_velocity(sums[on, :3], sums[on, 3], self.masses[on], self.mu, clamped)
+        return dict(inputs=inputs, fixed=fixed, branches=branches, sums=sums, on=on, clamped=clamped, du=du)
+
+    def _spread(self, record, x0, x, v, idx, dv, counted, penalty=None):
         """x' = x + h du, v' = v + du, du the average of the pairs' ``dv`` (P, 4, 3) over
-        the ``counted`` (P, 4) entries at each particle (``idx`` (P, 4)), clipped to the
-        path boxes (x0 to ``record.x``, grown by thickness / 2)."""
+        the ``counted`` (P, 4) entries at each particle (``idx`` (P, 4)), plus ``penalty``'s
+        (``_penalty_friction``), clipped to the path boxes (x0 to ``record.x``, grown by
+        thickness / 2)."""
         n, h, half = len(x0), self.h, 0.5 * self.thickness
         hits = np.bincount(idx[counted], minlength=n).astype(np.float64)
         touched = (hits > 0) & self.free
         du = np.zeros((n, 3))
         np.add.at(du, idx[counted], dv[counted])
         du[touched] /= hits[touched, None]
+        if penalty is not None:
+            touched |= penalty["on"] & self.free
+            du += penalty["du"]
         x1 = np.where(touched[:, None], x + h * du, x)
         v1 = np.where(touched[:, None], v + du, v)
         low = np.minimum(x0, record.x) - half
@@ -327,7 +392,7 @@ class Replay:
                 if gs.size:
                     self._scale_sources(stage["pair"], stage["x"], stage["scaled"], gs, gx, gx0)
                 continue
-            gx, gv, gdv = self._spread_back(stage["spread"], gx, gv, gx0, gxc)
+            gx, gv, gdv, gdu = self._spread_back(stage["spread"], gx, gv, gx0, gxc)
             branches, idx = stage["branches"], stage["spread"]["idx"]
             if stage["stage"] == "push":
                 grad = self._pull(push_changes, stage["inputs"], stage["fixed"], branches, gdv)
@@ -343,21 +408,46 @@ class Replay:
                 np.add.at(gx0, idx[acting], grad[:, :12].reshape(-1, 4, 3))
                 np.add.at(gxc, idx[acting], grad[:, 12:24].reshape(-1, 4, 3))
                 np.add.at(gm, idx[acting], grad[:, 24:28])
-                gk = float(grad[:, 28].sum())
+                gk += float(grad[:, 28].sum())
+            if stage["penalty"] is not None:
+                gk += self._penalty_friction_back(stage["penalty"], idx, gdu, gx0, gxc, gm)
         return gxc, gv, gx0, gm, gk
+
+    def _penalty_friction_back(self, penalty, idx, gdu, gx0, gxc, gm):
+        """``_penalty_friction`` backwards from dL/d(du) ``gdu`` (n, 3): its shares added to
+        ``gx0``, ``gxc`` and ``gm``; returns dL/dk_r."""
+        on, sums = penalty["on"], penalty["sums"]
+        if not on.any():
+            return 0.0
+        jac = complex_jacobian(penalty_friction_velocity, (sums[on, :3], sums[on, 3], self.masses[on]),
+                               (self.mu, penalty["clamped"]))
+        grad = np.einsum("pc,pci->pi", gdu[on], jac)
+        gsums = np.zeros((len(on), 4))
+        gsums[on] = grad[:, :4]
+        gm[on] += grad[:, 4]
+        pressed = np.flatnonzero(penalty["branches"]["pressed"])
+        if pressed.size == 0:
+            return 0.0
+        pick = tuple(f[pressed] if isinstance(f, np.ndarray) else f for f in penalty["fixed"])
+        grad = self._pull(penalty_friction_items, [a[pressed] for a in penalty["inputs"]], pick,
+                          {"pressed": penalty["branches"]["pressed"][pressed]}, gsums[idx[pressed]])
+        np.add.at(gx0, idx[pressed], grad[:, :12].reshape(-1, 4, 3))
+        np.add.at(gxc, idx[pressed], grad[:, 12:24].reshape(-1, 4, 3))
+        np.add.at(gm, idx[pressed], grad[:, 24:28])
+        return float(grad[:, 28].sum())
 
     def _spread_back(self, spread, gx, gv, gx0, gxc):
         """``_spread`` backwards from dL/d(x', v'): dL/d(x, v) of the state it changed,
-        dL/d(dv) (P, 4, 3); the clipped coordinates' bounds' shares added to ``gx0`` and
-        ``gxc`` (the candidate's)."""
+        dL/d(dv) (P, 4, 3), dL/d(du) (n, 3); the clipped coordinates' bounds' shares added
+        to ``gx0`` and ``gxc`` (the candidate's)."""
         h, clipped, from_start = self.h, spread["clipped"], spread["from_start"]
         bound = np.where(clipped, gx + gv / h, 0.0)  # dL/d(the bound a clipped coordinate took)
         gx0 += np.where(from_start, bound, 0.0)
         gxc += np.where(from_start, 0.0, bound)
         gdu = np.where(spread["touched"][:, None] & ~clipped, h * gx + gv, 0.0)
-        gdu /= np.maximum(spread["hits"], 1.0)[:, None]
-        gdv = np.where(spread["counted"][..., None], gdu[spread["idx"]], 0.0)
-        return np.where(clipped, -gv / h, gx), gv, gdv
+        averaged = gdu / np.maximum(spread["hits"], 1.0)[:, None]
+        gdv = np.where(spread["counted"][..., None], averaged[spread["idx"]], 0.0)
+        return np.where(clipped, -gv / h, gx), gv, gdv, gdu
 
     def _scale_back(self, x0, x_in, scaled, gx, gv, gx0):
         """``_scale`` backwards: dL/d(x, v) before it, dL/d(sigma) of each scaled particle

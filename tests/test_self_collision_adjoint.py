@@ -2,12 +2,14 @@
 central differences of its own replay, on pairs of every closest-point region (a
 triangle's face, edge and corner; edges crossing inside and at an end), sliding and
 sticking friction, both bounds on the normal impulse, clipped coordinates and a pinned
-particle. Host arrays only: no kernel runs. The gradients through whole runs are in
-``tests/test_gradient.py``."""
+particle; the friction of the linearised step's penalty pairs in the pass, and those
+pairs' share of the step's adjoint (``massspring.pair_penalty_adjoint``). Host arrays
+only: no kernel runs. The gradients through whole runs are in ``tests/test_gradient.py``."""
 
 import numpy as np
 import pytest
 
+from massspring.pair_penalty_adjoint import SolvePairs, kinds, penalty_adjoint
 from massspring.self_collision_adjoint import Record, Replay, ReplayError, regions
 
 H, THICKNESS = 2e-3, 0.01
@@ -117,7 +119,8 @@ def check_against_differences(replay, record, x0, rng):
     gx, gv, gx0, gm, gk = replay.backward(record, x0, x2, v2, lx, lv)
 
     def objective(x0_, x_, v_, m_, k_):
-        moved = Replay(m_, replay.free, replay.h, replay.thickness, replay.mu, k_, rounded=False)
+        moved = Replay(m_, replay.free, replay.h, replay.thickness, replay.mu, k_, rounded=False,
+                       penalty=replay.penalty)
         out_x, out_v, _ = moved.forward(Record(x_, v_, record.idx, record.w, record.kind, record.rounds), x0_)
         return np.sum(lx * out_x) + np.sum(lv * out_v)
 
@@ -168,3 +171,72 @@ def test_a_replay_that_differs_from_the_pass_is_refused():
     replay.backward(record, x0, x2, v2, np.zeros((n, 3)), np.zeros((n, 3)))
     with pytest.raises(ReplayError, match="differs from the pass by"):
         replay.backward(record, x0, x2 + 1e-6, v2, np.zeros((n, 3)), np.zeros((n, 3)))
+
+
+@pytest.mark.parametrize("mu, pinned", [(0.05, False), (50.0, False), (0.05, True)])
+def test_penalty_friction_adjoint_matches_differences_of_the_replay(mu, pinned):
+    """The pass after a linearised step whose solve held the pairs adds their penalty
+    impulses' friction: each particle's summed items, scaled to the Coulomb bound where
+    they exceed it (mu 0.05: all of them) or not (mu 50: none), with a pinned corner."""
+    x0, x, idx, kind, w = pairs_case()
+    w = refine(x0, idx, kind, w)
+    n = len(x0)
+    rng = np.random.default_rng(4)
+    free = np.ones(n, bool)
+    free[0] = not pinned
+    replay = Replay(rng.uniform(0.5, 1.5, n), free, H, THICKNESS, mu, 1e4, rounded=False, penalty=True)
+    record = Record(x, rng.normal(0, 0.1, (n, 3)), idx, w, kind, np.full(len(idx), -1))
+    _, _, tape = replay.forward(record, x0)
+    penalty = tape[0]["penalty"]
+    weighted = np.zeros(n, bool)
+    weighted[idx[w != 0]] = True  # (particle 10, beyond whose edge's end the other passes, has weight 0)
+    assert penalty["branches"]["pressed"].all() and np.array_equal(penalty["on"], weighted & free)
+    assert penalty["clamped"].all() if mu < 1 else not penalty["clamped"].any()
+    check_against_differences(replay, record, x0, rng)
+
+
+def test_kinds_are_read_from_the_weights():
+    x0, _, idx, kind, w = pairs_case()
+    assert kinds(refine(x0, idx, kind, w)).tolist() == kind.tolist()
+
+
+def test_penalty_pairs_adjoint_matches_differences():
+    """The solve's pairs' share of a linearised step's adjoint, d(mu . A v' - mu . b)/d(x,
+    k, a pin's v'), against central differences of the same products with each pair's
+    closest points found again by brute force at the moved positions (an independent
+    reference for their derivatives); every region, a pinned corner."""
+    x, _, idx, kind, w = pairs_case()
+    n, k = len(x), 3e4
+    rng = np.random.default_rng(6)
+    v, mu = rng.normal(0, 0.1, (n, 3)), rng.normal(size=(n, 3))
+    free = np.arange(n) != 1
+    mu[~free] = 0.0
+
+    def products(x_, k_, v_):
+        total = 0.0
+        for pair, kd in zip(idx, kind):
+            weights = refine(x_, pair[None], kd[None], closest_weights(x_, pair, kd)[None])[0]
+            gap = weights @ x_[pair]
+            length = np.linalg.norm(gap)
+            normal = gap / length
+            pulled = np.where(free[pair], weights, 0.0) @ mu[pair] @ normal
+            total += H * H * k_ * pulled * (weights @ v_[pair] @ normal) - H * k_ * (THICKNESS - length) * pulled
+        return total
+
+    w = refine(x, idx, kind, w)
+    gaps = np.einsum("pk,pkc->pc", w, x[idx])
+    lengths = np.linalg.norm(gaps, axis=1)
+    nf = np.column_stack([gaps / lengths[:, None], np.full(len(idx), H * H * k), k * (THICKNESS - lengths)])
+    pairs = SolvePairs(idx.astype(np.int32), w, nf, np.zeros(n + 1, np.int32), np.zeros(0, np.int32))
+    gx, gk, gpin = penalty_adjoint(pairs, x, v, mu, free, H, THICKNESS, k)
+    direction = rng.normal(size=(n, 3))
+    eps = 1e-7
+    numeric = (products(x + eps * direction, k, v) - products(x - eps * direction, k, v)) / (2 * eps)
+    assert abs(float(np.sum(gx * direction)) + numeric) <= 1e-6 * abs(numeric)
+    numeric = (products(x, k * (1 + 1e-6), v) - products(x, k * (1 - 1e-6), v)) / (2e-6 * k)
+    assert abs(gk + numeric) <= 1e-9 * abs(numeric)
+    pin = np.zeros((n, 3))
+    pin[1] = rng.normal(size=3)
+    numeric = (products(x, k, v + eps * pin) - products(x, k, v - eps * pin)) / (2 * eps)
+    assert abs(float(np.sum(gpin * pin)) + numeric) <= 1e-6 * abs(numeric) and abs(numeric) > 0
+    assert not gpin[free].any()
