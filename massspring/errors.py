@@ -56,18 +56,12 @@ class GradientError(RuntimeError):
 
 
 class SelfCollisionGradientError(GradientError):
-    """A gradient's run stopped at a step (``step``, 0-based) whose self-collision it
-    cannot run backwards (``why``): a pass the host could not replay as the run took it,
-    or pairs of the linearised step's solve that it could not solve again
-    (``massspring.gradients``); without ``why``, a step in which the pass acted in a run
-    watched without a recorder. ``reason`` is "self-collision", ``residual`` NaN."""
+    """A gradient's backward pass stopped at a step (``step``, 0-based) whose
+    self-collision it cannot run backwards (``why``): a pass the host could not replay as
+    the run took it, or pairs of the linearised step's solve that it could not solve again
+    (``massspring.gradients``). ``reason`` is "self-collision", ``residual`` NaN."""
 
-    def __init__(self, step, integrator, why=None):
+    def __init__(self, step, integrator, why):
         self.step, self.reason, self.residual = int(step), "self-collision", math.nan
-        if why is None:
-            what = (f"self-collision acted in step {self.step + 1} (pairs of the mesh within the thickness or "
-                    f"closing fast) and the run was not recording it. No gradient is returned")
-        else:
-            what = (f"the self-collision pass of step {self.step + 1} could not be run backwards: {why}. "
-                    f"No gradient is returned: take fewer steps or a smaller dt")
-        RuntimeError.__init__(self, f"{integrator} gradient: {what}")
+        RuntimeError.__init__(self, f"{integrator} gradient: the self-collision of step {self.step + 1} could not be "
+                                    f"run backwards: {why}. No gradient is returned: take fewer steps or a smaller dt")

@@ -41,7 +41,6 @@ from massspring.integrators import INTEGRATORS
 from massspring.kernels import state as state_kernels
 from massspring.model import Model
 from massspring.pair_penalty_adjoint import SolvePairs, penalty_adjoint
-from massspring.self_collision import Acted
 from massspring.self_collision_adjoint import Record, Replay, ReplayError
 from massspring.simulation import Simulation
 from massspring.terms import active_terms
@@ -123,10 +122,7 @@ def gradient(model, objective, wrt, *, steps, every=1, integrator="symplectic", 
         if sim._guard is not None:  # self-collision: run backwards where its pass acted
             pass_steps = PassSteps(sim, adj)
             sim._guard.watch(pass_steps, pass_steps.solve_pairs if pass_steps.penalty else None)
-        try:
-            frames, kept, last = _forward(sim, adj, steps, every, checkpoint, pass_steps)
-        except Acted as exc:
-            raise SelfCollisionGradientError(exc.step, sim.integrator) from None
+        frames, kept, last = _forward(sim, adj, steps, every, checkpoint, pass_steps)
         value, partials = _call(objective, frames, model.n_particles)
         wants = Wants(masses="masses" in names, rate_gradient="damping" in names and not model.has_damping,
                       pins="pin_velocity" in names or "controls.pin_targets" in names,

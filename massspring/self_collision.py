@@ -182,14 +182,6 @@ def declare_solve(layout, model):
     layout.vectors("sp_friction", ti.i64, k=4)
 
 
-class Acted(Exception):
-    """A watched run's pass acted in step ``step`` (0-based): ``Pass.watch``."""
-
-    def __init__(self, step):
-        super().__init__(step)
-        self.step = step
-
-
 class Pass:
     """The self-collision pass of one simulation around each step of its integrator
     (``kernels/self_collision.py``): ``begin(state)`` before the step, ``end(state)``
@@ -212,9 +204,8 @@ class Pass:
         self.last = (0, 0, 0, 0.0, math.inf, self.capacity, 0)
         self.passes = self.steps = self.grown = self.left_out = 0
         self.fresh = True  # x0 and the anchors are not set yet
-        self.watched = False  # a gradient's run: stop with ``Acted`` where the pass acts (``watch``)
-        self.recorder = None  # ... and hand the steps it acted in to this (``watch``)
-        self.solve_recorder = None  # ... and the steps whose implicit solve holds pairs to this (``watch``)
+        self.recorder = None  # a gradient's run: the steps the pass acted in go to this (``watch``)
+        self.solve_recorder = None  # ... and the steps whose implicit solve holds pairs to this
 
     @property
     def capacity(self) -> int:
@@ -256,9 +247,7 @@ class Pass:
                 self._list(state)
             self_collision_begin(self.dev, state, True, self.serial)
             self.fresh = False
-        if self.watched and self.cfg.self_pairs and int(self.dev.sp_count[0]) > 0:
-            if self.solve_recorder is None:
-                raise Acted(self.steps)  # penalty springs in this step's solve
+        if self.solve_recorder is not None and int(self.dev.sp_count[0]) > 0:
             self.solve_recorder()
 
     def end(self, state):
@@ -275,10 +264,8 @@ class Pass:
             self_collision_restore(self.dev, state, self.serial)
             self._grow(int(out[0]))
             out = self_collision_detect(self.dev, self.cfg, self.list, state, self.dt, *self.parameters, self.serial)
-        recording = self.watched and self.recorder is not None
-        acted = self.watched and int(out[1]) > 0  # pairs repelled
-        if acted and not recording:
-            raise Acted(self.steps - 1)
+        recording = self.recorder is not None
+        acted = recording and int(out[1]) > 0  # pairs repelled
         count = int(out[0])
         set_in = np.full(count if recording else 0, -1, np.int32)  # the round each pair was set in (-1: never)
         thickness, rounds, marked, bounded = self.parameters[0], 0, 1, 0
@@ -286,9 +273,7 @@ class Pass:
             marked, held = self_collision_bound(self.dev, self.cfg, self.list, state, self.dt, thickness,
                                                 int(rounds == 0), int(rounds >= BOUND_ROUNDS), self.serial)
             bounded += int(marked)
-            if self.watched and marked:  # pairs pushed, particles held back
-                if not recording:
-                    raise Acted(self.steps - 1)
+            if recording and marked:  # pairs pushed, particles held back
                 set_in[(self.pairs(count)[3] == OWN) & (set_in < 0)] = rounds
                 acted = True
             rounds += 1
@@ -311,15 +296,14 @@ class Pass:
             self_collision_read_pairs(self.list, count, *out)
         return out
 
-    def watch(self, recorder=None, solve_recorder=None):
-        """From now on, stop the run with ``Acted`` at the first step in which the pass or
-        the implicit solve's pairs act (a gradient's run: ``massspring.gradients``); with a
-        ``recorder``, a step in which the pass acted goes on to ``recorder(state, idx, w,
-        kind, rounds)`` at its end: its listed pairs (``pairs``) and the round of step 3 in
-        which each was set to bound its own particles (int32 (pairs,), -1: never); with a
-        ``solve_recorder``, a step whose implicit solve holds pairs calls
-        ``solve_recorder()`` as it begins (the pairs in the device's ``sp_*`` fields)."""
-        self.watched, self.recorder, self.solve_recorder = True, recorder, solve_recorder
+    def watch(self, recorder, solve_recorder=None):
+        """From now on (a gradient's run: ``massspring.gradients``), a step in which the
+        pass acted calls ``recorder(state, idx, w, kind, rounds)`` at its end: its listed
+        pairs (``pairs``) and the round of step 3 in which each was set to bound its own
+        particles (int32 (pairs,), -1: never); with a ``solve_recorder``, a step whose
+        implicit solve holds pairs calls ``solve_recorder()`` as it begins (the pairs in
+        the device's ``sp_*`` fields)."""
+        self.recorder, self.solve_recorder = recorder, solve_recorder
 
     def release(self):
         """Hand the pair list back to the pool."""
