@@ -19,8 +19,11 @@ stiff cloth: each particle that stops anchors its neighbours):
   next step against u;
 * a sliding particle's kinetic friction impulse ``dev.fric`` (from the last step's
   B, against its tangential velocity u relative to the collider) is part of b. If u
-  turns to the side friction pushes (or stops), friction has overshot: u is set to
-  0 and the particle sticks;
+  turns to the side friction pushes (or stops), friction has overshot, and if it is
+  slow enough for the damper to hold (STICK m_i |u| <= B, the sticking particle's
+  test), friction can stop it: either way u is set to 0 and the particle sticks (a
+  particle its cloth drags at a crawl would otherwise take the next step's friction
+  direction from a velocity at round-off);
 * in the first step of a contact (no friction in the solve yet), the particle's own
   velocity takes the Coulomb impulse: u is reduced by B / m_i, or set to 0 (then
   the particle sticks) if that stops it.
@@ -96,7 +99,7 @@ def friction_row(i, dev, cfg: ti.template(), t):
             else:
                 applied = dev.fric[i]
                 if applied.dot(applied) > 0:
-                    if rel.dot(applied) >= 0:  # moving the way friction pushes: it overshot
+                    if rel.dot(applied) >= 0 or STICK * dev.mass[i] * speed <= bound:  # overshot, or held
                         stick = 1
                         v = v - rel
                     else:
@@ -206,7 +209,7 @@ def friction_adjoint(i, dev, cfg: ti.template(), x, v_solved, g_new, g_fric, t):
         if dev.stick[i] != 0:
             sticks = STICK * mass * speed <= bound
         elif applied.dot(applied) > 0:
-            sticks = rel.dot(applied) >= 0
+            sticks = rel.dot(applied) >= 0 or STICK * mass * speed <= bound
         else:
             first_step = True
             sticks = speed <= bound / mass
