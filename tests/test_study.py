@@ -355,3 +355,18 @@ def test_newton_integrators_get_a_line_per_newton_tolerance(tmp_path):
     assert s.orders["backward-euler (block-jacobi) newton_tol=1e-10"]["order"] == pytest.approx(1.0, abs=0.15)
     assert s.orders["bdf2 (block-jacobi) newton_tol=1e-10"]["order"] == pytest.approx(2.0, abs=0.25)
     assert "1e-10" in report.table(s) and "newton_tol=1e-10" in report.progress_line(s.runs[0])
+
+
+def test_auto_is_resolved_as_each_integrator_resolves_it():
+    """On a 72 x 72 cloth (5,184 free particles, past the multigrid crossover) "auto" is
+    the linearised step's multigrid with its finest level in f32, but the Newton-solved
+    steps' f64 multigrid (they set the hierarchy up every Newton iteration: the f32 level
+    does not pay there), as their own Simulations pick; a name given twice is one line."""
+    model = ms.load_scene("cloth").with_params(resolution=72).model()
+    assert study.line_preconditioners(model, "implicit", ["auto", "block-jacobi"]) == ["multigrid-f32",
+                                                                                       "block-jacobi"]
+    for integrator in ("backward-euler", "bdf2"):
+        assert study.line_preconditioners(model, integrator, ["auto", "multigrid"]) == ["multigrid"]
+        sim = ms.Simulation(model, integrator, dt=1 / 60)
+        assert sim.preconditioner == "multigrid"
+        sim.close()

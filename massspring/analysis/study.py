@@ -194,8 +194,9 @@ def run_study(scene, *, integrators=DEFAULT_INTEGRATORS, duration=None, rungs=DE
 
     ``ladders``: optional {integrator: [dt, ...]} replacing the default ladders (from
     the scene's default dt per integrator, ``dt_ladder``); save instants then follow
-    the largest dt given. ``preconditioners``: the implicit runs' (``solvers.CHOICES``),
-    each a line per CG tolerance. ``reference_dt``: the RK4 step to start the self-check from
+    the largest dt given. ``preconditioners``: the runs' of integrators that solve a
+    linear system (``solvers.CHOICES``; ``line_preconditioners``), each a line per
+    tolerance. ``reference_dt``: the RK4 step to start the self-check from
     (default: the scene's explicit dt). ``progress``: a callable given each finished Run.
     ``client``: a ``dask.distributed.Client`` to run the runs and the first two RK4
     references on, a task each (None: in this process); further halvings of the
@@ -216,9 +217,7 @@ def run_study(scene, *, integrators=DEFAULT_INTEGRATORS, duration=None, rungs=DE
     for name in preconditioners:
         validate.choice("preconditioners", name, solvers.CHOICES)
     model = scene.model()
-    finest_f32 = INTEGRATORS["implicit"].finest_f32(model, "f64")  # the preconditioners are the implicit lines'
-    preconditioners = list(dict.fromkeys(solvers.resolve(name, model, finest_f32)
-                                         for name in preconditioners)) or ["auto"]
+    preconditioners = list(preconditioners) or ["auto"]
     if ladders is None:
         tops = ladder_tops(scene, model, integrators, duration)
         times = save_instants(duration, list(tops.values()))
@@ -241,7 +240,7 @@ def run_study(scene, *, integrators=DEFAULT_INTEGRATORS, duration=None, rungs=DE
     for name in integrators:
         cls = INTEGRATORS[name]
         tols = [{cls.swept: t} for t in {"cg_tol": cg_tols, "newton_tol": newton_tols}.get(cls.swept, ())]
-        for pre in (preconditioners if cls.linear_solver else [None]):
+        for pre in (line_preconditioners(model, name, preconditioners) if cls.linear_solver else [None]):
             for tol in (tols if cls.linear_solver else [{}]):
                 for dt in ladders[name]:
                     tasks.append(("run", (model, name, ladders[name][0], dt, tol, pre, times, size, repeats,
@@ -259,6 +258,14 @@ def run_study(scene, *, integrators=DEFAULT_INTEGRATORS, duration=None, rungs=DE
     for run in runs:
         _score(run, ref, model, size)
     return Study(scene.name, dict(scene.params), duration, times, size, runs, check, fit_orders(runs))
+
+
+def line_preconditioners(model, integrator, names) -> list:
+    """The preconditioners of ``integrator``'s lines for ``names``: each resolved as that
+    integrator's own Simulation resolves it ("auto": block-Jacobi or multigrid by size,
+    multigrid with its finest level in f32 only where the integrator gains by it), once."""
+    finest_f32 = INTEGRATORS[integrator].finest_f32(model, "f64")
+    return list(dict.fromkeys(solvers.resolve(name, model, finest_f32) for name in names))
 
 
 def _task(kind, args):

@@ -23,8 +23,9 @@ def add_study_arguments(p):
     p.add_argument("--newton-tols", default="1e-3,1e-6", help="backward-euler, bdf2: comma-separated Newton "
                    "tolerances")
     p.add_argument("--preconditioners", default="auto",
-                   help="implicit: comma-separated preconditioners, a line each (auto, block-jacobi, multigrid, "
-                   "multigrid-f32, none; default auto)")
+                   help="implicit, backward-euler, bdf2, midpoint: comma-separated preconditioners, a line each "
+                   "(auto, block-jacobi, multigrid, multigrid-f32, none; default auto: what each integrator's own "
+                   "run picks)")
     p.add_argument("--repeats", type=int, default=3, help="timed runs per configuration, at most (default 3)")
     p.add_argument("--cache-dir", help="RK4 reference cache (default $MASSSPRING_CACHE, "
                    "else $XDG_CACHE_HOME/massspring or ~/.cache/massspring)")
