@@ -92,9 +92,14 @@ def penalty_product(x, k, v, mu, free, w0, e, h, thickness):
     (P,) N/m, ``v`` (P, 4, 3) their solved velocities, ``mu`` (P, 4, 3) the adjoint
     solve's multipliers, ``free`` (P, 4) bool, region ``w0``, ``e``; real or complex."""
     w, _, length, normal = closest(x, w0, e)
-    pulled = np.sum(np.einsum("pk,pkc->pc", np.where(free, w, 0.0), mu) * normal, axis=1)
-    moved = np.sum(np.einsum("pk,pkc->pc", w, v) * normal, axis=1)
-    return h * h * k * pulled * moved - h * k * (thickness - length) * pulled
+    pulled = along(np.where(free, w, 0.0), mu, normal)
+    return h * h * k * pulled * along(w, v, normal) - h * k * (thickness - length) * pulled
+
+
+def along(w, u, normal):
+    """W u . n (P,): each pair's weighted sum of ``u`` (P, 4, 3) by ``w`` (P, 4), along its
+    ``normal`` (P, 3)."""
+    return np.sum(np.einsum("pk,pkc->pc", w, u) * normal, axis=1)
 
 
 def penalty_adjoint(pairs, x, v, mu, free, h, thickness, k):
@@ -116,7 +121,7 @@ def penalty_adjoint(pairs, x, v, mu, free, h, thickness, k):
     gx = np.zeros_like(x)
     np.add.at(gx, idx, -jac[:, :12].reshape(-1, 4, 3))
     gk = -float(jac[:, 12].sum())
-    pulled = np.sum(np.einsum("pk,pkc->pc", np.where(pair_free, w, 0.0), mu[idx]) * normal, axis=1)
+    pulled = along(np.where(pair_free, w, 0.0), mu[idx], normal)
     column = h * h * k * pulled[:, None, None] * w[..., None] * normal[:, None, :]  # d phi / dv' per particle
     gpin = np.zeros_like(x)
     np.add.at(gpin, idx, np.where(pair_free[..., None], 0.0, -column))

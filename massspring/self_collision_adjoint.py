@@ -400,15 +400,7 @@ class Replay:
                 np.add.at(gx, idx, grad[:, 12:].reshape(-1, 4, 3))
                 continue
             gxc += gx  # the repulsion changed the candidate state itself
-            acting = np.flatnonzero(branches["act"])
-            if acting.size:
-                grad = self._pull(repulsion_changes, [a[acting] for a in stage["inputs"]],
-                                  tuple(f[acting] if isinstance(f, np.ndarray) else f for f in stage["fixed"]),
-                                  {key: b[acting] for key, b in branches.items()}, gdv[acting])
-                np.add.at(gx0, idx[acting], grad[:, :12].reshape(-1, 4, 3))
-                np.add.at(gxc, idx[acting], grad[:, 12:24].reshape(-1, 4, 3))
-                np.add.at(gm, idx[acting], grad[:, 24:28])
-                gk += float(grad[:, 28].sum())
+            gk += self._pull_pairs(repulsion_changes, stage, np.flatnonzero(branches["act"]), idx, gdv, gx0, gxc, gm)
             if stage["penalty"] is not None:
                 gk += self._penalty_friction_back(stage["penalty"], idx, gdu, gx0, gxc, gm)
         return gxc, gv, gx0, gm, gk
@@ -426,14 +418,21 @@ class Replay:
         gsums[on] = grad[:, :4]
         gm[on] += grad[:, 4]
         pressed = np.flatnonzero(penalty["branches"]["pressed"])
-        if pressed.size == 0:
+        return self._pull_pairs(penalty_friction_items, penalty, pressed, idx, gsums[idx], gx0, gxc, gm)
+
+    def _pull_pairs(self, changes, stage, rows, idx, g, gx0, gxc, gm):
+        """dL/d(the pairs' outputs) ``g`` (P, 4, c) of the pairs ``rows`` of a stage whose
+        inputs are (x0, x, masses, k_r) of each pair (the repulsion's; ``stage``: its
+        ``inputs``, ``fixed``, ``branches``) pulled back through ``changes``: the shares added
+        to ``gx0``, ``gxc`` (the candidate's) and ``gm``; returns dL/dk_r."""
+        if rows.size == 0:
             return 0.0
-        pick = tuple(f[pressed] if isinstance(f, np.ndarray) else f for f in penalty["fixed"])
-        grad = self._pull(penalty_friction_items, [a[pressed] for a in penalty["inputs"]], pick,
-                          {"pressed": penalty["branches"]["pressed"][pressed]}, gsums[idx[pressed]])
-        np.add.at(gx0, idx[pressed], grad[:, :12].reshape(-1, 4, 3))
-        np.add.at(gxc, idx[pressed], grad[:, 12:24].reshape(-1, 4, 3))
-        np.add.at(gm, idx[pressed], grad[:, 24:28])
+        grad = self._pull(changes, [a[rows] for a in stage["inputs"]],
+                          tuple(f[rows] if isinstance(f, np.ndarray) else f for f in stage["fixed"]),
+                          {key: b[rows] for key, b in stage["branches"].items()}, g[rows])
+        np.add.at(gx0, idx[rows], grad[:, :12].reshape(-1, 4, 3))
+        np.add.at(gxc, idx[rows], grad[:, 12:24].reshape(-1, 4, 3))
+        np.add.at(gm, idx[rows], grad[:, 24:28])
         return float(grad[:, 28].sum())
 
     def _spread_back(self, spread, gx, gv, gx0, gxc):
