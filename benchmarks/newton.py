@@ -17,11 +17,20 @@ Tables (all f64, this machine):
 6. damping: the shipped ``cloth`` (32 x 32) with its spring damping raised from 2 to
    2,000 N s/m, 20 backward-Euler and BDF2 steps at dt 1/60, and one at dt 1 s with
    1e9: Newton iterations per step, steps that missed ``newton_tol`` and the end's
-   kinetic energy (how far the iteration is from stalling or running away).
+   kinetic energy (how far the iteration is from stalling or running away);
+7. tolerance (not in the default set: 10 minutes at 128 x 128): what ``newton_tol``
+   buys. The cloth of table 5, backward Euler and BDF2 at newton_tol 1e-2, 3e-3 and
+   1e-3 timed interleaved with the linearised step: Newton iterations and ms per step,
+   and the largest distance (m) of the end positions from the same integrator's run at
+   newton_tol 1e-6 (which takes nearly all of newton_max_iter's 50 iterations a step),
+   beside backward Euler's distance from a run at dt / 2 (the time step's own error,
+   for scale); and at each tolerance the residual of table 2's stiffchain step and the
+   shipped stiffchain's largest energy above its start over 2 s at dt 1/60.
 
     python benchmarks/newton.py                       # all tables, cloth 128 x 128
     python benchmarks/newton.py --tables cloth --resolution 64 --steps 10
     python benchmarks/newton.py --json benchmarks/results/newton.json
+    python benchmarks/newton.py --tables tolerance --json benchmarks/results/newton_tolerance.json
 """
 
 from __future__ import annotations
@@ -42,13 +51,18 @@ from massspring.io.files import write_json  # noqa: E402
 
 NEWTON = ("backward-euler", "bdf2")
 TABLES = ("energy", "residual", "order", "terminal", "cloth", "damping")
+EXTRA_TABLES = ("tolerance",)
+TOLERANCES = (1e-2, 3e-3, 1e-3)  # the tolerance table's newton_tol values
+TIGHT = 1e-6  # its reference run's
 
 
 def parse_args(argv=None):
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--tables", nargs="+", default=list(TABLES), choices=TABLES)
-    p.add_argument("--resolution", type=int, default=128, help="cloth table: grid resolution (default 128)")
-    p.add_argument("--steps", type=int, default=20, help="cloth table: timed steps per integrator (default 20)")
+    p.add_argument("--tables", nargs="+", default=list(TABLES), choices=TABLES + EXTRA_TABLES)
+    p.add_argument("--resolution", type=int, default=128, help="cloth and tolerance tables: grid resolution "
+                   "(default 128)")
+    p.add_argument("--steps", type=int, default=20, help="cloth and tolerance tables: timed steps per integrator "
+                   "(default 20)")
     output.add_json(p, "newton")
     return p.parse_args(argv)
 
@@ -72,47 +86,57 @@ def newton_cells(row):
     return f"{cells:>12s}"
 
 
+def stiffchain_energy(integrator, dt, **options):
+    """The shipped ``stiffchain`` over 2 s: a row with the largest total energy above its
+    start and the end's (J), the wall time and the Newton iterations per step."""
+    sim = ms.load_scene("stiffchain").simulation(integrator, dt=dt, **options)
+    e0 = sim.energy()["total"]
+    top, start = -np.inf, time.perf_counter()
+    for _ in range(int(round(2.0 / dt))):
+        sim.step()
+        top = max(top, sim.energy()["total"] - e0)
+    newton = sim.newton_iterations
+    row = {"dt": dt, "integrator": integrator, **options, "max_gain_J": top, "end_J": sim.energy()["total"] - e0,
+           "wall_s": time.perf_counter() - start, "newton_mean": float(np.mean(newton)) if newton else None,
+           "newton_max": max(newton) if newton else None, "not_converged": sim.cg_failures}
+    sim.close()
+    return row
+
+
 def energy_table():
-    rows = []
-    scene = ms.load_scene("stiffchain")
-    for dt in (0.01, 0.002):
-        for integrator in ("implicit", *NEWTON):
-            sim = scene.simulation(integrator, dt=dt)
-            e0 = sim.energy()["total"]
-            top, start = -np.inf, time.perf_counter()
-            for _ in range(int(round(2.0 / dt))):
-                sim.step()
-                top = max(top, sim.energy()["total"] - e0)
-            newton = sim.newton_iterations
-            rows.append({"dt": dt, "integrator": integrator, "max_gain_J": top, "end_J": sim.energy()["total"] - e0,
-                         "wall_s": time.perf_counter() - start, "newton_mean": float(np.mean(newton)) if newton else None,
-                         "newton_max": max(newton) if newton else None, "not_converged": sim.cg_failures})
-            sim.close()
+    rows = [stiffchain_energy(integrator, dt) for dt in (0.01, 0.002) for integrator in ("implicit", *NEWTON)]
     print("stiffchain, 2 s: energy above the start (J)")
-    print(f"{'dt':>6s}  {'integrator':15s} {'max gain':>10s} {'end':>10s} {'wall s':>7s} {'Newton':>7s} {'max':>4s} {'fail':>4s}")
+    print(f"{'dt':>6s}  {'integrator':15s} {'max gain':>10s} {'end':>10s} {'wall s':>7s} {'Newton':>7s} {'max':>4s} "
+          f"{'fail':>4s}")
     for r in rows:
         print(f"{r['dt']:6g}  {r['integrator']:15s} {r['max_gain_J']:10.3g} {r['end_J']:10.3g} {r['wall_s']:7.2f} "
               f"{newton_cells(r)} {r['not_converged']:4d}")
     return rows
 
 
-def residual_table():
-    scene = ms.load_scene("stiffchain")
-    model = scene.model()
+def step_residual(integrator, **options):
+    """One step from a stretched, moving ``stiffchain`` state at dt 0.01: a row with the
+    backward-Euler equations' residual ||M (v1 - v0) - dt f(x1, v1)|| / ||dt f(x0, v0)||
+    on the free particles and the Newton iterations."""
+    model = ms.load_scene("stiffchain").model()
     rng = np.random.default_rng(4)
     x = model.positions * 1.02 + rng.normal(scale=1e-3, size=model.positions.shape)
     v = rng.normal(scale=0.5, size=x.shape)
     x[model.fixed], v[model.fixed] = model.positions[model.fixed], 0.0
     dt, free = 0.01, model.free_mask()
+    sim = ms.Simulation(model, integrator, dt=dt, **options).set_state(x, v)
+    sim.step()
+    residual = model.masses[:, None] * (sim.velocities - v) - dt * forces(model, sim.positions, sim.velocities)
     scale = np.linalg.norm((dt * forces(model, x, v))[free])
-    rows = []
-    for integrator, options in (("implicit", {}), ("backward-euler", {}), ("backward-euler", {"newton_tol": 1e-8})):
-        sim = ms.Simulation(model, integrator, dt=dt, **options).set_state(x, v)
-        sim.step()
-        residual = model.masses[:, None] * (sim.velocities - v) - dt * forces(model, sim.positions, sim.velocities)
-        rows.append({"integrator": integrator, **options, "relative_residual": float(np.linalg.norm(residual[free]) / scale),
-                     "newton_iterations": sim.solver_stats.newton_iterations})
-        sim.close()
+    row = {"integrator": integrator, **options, "relative_residual": float(np.linalg.norm(residual[free]) / scale),
+           "newton_iterations": sim.solver_stats.newton_iterations}
+    sim.close()
+    return row
+
+
+def residual_table():
+    rows = [step_residual("implicit"), step_residual("backward-euler"),
+            step_residual("backward-euler", newton_tol=1e-8)]
     print("\none step of a stretched, moving stiffchain (dt 0.01): backward-Euler residual / ||dt f||")
     for r in rows:
         print(f"  {r['integrator']:15s} newton_tol {r.get('newton_tol', 'default')!s:8s} {r['relative_residual']:.3g}"
@@ -226,12 +250,75 @@ def damping_table():
     return rows
 
 
+def tolerance_table(resolution, steps):
+    scene = ms.load_scene("cloth").with_params(resolution=resolution, stiffness=1e4)
+
+    def simulation(integrator, dt=1 / 60, **options):
+        return scene.simulation(integrator, dt=dt, preconditioner="multigrid", **options)
+
+    runs = {("implicit", None): simulation("implicit")}
+    for integrator in NEWTON:
+        for tol in TOLERANCES:
+            runs[integrator, tol] = simulation(integrator, newton_tol=tol)
+    for sim in runs.values():
+        sim.step(1)  # compiles; its time is not counted
+    times = {key: [] for key in runs}
+    for _ in range(steps):  # interleaved: the machine's load falls on all alike
+        for key, sim in runs.items():
+            start = time.perf_counter()
+            sim.step(1)
+            times[key].append(time.perf_counter() - start)
+    tight = {}  # integrator -> (end positions, Newton iterations a step) at newton_tol TIGHT
+    for integrator in NEWTON:
+        sim = simulation(integrator, newton_tol=TIGHT).step(steps + 1)
+        tight[integrator] = (sim.positions.copy(), float(np.mean(sim.newton_iterations)))
+        sim.close()
+    sim = simulation("backward-euler", dt=1 / 120, newton_tol=TIGHT).step(2 * (steps + 1))
+    truncation = float(np.abs(sim.positions - tight["backward-euler"][0]).max())
+    sim.close()
+    base = statistics.median(times["implicit", None])
+    rows = []
+    for (name, tol), sim in runs.items():
+        newton = sim.newton_iterations[1:]
+        reference = tight["backward-euler" if tol is None else name][0]
+        rows.append({"integrator": name, "newton_tol": tol, "resolution": resolution, "steps": steps,
+                     "median_ms": 1e3 * statistics.median(times[name, tol]),
+                     "ratio_to_implicit": statistics.median(times[name, tol]) / base,
+                     "newton_mean": float(np.mean(newton)) if newton else None,
+                     "newton_max": max(newton) if newton else None,
+                     "distance_to_tight_m": float(np.abs(sim.positions - reference).max()),
+                     "stiffchain_residual": None if tol is None or name != "backward-euler" else
+                     step_residual(name, newton_tol=tol)["relative_residual"],
+                     "stiffchain_max_gain_J": stiffchain_energy(name, 1 / 60, newton_tol=tol)["max_gain_J"]
+                     if tol and name == "backward-euler" else None})
+        sim.close()
+    print(f"\ncloth {resolution} x {resolution}, dt 1/60, ks 1e4, multigrid, {steps} steps after the first: "
+          f"what newton_tol buys")
+    for name, (_, newton) in tight.items():
+        print(f"  {name} at newton_tol {TIGHT:g}: {newton:.1f} Newton iterations a step")
+    print(f"  backward Euler at {TIGHT:g}, dt 1/60 against dt 1/120 (the time step's error, for scale): "
+          f"{truncation:.2e} m")
+    print(f"  {'integrator':15s} {'newton_tol':>10s} {'ms/step':>9s} {'ratio':>6s} {'Newton':>7s} {'max':>4s} "
+          f"{'distance m':>10s} {'chain residual':>14s} {'chain gain J':>12s}")
+    for r in rows:
+        tol = "" if r["newton_tol"] is None else f"{r['newton_tol']:g}"
+        chain = "" if r["stiffchain_residual"] is None else f"{r['stiffchain_residual']:.2g}"
+        gain = "" if r["stiffchain_max_gain_J"] is None else f"{r['stiffchain_max_gain_J']:.2g}"
+        print(f"  {r['integrator']:15s} {tol:>10s} {r['median_ms']:9.1f} {r['ratio_to_implicit']:6.2f} "
+              f"{newton_cells(r)} {r['distance_to_tight_m']:10.2e} {chain:>14s} {gain:>12s}")
+    print("  (distance: largest of the end positions from the same integrator's run at newton_tol "
+          f"{TIGHT:g}, the linearised step's from backward Euler's; chain residual: table 2's step; chain gain: "
+          "stiffchain's largest energy above its start over 2 s at dt 1/60)")
+    return {"rows": rows, "tight_newton_tol": TIGHT, "tight_newton_mean": {k: v[1] for k, v in tight.items()},
+            "tight_to_half_dt_m": truncation}
+
+
 def main(argv=None):
     args = parse_args(argv)
     result = {}
     for table in args.tables:
-        if table == "cloth":
-            result[table] = cloth_table(args.resolution, args.steps)
+        if table in ("cloth", "tolerance"):
+            result[table] = globals()[f"{table}_table"](args.resolution, args.steps)
         else:
             result[table] = globals()[f"{table}_table"]()
     write_json(args.json, result)
