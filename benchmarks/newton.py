@@ -25,12 +25,23 @@ Tables (all f64, this machine):
    newton_tol 1e-6 (which takes nearly all of newton_max_iter's 50 iterations a step),
    beside backward Euler's distance from a run at dt / 2 (the time step's own error,
    for scale); and at each tolerance the residual of table 2's stiffchain step and the
-   shipped stiffchain's largest energy above its start over 2 s at dt 1/60.
+   shipped stiffchain's largest energy above its start over 2 s at dt 1/60;
+8. curvature (not in the default set; SciPy): why Newton is slow where the cloth folds.
+   The cloth of table 5 run with backward Euler at default settings; from the state
+   before the step that took the most Newton iterations, that step again at
+   newton_tol 1e-9 (at most 400 iterations, cg_tol 1e-10); at its first iterate
+   x_n + dt v_n and at its last: the springs in compression, the smallest eigenvalues
+   of the step's Hessian M - dt D - dt^2 K with the true K (Eq. 13) and with the
+   definiteness fix's (as multiples of the particles' mass), and the smallest mu of
+   H_true y = mu H_fixed y: near the solution Newton with the fixed Hessian multiplies
+   the error along y by 1 - mu an iteration. (Sparse matrices built in numpy, spring
+   damping along the springs at x; the step's own takes it at x_n + dt v_n.)
 
     python benchmarks/newton.py                       # all tables, cloth 128 x 128
     python benchmarks/newton.py --tables cloth --resolution 64 --steps 10
     python benchmarks/newton.py --json benchmarks/results/newton.json
     python benchmarks/newton.py --tables tolerance --json benchmarks/results/newton_tolerance.json
+    python benchmarks/newton.py --tables curvature --resolution 64 --json benchmarks/results/newton_curvature.json
 """
 
 from __future__ import annotations
@@ -51,7 +62,7 @@ from massspring.io.files import write_json  # noqa: E402
 
 NEWTON = ("backward-euler", "bdf2")
 TABLES = ("energy", "residual", "order", "terminal", "cloth", "damping")
-EXTRA_TABLES = ("tolerance",)
+EXTRA_TABLES = ("tolerance", "curvature")
 TOLERANCES = (1e-2, 3e-3, 1e-3)  # the tolerance table's newton_tol values
 TIGHT = 1e-6  # its reference run's
 
@@ -59,10 +70,10 @@ TIGHT = 1e-6  # its reference run's
 def parse_args(argv=None):
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--tables", nargs="+", default=list(TABLES), choices=TABLES + EXTRA_TABLES)
-    p.add_argument("--resolution", type=int, default=128, help="cloth and tolerance tables: grid resolution "
-                   "(default 128)")
-    p.add_argument("--steps", type=int, default=20, help="cloth and tolerance tables: timed steps per integrator "
-                   "(default 20)")
+    p.add_argument("--resolution", type=int, default=128, help="cloth, tolerance and curvature tables: grid "
+                   "resolution (default 128)")
+    p.add_argument("--steps", type=int, default=20, help="cloth and tolerance tables: timed steps per "
+                   "integrator; curvature: steps searched (default 20)")
     output.add_json(p, "newton")
     return p.parse_args(argv)
 
@@ -313,11 +324,87 @@ def tolerance_table(resolution, steps):
             "tight_to_half_dt_m": truncation}
 
 
+def step_hessian(model, x, h, fix):
+    """The Hessian M - h D - h^2 K of a Newton-solved step's incremental potential at the
+    positions x (n, 3), on the free particles' degrees of freedom (scipy.sparse, kg):
+    K of Eq. 13, its compressed springs' transverse part c (I - n n^T), c = l0/l - 1 > 0,
+    dropped where ``fix`` (the definiteness fix); D: spring damping along n."""
+    import scipy.sparse as sparse
+
+    i, j = model.springs[:, 0], model.springs[:, 1]
+    d = x[j] - x[i]
+    length = np.linalg.norm(d, axis=1)
+    nn = np.einsum("si,sj->sij", d, d) / (length**2)[:, None, None]
+    c = model.rest_lengths / length - 1.0
+    if fix:
+        c = np.minimum(c, 0.0)
+    k_block = model.stiffness[:, None, None] * (c[:, None, None] * np.eye(3) - (1.0 + c)[:, None, None] * nn)
+    block = -h * h * k_block + h * model.damping[:, None, None] * nn
+    rows, cols, values = [], [], []
+    for a, b, sign in ((i, i, 1.0), (j, j, 1.0), (i, j, -1.0), (j, i, -1.0)):
+        for p in range(3):
+            for q in range(3):
+                rows.append(3 * a + p)
+                cols.append(3 * b + q)
+                values.append(sign * block[:, p, q])
+    size = 3 * model.n_particles
+    H = sparse.coo_matrix((np.concatenate(values), (np.concatenate(rows), np.concatenate(cols))), shape=(size, size))
+    H = H.tocsr() + sparse.diags(np.repeat(model.masses, 3))
+    free = np.repeat(model.free_mask(), 3)
+    return H[free][:, free].tocsc()
+
+
+def curvature_table(resolution, steps):
+    from scipy.sparse.linalg import eigsh
+
+    scene = ms.load_scene("cloth").with_params(resolution=resolution, stiffness=1e4)
+    model, h = scene.model(), 1 / 60
+    sim = scene.simulation("backward-euler", dt=h, preconditioner="multigrid")
+    states = []
+    for _ in range(steps):
+        states.append((sim.positions.copy(), sim.velocities.copy()))
+        sim.step()
+    worst = int(np.argmax(sim.newton_iterations))
+    iterations = sim.newton_iterations[worst]
+    sim.close()
+    x, v = states[worst]
+    sim = ms.Simulation(model, "backward-euler", dt=h, preconditioner="multigrid", newton_tol=1e-9,
+                        newton_max_iter=400, cg_tol=1e-10).set_state(x, v)
+    sim.step()
+    stats, end = sim.solver_stats, sim.positions.copy()
+    sim.close()
+    mass = float(np.mean(model.masses[model.free_mask()]))
+    points = []
+    for name, at in (("first iterate", x + h * v), ("last iterate", end)):
+        true, fixed = step_hessian(model, at, h, False), step_hessian(model, at, h, True)
+        i, j = model.springs[:, 0], model.springs[:, 1]
+        compressed = np.linalg.norm(at[j] - at[i], axis=1) < model.rest_lengths
+        true_low = np.sort(eigsh(true, k=4, sigma=-10 * mass, return_eigenvectors=False)) / mass
+        fixed_low = np.sort(eigsh(fixed, k=2, sigma=0.0, return_eigenvectors=False)) / mass
+        mu = float(np.min(eigsh(true, k=2, M=fixed, sigma=-0.5, return_eigenvectors=False)))
+        points.append({"point": name, "compressed_fraction": float(np.mean(compressed)),
+                       "true_smallest_over_mass": true_low.tolist(), "fixed_smallest_over_mass": fixed_low.tolist(),
+                       "smallest_mu": mu, "rate": 1.0 - mu})
+    print(f"\ncloth {resolution} x {resolution}, dt 1/60, ks 1e4: step {worst} took {iterations} Newton iterations "
+          f"at default settings; at newton_tol 1e-9 it takes {stats.newton_iterations} "
+          f"(residual {stats.newton_residual:.1e} of its first)")
+    print(f"  {'at the':15s} {'compressed':>10s} {'true H / m, smallest':>30s} {'fixed H / m':>14s} {'mu':>8s} "
+          f"{'1 - mu':>7s}")
+    for r in points:
+        true_low = " ".join(f"{value:6.3f}" for value in r["true_smallest_over_mass"])
+        fixed_low = " ".join(f"{value:6.3f}" for value in r["fixed_smallest_over_mass"])
+        print(f"  {r['point']:15s} {r['compressed_fraction']:10.2f} {true_low:>30s} {fixed_low:>14s} "
+              f"{r['smallest_mu']:8.4f} {r['rate']:7.4f}")
+    return {"resolution": resolution, "step": worst, "default_newton_iterations": iterations,
+            "tight_newton_iterations": stats.newton_iterations, "tight_residual": stats.newton_residual,
+            "points": points}
+
+
 def main(argv=None):
     args = parse_args(argv)
     result = {}
     for table in args.tables:
-        if table in ("cloth", "tolerance"):
+        if table in ("cloth", "tolerance", "curvature"):
             result[table] = globals()[f"{table}_table"](args.resolution, args.steps)
         else:
             result[table] = globals()[f"{table}_table"]()
