@@ -196,17 +196,24 @@ def terminal_table():
     return rows
 
 
+def interleaved(sims, steps):
+    """{key: wall times (s) of ``steps`` steps} of the simulations ``sims`` ({key: Simulation}),
+    after one untimed step each (it compiles), taken in turn: the machine's load falls on all alike."""
+    for sim in sims.values():
+        sim.step(1)
+    times = {key: [] for key in sims}
+    for _ in range(steps):
+        for key, sim in sims.items():
+            start = time.perf_counter()
+            sim.step(1)
+            times[key].append(time.perf_counter() - start)
+    return times
+
+
 def cloth_table(resolution, steps):
     scene = ms.load_scene("cloth").with_params(resolution=resolution, stiffness=1e4)
     sims = {name: scene.simulation(name, dt=1 / 60, preconditioner="multigrid") for name in ("implicit", *NEWTON)}
-    for sim in sims.values():
-        sim.step(1)  # compiles; its time is not counted
-    times = {name: [] for name in sims}
-    for _ in range(steps):  # interleaved: the machine's load falls on all alike
-        for name, sim in sims.items():
-            start = time.perf_counter()
-            sim.step(1)
-            times[name].append(time.perf_counter() - start)
+    times = interleaved(sims, steps)
     base = statistics.median(times["implicit"])
     rows = []
     for name, sim in sims.items():
@@ -271,14 +278,7 @@ def tolerance_table(resolution, steps):
     for integrator in NEWTON:
         for tol in TOLERANCES:
             runs[integrator, tol] = simulation(integrator, newton_tol=tol)
-    for sim in runs.values():
-        sim.step(1)  # compiles; its time is not counted
-    times = {key: [] for key in runs}
-    for _ in range(steps):  # interleaved: the machine's load falls on all alike
-        for key, sim in runs.items():
-            start = time.perf_counter()
-            sim.step(1)
-            times[key].append(time.perf_counter() - start)
+    times = interleaved(runs, steps)
     tight = {}  # integrator -> (end positions, Newton iterations a step) at newton_tol TIGHT
     for integrator in NEWTON:
         sim = simulation(integrator, newton_tol=TIGHT).step(steps + 1)
