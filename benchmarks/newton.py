@@ -34,8 +34,9 @@ Tables (all f64, this machine):
    of the step's Hessian M - dt D - dt^2 K with the true K (Eq. 13) and with the
    definiteness fix's (as multiples of the particles' mass), and the smallest mu of
    H_true y = mu H_fixed y: near the solution Newton with the fixed Hessian multiplies
-   the error along y by 1 - mu an iteration. (Sparse matrices built in numpy, spring
-   damping along the springs at x; the step's own takes it at x_n + dt v_n.)
+   the error along y by 1 - mu an iteration. (The matrices are Eq. 15's A as
+   ``peers.assemble_system`` builds it, spring damping along the springs at x; the
+   step's own takes it at x_n + dt v_n.)
 
     python benchmarks/newton.py                       # all tables, cloth 128 x 128
     python benchmarks/newton.py --tables cloth --resolution 64 --steps 10
@@ -56,6 +57,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import output  # noqa: E402
+import peers  # noqa: E402
 
 import massspring as ms  # noqa: E402
 from massspring.io.files import write_json  # noqa: E402
@@ -324,36 +326,6 @@ def tolerance_table(resolution, steps):
             "tight_to_half_dt_m": truncation}
 
 
-def step_hessian(model, x, h, fix):
-    """The Hessian M - h D - h^2 K of a Newton-solved step's incremental potential at the
-    positions x (n, 3), on the free particles' degrees of freedom (scipy.sparse, kg):
-    K of Eq. 13, its compressed springs' transverse part c (I - n n^T), c = l0/l - 1 > 0,
-    dropped where ``fix`` (the definiteness fix); D: spring damping along n."""
-    import scipy.sparse as sparse
-
-    i, j = model.springs[:, 0], model.springs[:, 1]
-    d = x[j] - x[i]
-    length = np.linalg.norm(d, axis=1)
-    nn = np.einsum("si,sj->sij", d, d) / (length**2)[:, None, None]
-    c = model.rest_lengths / length - 1.0
-    if fix:
-        c = np.minimum(c, 0.0)
-    k_block = model.stiffness[:, None, None] * (c[:, None, None] * np.eye(3) - (1.0 + c)[:, None, None] * nn)
-    block = -h * h * k_block + h * model.damping[:, None, None] * nn
-    rows, cols, values = [], [], []
-    for a, b, sign in ((i, i, 1.0), (j, j, 1.0), (i, j, -1.0), (j, i, -1.0)):
-        for p in range(3):
-            for q in range(3):
-                rows.append(3 * a + p)
-                cols.append(3 * b + q)
-                values.append(sign * block[:, p, q])
-    size = 3 * model.n_particles
-    H = sparse.coo_matrix((np.concatenate(values), (np.concatenate(rows), np.concatenate(cols))), shape=(size, size))
-    H = H.tocsr() + sparse.diags(np.repeat(model.masses, 3))
-    free = np.repeat(model.free_mask(), 3)
-    return H[free][:, free].tocsc()
-
-
 def curvature_table(resolution, steps):
     from scipy.sparse.linalg import eigsh
 
@@ -376,7 +348,8 @@ def curvature_table(resolution, steps):
     mass = float(np.mean(model.masses[model.free_mask()]))
     points = []
     for name, at in (("first iterate", x + h * v), ("last iterate", end)):
-        true, fixed = step_hessian(model, at, h, False), step_hessian(model, at, h, True)
+        # M - h D - h^2 K on the free degrees of freedom: Eq. 15's A, with the true K and with the fix's
+        true, fixed = (peers.assemble_system(model, at, np.zeros_like(at), h, fix)[0].tocsc() for fix in (False, True))
         i, j = model.springs[:, 0], model.springs[:, 1]
         compressed = np.linalg.norm(at[j] - at[i], axis=1) < model.rest_lengths
         true_low = np.sort(eigsh(true, k=4, sigma=-10 * mass, return_eigenvectors=False)) / mass
