@@ -205,13 +205,14 @@ def newton_refresh(dev: ti.template(), cfg: ti.template(), h: ti.f64, t: ti.f64,
 
 
 @ti.func
-def spring_change(s, dev, cfg: ti.template(), h):
-    """Spring s's change of U + h Psi from the iterate (``xk``, ``vk``) to (x^ + h v, v)."""
+def spring_change(s, dev, cfg: ti.template(), h, alpha):
+    """Spring s's change of U + h Psi from the iterate (``xk``, ``vk``) to (x^ + h v, v),
+    v = v_k + alpha d (its ends' displacement h alpha (d_j - d_i), not a difference of v's)."""
     out = ti.cast(0, cfg.real)
     i = dev.ends[s][0]
     j = dev.ends[s][1]
     old = dev.xk[j] - dev.xk[i]
-    step = h * ((dev.v[j] - dev.v[i]) - (dev.vk[j] - dev.vk[i]))
+    step = h * alpha * (dev.dir[j] - dev.dir[i])
     new = old + step
     _, old_length = spring_direction(old, cfg.real)
     _, new_length = spring_direction(new, cfg.real)
@@ -228,11 +229,12 @@ def spring_change(s, dev, cfg: ti.template(), h):
 
 
 @ti.func
-def particle_change(i, dev, cfg: ti.template(), h):
-    """Particle i's change of inertia, particle terms' U + h Psi and friction from ``vk`` to v."""
+def particle_change(i, dev, cfg: ti.template(), h, alpha):
+    """Particle i's change of inertia, particle terms' U + h Psi and friction from ``vk`` to
+    v = v_k + alpha d (dv = alpha d, not v - v_k)."""
     v = dev.v[i]
     w = dev.vk[i]
-    dv = v - w
+    dv = alpha * dev.dir[i]
     out = 0.5 * dev.mass[i] * dv.dot(v + w - 2 * dev.vb[i])
     for term in ti.static(cfg.particle_terms):
         out += term.potential_change(i, dev, h * dv)
@@ -251,11 +253,11 @@ def trial(dev, cfg: ti.template(), h, alpha):
         dev.v[i] = dev.vk[i] + alpha * dev.dir[i]
     if ti.static(cfg.has_springs):
         for s in range(dev.size[1]):
-            dev.fs[s] = ti.Vector([spring_change(s, dev, cfg, h), 0, 0], cfg.real)  # fs is scratch here
+            dev.fs[s] = ti.Vector([spring_change(s, dev, cfg, h, alpha), 0, 0], cfg.real)  # fs is scratch here
     for blk in range(block_count(n)):
         acc = ti.Vector.zero(ti.f64, 3)
         for i in range(blk * BLOCK, block_end(blk, n)):
-            change = ti.cast(particle_change(i, dev, cfg, h), ti.f64)
+            change = ti.cast(particle_change(i, dev, cfg, h, alpha), ti.f64)
             if ti.static(cfg.has_springs):
                 for e in range(dev.offsets[i], dev.offsets[i + 1]):
                     s = dev.entry[e]
@@ -269,9 +271,15 @@ def trial(dev, cfg: ti.template(), h, alpha):
 
 @ti.kernel
 def newton_direction(dev: ti.template(), cfg: ti.template()):
-    """d = v' - v_k after the linear solve (``dev.v`` = v')."""
+    """d = S (v' - v_k) after the linear solve (``dev.v`` = v'): the prescribed directions,
+    which v' and v_k both hold at their prescribed velocities, projected out of d, so that
+    their round-off (eps |v|) neither moves them nor enters the line search's slope and
+    change (a contact's normal carries the impulse's large share of g)."""
     for i in range(dev.size[0]):
-        dev.dir[i] = dev.v[i] - dev.vk[i]
+        d = dev.v[i] - dev.vk[i]
+        if not is_free(i, dev, cfg):
+            d = constrain(i, dev, cfg, d)
+        dev.dir[i] = d
 
 
 @ti.kernel
