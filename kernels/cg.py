@@ -299,49 +299,78 @@ def next_position(i, dev, cfg: ti.template(), xb: ti.template(), h, dt, t):
 
 
 @ti.func
-def advance_sums(dev, cfg: ti.template(), xb: ti.template(), h, dt, t):
-    """Summed ``state_sums`` of the candidate state (``next_position``, v), storing nothing."""
+def advance_sums(dev, cfg: ti.template(), xb: ti.template(), h, dt, t, springs: ti.template()):
+    """Summed ``state_sums`` of the candidate state (``next_position``, kept in ``dev.q``;
+    v); with ``springs``, its springs' potential energy (``SpringTerm.potential``) added
+    to the kinetic energy: a Newton-solved step can converge to springs stretched far
+    beyond anything the motion gave them while the velocities stay small."""
     n = dev.size[0]
     g = uniform_acceleration(dev, cfg)
     for blk in range(block_count(n)):
         acc = ti.Vector.zero(ti.f64, 3)
         for i in range(blk * BLOCK, block_end(blk, n)):
-            acc += state_sums(next_position(i, dev, cfg, xb, h, dt, t), dev.v[i], dev.mass[i], g, cfg.has_uniform)
+            x = next_position(i, dev, cfg, xb, h, dt, t)
+            dev.q[i] = x
+            acc += state_sums(x, dev.v[i], dev.mass[i], g, cfg.has_uniform)
         dev.partial[blk] = acc
-    return ordered_sum(dev.partial, block_count(n))
+    sums = ordered_sum(dev.partial, block_count(n))
+    if ti.static(springs and cfg.has_springs):
+        sums[0] += spring_energy(dev, cfg, dev.q)
+    return sums
 
 
 @ti.func
-def commit(dev, cfg: ti.template(), xb: ti.template(), h, dt, t, carry: ti.template()):
+def spring_energy(dev, cfg: ti.template(), x: ti.template()):
+    """The springs' potential energy (J, float64) at the positions ``x``, each spring
+    counted once at its first end, summed in fixed blocks of particles."""
+    n = dev.size[0]
+    for blk in range(block_count(n)):
+        acc = ti.Vector.zero(ti.f64, 3)
+        for i in range(blk * BLOCK, block_end(blk, n)):
+            for e in range(dev.offsets[i], dev.offsets[i + 1]):
+                s = dev.entry[e]
+                if s >= 0:
+                    length = (x[dev.other[e]] - x[i]).norm()
+                    for term in ti.static(cfg.spring_terms):
+                        acc[0] += ti.cast(term.potential(s, dev, length), ti.f64)
+        dev.partial[blk] = acc
+    return ordered_sum(dev.partial, block_count(n))[0]
+
+
+@ti.func
+def commit(dev, cfg: ti.template(), xb: ti.template(), h, dt, t, carry: ti.template(), springs: ti.template()):
     """Check the candidate state (``next_position``, v); if it passes, store it (see
-    ``advance_positions``). Returns its ``divergence.verdict`` (code, kinetic J, bound J)."""
-    sums = advance_sums(dev, cfg, xb, h, dt, t)
+    ``advance_positions``). Returns its ``divergence.verdict`` (code, kinetic (+ spring)
+    J, bound J)."""
+    sums = advance_sums(dev, cfg, xb, h, dt, t, springs)
     result = verdict(sums, dev.check[None])
     code = ti.cast(result[0], ti.i32)
     for i in range(dev.size[0]):
         if code == OK:
-            x = next_position(i, dev, cfg, xb, h, dt, t)
             if ti.static(carry):
                 dev.xo[i] = dev.x[i]
                 dev.vo[i] = dev.keep[i]
-            dev.x[i] = x
+            dev.x[i] = dev.q[i]
             dev.keep[i] = dev.v[i]
     return result
 
 
 @ti.kernel
 def advance_positions(dev: ti.template(), cfg: ti.template(), xb: ti.template(), h: ti.f64, dt: ti.f64,
-                      t: ti.f64, serial: ti.template(), carry: ti.template()) -> ti.types.vector(3, ti.f64):
+                      t: ti.f64, serial: ti.template(), carry: ti.template(),
+                      springs: ti.template()) -> ti.types.vector(3, ti.f64):
     """x_{n+1} = x^ + h v_{n+1} (seed Eq. 9: ``xb`` = ``dev.x``, h = dt) at the step's end
     time t (s), committed only if the new state passes the check.
 
-    The first loops reduce ``divergence.state_sums`` of (x_{n+1}, v_{n+1}) without
-    storing anything; if ``divergence.verdict`` accepts it, the last loop stores
+    The first loops reduce ``divergence.state_sums`` of (x_{n+1}, v_{n+1}), holding
+    x_{n+1} in ``dev.q`` (with ``springs``, the Newton-solved steps', the springs'
+    potential energy counted with the kinetic);
+    if ``divergence.verdict`` accepts it, the last loop stores
     x_{n+1} and copies v_{n+1} into ``dev.keep``, so ``keep`` always holds the
     velocity of the last accepted state (with ``carry``, the state it replaces goes
     to ``dev.xo``, ``dev.vo``: BDF2's previous step). If the check fails, x_n is
     untouched and the caller restores v_n from ``keep``. ``serial`` serialises the
-    loops. Returns the new state's ``divergence.verdict`` (code, kinetic J, bound J).
+    loops. Returns the new state's ``divergence.verdict`` (code, kinetic + spring J, bound J).
     """
     hh = ti.cast(h, cfg.real)
     step = ti.cast(dt, cfg.real)
@@ -350,7 +379,7 @@ def advance_positions(dev: ti.template(), cfg: ti.template(), xb: ti.template(),
     if ti.static(serial):
         ti.loop_config(serialize=True)
         for _ in range(1):
-            out = commit(dev, cfg, xb, hh, step, end, carry)
+            out = commit(dev, cfg, xb, hh, step, end, carry, springs)
     else:
-        out = commit(dev, cfg, xb, hh, step, end, carry)
+        out = commit(dev, cfg, xb, hh, step, end, carry, springs)
     return out

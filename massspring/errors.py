@@ -12,20 +12,23 @@ class DivergenceError(RuntimeError):
 
     Attributes: ``step`` (1-based number of the step that failed), ``time`` (s,
     simulated time that step would have reached), ``cause`` ("non-finite" or
-    "runaway"), ``kinetic`` (J, kinetic energy of the rejected state), ``bound``
-    (J, the kinetic-energy bound it was checked against), ``integrator`` and ``dt``.
-    After the error ``Simulation.positions``/``velocities`` are those of step
-    ``step - 1`` and ``Simulation.steps == step - 1``.
+    "runaway"), ``energy`` (J, the energy of the rejected state that the check held to
+    the bound: ``measured`` names it, "kinetic energy" for the explicit and linearised ones,
+    "kinetic and spring energy" for the Newton-solved ones), ``kinetic`` (the same number,
+    its older name), ``bound`` (J, the bound it was checked against), ``integrator``
+    and ``dt``. After the error ``Simulation.positions``/``velocities`` are those of
+    step ``step - 1`` and ``Simulation.steps == step - 1``.
     """
 
-    def __init__(self, step, time, cause, kinetic, bound, integrator, dt):
+    def __init__(self, step, time, cause, energy, bound, integrator, dt, measured="kinetic energy"):
         self.step, self.time, self.cause = int(step), float(time), cause
-        self.kinetic, self.bound = float(kinetic), float(bound)
+        self.energy, self.bound, self.measured = float(energy), float(bound), measured
+        self.kinetic = self.energy
         self.integrator, self.dt = integrator, float(dt)
         if cause == "non-finite":
             what = "non-finite position or velocity (NaN or Inf)"
         else:
-            what = f"runaway growth: kinetic energy {self.kinetic:.3g} J above the bound {self.bound:.3g} J"
+            what = f"runaway growth: {measured} {self.energy:.3g} J above the bound {self.bound:.3g} J"
         super().__init__(f"{integrator} diverged at step {self.step} "
                          f"(t = {self.time:.6g} s, dt = {format_seconds(self.dt)}): "
                          f"{what}; the state of step {self.step - 1} is kept")

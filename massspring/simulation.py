@@ -459,12 +459,12 @@ class Simulation:
             self._raise_if_diverged(check)
 
     def _raise_if_diverged(self, check):
-        code, kinetic, bound = check
+        code, kinetic, bound = check  # kinetic: the integrator's checked_energy
         if code == divergence.OK:
             return
         failed = self._steps + 1
         raise DivergenceError(failed, failed * self.dt, divergence.CAUSES[code], kinetic, bound,
-                              self.integrator, self.dt)
+                              self.integrator, self.dt, self._integrator.checked_energy)
 
     def energy(self) -> dict:
         """Kinetic, spring, each uniform force's potential and total energy (J) of the current

@@ -85,6 +85,9 @@ def test_integrators_without_a_scene_dt_get_one_from_the_stability_estimate(tmp_
     assert scene.default_dt("symplectic") == pytest.approx(0.5 * 2 / omega, rel=1e-9)
     assert scene.default_dt("rk4") == pytest.approx(0.5 * 2 * np.sqrt(2) / omega, rel=1e-9)
     assert scene.default_dt("implicit") == pytest.approx(1 / 60)
+    assert scene.default_dt("midpoint") == pytest.approx(1 / 60)  # 2 / omega = 0.2 s: the frame is smaller
+    stiff = ms.load_scene(path).with_params(stiffness=1e6)
+    assert stiff.default_dt("midpoint") == pytest.approx(2 / predict(stiff.model()).omega_max, rel=1e-9)
     sim = scene.simulation(integrator="symplectic")
     sim.step(100)  # stable at its suggested dt
     assert np.all(np.isfinite(sim.positions)) and sim.energy()["total"] <= 1.01 * scene.model().energy(

@@ -22,6 +22,12 @@ class SpringTerm:
 
     @staticmethod
     @ti.func
+    def potential(s, dev, length):
+        """The term's potential energy (J) at the spring's ``length`` (m)."""
+        return 0
+
+    @staticmethod
+    @ti.func
     def potential_change(s, dev, old_length, new_length, change):
         return 0
 

@@ -98,6 +98,13 @@ class Springs(SpringTerm):
 
     @staticmethod
     @ti.func
+    def potential(s, dev, length):
+        """ks/2 (l - l0)^2 (J)."""
+        stretch = length - dev.l0[s]
+        return 0.5 * dev.ks[s] * stretch * stretch
+
+    @staticmethod
+    @ti.func
     def potential_change(s, dev, old_length, new_length, change):
         """ks/2 ((l' - l0)^2 - (l - l0)^2) (J), from the length change l' - l given separately."""
         return 0.5 * dev.ks[s] * change * (new_length + old_length - 2 * dev.l0[s])

@@ -38,6 +38,7 @@ solver's options, ``options.Option`` records: ``integrators.OPTIONS``). ``serial
     swept = None  # the option the study sweeps (a tolerance: its Option.sweep), None: none
     grows_undamped = False  # unstable for undamped oscillation at every dt (damping alone can make it stable)
     limit_reference = False  # its measured stability limit is what the others' ladders are relative to
+    checked_energy = "kinetic energy"  # what its steps' divergence check holds to the bound (kernels/divergence.py)
     differentiable = False  # has ``adjoint``: ``massspring.gradient`` can run it backwards
     keyframed_pins = True  # moves pins with a velocity that changes between steps (``Controls.pin_targets``)
 

@@ -154,7 +154,7 @@ class ImplicitEuler(Integrator):
                 implicit_adjoint.keep_solved(self.dev, adj, self.dev.n, self.steps - first)
             friction.contact_friction(self.dev, self.cfg, self.time, self.serial)
         check = read_verdict(cg.advance_positions(self.dev, self.cfg, self.dev.x, s.dt, s.dt,
-                                                       (self.steps + 1) * s.dt, self.serial, False))
+                                                       (self.steps + 1) * s.dt, self.serial, False, False))
         accepted = check[0] == divergence.OK
         if not accepted:
             self.dev.v.copy_from(self.dev.keep)

@@ -25,12 +25,28 @@ class Midpoint(BackwardEuler):
     step (h = dt, v' = w), as BDF2's is: an impact makes the velocity jump, and
     extrapolating w across it would bounce the particle back (contact is first order in
     every integrator).
+
+    Nonlinear springs break the energy argument: where stiff springs turn or buckle
+    within a step, the midpoint's chord is shorter than the springs it stands for and
+    the rule gains energy (Simo and Tarnow 1992), however tightly Newton solves it
+    (measured: the chain at dt 1/60 diverges with newton_tol 1e-10 and no damping, as
+    with the definiteness fix or without). So midpoint has a dt limit on such scenes,
+    measured per shipped scene (their [dt] midpoint entries: docs/stability-and-study.md);
+    ``suggest_dt`` gives a scene without one the explicit limit 2 / omega_max.
     """
 
     name = "midpoint"
     order = 2
     description = "implicit midpoint (second order, symplectic) solved by Newton's method with a line search"
     half_step = True
+
+    @staticmethod
+    def suggest_dt(prediction):
+        """2 / omega_max (symplectic Euler's limit on the stiffest mode), at most 1/60 s: a
+        cautious default, each shipped scene's measured midpoint dt being larger (omega_max
+        dt from 2.5 on the compressed cloth to 570 on the heavy chain: ``Midpoint``)."""
+        omega = prediction.omega_max
+        return min(1.0 / 60.0, 2.0 / omega) if omega > 0 else 1.0 / 60.0
 
     def ahead(self, h):
         return h

@@ -64,6 +64,7 @@ class BackwardEuler(ImplicitEuler):
     order = 1
     description = "backward Euler solved by Newton's method with a line search (CG per iteration)"
     newton = True
+    checked_energy = "kinetic and spring energy"  # cg.advance_positions with springs
     differentiable = True  # kernels/newton_adjoint.py: the true Jacobian at the converged iterate
     half_step = False  # (*) of kernels/newton.py is solved for (v_n + v')/2 with h = dt/2 (implicit midpoint)
     options = LINEAR_OPTIONS + NEWTON_OPTIONS
@@ -285,7 +286,7 @@ class BackwardEuler(ImplicitEuler):
         if cfg.contact_filter and self.history is not None:  # x' = x^ + h v' from here
             implicit_adjoint.keep_base(dev, self.history[0], dev.n, self.steps - self.history[1])
         check = read_verdict(cg.advance_positions(dev, cfg, dev.xb, h, s.dt, (self.steps + 1) * s.dt, serial,
-                                                       self.carries))
+                                                       self.carries, True))
         accepted = check[0] == divergence.OK
         if not accepted:
             dev.v.copy_from(dev.keep)
