@@ -293,6 +293,43 @@ def test_equal_values_written_differently_are_one_value():
         sweep.plan(scene, {"stiffness": [1000, 1e3]})
 
 
+def test_equal_vectors_written_differently_are_one_value():
+    """Issue 60: ``--vary "gravity=[0,0,-1],[0,0,-1.0]"`` ran two identical cases."""
+    scene = ms.load_scene("spring")
+    with pytest.raises(ValueError, match=r"vary gravity: a value given twice"):
+        sweep.plan(scene, sweep.parse_vary(["gravity=[0,0,-1],[0,0,-1.0]"]))
+    assert len(sweep.plan(scene, {"gravity": [[0, 0, -1], [0, 0, -2]]})) == 2
+
+
+def test_numpy_arrays_and_scalars_are_values():
+    """Issue 60: ``ms.sweep`` with a numpy array of values said "no values", and with
+    ``np.int64(100)`` "expected a number, got int64"; a 2-d array is a list of vectors."""
+    scene = chain()
+    cases = sweep.plan(scene, {"stiffness": np.array([1e2, 1e3]), "count": [np.int64(4)]})
+    assert [dict(case.values) for case in cases] == [{"stiffness": 100.0, "count": 4}, {"stiffness": 1000.0, "count": 4}]
+    assert all(type(case.values[1][1]) is int for case in cases)
+    cases = sweep.plan(scene, {"gravity": np.array([[0.0, 0.0, -1.0], [0.0, 0.0, -2.0]])})
+    assert [case.values[0][1] for case in cases] == [[0.0, 0.0, -1.0], [0.0, 0.0, -2.0]]
+
+
+def test_the_lock_file_is_removed_when_the_sweep_ends(tmp_path):
+    """Issue 60: ``.sweep.csv.lock`` was left behind; removed on every exit (a failed
+    sweep's too), and a sweep that follows takes a lock of its own."""
+    out = tmp_path / "sweep.csv"
+    sweep.sweep(chain(), {"stiffness": [1e2]}, steps=2, out=out)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["sweep.csv"]
+    with pytest.raises(ValueError, match="holds another table"):
+        sweep.sweep(chain(), {"damping": [0.1]}, steps=2, out=out)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["sweep.csv"]
+    results = sweep.Results(out, ["stiffness"])
+    try:
+        with pytest.raises(ValueError, match="being written by another sweep"):
+            sweep.Results(out, ["stiffness"])
+    finally:
+        results.close()
+    assert not (tmp_path / ".sweep.csv.lock").exists()
+
+
 def test_the_case_count_is_bounded_before_any_model_is_built_even_when_confirmed(monkeypatch):
     """Issue 42: ``--yes`` with 10^7 cases took 15 GB before the first case."""
     scene = ms.load_scene("spring")

@@ -116,6 +116,7 @@ def plan(scene, vary, integrator=None, confirm=False, limit=MAX_CASES, option="v
 
     if not isinstance(vary, dict) or not vary:
         raise ValueError(f"{option}: nothing to vary (give KEY=V1,V2,...)")
+    vary = {key: _plain(values) for key, values in vary.items()}
     known = set(scene.params) | set(scene.common)
     for key, values in vary.items():
         where = f"{option} {key}"
@@ -313,8 +314,14 @@ class Results:
         return {number: line for number, line in self.done.items()}
 
     def close(self):
-        """Let another sweep write the CSV."""
+        """Let another sweep write the CSV: its lock file removed (while still held, so
+        that a sweep waiting on it finds it gone and makes its own: ``_lock``), then
+        released."""
         if self.lock is not None:
+            try:
+                os.unlink(_lock_path(self.path))
+            except OSError:
+                pass
             os.close(self.lock)
             self.lock = None
 
@@ -349,15 +356,25 @@ def _lock(path):
     instead of writing every case twice. Returns the lock's file descriptor."""
     import fcntl
 
-    lock = path.with_name(f".{path.name}.lock")
-    fd = os.open(lock, os.O_RDWR | os.O_CREAT, 0o666)
-    try:
-        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-    except OSError:
+    lock = _lock_path(path)
+    while True:
+        fd = os.open(lock, os.O_RDWR | os.O_CREAT, 0o666)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            os.close(fd)
+            raise ValueError(f"--out: {str(path)!r} is being written by another sweep (it holds {lock.name}); "
+                             "wait for it to end or give another --out") from None
+        try:  # the file locked is still the one at that name (a closing sweep removes it before releasing it)
+            if os.stat(lock).st_ino == os.fstat(fd).st_ino:
+                return fd
+        except FileNotFoundError:
+            pass
         os.close(fd)
-        raise ValueError(f"--out: {str(path)!r} is being written by another sweep (it holds {lock.name}); "
-                         "wait for it to end or give another --out") from None
-    return fd
+
+
+def _lock_path(path):
+    return Path(path).with_name(f".{Path(path).name}.lock")
 
 
 def _cell(value):
@@ -513,11 +530,26 @@ def spans_decades(values) -> bool:
     return len(values) > 1 and min(values) > 0 and max(values) / min(values) >= 10
 
 
+def _plain(values):
+    """A sweep's values for one key as Python objects: a numpy array becomes its list, a
+    numpy scalar its Python number, a numpy vector its list (anything else is left for
+    ``plan`` to check)."""
+    if isinstance(values, np.ndarray):
+        values = values.tolist()
+    if not isinstance(values, (list, tuple)):
+        return values
+    return [value.tolist() if isinstance(value, (np.ndarray, np.generic)) else value for value in values]
+
+
 def _same_value(value):
-    """What makes two varied values the same: numbers by value (1000 and 1e3), the rest
-    by their CSV text."""
+    """What makes two varied values the same: numbers by value (1000 and 1e3), vectors of
+    numbers by their components' values ([0, 0, -1] and [0, 0, -1.0]), the rest by their
+    CSV text."""
     if _is_number(value) and not isinstance(value, (bool, str)):
         return ("number", float(value))
+    if isinstance(value, (list, tuple)) and value and all(_is_number(v) and not isinstance(v, (bool, str))
+                                                          for v in value):
+        return ("vector", tuple(float(v) for v in value))
     return ("text", value_text(value))
 
 
