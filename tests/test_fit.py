@@ -88,6 +88,9 @@ def test_fit_refuses_bad_input_before_any_run(tmp_path, capsys):
         (["--params", "stiffness", "--max-iter", "0"], ("--max-iter",)),
         (["--params", "stiffness", "--integrator", "symplectic", "--cg-tol", "1e-8"], ("--cg-tol", "symplectic")),
         (["--params", "drag"], ("--params", "drag")),  # the cloth has no air drag
+        # issue 60: --out was checked only after the whole fit (tracebacks, folders made)
+        (["--params", "stiffness", "--out", str(tmp_path)], ("--out", "is a directory")),
+        (["--params", "stiffness", "--out", str(tmp_path / "no" / "such" / "fit.json")], ("--out", "does not exist")),
     ]
     for extra, words in cases:
         assert main(["fit", *CLOTH, "--frames", str(frames), *extra]) == 2, extra
@@ -98,6 +101,7 @@ def test_fit_refuses_bad_input_before_any_run(tmp_path, capsys):
     one_line_error(capsys, "frame_00000.npz")
     assert main(["fit", "drape", "--set", "resolution=5", "--frames", str(frames), "--params", "stiffness"]) == 2
     one_line_error(capsys, "scene", "strain limit")  # refused before the frames are read
+    assert not (tmp_path / "no").exists()
 
 
 def test_fit_refuses_frames_that_are_not_states(tmp_path, capsys):

@@ -54,7 +54,7 @@ def cmd_fit(args):
     from massspring import validate
     from massspring.analysis import parameter_fit
     from massspring.errors import DivergenceError, GradientError
-    from massspring.io.files import write_json
+    from massspring.io.files import check_writable, write_json
     from massspring.scene import load_scene
 
     try:
@@ -66,6 +66,8 @@ def cmd_fit(args):
         low, high = parameter_fit.FACTOR_RANGE
         if not low <= validate.positive_float("--start", args.start) <= high:
             raise ValueError(f"--start: must be within {low:g}..{high:g}, got {args.start!r}")
+        if args.out is not None:  # as `run` checks its outputs: before the fit, not after it
+            check_writable(args.out, "--out")
     except ValueError as exc:
         raise UsageError(str(exc)) from None
     options = solver_options(args)
