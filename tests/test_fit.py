@@ -104,6 +104,37 @@ def test_fit_refuses_bad_input_before_any_run(tmp_path, capsys):
     assert not (tmp_path / "no").exists()
 
 
+def test_a_frame_steps_beyond_any_fit_is_refused(tmp_path, capsys):
+    """Issue 60: a recording whose last frame said ``steps = 10**12`` made ``fit`` run
+    until killed; refused naming the file before any run."""
+    frames = record(tmp_path, steps=2, every=1)
+    capsys.readouterr()
+    last = sorted(frames.glob("*.npz"))[-1]
+    data = dict(np.load(last))
+    data["steps"] = np.array(10**12)
+    np.savez(last, **data)
+    assert main(["fit", *CLOTH, "--frames", str(frames), "--params", "stiffness"]) == 2
+    one_line_error(capsys, last.name, "damaged")
+
+
+def test_a_frame_that_links_out_of_the_folder_is_refused(tmp_path, capsys):
+    """Issue 60: a frame file that is a symbolic link out of the frames folder was
+    followed; refused naming it (a link inside the folder is still read)."""
+    frames = record(tmp_path, steps=2, every=1)
+    capsys.readouterr()
+    last = sorted(frames.glob("*.npz"))[-1]
+    outside = tmp_path / "elsewhere.npz"
+    last.rename(outside)
+    last.symlink_to(outside)
+    assert main(["fit", *CLOTH, "--frames", str(frames), "--params", "stiffness"]) == 2
+    one_line_error(capsys, last.name, "link out of")
+    kept = frames / "kept.npz"
+    outside.rename(kept)
+    last.unlink()
+    last.symlink_to(kept)
+    assert len(parameter_fit.read_recording(frames, ms.load_scene("cloth").with_params(resolution=5).model()).steps) == 3
+
+
 def test_fit_refuses_frames_that_are_not_states(tmp_path, capsys):
     frames = record(tmp_path, steps=2, every=1, fmt="obj")
     capsys.readouterr()

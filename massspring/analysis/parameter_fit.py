@@ -30,6 +30,7 @@ from massspring.model import Model
 FITTABLE = ("stiffness", "damping", "rest_lengths", "masses", "drag")  # scaled by one factor each
 FACTOR_RANGE = (1e-3, 1e3)  # L-BFGS-B's bounds on every factor
 MAX_ITER = 30  # L-BFGS-B iterations, default
+MAX_STEPS = 10**7  # steps of a fitted run at most: a frame's step beyond is a damaged recording, not a fit
 STATIONARY = 1e-6  # a stop with the projected gradient this far below its first is a converged fit
 
 
@@ -86,6 +87,9 @@ def read_recording(directory, model: Model) -> Recording:
             raise ValueError(f"{path}: dt {state.dt:g} s, the first frame's {dt:g} s; a fit needs one dt")
         elif state.steps <= steps[-1] + first.steps:
             raise ValueError(f"{path}: step {state.steps} is not after the frame before it")
+        if state.steps - first.steps > MAX_STEPS:
+            raise ValueError(f"{path}: step {state.steps} is {state.steps - first.steps:,} steps after the first "
+                             f"frame's, more than a fit runs ({MAX_STEPS:,}); is the recording damaged?")
         positions.append(state.positions)
         steps.append(state.steps - first.steps)
     return Recording(np.array(positions), np.array(steps), first.velocities, float(dt), str(directory))

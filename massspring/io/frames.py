@@ -152,9 +152,12 @@ def _as_list(value):
 
 
 def _inside(name, directory):
-    """``name`` if it is a relative path that stays inside ``directory``, else ValueError."""
+    """``name`` if it is a relative path that stays inside ``directory``, symbolic links
+    followed, else ValueError."""
     if not isinstance(name, str) or not name or Path(name).is_absolute() or ".." in Path(name).parts:
         raise ValueError(f"{brief(name, 80)} is not a file name inside {str(directory)!r}")
+    if not (directory / name).resolve().is_relative_to(directory.resolve()):
+        raise ValueError(f"{brief(name, 80)} is a link out of {str(directory)!r}")
     return name
 
 
