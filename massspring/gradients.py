@@ -128,10 +128,15 @@ def gradient(model, objective, wrt, *, steps, every=1, integrator="symplectic", 
                       pins="pin_velocity" in names or "controls.pin_targets" in names,
                       friction=model.has_friction and INTEGRATORS[integrator].linear_solver)
         shares = ControlShares(sim, adj) if model.controls is not None else None
-        _backward(sim, adj, wants, partials, frames.steps, kept, last, steps, checkpoint, shares, pass_steps)
-        grads = _read(sim, adj, names, shares)
+        with np.errstate(over="ignore", invalid="ignore"):  # an overflow is refused below, by name
+            _backward(sim, adj, wants, partials, frames.steps, kept, last, steps, checkpoint, shares, pass_steps)
+            grads = _read(sim, adj, names, shares)
         if pass_steps is not None and "stiffness" in grads:
             pass_steps.add_stiffness(grads["stiffness"])
+        for name, grad in grads.items():
+            if not np.all(np.isfinite(grad)):
+                raise ValueError(f"objective: its partials (largest magnitude {_largest(partials):.3g}) made the "
+                                 f"gradient in {name!r} overflow; scale the objective down")
         return value, grads
     finally:
         sim.close()
@@ -290,7 +295,15 @@ def _call(objective, frames, n):
     for key, arr in partials.items():
         if key not in PARTIALS:
             raise ValueError(f"objective: unknown partials key {key!r}; expected some of {PARTIALS}")
-        arr = np.asarray(arr, dtype=np.float64)
+        try:
+            arr = np.asarray(arr)
+        except (TypeError, ValueError) as exc:
+            raise ValueError(f"objective: partials[{key!r}] is not an array of numbers ({exc})") from None
+        if arr.dtype.kind == "c":
+            raise ValueError(f"objective: partials[{key!r}] holds complex values; give real derivatives")
+        if arr.dtype.kind not in "biuf":
+            raise ValueError(f"objective: partials[{key!r}] holds {arr.dtype} values, not numbers")
+        arr = arr.astype(np.float64)
         if arr.shape != shape:
             raise ValueError(f"objective: partials[{key!r}] has shape {arr.shape}, expected {shape} (frames, n, 3)")
         if not np.all(np.isfinite(arr)):
@@ -298,6 +311,10 @@ def _call(objective, frames, n):
         out[key] = arr
     zero = np.zeros(shape)
     return value, (out.get("positions", zero), out.get("velocities", zero))
+
+
+def _largest(partials) -> float:
+    return max(float(np.abs(p).max(initial=0.0)) for p in partials)
 
 
 def _adjoint_bundle(sim, checkpoint):

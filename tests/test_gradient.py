@@ -816,6 +816,10 @@ def test_frictionless_contact_in_the_implicit_step_has_the_gradient_of_its_branc
     ((1.0, {"forces": 0}), ["unknown partials key 'forces'"]),
     ((1.0, {"positions": np.zeros((1, 16, 3))}), ["partials['positions'] has shape (1, 16, 3)", "(3, 16, 3)"]),
     ((1.0, {"velocities": np.full((3, 16, 3), np.inf)}), ["partials['velocities']", "not finite"]),
+    # issue 60: these failed without the "objective:" prefix, gave inf, or were cut to their real part
+    ((1.0, {"positions": "abc"}), ["partials['positions']", "not numbers"]),
+    ((1.0, {"positions": np.full((3, 16, 3), 1 + 1j)}), ["partials['positions']", "complex"]),
+    ((1.0, {"positions": np.full((3, 16, 3), 1e308)}), ["overflow", "1e+308"]),
 ])
 def test_a_bad_objective_result_names_the_objective(returned, words):
     with pytest.raises(ValueError) as info:
