@@ -25,6 +25,8 @@ a fixed number); values (numpy) fill it at allocation, padded with zeros.
 """
 
 import contextlib
+import ctypes
+import ctypes.util
 import io
 import os
 import re
@@ -68,7 +70,7 @@ def ensure_taichi(arch="cpu", name="arch"):
             _probe(arch, name)
         with tempfile.TemporaryFile() as log:
             try:
-                with contextlib.redirect_stdout(io.StringIO()), _stderr_to(log):  # "[Taichi] Starting on ..."
+                with contextlib.redirect_stdout(io.StringIO()), _stderr_to(log), _floating_point_kept():
                     ti.init(arch=getattr(ti, "cpu" if arch == "cpu" else arch), default_fp=ti.f64,
                             log_level=ti.ERROR if arch not in CPU_ARCHS else ti.WARN)
             except RuntimeError as exc:  # e.g. its memory pool under a low ulimit -v; its own log line dropped
@@ -84,6 +86,38 @@ def ensure_taichi(arch="cpu", name="arch"):
         accepted = tuple(ti.gpu) if arch == "gpu" else (getattr(ti, arch),)
     if current not in accepted:
         raise ValueError(f"{name}: Taichi already runs on {current.name} in this process; cannot switch to {arch!r}")
+
+
+@contextlib.contextmanager
+def _floating_point_kept():
+    """The calling thread's floating-point environment as it was before the block.
+    ``ti.init`` turns on flush-to-zero and denormals-are-zero in it, after which Python
+    itself reads ``float("1e-320")`` as 0.0: input would parse and validate one way
+    before the first simulation and another after it. Taichi's kernels do not set the
+    mode again (they compute as before on its worker threads; measured: the mode stays
+    restored through later launches). Through C99's ``fegetenv``/``fesetenv`` where the
+    C library has them; elsewhere the mode is left as Taichi sets it."""
+    env, libm = None, _libm()
+    if libm is not None:
+        env = ctypes.create_string_buffer(1024)  # larger than any platform's fenv_t
+        if libm.fegetenv(env) != 0:
+            env = None
+    try:
+        yield
+    finally:
+        if env is not None:
+            libm.fesetenv(env)
+
+
+def _libm():
+    """The C math library (``ctypes.CDLL``) if it has ``fegetenv`` and ``fesetenv``, else None."""
+    name = ctypes.util.find_library("m") or ctypes.util.find_library("c")
+    try:
+        lib = ctypes.CDLL(name)
+        lib.fegetenv, lib.fesetenv  # noqa: B018 (looked up: AttributeError where missing)
+    except (OSError, AttributeError, TypeError):
+        return None
+    return lib
 
 
 @contextlib.contextmanager

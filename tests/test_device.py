@@ -186,3 +186,19 @@ def test_memory_does_not_grow_with_the_number_of_simulations():
     runs(300)
     growth_kib = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - before
     assert growth_kib < 4 * 1024, growth_kib
+
+
+def test_taichi_leaves_python_reading_subnormal_numbers():
+    """Issue 60: ``ti.init`` turns on flush-to-zero and denormals-are-zero, after which
+    Python read ``float("1e-320")`` as 0.0: ``--set strain_limit=1e-320`` silently became
+    no limit, and ``Model(strain_limit=1e-320)`` was accepted before the first simulation
+    and refused after it. In a fresh process (Taichi not yet started), the numbers read
+    after a simulation are those read before it."""
+    script = (
+        "import tomllib, massspring as ms\n"
+        "before = (float('1e-320'), tomllib.loads('v = 1e-320')['v'], 5e-324 * 1.5)\n"
+        "sim = ms.load_scene('spring').simulation(); sim.step(2); sim.close()\n"
+        "after = (float('1e-320'), tomllib.loads('v = 1e-320')['v'], 5e-324 * 1.5)\n"
+        "print(before == after, before[0] > 0)\n")
+    out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, check=True)
+    assert out.stdout.split() == ["True", "True"], out.stdout + out.stderr
