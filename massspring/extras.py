@@ -1,7 +1,8 @@
 """What to install for an optional feature: the packages of one of the project's extras.
 
 Another project holds the name "massspring" on PyPI, so a hint never says ``pip install
-"massspring[plot]"`` (that installs the other project). It names the extra's own
+"massspring[plot]"`` (that installs the other project); this one is distributed as
+"massspring-taichi", which is not on PyPI either. It names the extra's own
 requirements instead, as this installation's metadata lists them (``pyproject.toml``'s
 ``[project.optional-dependencies]``), or, without metadata, the install from a checkout.
 """
@@ -11,7 +12,7 @@ from __future__ import annotations
 import re
 from importlib import metadata
 
-DISTRIBUTION = "massspring"
+DISTRIBUTION = "massspring-taichi"  # pyproject.toml's [project] name (the import name is massspring)
 
 
 def requirements(extra: str) -> list:

@@ -79,3 +79,14 @@ def test_install_hints_name_each_extras_own_packages():
         named = {parsed(quoted) for quoted in re.findall(r'"([^"]+)"', hint)}
         assert named == {parsed(requirement) for requirement in requirements}, (extra, hint)
     assert install_hint("no-such-extra") == 'pip install -e ".[no-such-extra]" in the massspring checkout'
+
+
+def test_the_distribution_is_not_named_as_the_other_project():
+    """Issue 60: installed as "massspring", `pip index versions massspring` reported
+    "INSTALLED: 0.2.0, LATEST: 1.2.0" and `pip install -U massspring` replaced it with the
+    other project; the distribution has a name of its own, which ``extras`` reads."""
+    from massspring import extras
+
+    name = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["name"]
+    assert name != "massspring" and extras.DISTRIBUTION == name
+    assert extras.requirements("plot") == ["matplotlib>=3.5"]  # the metadata found under that name
