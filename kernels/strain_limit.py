@@ -21,7 +21,9 @@ Both ends move by mass-weighted shares of the same correction along the spring, 
 model with no pins and no collider keeps its linear momentum to round-off.
 With colliders, a moved particle is then projected out of any collider it entered
 (``contact.project``): a particle resting on a collider slides along it. Fields:
-``sl_dx`` (a vec3 per spring), ``sl_k`` (an i32 per particle).
+``sl_dx`` (a vec3 per spring), ``sl_k`` (an i32 per particle), ``x_sl_before``,
+``v_sl_before`` (the state a pass started from: a pass whose limit cannot be met, and
+that ends with its worst spring worse than it found it, is undone).
 """
 
 import taichi as ti
@@ -42,7 +44,7 @@ def inverse_mass(i, dev, cfg: ti.template()):
 
 
 @ti.func
-def iteration(dev, cfg: ti.template(), state, limit, tol, dt, t):
+def iteration(dev, cfg: ti.template(), state, limit, tol, dt, t, first):
     n = dev.size[0]
     m = dev.size[1]
     worst = ti.cast(-1e300, ti.f64)
@@ -72,6 +74,9 @@ def iteration(dev, cfg: ti.template(), state, limit, tol, dt, t):
             shares = ti.cast(ti.max(dev.sl_k[i], dev.sl_k[j]), cfg.real)
             dev.sl_dx[s] = ti.cast(RELAX, cfg.real) * c / ((wi + wj) * shares)
     for i in range(n):
+        if go and first != 0:  # the state before the pass, put back if the pass cannot help (``restore``)
+            dev.x_sl_before[i] = state.x[i]
+            dev.v_sl_before[i] = state.v[i]
         if go and dev.sl_k[i] > 0:
             moved = inverse_mass(i, dev, cfg) * ti.cast(spring_sum(i, dev, dev.sl_dx), cfg.real)
             x = state.x[i] + moved
@@ -84,14 +89,15 @@ def iteration(dev, cfg: ti.template(), state, limit, tol, dt, t):
 
 @ti.kernel
 def strain_limit_iteration(dev: ti.template(), cfg: ti.template(), state: ti.template(), limit: ti.f64,
-                           tol: ti.f64, dt: ti.f64, t: ti.f64) -> ti.f64:
+                           tol: ti.f64, dt: ti.f64, t: ti.f64, first: ti.i32) -> ti.f64:
     """One Jacobi iteration (the module's steps 1-4) on ``state`` after a step of dt (s)
     ending at time t (s), in parallel loops: springs shortened to (1 + ``limit`` -
     ``tol``) times their rest length; none if no spring is stretched past the limit
-    (steps 3-4 skipped, the state left as it is). Returns the largest l / l0 - 1 of the
-    springs at the iteration's start."""
+    (steps 3-4 skipped, the state left as it is). The ``first`` (1) of a pass that moves
+    particles keeps the state it starts from in ``x_sl_before``, ``v_sl_before``.
+    Returns the largest l / l0 - 1 of the springs at the iteration's start."""
     return iteration(dev, cfg, state, ti.cast(limit, cfg.real), ti.cast(tol, cfg.real), ti.cast(dt, cfg.real),
-                     ti.cast(t, cfg.real))
+                     ti.cast(t, cfg.real), first)
 
 
 @ti.kernel
@@ -110,7 +116,7 @@ def strain_limit_serial(dev: ti.template(), cfg: ti.template(), state: ti.templa
         worst = ti.cast(0, ti.f64)
         while k < launches:
             worst = iteration(dev, cfg, state, s, ti.cast(tol, cfg.real), ti.cast(dt, cfg.real),
-                              ti.cast(t, cfg.real))
+                              ti.cast(t, cfg.real), ti.select(k == 0, 1, 0))
             if k == 0:
                 first = worst
             k += 1
@@ -118,3 +124,11 @@ def strain_limit_serial(dev: ti.template(), cfg: ti.template(), state: ti.templa
                 break
         out = ti.Vector([ti.cast(k, ti.f64), first, worst], ti.f64)
     return out
+
+
+@ti.kernel
+def strain_limit_restore(dev: ti.template(), state: ti.template()):
+    """``state`` as the pass found it (``x_sl_before``, ``v_sl_before``)."""
+    for i in range(dev.size[0]):
+        state.x[i] = dev.x_sl_before[i]
+        state.v[i] = dev.v_sl_before[i]

@@ -176,7 +176,7 @@ class Simulation:
                                       model_built=not ordering.wanted(model),  # else a renumbered copy
                                       extra=cls.extra_bytes + self_collision.PASS_BYTES * model.has_self_collision
                                       + self_collision.SOLVE_BYTES * cls.pairs_in_solve(model)
-                                      + 4 * model.has_strain_limit,
+                                      + strain_limit.PASS_BYTES * model.has_strain_limit,
                                       spring_extra=cls.spring_extra_bytes
                                       + strain_limit.PASS_BYTES_PER_SPRING * model.has_strain_limit),
                      f"model: {model.n_particles:,} particles and {model.n_springs:,} springs; "
@@ -303,15 +303,16 @@ class Simulation:
     def strain_limit_stats(self) -> dict | None:
         """The strain limit (None without one) at the last step: "iterations" (Jacobi
         iterations it ran), "before" and "after" (the largest l / l0 - 1 of a spring after
-        the integrator's step and at the last iteration's start); of the steps so far:
+        the integrator's step and after the pass); of the steps so far:
         "unmet" (ended with a spring past the limit after ``strain_limit.ITERATIONS``),
-        "steps" (whose pass moved particles) and "most" (the most iterations of one)."""
+        "undone" (unmet, and whose pass was undone: it left the worst spring worse than it
+        found it), "steps" (whose pass moved particles) and "most" (the most iterations of one)."""
         limit = self._limit
         if limit is None:
             return None
         iterations, before, after = limit.last
         return {"iterations": iterations, "before": before, "after": after, "unmet": limit.unmet,
-                "steps": limit.steps, "most": limit.most}
+                "undone": limit.undone, "steps": limit.steps, "most": limit.most}
 
     @property
     def line_search_cuts(self) -> int:

@@ -20,7 +20,8 @@ import numpy as np
 
 ITERATIONS = 500  # at most this many Jacobi iterations a step
 TOLERANCE = 1e-4  # violated springs are shortened to limit - this (l / l0 - 1); the pass ends with none past the limit
-PASS_BYTES_PER_SPRING = 24  # sl_dx, a vec3 per spring (f64); sl_k is 4 bytes a particle
+PASS_BYTES_PER_SPRING = 24  # sl_dx, a vec3 per spring (f64)
+PASS_BYTES = 4 + 48  # per particle: sl_k, and the state before the pass (x_sl_before, v_sl_before: f64 vec3s)
 
 
 def check(value, n_springs):
@@ -40,12 +41,14 @@ def check(value, n_springs):
 
 
 def declare(layout):
-    """The pass's fields in ``layout`` (a ``device.Layout``): ``sl_dx`` (a vec3 per spring)
-    and ``sl_k`` (an i32 per particle)."""
+    """The pass's fields in ``layout`` (a ``device.Layout``): ``sl_dx`` (a vec3 per spring),
+    ``sl_k`` (an i32 per particle) and the state before the pass (``x_sl_before``, ``v_sl_before``)."""
     import taichi as ti
 
     layout.vectors("sl_dx", layout.real, "spring")
     layout.add("sl_k", ti.i32, "particle")
+    layout.vectors("x_sl_before", layout.real)
+    layout.vectors("v_sl_before", layout.real)
 
 
 class Pass:
@@ -54,19 +57,21 @@ class Pass:
     Jacobi iterations until no spring is stretched past the limit, at most
     ``ITERATIONS`` that move particles (then one more launch measures, and moves them
     again if a spring is still over). ``last``: (iterations that moved particles, the
-    largest l / l0 - 1 before the pass, the largest at the last launch's start) of the
-    last step; ``unmet``: steps that ended with a spring still past the limit;
-    ``steps``: steps whose pass moved particles; ``most``: the most iterations of a step.
+    largest l / l0 - 1 before the pass, the largest after it: at the last launch's start
+    where the limit was met, measured after the pass where not) of the last step; ``unmet``: steps that ended with a spring still past the limit;
+    ``steps``: steps whose pass moved particles; ``most``: the most iterations of a step;
+    ``undone``: unmet steps whose pass left the worst spring worse than it found it (the
+    pins or colliders hold it: a chain pinned 1.5 times its length apart), and was undone.
     """
 
     def __init__(self, dev, cfg, limit, serial, dt):
         self.dev, self.cfg, self.limit, self.serial, self.dt = dev, cfg, limit, serial, dt
         self.last = (0, 0.0, 0.0)
-        self.unmet = self.steps = self.most = 0
+        self.unmet = self.steps = self.most = self.undone = 0
 
     def end(self, state, t):
         """Limit ``state`` (after a step ending at time t, s)."""
-        from massspring.kernels.strain_limit import strain_limit_iteration, strain_limit_serial
+        from massspring.kernels.strain_limit import strain_limit_iteration, strain_limit_restore, strain_limit_serial
 
         launches = ITERATIONS + 1  # the last only measures what the others left, unless it finds a spring over
         if self.serial:
@@ -75,10 +80,17 @@ class Pass:
         else:
             first = None
             for k in range(1, launches + 1):
-                worst = strain_limit_iteration(self.dev, self.cfg, state, self.limit, TOLERANCE, self.dt, t)
+                worst = strain_limit_iteration(self.dev, self.cfg, state, self.limit, TOLERANCE, self.dt, t,
+                                               int(k == 1))
                 first = worst if first is None else first
                 if worst <= self.limit:
                     break
+        if worst > self.limit:  # unmet: what the last launch left, measured (a limit of inf moves nothing)
+            worst = strain_limit_iteration(self.dev, self.cfg, state, math.inf, TOLERANCE, self.dt, t, 0)
+            if worst > first:
+                strain_limit_restore(self.dev, state)
+                worst = first
+                self.undone += 1
         self.unmet += worst > self.limit
         self.steps += k > 1
         self.most = max(self.most, k - 1)

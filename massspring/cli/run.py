@@ -238,6 +238,9 @@ def print_summary(scene, sim, wall, energy0, out, start_steps=0):
     limit = sim.strain_limit_stats
     if limit is not None:
         unmet = f", {limit['unmet']} step(s) left over it after {strain_limit.ITERATIONS}" if limit["unmet"] else ""
+        if limit["undone"]:
+            unmet += (f" ({limit['undone']} of them undone: the pass made the worst spring worse, its pins or "
+                      "colliders holding it past the limit)")
         print(f"strain      limit {sim.model.strain_limit:g}: {limit['steps']} step(s) shortened springs, "
               f"{limit['most']} iterations at most{unmet}")
     print("energy      " + format_energy(energy0, energy1))

@@ -79,7 +79,7 @@ from massspring.colliders import COLLIDERS
 from massspring.defaults import GRAVITY
 from massspring.controls import Controls
 from massspring.self_collision import PASS_BYTES, SelfCollision
-from massspring.strain_limit import PASS_BYTES_PER_SPRING
+from massspring import strain_limit
 from massspring.integrators import INTEGRATORS, OPTIONS
 from massspring.io.camera import DEFAULT_FRAMING, FRAMINGS, View
 from massspring import terms
@@ -335,8 +335,9 @@ class Scene:
         extra = known.extra_bytes if known is not None else 0
         extra += PASS_BYTES if self.self_collision is not None else 0
         limited = bool(self.common["strain_limit"])
-        spring_extra = (known.spring_extra_bytes if known is not None else 0) + PASS_BYTES_PER_SPRING * limited
-        self.check_memory(memory.run_bytes(particles, springs, solver, extra=extra + 4 * limited,
+        spring_extra = ((known.spring_extra_bytes if known is not None else 0)
+                        + strain_limit.PASS_BYTES_PER_SPRING * limited)
+        self.check_memory(memory.run_bytes(particles, springs, solver, extra=extra + strain_limit.PASS_BYTES * limited,
                                            spring_extra=spring_extra), particles, springs,
                           f"a run of it ({integrator}{f', {solver}' if solver else ''})")
         dt = self.default_dt(integrator) if dt is None else dt
