@@ -82,7 +82,7 @@ def main(argv=None):
 
     def value_and_gradient(lengths):
         value, grads = ms.gradient(creature(lengths, muscles, intervals), distance, "controls.rest_lengths",
-                                   steps=steps, integrator="symplectic", dt=DT)
+                                   steps=steps, every=steps, integrator="symplectic", dt=DT)  # the last frame
         history.append(-value)
         return value, grads["controls.rest_lengths"].ravel()
 
@@ -90,6 +90,12 @@ def main(argv=None):
           f"{intervals} intervals of {INTERVAL:g} s; {steps} symplectic steps of {DT:g} s per run")
     result = minimize(value_and_gradient, start, jac=True, method="L-BFGS-B", bounds=bounds,
                       options=dict(maxiter=iterations))
+    said = str(result.message).strip().rstrip(":")
+    if result.success:
+        print(f"L-BFGS-B converged ({said})")
+    elif result.nit < iterations:  # the contacts make the distance piecewise smooth: a step can end on a kink
+        print(f"L-BFGS-B stopped ({said}): its line search found no decrease along the gradient, which the "
+              "contacts with the ground make piecewise smooth (sticking and sliding switch between nearby gaits)")
     print(f"at rest: moved {history[0] * 100:.2f} cm; after {result.nit} L-BFGS-B iterations "
           f"({len(history)} gradients): moved {-result.fun * 100:.2f} cm forward in {intervals * INTERVAL:g} s")
     return history[0], -result.fun

@@ -74,6 +74,7 @@ def main(argv=None):
     result = minimize(value_and_gradient, start, jac=True, method="L-BFGS-B",
                       bounds=list(zip(0.7 * start, 1.3 * start)), options=dict(maxiter=args.iterations))
     last = np.abs(last_frame(with_rest_lengths(base, result.x), steps) - target).max()
+    print(f"L-BFGS-B: {str(result.message).strip()}")
     print(f"after {result.nit} L-BFGS-B iterations ({result.nfev} gradients): the farthest particle is "
           f"{last * 100:.3f} cm off ({first / last:.0f}x closer)")
     return first, last

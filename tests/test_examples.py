@@ -97,17 +97,19 @@ def test_fit_stiffness_recovers_both_factors(tmp_path):
 @FULL
 def test_the_creature_learns_to_crawl_forward(tmp_path):
     """Issue 39's creature: from muscles at rest (it stands still), L-BFGS-B on the
-    gradient through its steps and its contacts with the ground makes it move forward."""
+    gradient through its steps and its contacts with the ground makes it move forward:
+    docs/gradients.md's figure for the small run, 17.32 cm, within 5%."""
     out = run_example("creature.py", cwd=tmp_path)
     still, moved = map(float, re.search(r"at rest: moved ([-\d.]+) cm; .*moved ([-\d.]+) cm forward", out).groups())
-    assert abs(still) < 0.01 and moved > 1.0, out
+    assert abs(still) < 0.01 and moved == pytest.approx(17.32, rel=0.05), out
 
 
 @FULL
 def test_drape_to_target_brings_the_cloth_to_its_target_shape(tmp_path):
     """Issue 39's design of rest lengths: from the scene's own, L-BFGS-B on the gradient
-    in every rest length brings the hanging cloth several times closer to its target."""
+    in every rest length brings the hanging cloth several times closer to its target:
+    docs/gradients.md's figures for the small run, from 48.58 cm to 6.48 cm (5 to 8 cm)."""
     out = run_example("drape_to_target.py", cwd=tmp_path)
     first = float(re.search(r"the farthest particle is ([\d.]+) cm off its target", out).group(1))
     last = float(re.search(r"the farthest particle is ([\d.]+) cm off \(", out).group(1))
-    assert last < first / 3, out
+    assert first == pytest.approx(48.58, abs=0.01) and 5.0 <= last <= 8.0, out
