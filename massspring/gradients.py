@@ -33,7 +33,7 @@ from dataclasses import dataclass
 import numpy as np
 import taichi as ti
 
-from massspring import validate
+from massspring import memory, validate
 from massspring.defaults import MAX_STEPS
 from massspring.device import POOL, Layout, capacity
 from massspring.errors import GradientError, SelfCollisionGradientError
@@ -113,6 +113,9 @@ def gradient(model, objective, wrt, *, steps, every=1, integrator="symplectic", 
         checkpoint = default_checkpoint(model.n_particles, steps,
                                         STATE_BYTES + INTEGRATORS[integrator].kept_bytes(model))
     checkpoint = min(validate.count("checkpoint", checkpoint, low=1, high=MAX_STEPS), steps)
+    memory.check(host_bytes(model, integrator, steps, every, checkpoint),
+                 f"checkpoint: a gradient of {steps:,} steps of {model.n_particles:,} particles keeping a state every "
+                 f"{checkpoint:,} steps and a frame every {every:,} (give a larger checkpoint or every)")
 
     sim = Simulation(model, integrator, dt=dt, precision=precision, **options)
     adj = None
@@ -181,6 +184,15 @@ def history_stride(n) -> int:
     """Rows a state of n particles takes in the history (a capacity class, so that models
     of nearby sizes share a bundle and its compiled kernels)."""
     return capacity(n, 64)
+
+
+def host_bytes(model, integrator, steps, every, checkpoint) -> int:
+    """Bytes a gradient holds in numpy beside its fields: the states kept at the starts of
+    its stretches of ``checkpoint`` steps but the last (``_forward``, with what the
+    integrator carries) and the frames the objective sees, one every ``every`` steps."""
+    n = model.n_particles
+    kept = (steps - 1) // checkpoint * (STATE_BYTES + INTEGRATORS[integrator].kept_bytes(model)) * n
+    return kept + (steps // every + 1) * STATE_BYTES * n
 
 
 def default_checkpoint(n, steps, state_bytes=STATE_BYTES) -> int:
