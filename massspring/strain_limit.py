@@ -58,7 +58,8 @@ class Pass:
     ``ITERATIONS`` that move particles (then one more launch measures, and moves them
     again if a spring is still over). ``last``: (iterations that moved particles, the
     largest l / l0 - 1 before the pass, the largest after it: at the last launch's start
-    where the limit was met, measured after the pass where not) of the last step; ``unmet``: steps that ended with a spring still past the limit;
+    where the limit was met, measured after the pass where not) of the last step;
+    ``unmet``: steps that ended with a spring still past the limit;
     ``steps``: steps whose pass moved particles; ``most``: the most iterations of a step;
     ``undone``: unmet steps whose pass left the worst spring worse than it found it (the
     pins or colliders hold it: a chain pinned 1.5 times its length apart), and was undone.

@@ -30,7 +30,7 @@ from massspring.model import Model
 FITTABLE = ("stiffness", "damping", "rest_lengths", "masses", "drag")  # scaled by one factor each
 FACTOR_RANGE = (1e-3, 1e3)  # L-BFGS-B's bounds on every factor
 MAX_ITER = 30  # L-BFGS-B iterations, default
-MAX_STEPS = 10**7  # steps of a fitted run at most: a frame's step beyond is a damaged recording, not a fit
+MAX_FIT_STEPS = 10**7  # steps of a fitted run at most: a frame past it is a damaged recording, not a fit
 STATIONARY = 1e-6  # a stop with the projected gradient this far below its first is a converged fit
 
 
@@ -87,9 +87,9 @@ def read_recording(directory, model: Model) -> Recording:
             raise ValueError(f"{path}: dt {state.dt:g} s, the first frame's {dt:g} s; a fit needs one dt")
         elif state.steps <= steps[-1] + first.steps:
             raise ValueError(f"{path}: step {state.steps} is not after the frame before it")
-        if state.steps - first.steps > MAX_STEPS:
+        if state.steps - first.steps > MAX_FIT_STEPS:
             raise ValueError(f"{path}: step {state.steps} is {state.steps - first.steps:,} steps after the first "
-                             f"frame's, more than a fit runs ({MAX_STEPS:,}); is the recording damaged?")
+                             f"frame's, more than a fit runs ({MAX_FIT_STEPS:,}); is the recording damaged?")
         positions.append(state.positions)
         steps.append(state.steps - first.steps)
     return Recording(np.array(positions), np.array(steps), first.velocities, float(dt), str(directory))
@@ -182,7 +182,7 @@ def verdict(result, last, first) -> tuple:
     if ratio <= STATIONARY:
         return True, (f"converged: the misfit's gradient is {ratio:.1e} of its first, where the line search "
                       f"can no longer decrease it ({said})")
-    if result.nit >= result.get("maxiter", math.inf) or "ITERATIONS" in said.upper():
+    if "ITERATIONS" in said.upper():  # scipy's "STOP: TOTAL NO. OF ITERATIONS REACHED LIMIT"
         return False, f"not converged: stopped at the iteration limit, gradient {ratio:.1e} of its first ({said})"
     return False, (f"not converged: the line search found no decrease with the gradient at {ratio:.1e} of its "
                    f"first ({said}): the misfit may have a kink there (a contact or self-collision switching) "
