@@ -32,7 +32,7 @@ import sys
 import time
 
 import output
-from massspring.errors import GradientError
+from massspring.support.errors import GradientError
 from massspring.io.files import write_json
 
 CHILD = """

@@ -1,4 +1,4 @@
-"""Peak memory of a run against ``massspring.memory``'s estimate, and how fast a run
+"""Peak memory of a run against ``massspring.support.memory``'s estimate, and how fast a run
 too large for the machine is refused.
 
 Table 1: for each scene, size and solver, a fresh process builds the model, makes
@@ -52,7 +52,7 @@ def own_peak():
 def worker(spec):
     """Run one case in this (fresh) process and print its figures as JSON."""
     import massspring as ms
-    from massspring import memory
+    from massspring.support import memory
 
     case, integrator, preconditioner = spec.split("|")
     scene_name, _, setting = case.partition(":")

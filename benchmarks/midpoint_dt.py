@@ -17,7 +17,7 @@ import argparse
 import time
 
 import output
-from massspring.errors import DivergenceError
+from massspring.support.errors import DivergenceError
 from massspring.io.files import write_json
 from massspring.scene import builtin_scenes, load_scene
 

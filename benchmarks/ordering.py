@@ -1,4 +1,4 @@
-"""What a scrambled particle order costs, and what the renumbering (``massspring.ordering``) wins back.
+"""What a scrambled particle order costs, and what the renumbering (``massspring.model.ordering``) wins back.
 
 For the cloth at ``--resolutions`` this builds three runs of the same system and
 times their steps in one process, interleaved, reporting the median ms per step:

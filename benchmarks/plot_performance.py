@@ -16,7 +16,7 @@ import sys
 from pathlib import Path
 
 import output
-from massspring.extras import install_hint
+from massspring.support.extras import install_hint
 
 
 def parse_args(argv=None):

@@ -28,7 +28,7 @@ from crossings import crossings  # noqa: E402
 import massspring as ms  # noqa: E402
 from massspring.io.files import write_json  # noqa: E402
 from massspring.scene import builtin_scenes  # noqa: E402
-from massspring.self_collision import mesh_edges  # noqa: E402
+from massspring.model.self_collision import mesh_edges  # noqa: E402
 
 INTEGRATORS = ["explicit", "symplectic", "rk4", "implicit", "backward-euler", "bdf2"]
 EXPLICIT = {"explicit", "symplectic", "rk4"}

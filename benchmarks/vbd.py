@@ -101,7 +101,7 @@ from crossings import crossings  # noqa: E402
 
 import massspring as ms  # noqa: E402
 from massspring.io.files import write_json  # noqa: E402
-from massspring.self_collision import mesh_edges  # noqa: E402
+from massspring.model.self_collision import mesh_edges  # noqa: E402
 
 FRAME = 1.0 / 60.0
 FRAMES = 60  # 1 s

@@ -20,7 +20,7 @@ import os
 import numpy as np
 
 import massspring as ms
-from massspring.extras import install_hint
+from massspring.support.extras import install_hint
 from massspring.io.render import spring_strain
 
 

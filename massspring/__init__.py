@@ -17,14 +17,14 @@ if not os.path.isdir(os.path.join(os.path.dirname(__file__), "kernels")) and os.
 # Taichi prints a banner on import; keep the CLI's stdout clean (set it to 1 to see it).
 os.environ.setdefault("ENABLE_TAICHI_HEADER_PRINT", "0")
 
-from massspring.defaults import VERSION  # noqa: E402
-from massspring.errors import DivergenceError, SimulationClosedError  # noqa: E402
-from massspring.controls import Controls  # noqa: E402
+from massspring.support.defaults import VERSION  # noqa: E402
+from massspring.support.errors import DivergenceError, SimulationClosedError  # noqa: E402
+from massspring.model.controls import Controls  # noqa: E402
 from massspring.model import Model  # noqa: E402
-from massspring.colliders import Box, Plane, Sphere  # noqa: E402
-from massspring.self_collision import SelfCollision  # noqa: E402
+from massspring.model.colliders import Box, Plane, Sphere  # noqa: E402
+from massspring.model.self_collision import SelfCollision  # noqa: E402
 from massspring.scene import Scene, SceneError, load_scene  # noqa: E402
-from massspring.simulation import Simulation, run  # noqa: E402
+from massspring.engine.simulation import Simulation, run  # noqa: E402
 from massspring.gradients import Frames, gradient  # noqa: E402
 from massspring.analysis.sweep import sweep  # noqa: E402
 

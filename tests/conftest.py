@@ -42,7 +42,7 @@ ZERO_LENGTH = 1e-12  # f64 zero-length rule: such a spring has no direction or f
 
 # Each integrator has two drivers running the same algorithm: serial kernels (one
 # launch for a whole step or solve; chosen for systems below
-# ``massspring.simulation.SERIAL_BELOW`` springs, i.e. every system here) and
+# ``massspring.engine.simulation.SERIAL_BELOW`` springs, i.e. every system here) and
 # parallel kernels (one launch per phase; large systems). Tests run both on small
 # systems through Simulation's ``loops`` option.
 PATHS = ("serial", "parallel")
@@ -107,7 +107,7 @@ def _no_progress_lines(monkeypatch):
     (5 s) of a run, and a run that compiles for that long on a loaded machine added one
     to the stderr a test checks for a one-line error. tests/test_progress.py sets its
     own interval."""
-    from massspring import progress
+    from massspring.support import progress
 
     monkeypatch.setattr(progress, "INTERVAL", 3600.0)
 

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 import massspring as ms
-from massspring import ordering
+from massspring.model import ordering
 from massspring.integrators import INTEGRATORS
 from test_gradient import PINNED, SOLVED, directional_difference, objective, sheet
 
@@ -88,7 +88,7 @@ def test_the_divergence_bound_counts_what_the_controls_drive():
     """Actuated rest lengths do work on the particles (a muscle moving its ends as a pin
     would): the divergence check's floor counts the fastest change of one, |dl0| / T, as
     it counts the fastest pin and wind (a crawling creature was called runaway before)."""
-    from massspring.simulation import divergence_check
+    from massspring.engine.simulation import divergence_check
 
     values = control_values()
     plain = sheet(pin_velocity=None, wind=np.zeros(3))

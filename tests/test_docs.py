@@ -9,8 +9,9 @@ from pathlib import Path
 
 import pytest
 
-from massspring import mesh, solvers
-from massspring.colliders import COLLIDERS
+from massspring import solvers
+from massspring.model import mesh
+from massspring.model.colliders import COLLIDERS
 from massspring.integrators import INTEGRATORS, OPTIONS, takers
 from massspring.scene import generators, spec
 

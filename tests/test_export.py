@@ -16,7 +16,7 @@ import pytest
 import massspring as ms
 from conftest import FULL, one_line_error
 from massspring.cli import main
-from massspring.extras import install_hint
+from massspring.support.extras import install_hint
 from massspring.io import frames as frames_io
 from massspring.io.obj import read_obj
 from massspring.io.render import frame_steps

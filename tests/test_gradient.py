@@ -9,7 +9,7 @@ import pytest
 
 import massspring as ms
 from conftest import FULL, PATHS
-from massspring.errors import GradientError
+from massspring.support.errors import GradientError
 from massspring.gradients import PARAMETERS as ALL_PARAMETERS, differentiable
 
 # conftest: Taichi is reset after a test that leaves this process above 1 GB (each test
@@ -879,7 +879,7 @@ def test_an_adjoint_solve_that_stops_short_is_an_error():
     """CG limited to 2 iterations: the forward steps go on unconverged (as a Simulation's
     do, counted in cg_failures), the first adjoint solve that stops short raises
     GradientError naming the step and the reason; no gradient is returned."""
-    from massspring.errors import GradientError
+    from massspring.support.errors import GradientError
 
     with pytest.raises(GradientError, match=r"implicit gradient: the adjoint solve of step 10 stopped \(max_iter"):
         ms.gradient(sheet(), objective, "stiffness", **run_of("implicit", cg_max_iter=2, preconditioner="none"))

@@ -15,7 +15,7 @@ import pytest
 
 import massspring as ms
 from conftest import one_line_error
-from massspring import memory
+from massspring.support import memory
 from massspring.cli import main
 from massspring.scene import generators
 

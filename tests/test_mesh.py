@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 import massspring as ms
-from massspring import mesh
+from massspring.model import mesh
 from massspring.scene import generators
 
 SQUARE = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [1.0, 1.0, 0.0], [0.0, 1.0, 0.0]])

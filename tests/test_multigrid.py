@@ -8,7 +8,7 @@ import pytest
 import massspring as ms
 from conftest import FULL, free_dofs
 from massspring.kernels import cg, operator
-from massspring.operators import SystemOperator
+from massspring.engine.operators import SystemOperator
 from massspring.solvers import aggregation, multigrid
 
 DT = 1 / 60

@@ -8,7 +8,7 @@ import pytest
 
 import massspring as ms
 from conftest import FULL, dense_step, free_dofs
-from massspring.operators import SystemOperator
+from massspring.engine.operators import SystemOperator
 from massspring.solvers import aggregation
 from test_multigrid import DT, swinging_cloth
 

@@ -181,7 +181,7 @@ def test_a_long_line_is_refused_without_being_read_whole(monkeypatch):
 
 
 def test_a_file_too_large_to_read_is_refused(tmp_path, monkeypatch):
-    from massspring import memory
+    from massspring.support import memory
 
     monkeypatch.setattr(memory, "available", lambda: (1000.0, "of memory available"))
     path = tmp_path / "mesh.obj"

@@ -1,6 +1,6 @@
 """The matrix-free operator of Eq. 15 and the CG solver around it.
 
-The operator A (``massspring.operators.SystemOperator``: the implicit step's own
+The operator A (``massspring.engine.operators.SystemOperator``: the implicit step's own
 kernels) is reconstructed column by column (A e_k) and compared with the
 independent numpy assembly of conftest.py.
 """
@@ -10,7 +10,7 @@ import pytest
 
 import massspring as ms
 from conftest import FULL, PATHS, dense_system, free_dofs, random_system, simulation
-from massspring.operators import SystemOperator
+from massspring.engine.operators import SystemOperator
 
 EPS = np.finfo(np.float64).eps
 

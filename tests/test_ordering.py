@@ -1,4 +1,4 @@
-"""The cache-friendly renumbering (``massspring.ordering``): when it applies, what the
+"""The cache-friendly renumbering (``massspring.model.ordering``): when it applies, what the
 renumbered copy holds, and that a Simulation stepping it is the user's model to
 round-off (explicit) or to tolerance (implicit, against a dense solve of Eq. 15),
 with every array at the API in the user's order."""
@@ -10,7 +10,7 @@ import pytest
 
 import massspring as ms
 from conftest import FULL, dense_step
-from massspring import ordering
+from massspring.model import ordering
 from massspring.cli import main
 from massspring.io.obj import read_obj, write_obj
 
@@ -197,7 +197,7 @@ def test_a_scrambled_obj_mesh_keeps_the_files_numbering_at_the_cli(tmp_path, cap
 def test_the_memory_check_counts_the_renumbered_copy(monkeypatch):
     """With room for a run of the model but not for a copy of its arrays too, a model
     that would be renumbered is refused before anything is built; one in good order runs."""
-    from massspring import memory
+    from massspring.support import memory
 
     grid = cloth(100)
     model, _ = scrambled(grid, 7)

@@ -66,7 +66,7 @@ def test_install_hints_name_each_extras_own_packages():
     """``extras.install_hint`` names what pyproject.toml's extra lists (read back from the
     installation's metadata, which may reorder a requirement's version bounds); an extra
     it does not know falls back to the checkout."""
-    from massspring.extras import install_hint
+    from massspring.support.extras import install_hint
 
     def parsed(requirement):  # (name with extras, set of version bounds)
         name = re.match(r"[A-Za-z0-9_.\-\[\]]+", requirement).group(0)
@@ -85,7 +85,7 @@ def test_the_distribution_is_not_named_as_the_other_project():
     """Issue 60: installed as "massspring", `pip index versions massspring` reported
     "INSTALLED: 0.2.0, LATEST: 1.2.0" and `pip install -U massspring` replaced it with the
     other project; the distribution has a name of its own, which ``extras`` reads."""
-    from massspring import extras
+    from massspring.support import extras
 
     name = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["name"]
     assert name != "massspring" and extras.DISTRIBUTION == name

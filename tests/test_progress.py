@@ -6,7 +6,7 @@ import time
 
 import pytest
 
-from massspring import progress
+from massspring.support import progress
 from massspring.cli import main
 
 

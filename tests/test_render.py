@@ -12,7 +12,7 @@ from massspring import cli
 from massspring.cli import main
 from massspring.io import camera, render
 from massspring.scene import SceneError, builtin_scenes, generators, load_scene
-from massspring.simulation import run
+from massspring.engine.simulation import run
 from conftest import FULL, sampled
 
 SMALL = {"grid": ["--set", "resolution=6"], "lattice": ["--set", "resolution=3"], "chain": ["--set", "count=5"]}

@@ -1,4 +1,4 @@
-"""Self-collision (massspring/self_collision.py, kernels/self_collision.py): the mesh never
+"""Self-collision (massspring/passes/self_collision/__init__.py, kernels/self_collision.py): the mesh never
 passes through itself, checked by a crossing counter written here in numpy (not the
 project's detection), the narrow phase against sampled distances, validation,
 determinism and restart."""
@@ -16,7 +16,7 @@ import taichi as ti
 import massspring as ms
 from massspring.device import ensure_taichi
 from massspring.kernels import proximity
-from massspring.self_collision import mesh_edges
+from massspring.model.self_collision import mesh_edges
 
 from conftest import FULL
 from crossings import crossings, pair_distances
@@ -273,7 +273,7 @@ def test_a_pair_list_that_grows_gives_the_bits_of_one_large_enough(monkeypatch):
     """A pass that finds more pairs than its list holds is undone and run again with a
     larger list: the run equals, to the bit, one whose list was large enough from the
     start."""
-    from massspring import self_collision
+    from massspring.passes import self_collision
 
     monkeypatch.setattr(self_collision, "PAIR_FLOOR", 4096)  # a list the sheets outgrow
     runs = []
@@ -293,7 +293,9 @@ def test_a_pair_list_that_grows_gives_the_bits_of_one_large_enough(monkeypatch):
 def test_a_pair_list_that_cannot_grow_is_an_error_naming_it_and_the_simulation_keeps_its_list(monkeypatch):
     """Issue 42: a pair list that could not grow raised a ValueError naming "0 particles
     and 0 springs" and left the Simulation without a list."""
-    from massspring import device, memory, self_collision
+    from massspring import device
+    from massspring.support import memory
+    from massspring.passes import self_collision
 
     monkeypatch.setattr(self_collision, "PAIR_FLOOR", 4096)  # a list the sheets outgrow
     sim = sheets(16).simulation("implicit")
@@ -545,7 +547,7 @@ def test_throw_moves_the_upper_sheets_only():
 def test_the_spacing_of_a_grid_is_the_height_of_its_triangles():
     """``mesh_spacing`` of a grid of spacing h (right triangles of legs h): h / sqrt(2),
     the distance from a corner to the triangle across its diagonal."""
-    from massspring.self_collision import mesh_spacing
+    from massspring.model.self_collision import mesh_spacing
 
     model = ms.load_scene("cloth").with_params(resolution=11).model()
     assert mesh_spacing(model.positions, model.triangles) == pytest.approx(0.1 / np.sqrt(2), rel=1e-12)

@@ -1,16 +1,16 @@
-"""The self-collision repulsion's adjoint (``massspring.self_collision_adjoint``) against
+"""The self-collision repulsion's adjoint (``massspring.passes.self_collision.adjoint``) against
 central differences of its own replay, on pairs of every closest-point region (a
 triangle's face, edge and corner; edges crossing inside and at an end), sliding and
 sticking friction, both bounds on the normal impulse, clipped coordinates and a pinned
 particle; the friction of the linearised step's penalty pairs in the pass, and those
-pairs' share of the step's adjoint (``massspring.pair_penalty_adjoint``). Host arrays
+pairs' share of the step's adjoint (``massspring.passes.self_collision.penalty_adjoint``). Host arrays
 only: no kernel runs. The gradients through whole runs are in ``tests/test_gradient.py``."""
 
 import numpy as np
 import pytest
 
-from massspring.pair_penalty_adjoint import SolvePairs, kinds, penalty_adjoint
-from massspring.self_collision_adjoint import Record, Replay, ReplayError, regions
+from massspring.passes.self_collision.penalty_adjoint import SolvePairs, kinds, penalty_adjoint
+from massspring.passes.self_collision.adjoint import Record, Replay, ReplayError, regions
 
 H, THICKNESS = 2e-3, 0.01
 

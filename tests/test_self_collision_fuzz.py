@@ -20,7 +20,7 @@ from hypothesis import strategies as st
 
 import massspring as ms
 from massspring.integrators import INTEGRATORS
-from massspring.self_collision import SPACING_FRACTION, mesh_edges, mesh_spacing
+from massspring.model.self_collision import SPACING_FRACTION, mesh_edges, mesh_spacing
 
 from crossings import crossings
 

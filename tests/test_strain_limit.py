@@ -1,4 +1,4 @@
-"""Strain limiting (``Model(strain_limit=...)``, ``massspring/strain_limit.py``): no spring
+"""Strain limiting (``Model(strain_limit=...)``, ``massspring/passes/strain_limit.py``): no spring
 stretched past the limit after any step of any integrator, momentum kept, nothing of it
 in a run without one, bad values refused by name."""
 

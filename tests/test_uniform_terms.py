@@ -1,5 +1,5 @@
 """The uniform-acceleration seam: nothing but the term registry tells which forces are
-uniform accelerations (``uniform`` terms of ``massspring.terms``), and everything that
+uniform accelerations (``uniform`` terms of ``massspring.model.terms``), and everything that
 needs the external acceleration sums them: the divergence check's work (every stepping
 kernel, ``Model.external_work``), the implicit contact prediction, Newton's round-off
 scale, ``Model.energy``, ``energy_ratio`` and the exact reference.
@@ -21,9 +21,9 @@ import massspring as ms
 from massspring.analysis.reference import exact_spring
 from massspring.analysis.stability import energy_ratio
 from massspring.cli.run import format_energy
-from massspring import terms
+from massspring.model import terms
 from massspring.kernels.terms import ParticleTerm
-from massspring.terms import Parameter, Term
+from massspring.model.terms import Parameter, Term
 from massspring.scene import load_scene
 from massspring.scene.spec import parse_scene
 

@@ -27,7 +27,7 @@ import os
 import threading
 import time
 
-from massspring.extras import install_hint
+from massspring.support.extras import install_hint
 
 EXTRA = install_hint("cluster")
 SCHEMES = ("tcp://",)  # what --address accepts (besides HOST:PORT, which is tcp)

@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from massspring.extras import install_hint
+from massspring.support.extras import install_hint
 from massspring.gradients import check_arguments, gradient
 from massspring.io.frames import read_frames
 from massspring.io.state import read_state

@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from massspring import validate
+from massspring.support import validate
 from massspring.integrators import REFERENCE
 from massspring.io.files import atomic_output
 from massspring.model import Model
@@ -177,7 +177,7 @@ def rk4(model: Model, times, dt, cache=None, use_cache=True) -> Trajectory:
 
 
 def _integrate(model, counts, dt):
-    from massspring.simulation import Simulation
+    from massspring.engine.simulation import Simulation
 
     sim = Simulation(model, integrator=REFERENCE, dt=dt, precision="f64")
     positions, velocities = [], []

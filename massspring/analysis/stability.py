@@ -4,7 +4,7 @@
 (K the stiffness of seed Eq. 13 as written, no definiteness fix: that is the
 Jacobian the explicit integrators see) at a state, by Lanczos on the symmetric
 M^-1/2 (-K) M^-1/2 over the free degrees of freedom. K and D are applied
-matrix-free by the implicit solver's own kernels (``massspring.operators``); the
+matrix-free by the implicit solver's own kernels (``massspring.engine.operators``); the
 stiffest mode's damping rate is c = u^T M^-1/2 (-D) M^-1/2 u (springs' damping and air drag).
 
 ``predict`` turns (omega, c) into limits for the stiffest mode, x'' + c x' + omega^2 x = 0:
@@ -30,10 +30,10 @@ from pathlib import Path
 import numpy as np
 
 from massspring.analysis import cluster
-from massspring.errors import DivergenceError
+from massspring.support.errors import DivergenceError
 from massspring.integrators import INTEGRATORS
 from massspring.integrators.rk4 import rk4_stable_dt
-from massspring.operators import Jacobians
+from massspring.engine.operators import Jacobians
 from massspring.model import Model
 
 

@@ -36,12 +36,13 @@ from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
-from massspring import solvers, validate
+from massspring import solvers
+from massspring.support import validate
 from massspring.analysis import cluster, reference
 from massspring.analysis.fits import TARGETS, cheapest, fit_orders
-from massspring.errors import DivergenceError
+from massspring.support.errors import DivergenceError
 from massspring.integrators import INTEGRATORS, OPTIONS, REFERENCE, SMALLEST_DT, STUDIED, Integrator
-from massspring.simulation import Simulation
+from massspring.engine.simulation import Simulation
 
 DEFAULT_CG_TOLS = OPTIONS["cg_tol"].sweep
 DEFAULT_NEWTON_TOLS = OPTIONS["newton_tol"].sweep

@@ -29,7 +29,7 @@ from pathlib import Path
 
 import numpy as np
 
-from massspring import validate
+from massspring.support import validate
 from massspring.analysis import cluster
 
 RUN_KEYS = ("dt", "integrator", "preconditioner")
@@ -161,7 +161,7 @@ def check_duration(scene, cases, duration, integrator=None, dt=None, option="dur
     """Refuse (ValueError naming ``option``) a ``duration`` (s) that is more than
     MAX_STEPS steps of some case's dt (the varied one, else ``dt``, else the scene's
     default for the case's integrator)."""
-    from massspring.defaults import MAX_STEPS
+    from massspring.support.defaults import MAX_STEPS
 
     for case in cases:
         values = dict(case.values)
@@ -193,7 +193,7 @@ def run_case(scene, case, integrator=None, dt=None, duration=None, steps=None, o
     Returns (row, state): ``row`` the case's CSV values (``status`` ``diverged`` with the
     last good state's figures, ``failed`` with the error's message), ``state`` the final
     state's .npz bytes when ``keep_state`` (else None)."""
-    from massspring.errors import DivergenceError
+    from massspring.support.errors import DivergenceError
     from massspring.integrators import INTEGRATORS
     from massspring.io.render import spring_strain
     from massspring.io.state import save_state

@@ -29,7 +29,7 @@ from massspring.cli.stability import add_stability_arguments, cmd_stability
 from massspring.cli.fit import add_fit_arguments, cmd_fit
 from massspring.cli.study import add_study_arguments, cmd_study
 from massspring.cli.sweep import add_sweep_arguments, cmd_sweep
-from massspring.text import clipped
+from massspring.support.text import clipped
 
 __all__ = ["EXIT_DIVERGED", "EXIT_INTERRUPTED", "EXIT_OK", "EXIT_OUTPUT", "EXIT_USAGE", "Terminated", "UsageError",
            "build_parser", "main"]

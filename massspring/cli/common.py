@@ -3,9 +3,10 @@
 from __future__ import annotations
 
 
-from massspring import progress, validate
-from massspring.defaults import PRECISIONS
-from massspring.extras import install_hint
+from massspring.support import progress
+from massspring.support import validate
+from massspring.support.defaults import PRECISIONS
+from massspring.support.extras import install_hint
 
 
 EXIT_OK, EXIT_OUTPUT, EXIT_USAGE, EXIT_DIVERGED, EXIT_INTERRUPTED = 0, 1, 2, 3, 130

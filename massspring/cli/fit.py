@@ -51,9 +51,9 @@ def named_options():
 
 
 def cmd_fit(args):
-    from massspring import validate
+    from massspring.support import validate
     from massspring.analysis import parameter_fit
-    from massspring.errors import DivergenceError, GradientError
+    from massspring.support.errors import DivergenceError, GradientError
     from massspring.io.files import check_writable, write_json
     from massspring.scene import load_scene
 

@@ -9,8 +9,8 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from massspring.text import format_seconds
-from massspring.extras import install_hint
+from massspring.support.text import format_seconds
+from massspring.support.extras import install_hint
 from massspring.cli.common import Terminated, UsageError
 
 

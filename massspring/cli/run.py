@@ -9,9 +9,10 @@ import time
 
 import numpy as np
 
-from massspring import progress, strain_limit
-from massspring.defaults import MAX_STEPS
-from massspring.text import format_seconds
+from massspring.support import progress
+from massspring.passes import strain_limit
+from massspring.support.defaults import MAX_STEPS
+from massspring.support.text import format_seconds
 from massspring.cli.common import (
     EXIT_DIVERGED, EXIT_INTERRUPTED, EXIT_OK, EXIT_OUTPUT, Terminated, UsageError, main_thread, make_simulation)
 from massspring.cli.pictures import finish_export, finish_pictures, plan_export, plan_frames, plan_pictures
@@ -40,9 +41,9 @@ def run_steps(args, scene, sim, start_steps=0):
 
 
 def cmd_run(args):
-    from massspring.errors import DivergenceError
+    from massspring.support.errors import DivergenceError
     from massspring.io.files import check_writable
-    from massspring.simulation import run
+    from massspring.engine.simulation import run
 
     scene, sim = make_simulation(args)
     start_steps = restart(args, scene, sim)

@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 
 from massspring.integrators import INTEGRATORS
-from massspring.terms import active_terms
-from massspring.text import format_seconds
+from massspring.model.terms import active_terms
+from massspring.support.text import format_seconds
 from massspring.cli.common import EXIT_OK, integrator_names, make_simulation
 
 

@@ -6,11 +6,11 @@ import math
 import sys
 from pathlib import Path
 
-from massspring import progress
-from massspring.defaults import MAX_STEPS
-from massspring.extras import install_hint
+from massspring.support import progress
+from massspring.support.defaults import MAX_STEPS
+from massspring.support.extras import install_hint
 from massspring.integrators import DEFAULT
-from massspring.text import format_seconds
+from massspring.support.text import format_seconds
 from massspring.cli.common import EXIT_DIVERGED, EXIT_OK, UsageError, add_cluster_arguments, add_scene_arguments, solver_options
 
 
@@ -30,8 +30,8 @@ def add_stability_arguments(p, integrators):
 def cmd_stability(args):
     from massspring.analysis import cluster, stability
     from massspring.scene import load_scene
-    from massspring.errors import DivergenceError
-    from massspring.simulation import run
+    from massspring.support.errors import DivergenceError
+    from massspring.engine.simulation import run
 
     for name in ("run_duration", "at"):
         value = getattr(args, name)

@@ -6,7 +6,7 @@ from pathlib import Path
 
 from massspring.cli.common import EXIT_OK, UsageError, add_cluster_arguments
 from massspring.cli.pictures import _number
-from massspring.extras import install_hint
+from massspring.support.extras import install_hint
 
 
 def add_study_arguments(p):

@@ -5,9 +5,9 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
-from massspring import validate
-from massspring.defaults import MAX_STEPS
-from massspring.extras import install_hint
+from massspring.support import validate
+from massspring.support.defaults import MAX_STEPS
+from massspring.support.extras import install_hint
 from massspring.cli.common import (
     EXIT_INTERRUPTED, EXIT_OK, Terminated, UsageError, needs_matplotlib, add_cluster_arguments, add_scene_arguments,
     solver_options)

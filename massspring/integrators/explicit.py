@@ -5,7 +5,7 @@ from __future__ import annotations
 import dataclasses
 import math
 
-from massspring.defaults import FALLBACK_DT
+from massspring.support.defaults import FALLBACK_DT
 from massspring.device import read_verdict
 from massspring.kernels import divergence, euler
 

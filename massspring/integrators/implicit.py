@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import taichi as ti
 
-from massspring import self_collision
+from massspring.passes import self_collision
 from massspring.device import Config, read_verdict
 from massspring.kernels import cg, divergence, friction, implicit_adjoint, operator
 from massspring.solvers import CHOICES, MULTIGRID_FROM, PRECONDITIONERS, solve

@@ -12,7 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from massspring import validate
+from massspring.support import validate
 
 KINDS = {"fraction": float, "count": int, "choice": str, "switch": bool}
 

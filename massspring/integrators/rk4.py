@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import math
 
-from massspring.defaults import FALLBACK_DT
+from massspring.support.defaults import FALLBACK_DT
 from massspring.device import read_verdict
 from massspring.kernels import divergence, rk4
 

@@ -51,12 +51,12 @@ from xml.sax.saxutils import quoteattr
 
 import numpy as np
 
-from massspring.defaults import VERSION
-from massspring.extras import install_hint
+from massspring.support.defaults import VERSION
+from massspring.support.extras import install_hint
 from massspring.io.files import atomic_output, atomic_path, check_writable, write_json
 from massspring.io.obj import write_obj
 from massspring.io.state import write_state
-from massspring.text import brief, clipped
+from massspring.support.text import brief, clipped
 
 MANIFEST = "manifest.json"
 JOURNAL = "frames.jsonl"

@@ -10,7 +10,7 @@ numbers in errors.
 Reading: ``v x y z`` (further components, e.g. w or a colour, are ignored) and ``f``
 with indices in any of the forms ``v``, ``v/vt``, ``v//vn``, ``v/vt/vn``, 1-based or
 negative (relative to the vertices read so far); faces of more than three vertices
-are kept as polygons (``massspring.mesh`` fan-triangulates them). ``#`` starts a
+are kept as polygons (``massspring.model.mesh`` fan-triangulates them). ``#`` starts a
 comment anywhere on a line, a trailing ``\\`` continues a line, and every other
 statement (vt, vn, o, g, s, usemtl, mtllib, l, ...) is ignored. Every problem raises
 :class:`ObjError` whose message starts with ``FILE:LINE:`` (``FILE:`` for problems of
@@ -26,9 +26,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from massspring import memory, mesh
+from massspring.support import memory
+from massspring.model import mesh
 from massspring.io.files import atomic_output
-from massspring.text import brief
+from massspring.support.text import brief
 
 READ_BYTES_PER_FILE_BYTE = 22  # peak memory of read_obj per byte of the file (a 300 x 300 grid mesh)
 MAX_LINE = 1 << 20  # characters of one logical line

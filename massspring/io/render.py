@@ -10,7 +10,7 @@ steps while the run goes; afterwards a :class:`FrameRenderer` frames the boundin
 of *all* recorded frames (so nothing leaves the picture), and :func:`export` draws
 each frame and writes the files. A run without a recording pays nothing.
 
-Colliders (``massspring.colliders``) are drawn where they are at each frame's time:
+Colliders (``massspring.model.colliders``) are drawn where they are at each frame's time:
 unbounded ones (planes) first, as a shaded checkered square of their ``cells`` under
 everything else, bounded ones (spheres, boxes) as their shaded ``surface`` triangles
 (back faces culled) after the parts of the surface behind them (``behind_solids``)

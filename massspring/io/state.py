@@ -23,7 +23,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.lib import format as npformat
 
-from massspring import memory
+from massspring.support import memory
 from massspring.io.files import atomic_output
 
 # key -> (kind, shape); "n" and "m" stand for the counts of the file's own arrays.

@@ -27,7 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
-from massspring.defaults import VERSION
+from massspring.support.defaults import VERSION
 from massspring.io.files import atomic_path
 
 PLANE_SIZE = 4.0  # a drawn plane's side, in lengths of the body's initial bounding box diagonal

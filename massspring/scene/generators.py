@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from massspring.defaults import GRAVITY
+from massspring.support.defaults import GRAVITY
 
 # name -> {parameter: default}; the default's type is the parameter's type.
 PARAMETERS = {

@@ -73,19 +73,22 @@ from pathlib import Path
 
 import numpy as np
 
-from massspring import memory, mesh, validate
+from massspring.support import memory
+from massspring.model import mesh
+from massspring.support import validate
 from massspring import solvers as preconditioners
-from massspring.colliders import COLLIDERS
-from massspring.defaults import GRAVITY
-from massspring.controls import Controls
-from massspring.self_collision import PASS_BYTES, SelfCollision
-from massspring import strain_limit
+from massspring.model.colliders import COLLIDERS
+from massspring.support.defaults import GRAVITY
+from massspring.model.controls import Controls
+from massspring.model.self_collision import SelfCollision
+from massspring.passes.self_collision import PASS_BYTES
+from massspring.passes import strain_limit
 from massspring.integrators import INTEGRATORS, OPTIONS
 from massspring.io.camera import DEFAULT_FRAMING, FRAMINGS, View
-from massspring import terms
+from massspring.model import terms
 from massspring.model import Model
 from massspring.scene import generators
-from massspring.text import brief
+from massspring.support.text import brief
 
 
 class SceneError(ValueError):
@@ -323,7 +326,7 @@ class Scene:
     def simulation(self, integrator=None, dt=None, **kwargs):
         """A Simulation with the scene's defaults (integrator, dt, [solver]); any Simulation
         argument may be overridden."""
-        from massspring.simulation import Simulation
+        from massspring.engine.simulation import Simulation
 
         integrator = integrator or self.integrator
         options = {**self.solver, **kwargs}

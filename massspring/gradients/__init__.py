@@ -33,17 +33,18 @@ from dataclasses import dataclass
 import numpy as np
 import taichi as ti
 
-from massspring import memory, validate
-from massspring.defaults import MAX_STEPS
+from massspring.support import memory
+from massspring.support import validate
+from massspring.support.defaults import MAX_STEPS
 from massspring.device import POOL, Layout, capacity
-from massspring.errors import GradientError, SelfCollisionGradientError
+from massspring.support.errors import GradientError, SelfCollisionGradientError
 from massspring.integrators import INTEGRATORS
 from massspring.kernels import state as state_kernels
 from massspring.model import Model
-from massspring.pair_penalty_adjoint import SolvePairs, penalty_adjoint
-from massspring.self_collision_adjoint import Record, Replay, ReplayError
-from massspring.simulation import Simulation
-from massspring.terms import active_terms
+from massspring.passes.self_collision.penalty_adjoint import SolvePairs, penalty_adjoint
+from massspring.passes.self_collision.adjoint import Record, Replay, ReplayError
+from massspring.engine.simulation import Simulation
+from massspring.model.terms import active_terms
 
 # The names ``wrt`` may hold: where each gradient is in the adjoint bundle, and what it is per.
 PARAMETERS = {"stiffness": "spring", "damping": "spring", "rest_lengths": "spring", "masses": "particle",
@@ -359,7 +360,7 @@ def _adjoint_bundle(sim, checkpoint):
 
 
 class ControlShares:
-    """The controls' gradients (``massspring.controls``), interval by interval: after the
+    """The controls' gradients (``massspring.model.controls``), interval by interval: after the
     adjoint of an interval's first step, what the steps since the last such read added to
     the wind's, rest lengths' and pin velocities' accumulators is that interval's share
     (steps after the last interval add to its wind and rest lengths; pins then stand still)."""
@@ -461,10 +462,10 @@ def _backward(sim, adj, wants, partials, frame_steps, kept, last, steps, checkpo
 class PassSteps:
     """The steps of a gradient's run in which the self-collision pass acted (``Pass.watch``
     hands them in): the ``Record`` of each step from ``start``'s on, run backwards by the
-    pass's ``Replay`` (``massspring.self_collision_adjoint``), and dL/d(the repulsion
+    pass's ``Replay`` (``massspring.passes.self_collision.adjoint``), and dL/d(the repulsion
     stiffness) so far (``k_r``). With the linearised implicit step (``penalty``), also the
     pairs its solve held in each step (``SolvePairs``), restored for the step's adjoint
-    solve, and their share of its gradient (``massspring.pair_penalty_adjoint``)."""
+    solve, and their share of its gradient (``massspring.passes.self_collision.penalty_adjoint``)."""
 
     def __init__(self, sim, adj):
         self.sim, self.adj = sim, adj

@@ -8,18 +8,22 @@ from dataclasses import make_dataclass
 
 import numpy as np
 
-from massspring import memory, ordering, self_collision, strain_limit, validate
-from massspring.colliders import COLLIDERS
-from massspring.defaults import MAX_STEPS, PRECISIONS
+from massspring.support import memory
+from massspring.model import ordering
+from massspring.passes import self_collision
+from massspring.passes import strain_limit
+from massspring.support import validate
+from massspring.model.colliders import COLLIDERS
+from massspring.support.defaults import MAX_STEPS, PRECISIONS
 from massspring.device import ARCHS, CPU_ARCHS, POOL, ensure_taichi, model_layout
-from massspring.errors import DivergenceError, SimulationClosedError
+from massspring.support.errors import DivergenceError, SimulationClosedError
 from massspring.integrators import DEFAULT, INTEGRATORS, OPTIONS, takers
 from massspring.kernels import divergence
-from massspring.terms import active_terms
+from massspring.model.terms import active_terms
 from massspring.model import Model
-from massspring.schedule import Schedule
+from massspring.engine.schedule import Schedule
 from massspring.solvers import PRECONDITIONERS, resolve
-from massspring.validate import real_array
+from massspring.support.validate import real_array
 
 LOOPS = ("auto", "serial", "parallel")
 # Springs below which serial kernels beat parallel ones on this project's 2-core CPU

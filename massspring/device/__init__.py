@@ -40,11 +40,11 @@ import numpy as np
 import taichi as ti
 from taichi.lang import impl
 
-from massspring import memory
+from massspring.support import memory
 from massspring.kernels.blocks import BLOCK
 from massspring.kernels.fill import fill
-from massspring.colliders import collider_arrays, collider_groups
-from massspring.terms import active_terms
+from massspring.model.colliders import collider_arrays, collider_groups
+from massspring.model.terms import active_terms
 
 REAL = {"f32": ti.f32, "f64": ti.f64}
 _NUMPY = {ti.f32: np.float32, ti.f64: np.float64, ti.i32: np.int32, ti.i64: np.int64}

@@ -1,7 +1,7 @@
 """The static description of a mass-spring system: plain, validated numpy data.
 
 A :class:`Model` compiles no kernel and allocates no field: it reads the force terms'
-host side (``massspring.terms``) for its parameters and uniform accelerations. (Those
+host side (``massspring.model.terms``) for its parameters and uniform accelerations. (Those
 terms and the colliders name their classes of ``ti.func``s, so importing this module
 imports Taichi.) Everything is checked in the constructor so that bad input fails with
 a ``ValueError`` naming the argument before any kernel is compiled or launched.
@@ -19,15 +19,15 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from massspring import mesh
-from massspring.defaults import GRAVITY
-from massspring import terms
-from massspring.colliders import COLLIDERS, MAX_COLLIDERS, Collider
-from massspring.controls import Controls
-from massspring.self_collision import SelfCollision, check_thickness
-from massspring.strain_limit import check as strain_limit_check
-from massspring.text import brief
-from massspring.validate import MAX_MAGNITUDE, real_array, real_number  # noqa: F401 (MAX_MAGNITUDE: documented here)
+from massspring.model import mesh
+from massspring.support.defaults import GRAVITY
+from massspring.model import terms
+from massspring.model.colliders import COLLIDERS, MAX_COLLIDERS, Collider
+from massspring.model.controls import Controls
+from massspring.model.self_collision import SelfCollision, check_thickness
+from massspring.model.strain_limit import check as strain_limit_check
+from massspring.support.text import brief
+from massspring.support.validate import MAX_MAGNITUDE, real_array, real_number  # noqa: F401 (MAX_MAGNITUDE: documented here)
 
 
 # The arrays that make up a model's physics (``Model.fingerprint``); ``triangles`` only draw it.
@@ -84,7 +84,7 @@ class Model:
     triangles : None or (t, 3) int
         Surface triangles (particle indices) for drawing, and for self-collision
         when it is on (otherwise the physics never reads them). Empty when None.
-    colliders : sequence of colliders (``massspring.colliders.COLLIDERS``: ``Plane``, ``Sphere``, ``Box``)
+    colliders : sequence of colliders (``massspring.model.colliders.COLLIDERS``: ``Plane``, ``Sphere``, ``Box``)
         Obstacles the particles cannot enter (at most 31); stored as a tuple.
 {term_parameters}    pin_velocity : None or (k, 3) float, m/s
         Kinematic pins: the constant velocity of each pinned particle, one row per
@@ -96,12 +96,12 @@ class Model:
         None: off.
     strain_limit : None or float > 0
         The largest stretch l / l0 - 1 of any spring after a step
-        (``massspring.strain_limit``: springs stretched further are shortened after each
+        (``massspring.passes.strain_limit``: springs stretched further are shortened after each
         step, every integrator); None: no limit.
     controls : None or ``massspring.Controls``
         Time-varying inputs: keyframed pins (then ``pin_velocity`` is their first
         interval's velocity), wind (a model with drag) and actuated rest lengths per
-        interval (``massspring.controls``). None: the values above hold throughout.
+        interval (``massspring.model.controls``). None: the values above hold throughout.
 
     The force terms' own parameters (``terms.parameters()``: {term_names}) are the
     keyword arguments listed after ``colliders``, each stored under its name as a float or
@@ -205,7 +205,7 @@ class Model:
             object.__setattr__(self, name, value)
         object.__setattr__(self, "colliders", _colliders(colliders))
         if self.colliders:
-            from massspring.colliders import check_start_outside
+            from massspring.model.colliders import check_start_outside
 
             check_start_outside(self.colliders, x, self.free_mask())
         object.__setattr__(self, "self_collision", _self_collision(self_collision, tris, x))
@@ -220,7 +220,7 @@ class Model:
         springs on the diagonals of its quads and larger faces, bending springs across
         its interior edges, masses lumped from the face areas, pins by index or by a
         box; the (fan-triangulated) faces become ``triangles``. Parameters and units:
-        ``massspring.mesh.mesh_arguments``."""
+        ``massspring.model.mesh.mesh_arguments``."""
         known = set(inspect.signature(mesh.mesh_arguments).parameters) | set(terms.parameters())
         unknown = sorted(set(parameters) - known)
         if unknown:

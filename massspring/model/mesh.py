@@ -36,8 +36,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from massspring.defaults import GRAVITY
-from massspring.validate import MAX_MAGNITUDE, real_array, real_number
+from massspring.support.defaults import GRAVITY
+from massspring.support.validate import MAX_MAGNITUDE, real_array, real_number
 
 # [model] parameters of a mesh scene (``scene/spec.py``) and their defaults; None: not given.
 PARAMETERS = {"mesh": "", "density": None, "mass": None, "stiffness": 1e4, "damping": 0.0, "bend": 0.1,

@@ -24,22 +24,6 @@ PASS_BYTES_PER_SPRING = 24  # sl_dx, a vec3 per spring (f64)
 PASS_BYTES = 4 + 48  # per particle: sl_k, and the state before the pass (x_sl_before, v_sl_before: f64 vec3s)
 
 
-def check(value, n_springs):
-    """``Model``'s ``strain_limit``: None, or a finite number > 0 (the largest l / l0 - 1);
-    ValueError naming ``strain_limit`` otherwise."""
-    if value is None:
-        return None
-    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, float, np.integer, np.floating)):
-        raise ValueError(f"strain_limit: expected None or a number > 0 (the largest stretch l / l0 - 1), "
-                         f"got {value!r}")
-    value = float(value)
-    if not (math.isfinite(value) and value > 0):
-        raise ValueError(f"strain_limit: must be a finite number > 0 (the largest stretch l / l0 - 1), got {value!r}")
-    if n_springs == 0:
-        raise ValueError("strain_limit: the model has no springs to limit")
-    return value
-
-
 def declare(layout):
     """The pass's fields in ``layout`` (a ``device.Layout``): ``sl_dx`` (a vec3 per spring),
     ``sl_k`` (an i32 per particle) and the state before the pass (``x_sl_before``, ``v_sl_before``)."""

@@ -9,7 +9,7 @@ from massspring.kernels import state as state_kernels
 
 class Schedule:
     """Writes each interval's pin velocities (``dev.pin_velocity``), wind (``dev.wind``)
-    and rest lengths (``dev.l0``) of ``model.controls`` (``massspring.controls``) before
+    and rest lengths (``dev.l0``) of ``model.controls`` (``massspring.model.controls``) before
     a run's steps enter it. ``model`` is the model the kernels step (renumbered where
     the run renumbers); ``dt`` must divide the interval (ValueError naming ``dt``)."""
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import math
 
-from massspring.text import format_seconds
+from massspring.support.text import format_seconds
 
 
 class DivergenceError(RuntimeError):

@@ -8,7 +8,7 @@ from typing import ClassVar
 import numpy as np
 
 from massspring.kernels.contact import SphereKind
-from massspring.validate import real_number
+from massspring.support.validate import real_number
 
 from .base import Collider, box_corners, vector
 

@@ -17,8 +17,8 @@ from types import SimpleNamespace
 
 import numpy as np
 
-from massspring import validate
-from massspring.defaults import PRECISIONS
+from massspring.support import validate
+from massspring.support.defaults import PRECISIONS
 from massspring.device import POOL, Config, ensure_taichi, model_layout
 from massspring.kernels import cg, operator
 from massspring.kernels.terms import SpringDamping, Springs

@@ -30,8 +30,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from massspring.kernels import terms as kernels
-from massspring.text import brief
-from massspring.validate import real_array
+from massspring.support.text import brief
+from massspring.support.validate import real_array
 
 
 @dataclass(frozen=True)

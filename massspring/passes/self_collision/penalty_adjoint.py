@@ -33,7 +33,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from massspring.self_collision_adjoint import ReplayError, closest, complex_jacobian, regions
+from massspring.passes.self_collision.adjoint import ReplayError, closest, complex_jacobian, regions
 
 MATCH = 1e-9  # of the thickness: the closest points solved again on their region against the step's
 

@@ -25,8 +25,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from massspring import validate
-from massspring.validate import real_array
+from massspring.support import validate
+from massspring.support.validate import real_array
 
 STEP_TOLERANCE = 1e-9  # relative: how close interval / dt must be to a whole number
 NAMES = ("pin_targets", "wind", "rest_lengths")  # the controls' arrays, what "controls.<name>" names

@@ -8,7 +8,7 @@ from typing import ClassVar
 
 import numpy as np
 
-from massspring.validate import real_array, real_number
+from massspring.support.validate import real_array, real_number
 
 
 def vector(name, value):

@@ -11,7 +11,7 @@ import sys
 
 import numpy as np
 
-from massspring.text import brief
+from massspring.support.text import brief
 
 MAX_INT32 = 2**31 - 1  # kernels count in int32
 
