@@ -166,7 +166,7 @@ next_action = ti.func(exit_rule)
 
 @ti.kernel
 def cg_precondition(dev: ti.template(), cfg: ti.template()):
-    """z = S P S r with a pointwise preconditioner (for ``massspring.operators``)."""
+    """z = S P S r with a pointwise preconditioner (for ``massspring.engine.operators``)."""
     for i in range(dev.size[0]):
         dev.z[i] = constrain(i, dev, cfg, precondition(i, dev, cfg, constrain(i, dev, cfg, dev.r[i])))
 

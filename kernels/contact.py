@@ -1,4 +1,4 @@
-"""Contact with colliders (``massspring.colliders``): their geometry, the response of the
+"""Contact with colliders (``massspring.model.colliders``): their geometry, the response of the
 explicit integrators after a step, and the contact constraints of the implicit step.
 
 Geometry. Each collider kind is a class of ``ti.func``s with its arrays
@@ -6,7 +6,7 @@ Geometry. Each collider kind is a class of ``ti.func``s with its arrays
 ``plane_normal``, ``sphere_center``, ``sphere_radius``, ``box_lower``, ``box_upper``,
 and for every kind ``_velocity`` (m/s), ``_friction``, ``_restitution``).
 ``cfg.colliders`` lists the kinds a model has as (kind, count, first)
-(``massspring.colliders.collider_groups``: each collider class names its kind class
+(``massspring.model.colliders.collider_groups``: each collider class names its kind class
 here as ``kernel``), ``first``
 numbering its colliders among all of the model's (their bits in the implicit step's
 per-particle masks); the kernels unroll both loops (``ti.static``), so a model without

@@ -28,7 +28,7 @@ solved by preconditioned MINRES (``massspring.solvers.minres``) with the run's
 preconditioner of S, each product
 ``jacobian_product``: S's product less what the fix added (``fix_difference``), so S
 stays refreshed for the preconditioner. Where MINRES does not converge within
-cg_max_iter iterations or stalls, ``massspring.errors.GradientError`` names the step.
+cg_max_iter iterations or stalls, ``massspring.support.errors.GradientError`` names the step.
 ``newton_adjoint_rhs`` sets up the solve, CG or MINRES solves it,
 ``newton_adjoint_gather`` does the rest (``forces.acceleration_adjoint`` with weights
 h mu: at the converged iterate h f / m = u - v_n, so its masses' share is the one above).

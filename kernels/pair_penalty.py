@@ -26,9 +26,9 @@ the same bits for any thread count, without atomics. If the pairs overflow ``sp_
 would fit depends on the threads' order), the pass alone handles them, and
 ``sp_count[1]`` says how many there were. ``pair_penalty_read`` and
 ``pair_penalty_write`` copy a step's pairs out and back in (a gradient's adjoint solve
-of that step runs with them: ``massspring.pair_penalty_adjoint``).
+of that step runs with them: ``massspring.passes.self_collision.penalty_adjoint``).
 
-Fields (``massspring/self_collision.py``'s ``declare_solve``; n particles, P pair
+Fields (``massspring/passes/self_collision/__init__.py``'s ``declare_solve``; n particles, P pair
 capacity): ``sp_param`` (2,) real: t (m), k (N/m); ``sp_count`` (2,) i32: pairs in the
 solve, pairs left out; ``sp_idx`` (P,) 4-vectors i32; ``sp_w`` (P,) 4-vectors;
 ``sp_nf`` (P,) 5-vectors (n, dt^2 k in kg, k (t - d) in N); ``sp_first`` (n + 1,),

@@ -32,7 +32,7 @@ is, else ``self_collision_detect`` and ``self_collision_bound`` run the full pas
    d (``point_triangle``, ``segment_segment``, degenerate primitives included). The
    pairs go to the pair list ``pl`` (its own bundle: ``pidx``, ``pw``, ``pkind``); a
    pass whose pairs do not fit is undone (``self_collision_restore``) and run again
-   with a list large enough (``massspring/self_collision.py``'s ``Pass``).
+   with a list large enough (``massspring/passes/self_collision/__init__.py``'s ``Pass``).
 2. Repulsion (in the spirit of Bridson, Fedkiw and Anderson 2002). A pair closer
    than ``thickness`` gets an inelastic normal impulse that stops the approach of its
    closest points over the step and pushes them apart, at most to separate them at
@@ -73,7 +73,7 @@ Deterministic for any thread count: distances are reduced with atomic min/max (e
 impulses summed in 64-bit fixed point (integer addition: order-free), and nothing
 reads the order within a hash cell.
 
-Fields (``massspring/self_collision.py`` declares them; n particles, t triangles, e
+Fields (``massspring/passes/self_collision/__init__.py`` declares them; n particles, t triangles, e
 edges, T cells per table): ``sc_tris`` (t,) int 3-vectors, ``sc_edges`` (e,) int
 2-vectors, ``sc_count`` (t, e, T), ``sc_start``, ``sc_anchor``, ``sc_end`` (n,) vec3 m,
 ``sc_vend`` (n,) vec3 m/s, ``sc_free`` (n,) m, ``sc_scale`` (n,),

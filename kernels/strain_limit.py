@@ -1,4 +1,4 @@
-"""Strain limiting after a step (``massspring/strain_limit.py``): springs stretched past
+"""Strain limiting after a step (``massspring/passes/strain_limit.py``): springs stretched past
 (1 + s) times their rest length are shortened to it by moving their ends along the
 spring, in the manner of Provot 1995 ("Deformation constraints in a mass-spring model
 to describe rigid cloth behavior"), as Jacobi iterations that do not depend on the
@@ -8,7 +8,7 @@ One iteration (``strain_limit_iteration``) at the state (x, v) after a step of d
 
 1. each spring s = (i, j) of length l > (1 + s - tol) l0 is violated by
    e = l - (1 + s - tol) l0 (m): springs are shortened a little below the limit (tol =
-   ``massspring.strain_limit.TOLERANCE``), so that the iterations end with every spring
+   ``massspring.passes.strain_limit.TOLERANCE``), so that the iterations end with every spring
    within it (a spring of zero rest length is not limited);
 2. k_i: the number of violated springs at particle i;
 3. the spring's correction c = w e u / ((w_i + w_j) K), w = ``RELAX``, u = (x_j - x_i) / l,

@@ -1,5 +1,5 @@
 """Force terms, device side: each a class of ``ti.func``s reading the device arrays its
-host side (``massspring.terms``: parameters, ``active``, ``arrays``) declares.
+host side (``massspring.model.terms``: parameters, ``active``, ``arrays``) declares.
 
 Two kinds:
 

@@ -76,7 +76,7 @@ class ParticleTerm:
     differentiable = False  # the gradients' kernels handle it (``massspring.gradients``)
     # A uniform acceleration a (f_i = m_i a, one a for every particle: gravity) sets
     # ``uniform`` and gives a as ``acceleration(dev)`` (a ``ti.func``, the run's precision);
-    # its host side gives it as ``model_acceleration(model)`` (``massspring.terms``).
+    # its host side gives it as ``model_acceleration(model)`` (``massspring.model.terms``).
     uniform = False
 
     @staticmethod
