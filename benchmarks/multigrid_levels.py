@@ -115,7 +115,7 @@ def level_table(pre, springs):
 def measure(resolution, stiffness, steps, repeats, preconditioner="multigrid"):
     scene = ms.load_scene("cloth").with_params(resolution=resolution, stiffness=stiffness)
     sim = scene.simulation(integrator="implicit", dt=1 / 60, preconditioner=preconditioner)
-    pre = sim._integrator.preconditioner
+    pre = sim.stepper.preconditioner
     sim.step(1)  # compile everything
     timer = Timer(multigrid.mg, pre.plan)
     original_setup, original_coarse = pre.setup, pre._coarse

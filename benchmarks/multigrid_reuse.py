@@ -108,7 +108,7 @@ def build(case, variant):
     scene = ms.load_scene(name).with_params(resolution=int(resolution), stiffness=float(stiffness),
                                             strain_limit=0.0)  # the drape's off, as its results were measured
     sim = scene.simulation(integrator="implicit", dt=1 / 60, precision="f64", cg_tol=1e-6, preconditioner="multigrid")
-    return sim, Reuse(sim._integrator.preconditioner, *VARIANTS[variant])
+    return sim, Reuse(sim.stepper.preconditioner, *VARIANTS[variant])
 
 
 def step(sim, reuse):

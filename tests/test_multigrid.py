@@ -457,7 +457,7 @@ def test_lanczos_goes_on_while_its_estimate_grows(monkeypatch):
         steps = []
         for _ in range(4):
             sim.step(1)
-            steps.append(list(sim._integrator.preconditioner.lanczos_steps))
+            steps.append(list(sim.stepper.preconditioner.lanczos_steps))
         counts = sim.cg_iterations
         sim.close()
         return counts, steps

@@ -262,7 +262,7 @@ def test_a_pair_within_the_thickness_is_a_penalty_of_the_implicit_solve(height, 
 
     sim = ms.Simulation(model, integrator="implicit", dt=dt, cg_tol=1e-12)
     sim.step()
-    assert sim._integrator.dev.sp_count.to_numpy().tolist() == [1, 0]
+    assert sim.stepper.dev.sp_count.to_numpy().tolist() == [1, 0]
     assert sim.self_collision_stats["held"] == 0 and sim.self_collision_stats["left_out"] == 0  # the pass after the solve held nothing back
     np.testing.assert_allclose(sim.velocities, expected, rtol=0, atol=1e-8 * np.abs(expected).max())
     np.testing.assert_allclose(sim.positions, x + dt * sim.velocities, rtol=0, atol=1e-14)
@@ -273,7 +273,7 @@ def test_a_pair_list_that_grows_gives_the_bits_of_one_large_enough(monkeypatch):
     """A pass that finds more pairs than its list holds is undone and run again with a
     larger list: the run equals, to the bit, one whose list was large enough from the
     start."""
-    from massspring.passes import self_collision
+    from massspring.passes.self_collision import forward as self_collision
 
     monkeypatch.setattr(self_collision, "PAIR_FLOOR", 4096)  # a list the sheets outgrow
     runs = []
@@ -295,17 +295,17 @@ def test_a_pair_list_that_cannot_grow_is_an_error_naming_it_and_the_simulation_k
     and 0 springs" and left the Simulation without a list."""
     from massspring import device
     from massspring.support import memory
-    from massspring.passes import self_collision
+    from massspring.passes.self_collision import forward as self_collision
 
     monkeypatch.setattr(self_collision, "PAIR_FLOOR", 4096)  # a list the sheets outgrow
     sim = sheets(16).simulation("implicit")
-    capacity = sim._guard.capacity
+    capacity = sim.passes[0].capacity
     monkeypatch.setattr(device.POOL, "take", lambda signature: None)  # no pooled list of the next size
     monkeypatch.setattr(memory, "available", lambda: (1e4, "available"))
     with pytest.raises(memory.MemoryNeedError, match=r"^self-collision: a pair list of [\d,]+ pairs \([\d,]+ within "
                                                      r"reach\) needs about .* GB; 1e-05 GB available"):
         sim.step(100)  # the list of 8 pairs a particle grows within 100 steps
-    assert sim._guard.capacity == capacity and sim.self_collision_stats["grown"] == 0
+    assert sim.passes[0].capacity == capacity and sim.self_collision_stats["grown"] == 0
     assert np.isfinite(sim.positions).all()
     sim.close()
 

@@ -197,7 +197,7 @@ def test_spring_energy_counts_in_the_implicit_steps_divergence_check(integrator)
     spring = 0.5 * 1e4 * 0.5 ** 2
     sim = ms.Simulation(model, integrator=integrator, dt=1e-9)
     factor = sim.check[2]
-    sim._integrator.dev.check[None] = (0.5 * spring / factor, 0.0, factor)  # the bound: spring / 2
+    sim.stepper.dev.check[None] = (0.5 * spring / factor, 0.0, factor)  # the bound: spring / 2
     try:
         if integrator in ("symplectic", "implicit"):
             sim.step(1)

@@ -174,7 +174,7 @@ def test_with_gravity_alone_the_sums_are_gravity_to_the_bit():
     assert model.external_work(x) == -model.energy(x, model.velocities)["gravity"]
     assert list(model.energy(x, model.velocities)) == ["kinetic", "spring", "gravity", "total"]
     sim = ms.Simulation(model, "implicit", dt=1e-2)
-    assert sim._integrator.cfg.uniform_terms == (terms.Gravity.kernel,)
+    assert sim.stepper.cfg.uniform_terms == (terms.Gravity.kernel,)
 
 
 @pytest.mark.fast_sample(integrator=["symplectic"])

@@ -56,3 +56,50 @@ class Schedule:
             self.rest[self.controls.springs] = self.controls.rest_lengths[held]
             state_kernels.load_reals(self.dev.l0, self.rest)
         self.applied = s
+
+
+class ControlShares:
+    """The controls' gradients (``massspring.model.controls``), interval by interval: after the
+    adjoint of an interval's first step, what the steps since the last such read added to
+    the wind's, rest lengths' and pin velocities' accumulators is that interval's share
+    (steps after the last interval add to its wind and rest lengths; pins then stand still)."""
+
+    def __init__(self, sim, adj):
+        self.sim, self.adj = sim, adj
+        self.schedule = sim.schedule
+        self.controls = sim.model.controls
+        count = self.controls.intervals
+        self.wind = np.zeros((count, 3))
+        self.rest = np.zeros((count, 0 if self.controls.springs is None else self.controls.springs.size))
+        self.pins = np.zeros((count, sim.model.fixed.size, 3))
+        self.seen = self._totals()
+
+    def _totals(self):
+        n, m = self.sim.model.n_particles, self.sim.model.n_springs
+        return (self.adj.read("gwind", n).sum(axis=0), self.adj.read("gl0", m) if m else np.zeros(0),
+                self.adj.read("gp", n))
+
+    def after(self, k):
+        """Called after step k's adjoint."""
+        if k % self.schedule.per:
+            return
+        totals = self._totals()
+        wind, rest, pins = (now - before for now, before in zip(totals, self.seen))
+        self.seen = totals
+        s = self.schedule.interval(k)
+        held = min(s, self.controls.intervals - 1)
+        self.wind[held] += wind
+        if self.rest.shape[1]:
+            self.rest[held] += rest[self.schedule.controls.springs]
+        if s < self.controls.intervals:
+            self.pins[s] += self.sim.to_user(pins)[self.sim.model.fixed]
+
+    def gradients(self, lv):
+        """name -> gradient of each control; ``lv`` dL/dv of the initial state (n, 3), whose
+        pinned rows are the first interval's pin velocity's share."""
+        pins = self.pins.copy()
+        pins[0] += self.sim.to_user(lv)[self.sim.model.fixed]
+        grads = {"controls.wind": self.wind.copy(), "controls.rest_lengths": self.rest.copy()}
+        if self.controls.pin_targets is not None:
+            grads["controls.pin_targets"] = self.controls.pin_target_gradient(pins)
+        return grads

@@ -4,15 +4,14 @@ from __future__ import annotations
 
 import textwrap
 import weakref
-from dataclasses import make_dataclass
+from dataclasses import dataclass, make_dataclass
 
 import numpy as np
 
-from massspring.support import memory
+from massspring.engine import footprint
 from massspring.model import ordering
-from massspring.passes import self_collision
-from massspring.passes import strain_limit
-from massspring.support import validate
+from massspring.passes import PASSES, for_model
+from massspring.support import memory, validate
 from massspring.model.colliders import COLLIDERS
 from massspring.support.defaults import MAX_STEPS, PRECISIONS
 from massspring.device import ARCHS, CPU_ARCHS, POOL, ensure_taichi, model_layout
@@ -64,6 +63,20 @@ def _check_carried(carried, names, n):
             raise ValueError(f"carried[{name!r}]: contains non-finite values")
         out[name] = np.ascontiguousarray(arr.astype(dtype))
     return out
+
+
+@dataclass(frozen=True)
+class Snapshot:
+    """A ``Simulation.snapshot()``: positions, velocities (n, 3) in the model's
+    numbering, steps taken, ``carried_state()``, each pass's ``snapshot()`` and the run's
+    counters (CG and Newton iteration lists' lengths, line-search cuts, failures)."""
+
+    positions: np.ndarray
+    velocities: np.ndarray
+    steps: int
+    carried: dict
+    passes: tuple
+    counters: tuple
 
 
 def divergence_check(model: Model, factor=DIVERGENCE_FACTOR):
@@ -176,34 +189,25 @@ class Simulation:
         self._cg_failures = 0
 
         cls = INTEGRATORS[integrator]
-        memory.check(memory.run_bytes(model.n_particles, model.n_springs, preconditioner if cls.linear_solver else None,
-                                      model_built=not ordering.wanted(model),  # else a renumbered copy
-                                      extra=cls.extra_bytes + self_collision.PASS_BYTES * model.has_self_collision
-                                      + self_collision.SOLVE_BYTES * cls.pairs_in_solve(model)
-                                      + strain_limit.PASS_BYTES * model.has_strain_limit,
-                                      spring_extra=cls.spring_extra_bytes
-                                      + strain_limit.PASS_BYTES_PER_SPRING * model.has_strain_limit),
+        memory.check(footprint.run_bytes(footprint.Sketch.of(model), integrator, precision, preconditioner,
+                                         model_built=not ordering.wanted(model)),  # else a renumbered copy
                      f"model: {model.n_particles:,} particles and {model.n_springs:,} springs; "
                      f"a run of it ({integrator})")
         self._order = ordering.plan(model)
         inner = model if self._order is None else self._order.model
         layout = model_layout(inner, precision)
         cls.declare(layout, inner, self._settings)
-        if model.has_self_collision:
-            self_collision.declare(layout, inner)
-        if model.has_strain_limit:
-            strain_limit.declare(layout)
+        kinds = for_model(inner)
+        for kind in kinds:
+            kind.declare(layout, inner)
         self._layout_names = [name for name in layout.decls if name not in ("size", "check", "partial")]
         self._bytes = layout.nbytes()
         dev = layout.allocate()
         dev.check[None] = self._check
         self._integrator = cls(dev, inner, self._settings)
         self._schedule = None if model.controls is None else Schedule(inner, dev, dt)
-        self._guard = (self_collision.Pass(dev, self._integrator.cfg, inner, self._integrator.serial, dt)
-                       if model.has_self_collision else None)
-        self._limit = (strain_limit.Pass(dev, self._integrator.cfg, model.strain_limit, self._integrator.serial, dt)
-                       if model.has_strain_limit else None)
-        self._release = weakref.finalize(self, _release, dev, self._integrator, self._guard)
+        self._passes = tuple(kind(dev, self._integrator.cfg, inner, self._integrator.serial, dt) for kind in kinds)
+        self._release = weakref.finalize(self, _release, dev, self._integrator, self._passes)
 
     # ------------------------------------------------------------------ settings
 
@@ -252,19 +256,66 @@ class Simulation:
     def positions(self) -> np.ndarray:
         """(n, 3) float64 copy of the current positions (m)."""
         integrator = self._open()
-        return self._to_user(integrator.state.x.to_numpy()[: self._model.n_particles].astype(np.float64))
+        return self.to_user(integrator.state.x.to_numpy()[: self._model.n_particles].astype(np.float64))
 
     @property
     def velocities(self) -> np.ndarray:
         """(n, 3) float64 copy of the current velocities (m/s)."""
         integrator = self._open()
-        return self._to_user(integrator.state.v.to_numpy()[: self._model.n_particles].astype(np.float64))
+        return self.to_user(integrator.state.v.to_numpy()[: self._model.n_particles].astype(np.float64))
 
-    def _to_user(self, rows):
+    def to_user(self, rows):
+        """Rows (n, ...) in the run's inner numbering (``numbering``) as the model numbers its particles."""
         return rows if self._order is None else self._order.to_user(rows)
 
-    def _to_inner(self, rows):
+    def to_inner(self, rows):
+        """Rows (n, ...) in the model's numbering as the run numbers its particles inside."""
         return rows if self._order is None else self._order.to_inner(rows)
+
+    @property
+    def numbering(self):
+        """The run's renumbering of the model's particles and springs for locality
+        (``model.ordering.Order``), or None where it keeps the model's."""
+        return self._order
+
+    # ------------------------------------------------------------------ seams (gradients, step control)
+
+    @property
+    def stepper(self):
+        """The integrator instance that steps this run (``integrators.base.Integrator``:
+        its ``keep``, ``history``, ``adjoint`` and ``adjoint_steps`` serve a gradient's run)."""
+        return self._open()
+
+    @property
+    def passes(self) -> tuple:
+        """The passes this run holds (instances of ``passes.PASSES``' classes), in the order they run."""
+        return self._passes
+
+    @property
+    def schedule(self):
+        """The control schedule (``engine.schedule.Schedule``), or None without controls."""
+        return self._schedule
+
+    def snapshot(self) -> "Snapshot":
+        """Everything a step changes, kept to come back to (``restore``): the state, what
+        the integrator carries, each pass's state and counters, and the run's counters.
+        For a step that is to be rejected and retried."""
+        self._open()
+        return Snapshot(self.positions, self.velocities, self._steps, self.carried_state(),
+                        tuple(p.snapshot() for p in self._passes),
+                        (len(self._cg_iterations), len(self._newton_iterations), self._cuts, self._cg_failures))
+
+    def restore(self, snapshot: "Snapshot"):
+        """Back to ``snapshot`` (a ``snapshot()`` of this run): a run continued from here
+        equals, to the bit, one continued from where the snapshot was taken."""
+        if not isinstance(snapshot, Snapshot) or len(snapshot.passes) != len(self._passes):
+            raise ValueError("snapshot: expected a Simulation.snapshot() of this run")
+        self.set_state(snapshot.positions, snapshot.velocities, snapshot.steps, snapshot.carried)
+        for p, kept in zip(self._passes, snapshot.passes):
+            p.restore(self._integrator.state, kept)
+        cg, newton, self._cuts, self._cg_failures = snapshot.counters
+        del self._cg_iterations[cg:], self._newton_iterations[newton:]
+        return self
 
     @property
     def solver_stats(self):
@@ -286,37 +337,10 @@ class Simulation:
         """Newton iterations (linear solves) of every step so far (Newton-solved integrators; a copy)."""
         return list(self._newton_iterations)
 
-    @property
-    def self_collision_stats(self) -> dict | None:
-        """The self-collision pass so far (None without self-collision): "steps", "passes"
-        (steps that ran the full pass), "grown" (times its pair list grew) and
-        "capacity" (pairs the list holds); of the last full pass: "pairs" (listed),
-        "repelled" (closer than the thickness), "bounded" (closing too fast: set to bound
-        their own particles), "held" (particles held back), "displacement" (largest, m),
-        "closest" (smallest pair distance, m) and "left_out" (pairs within the thickness
-        left out of the implicit solve because they passed its capacity; 0 if none)."""
-        guard = self._guard
-        if guard is None:
-            return None
-        pairs, repelled, held, displacement, closest, capacity, bounded = guard.last
-        return {"steps": guard.steps, "passes": guard.passes, "grown": guard.grown, "capacity": capacity,
-                "pairs": pairs, "repelled": repelled, "bounded": bounded, "held": held,
-                "displacement": displacement, "closest": closest, "left_out": guard.left_out}
-
-    @property
-    def strain_limit_stats(self) -> dict | None:
-        """The strain limit (None without one) at the last step: "iterations" (Jacobi
-        iterations it ran), "before" and "after" (the largest l / l0 - 1 of a spring after
-        the integrator's step and after the pass); of the steps so far:
-        "unmet" (ended with a spring past the limit after ``strain_limit.ITERATIONS``),
-        "undone" (unmet, and whose pass was undone: it left the worst spring worse than it
-        found it), "steps" (whose pass moved particles) and "most" (the most iterations of one)."""
-        limit = self._limit
-        if limit is None:
-            return None
-        iterations, before, after = limit.last
-        return {"iterations": iterations, "before": before, "after": after, "unmet": limit.unmet,
-                "undone": limit.undone, "steps": limit.steps, "most": limit.most}
+    def pass_stats(self) -> dict:
+        """name -> ``stats()`` of each pass the run holds (``passes.PASSES``; each pass's own
+        property, e.g. ``self_collision_stats``, gives one)."""
+        return {p.name: p.stats() for p in self._passes}
 
     @property
     def line_search_cuts(self) -> int:
@@ -332,14 +356,14 @@ class Simulation:
         distances ("sc_anchor", "sc_free", m); else empty. Give it back to ``set_state``
         for a restart that continues to the bit."""
         carried = self._open().carried()
-        if self._guard is not None:
-            carried.update(self._guard.carried())
-        return {name: self._to_user(rows) for name, rows in carried.items()}
+        for p in self._passes:
+            carried.update(p.carried_state())
+        return {name: self.to_user(rows) for name, rows in carried.items()}
 
     def _carried_names(self, integrator) -> dict:
         names = dict(integrator.carried_names())
-        if self._guard is not None:
-            names.update(self_collision.CARRIED)
+        for p in self._passes:
+            names.update(p.carried)
         return names
 
     def set_state(self, positions, velocities, steps=0, carried=None):
@@ -376,14 +400,14 @@ class Simulation:
             raise ValueError(f"velocities: particle {int(fixed[k])} is pinned, so its velocity must be its pin "
                              f"velocity {pinned[k].tolist()}, got {arrays['velocities'][fixed[k]].tolist()}")
         carried = _check_carried(carried, self._carried_names(integrator), n)
-        arrays = {name: self._to_inner(rows) for name, rows in arrays.items()}
+        arrays = {name: self.to_inner(rows) for name, rows in arrays.items()}
         if carried is not None:
-            carried = {name: self._to_inner(rows) for name, rows in carried.items()}
-        own = None if carried is None else {k: v for k, v in carried.items() if k not in self_collision.CARRIED}
+            carried = {name: self.to_inner(rows) for name, rows in carried.items()}
+        theirs = {name for p in self._passes for name in p.carried}
+        own = None if carried is None else {k: v for k, v in carried.items() if k not in theirs}
         integrator.load_state(arrays["positions"], arrays["velocities"], own)
-        if self._guard is not None:
-            self._guard.load(integrator.state, None if carried is None else
-                             {k: carried[k] for k in self_collision.CARRIED})
+        for p in self._passes:
+            p.load(integrator.state, None if carried is None else {k: carried[k] for k in p.carried})
         integrator.steps = steps  # moving pins and colliders are where they are at steps x dt
         self._steps = steps
         return self
@@ -425,7 +449,7 @@ class Simulation:
         time. Counts the good steps and the solver statistics; raises ``DivergenceError``
         at a failed step."""
         schedule = self._schedule
-        if not integrator.has_stats and self._guard is None and self._limit is None:
+        if not integrator.has_stats and not self._passes:
             while n:
                 chunk = min(n, STEPS_PER_LAUNCH)
                 if schedule is not None:
@@ -439,15 +463,13 @@ class Simulation:
         for _ in range(n):
             if schedule is not None:
                 schedule.apply(self._steps)
-            if self._guard is not None:
-                self._guard.begin(integrator.state)
+            for p in self._passes:
+                p.begin(integrator.state)
             done, check = integrator.advance(1)
-            if done and (self._limit is not None or self._guard is not None):
+            if done and self._passes:
                 integrator.settle()
-                if self._limit is not None:
-                    self._limit.end(integrator.state, integrator.time)
-                if self._guard is not None:
-                    self._guard.end(integrator.state)
+                for p in self._passes:
+                    p.end(integrator.state, integrator.time)
                 integrator.changed()
             if not integrator.has_stats:
                 self._steps += done
@@ -488,8 +510,7 @@ class Simulation:
         if self._model.has_colliders:
             kinds = sorted({c.kind for c in self._model.colliders}, key=list(COLLIDERS).index)
             terms.append("contact (" + ", ".join(kinds) + ")")
-        if self._model.has_self_collision:
-            terms.append("self-collision")
+        terms += [p.term for p in self._passes if p.term is not None]
         if self._model.controls is not None:
             given = [name for name in ("pin_targets", "wind", "rest_lengths")
                      if getattr(self._model.controls, name) is not None]
@@ -523,6 +544,18 @@ for _option in OPTIONS.values():
     setattr(Simulation, _option.name, _option_property(_option))
 
 
+def _stats_property(kind):
+    def stats(self):
+        return next((p.stats() for p in self._passes if p.name == kind.name), None)
+    return property(stats, doc=f"The {kind.name} pass's statistics (None without it): "
+                               f"{textwrap.dedent(kind.stats.__doc__ or '').strip()}")
+
+
+for _kind in PASSES.values():
+    if _kind.stats_property:
+        setattr(Simulation, _kind.stats_property, _stats_property(_kind))
+
+
 def _option_docs() -> str:
     """The solver options' lines of ``Simulation``'s docstring."""
     lines = []
@@ -538,10 +571,10 @@ Simulation.__doc__ = Simulation.__doc__.replace("{options}", _option_docs()).rep
     "{integrators}", " | ".join(f'"{name}"' for name in INTEGRATORS))
 
 
-def _release(dev, integrator, guard):
+def _release(dev, integrator, passes):
     integrator.release()
-    if guard is not None:
-        guard.release()
+    for p in passes:
+        p.release()
     POOL.give(dev)
 
 

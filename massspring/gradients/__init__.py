@@ -18,7 +18,7 @@ bytes a particle, and one forward step more per step than the forward run.
 Built (issue 39): the explicit, symplectic, RK4, linearised implicit, backward Euler,
 BDF2 and implicit midpoint integrators, with springs, damping, gravity, drag and wind,
 pins (fixed or moving, with their velocities' gradient), colliders: planes, spheres and
-boxes with friction and restitution, self-collision (``PassSteps``; every one of those
+boxes with friction and restitution, self-collision (its pass's adjoint; every one of those
 integrators), and controls over time (keyframed pins, wind, actuated rest lengths:
 ``ControlShares``). The adjoint kernels are compiled and their fields allocated only
 when a gradient is asked for: a forward run is as before.
@@ -40,17 +40,22 @@ from massspring.device import POOL, Layout, capacity
 from massspring.support.errors import GradientError, SelfCollisionGradientError
 from massspring.integrators import INTEGRATORS
 from massspring.kernels import state as state_kernels
-from massspring.model import Model
-from massspring.passes.self_collision.penalty_adjoint import SolvePairs, penalty_adjoint
-from massspring.passes.self_collision.adjoint import Record, Replay, ReplayError
+from massspring.model import Model, terms
+from massspring.model import model as model_module
+from massspring.model.controls import NAMES as CONTROL_NAMES
+from massspring.engine.schedule import ControlShares
 from massspring.engine.simulation import Simulation
+from massspring.passes import for_model
 from massspring.model.terms import active_terms
 
-# The names ``wrt`` may hold: where each gradient is in the adjoint bundle, and what it is per.
-PARAMETERS = {"stiffness": "spring", "damping": "spring", "rest_lengths": "spring", "masses": "particle",
-              "positions": "state", "velocities": "state", "gravity": "vector", "drag": "scalar", "wind": "vector",
-              "pin_velocity": "pin", "controls.pin_targets": "control", "controls.wind": "control",
-              "controls.rest_lengths": "control"}
+# The names ``wrt`` may hold, from the records of the terms and the Model (``terms.Gradient``:
+# what each gradient is per, and its accumulator in the adjoint bundle) and the controls'
+# arrays ("controls.<name>", per "control").
+TERM_GRADIENTS = terms.gradients()
+MODEL_GRADIENTS = {g.name: g for g in model_module.GRADIENTS}
+PARAMETERS = {**{name: g.per for name, (g, _) in TERM_GRADIENTS.items()},
+              **{name: g.per for name, g in MODEL_GRADIENTS.items()},
+              **{f"controls.{name}": "control" for name in CONTROL_NAMES}}
 PARTIALS = ("positions", "velocities")
 STATE_BYTES = 48  # a particle's x and v in the history (float64)
 HISTORY_BYTES = 256e6  # keep every state of a run whose history fits in this; else checkpoint
@@ -122,21 +127,18 @@ def gradient(model, objective, wrt, *, steps, every=1, integrator="symplectic", 
     adj = None
     try:
         adj = _adjoint_bundle(sim, checkpoint)
-        pass_steps = None
-        if sim._guard is not None:  # self-collision: run backwards where its pass acted
-            pass_steps = PassSteps(sim, adj)
-            sim._guard.watch(pass_steps, pass_steps.solve_pairs if pass_steps.penalty else None)
-        frames, kept, last = _forward(sim, adj, steps, every, checkpoint, pass_steps)
+        backward = [b for b in (p.adjoint(sim, adj) for p in sim.passes) if b is not None]  # run back where they acted
+        frames, kept, last = _forward(sim, adj, steps, every, checkpoint, backward)
         value, partials = _call(objective, frames, model.n_particles)
         wants = Wants(masses="masses" in names, rate_gradient="damping" in names and not model.has_damping,
                       pins="pin_velocity" in names or "controls.pin_targets" in names,
                       friction=model.has_friction and INTEGRATORS[integrator].linear_solver)
         shares = ControlShares(sim, adj) if model.controls is not None else None
         with np.errstate(over="ignore", invalid="ignore"):  # an overflow is refused below, by name
-            _backward(sim, adj, wants, partials, frames.steps, kept, last, steps, checkpoint, shares, pass_steps)
+            _backward(sim, adj, wants, partials, frames.steps, kept, last, steps, checkpoint, shares, backward)
             grads = _read(sim, adj, names, shares)
-        if pass_steps is not None and "stiffness" in grads:
-            pass_steps.add_stiffness(grads["stiffness"])
+        for b in backward:
+            b.add_gradients(grads)
         for name, grad in grads.items():
             if not np.all(np.isfinite(grad)):
                 raise ValueError(f"objective: its partials (largest magnitude {_largest(partials):.3g}) made the "
@@ -159,8 +161,8 @@ def check_arguments(model, wrt, integrator, precision="f64") -> list:
     if precision != "f64":
         raise ValueError(f"precision: gradients are computed in f64 only, got {precision!r}")
     terms = [term.name for term in active_terms(model) if not term.kernel.differentiable]
-    for feature, present in (("a strain limit", model.has_strain_limit),
-                             (" and ".join(terms), bool(terms))):
+    passes = [kind.refusal or kind.name for kind in for_model(model) if not kind.differentiable]
+    for feature, present in ((" and ".join(passes), bool(passes)), (" and ".join(terms), bool(terms))):
         if present:
             raise ValueError(f"model: gradients through {feature} are not built yet (issue 39); "
                              f"a model of springs, damping, gravity, drag, pins and colliders has them")
@@ -218,8 +220,10 @@ def _check_wrt(wrt, model):
             raise ValueError(f"wrt: {name!r}: the model has no springs")
         if name == "pin_velocity" and not model.has_fixed:
             raise ValueError("wrt: 'pin_velocity': the model has no pins (fixed)")
-        if name in ("drag", "wind") and not model.has_drag:
-            raise ValueError(f"wrt: {name!r}: the model has no air drag (drag = 0); give it drag > 0")
+        if name in TERM_GRADIENTS:
+            record, term = TERM_GRADIENTS[name]
+            if record.absent and not term.active(model):
+                raise ValueError(f"wrt: {name!r}: the model has no {record.absent}")
         if PARAMETERS[name] == "control":
             array = name.split(".", 1)[1]
             if model.controls is None or getattr(model.controls, array) is None:
@@ -233,16 +237,17 @@ def _check_wrt(wrt, model):
     return names
 
 
-def _forward(sim, adj, steps, every, checkpoint, pass_steps=None):
+def _forward(sim, adj, steps, every, checkpoint, backward=()):
     """Run ``steps`` steps: the frames; the states (numpy, with what the integrator carries:
     BDF2's previous state) at the starts of the stretches of
     ``checkpoint`` steps but the last, whose states (its end's too) go to the history as
-    the run passes them (and to ``pass_steps`` its steps' records); the start of that last stretch."""
+    the run passes them (and to each of ``backward``, the passes' adjoints, its steps'
+    records); the start of that last stretch."""
     n, stride = sim.model.n_particles, int(adj.stride[None])
-    integrator = sim._integrator
+    integrator = sim.stepper
     last = (steps - 1) // checkpoint * checkpoint
-    if pass_steps is not None:
-        pass_steps.start(last)
+    for b in backward:
+        b.start(last)
     positions, velocities, at, kept = [], [], [], {}
     done = 0
     while True:
@@ -263,8 +268,8 @@ def _forward(sim, adj, steps, every, checkpoint, pass_steps=None):
             if frames:
                 state_kernels.read_states(adj.hx, adj.hv, np.array(frames, dtype=np.int32) - last, xs, vs, n, stride)
             for k, x, v in zip(frames, xs, vs):
-                positions.append(sim._to_user(x))
-                velocities.append(sim._to_user(v))
+                positions.append(sim.to_user(x))
+                velocities.append(sim.to_user(v))
                 at.append(k)
             break
         stop = done + 1 if done >= last else min(steps, (done // every + 1) * every, last,
@@ -281,7 +286,7 @@ def _forward(sim, adj, steps, every, checkpoint, pass_steps=None):
 def _recorded(sim, adj, first, steps):
     """``sim.step(steps)`` with its integrator recording into ``adj``'s history, whose slot 0
     is the state after step ``first`` (``Integrator.history``)."""
-    integrator = sim._integrator
+    integrator = sim.stepper
     integrator.history = (adj, first)
     try:
         sim.step(steps)
@@ -341,17 +346,21 @@ def _adjoint_bundle(sim, checkpoint):
     rows = capacity(checkpoint + 1, 8) * stride
     for name in ("hx", "hv"):
         layout.vectors(name, ti.f64, rows)
-    for name in ("lx", "lv", "gg"):
+    for name in ("lx", "lv"):
         layout.vectors(name, ti.f64, values=np.zeros((n, 3)))
     layout.vectors("w", ti.f64, values=np.zeros((n, 3)))
     layout.add("gm", ti.f64, "particle", values=np.zeros(n))
     for name in ("sx", "sv"):
         layout.vectors(name, ti.f64, "spring")
-    for name in ("px", "pv", "gwind", "gp"):
+    for name in ("px", "pv", "gp"):
         layout.vectors(name, ti.f64, values=np.zeros((n, 3)))
-    layout.add("gdrag", ti.f64, "particle", values=np.zeros(n))
-    for name in ("gks", "gkd", "gl0"):
-        layout.add(name, ti.f64, "spring", values=np.zeros(m) if m else None)
+    for record, _ in TERM_GRADIENTS.values():  # the terms' accumulators
+        if record.per == "vector":
+            layout.vectors(record.field, ti.f64, values=np.zeros((n, 3)))
+        elif record.per == "spring":
+            layout.add(record.field, ti.f64, "spring", values=np.zeros(m) if m else None)
+        else:
+            layout.add(record.field, ti.f64, "particle", values=np.zeros(n))
     if sim.model.has_colliders:
         layout.vectors("cx", ti.f64)  # the contact response's gradient in the step's start position
     INTEGRATORS[sim.integrator].declare_adjoint(layout, sim.model, stride, rows)
@@ -359,66 +368,19 @@ def _adjoint_bundle(sim, checkpoint):
                            f"with {checkpoint:,} states kept (give a smaller checkpoint)")
 
 
-class ControlShares:
-    """The controls' gradients (``massspring.model.controls``), interval by interval: after the
-    adjoint of an interval's first step, what the steps since the last such read added to
-    the wind's, rest lengths' and pin velocities' accumulators is that interval's share
-    (steps after the last interval add to its wind and rest lengths; pins then stand still)."""
-
-    def __init__(self, sim, adj):
-        self.sim, self.adj = sim, adj
-        self.schedule = sim._schedule
-        self.controls = sim.model.controls
-        count = self.controls.intervals
-        self.wind = np.zeros((count, 3))
-        self.rest = np.zeros((count, 0 if self.controls.springs is None else self.controls.springs.size))
-        self.pins = np.zeros((count, sim.model.fixed.size, 3))
-        self.seen = self._totals()
-
-    def _totals(self):
-        n, m = self.sim.model.n_particles, self.sim.model.n_springs
-        return (self.adj.read("gwind", n).sum(axis=0), self.adj.read("gl0", m) if m else np.zeros(0),
-                self.adj.read("gp", n))
-
-    def after(self, k):
-        """Called after step k's adjoint."""
-        if k % self.schedule.per:
-            return
-        totals = self._totals()
-        wind, rest, pins = (now - before for now, before in zip(totals, self.seen))
-        self.seen = totals
-        s = self.schedule.interval(k)
-        held = min(s, self.controls.intervals - 1)
-        self.wind[held] += wind
-        if self.rest.shape[1]:
-            self.rest[held] += rest[self.schedule.controls.springs]
-        if s < self.controls.intervals:
-            self.pins[s] += self.sim._to_user(pins)[self.sim.model.fixed]
-
-    def gradients(self, lv):
-        """name -> gradient of each control; ``lv`` dL/dv of the initial state (n, 3), whose
-        pinned rows are the first interval's pin velocity's share."""
-        pins = self.pins.copy()
-        pins[0] += self.sim._to_user(lv)[self.sim.model.fixed]
-        grads = {"controls.wind": self.wind.copy(), "controls.rest_lengths": self.rest.copy()}
-        if self.controls.pin_targets is not None:
-            grads["controls.pin_targets"] = self.controls.pin_target_gradient(pins)
-        return grads
-
-
-def _backward(sim, adj, wants, partials, frame_steps, kept, last, steps, checkpoint, shares=None, pass_steps=None):
+def _backward(sim, adj, wants, partials, frame_steps, kept, last, steps, checkpoint, shares=None, backward=()):
     """Run the steps backwards, stretch by stretch: each but the last run again from its
     kept state into the history first; ``shares`` (a ``ControlShares``) collects the
-    controls' gradients; ``pass_steps`` (``PassSteps``) runs the self-collision pass
-    backwards in the steps where it acted."""
-    integrator, n, stride = sim._integrator, sim.model.n_particles, int(adj.stride[None])
+    controls' gradients; ``backward`` (the passes' adjoints, ``Pass.adjoint``) run the
+    passes backwards in the steps where they acted."""
+    integrator, n, stride = sim.stepper, sim.model.n_particles, int(adj.stride[None])
     frame_of = {int(k): f for f, k in enumerate(frame_steps)}
     ordered = sorted(frame_of)
 
     def add_frame(k, lx, lv):
         f = frame_of[k]
-        lx = lx + sim._to_inner(partials[0][f])
-        lv = lv + sim._to_inner(partials[1][f])
+        lx = lx + sim.to_inner(partials[0][f])
+        lv = lv + sim.to_inner(partials[1][f])
         state_kernels.load_vectors(adj.lx, np.ascontiguousarray(lx))
         state_kernels.load_vectors(adj.lv, np.ascontiguousarray(lv))
 
@@ -427,8 +389,8 @@ def _backward(sim, adj, wants, partials, frame_steps, kept, last, steps, checkpo
     for start in reversed(range(0, steps, checkpoint)):
         end = min(start + checkpoint, steps)
         if start != last:
-            if pass_steps is not None:
-                pass_steps.start(start)
+            for b in backward:
+                b.start(start)
             positions, velocities, carried = kept[start]
             sim.set_state(positions, velocities, steps=start, carried=carried)
             for k in range(start, end + 1):
@@ -439,19 +401,20 @@ def _backward(sim, adj, wants, partials, frame_steps, kept, last, steps, checkpo
         while k >= start:
             below = bisect.bisect_right(ordered, k) - 1  # down to the last frame's step at or before k
             low = max(ordered[below], start) if below >= 0 else start
-            plain = pass_steps is None or not pass_steps.any_in(low, k)
+            plain = not any(b.any_in(low, k) for b in backward)
             if shares is None and plain and k > low and integrator.adjoint_steps(adj, k - start, k - low + 1, wants):
                 k = integrator.steps = low
             else:
                 integrator.steps = k  # the step's start time, k dt (moving colliders)
                 if shares is not None:
                     shares.schedule.apply(k)
-                acted = None if pass_steps is None else pass_steps.before(k, k - start)
+                acted = [b.before(k, k - start) for b in reversed(backward)]
                 stats = integrator.adjoint(adj, k - start, wants)
                 if stats is not None and not stats.converged:
                     raise GradientError(k, stats.reason, stats.residual, sim.integrator)
-                if acted is not None:
-                    pass_steps.after(acted, wants)
+                for b, done in zip(reversed(backward), acted):
+                    if done is not None:
+                        b.after(done, wants)
                 if shares is not None:
                     shares.after(k)
             if k in frame_of:
@@ -459,135 +422,10 @@ def _backward(sim, adj, wants, partials, frame_steps, kept, last, steps, checkpo
             k -= 1
 
 
-class PassSteps:
-    """The steps of a gradient's run in which the self-collision pass acted (``Pass.watch``
-    hands them in): the ``Record`` of each step from ``start``'s on, run backwards by the
-    pass's ``Replay`` (``massspring.passes.self_collision.adjoint``), and dL/d(the repulsion
-    stiffness) so far (``k_r``). With the linearised implicit step (``penalty``), also the
-    pairs its solve held in each step (``SolvePairs``), restored for the step's adjoint
-    solve, and their share of its gradient (``massspring.passes.self_collision.penalty_adjoint``)."""
-
-    def __init__(self, sim, adj):
-        self.sim, self.adj = sim, adj
-        guard, dev = sim._guard, sim._integrator.dev
-        self.n, self.stride = sim.model.n_particles, int(adj.stride[None])
-        self.free = dev.read("free") != 0 if sim._integrator.cfg.fixed else np.ones(self.n, bool)
-        self.thickness, friction, self.repulsion = guard.parameters
-        self.penalty = sim._integrator.cfg.self_pairs
-        self.replay = Replay(dev.read("mass"), self.free, sim.dt, self.thickness, friction, self.repulsion,
-                             penalty=self.penalty)
-        self.records, self.solves, self.first, self.k_r = {}, {}, 0, 0.0
-        self.loaded = False  # the step whose solve's pairs the device holds (None: none; False: unknown)
-
-    def start(self, first):
-        """Keep the records of step ``first`` on (those before are dropped)."""
-        self.records, self.solves, self.first, self.loaded = {}, {}, first, False
-
-    def __call__(self, state, idx, w, kind, rounds):
-        """A step in which the pass acted (``Pass.watch``): ``state`` as it left it, its
-        listed pairs and the round each was set to bound its particles. An integrator that
-        stored the step's state in the history before the pass (``records_history``) gets
-        it replaced by the pass's; the others keep it after the step."""
-        k, integrator = self.sim._steps, self.sim._integrator
-        if integrator.history is not None and integrator.records_history:
-            adj, first = integrator.history
-            state_kernels.save_state(adj.hx, adj.hv, state, self.n, k + 1 - first, self.stride)
-        if k >= self.first:
-            dev = integrator.dev
-            order = np.lexsort(idx.T[::-1])  # by their particles (the list's order depends on the threads')
-            self.records[k] = Record(dev.read("sc_end"), dev.read("sc_vend"), idx[order], w[order], kind[order],
-                                     rounds[order])
-
-    def solve_pairs(self):
-        """A step whose implicit solve holds pairs, as it begins (``Pass.watch``)."""
-        k = self.sim._steps
-        if k >= self.first:
-            self.solves[k] = SolvePairs.read(self.sim._integrator.dev, self.n)
-
-    def any_in(self, low, high) -> bool:
-        """Whether a step from ``low`` to ``high`` has a record."""
-        return any(low <= k <= high for k in (*self.records, *self.solves))
-
-    def before(self, k, slot):
-        """Before step k's adjoint (kept at ``slot``): with the linearised implicit step,
-        the solve's pairs of step k restored; if the pass acted in it, dL/d(the state the
-        pass left) in ``adj.lx``, ``adj.lv`` turned into dL/d(the step's own), which goes to
-        the history at ``slot + 1`` for the integrator's adjoint. Returns what ``after``
-        needs (None: nothing)."""
-        pairs = self.solves.get(k)
-        if self.penalty and self.loaded != (k if pairs is not None else None):
-            if pairs is None:
-                SolvePairs.clear(self.sim._integrator.dev, self.n)
-            else:
-                pairs.write(self.sim._integrator.dev)
-            self.loaded = k if pairs is not None else None
-        record = self.records.get(k)
-        if record is None:
-            return None if pairs is None else (None, pairs, slot, k)
-        n, adj = self.n, self.adj
-        xs, vs = np.empty((2, n, 3)), np.empty((2, n, 3))
-        state_kernels.read_states(adj.hx, adj.hv, np.array([slot, slot + 1], dtype=np.int32), xs, vs, n, self.stride)
-        try:
-            shares = self.replay.backward(record, xs[0], xs[1], vs[1], adj.read("lx", n), adj.read("lv", n))
-        except ReplayError as exc:
-            raise SelfCollisionGradientError(k, self.sim.integrator, str(exc)) from None
-        state_kernels.load_vectors(adj.lx, shares[0])
-        state_kernels.load_vectors(adj.lv, shares[1])
-        state_kernels.write_state(adj.hx, adj.hv, record.x, record.v, n, slot + 1, self.stride)
-        return shares[2:], pairs, slot, k
-
-    def after(self, acted, wants):
-        """After the step's adjoint: ``before``'s share of dL/dx0, of the masses' and the
-        repulsion stiffness's gradients added, and the solve's pairs' shares."""
-        shares, pairs, slot, k = acted
-        n, adj = self.n, self.adj
-        lx = adj.read("lx", n)
-        if shares is not None:
-            gx0, gm, gk = shares
-            lx += gx0
-            if wants.masses:
-                state_kernels.load_reals(adj.gm, adj.read("gm", n) + gm)
-            self.k_r += gk
-        if pairs is not None:
-            x, _ = self._row(adj.hx, adj.hv, slot)
-            _, v = self._row(adj.hw, adj.hw, slot) if wants.friction else self._row(adj.hx, adj.hv, slot + 1)
-            try:
-                gx, gk, gpin = penalty_adjoint(pairs, x, v, adj.read("w", n), self.free, self.sim.dt,
-                                               self.thickness, self.repulsion)
-            except ReplayError as exc:
-                raise SelfCollisionGradientError(k, self.sim.integrator, str(exc)) from None
-            lx += gx
-            self.k_r += gk
-            if wants.pins:
-                state_kernels.load_vectors(adj.gp, adj.read("gp", n) + gpin)
-        state_kernels.load_vectors(adj.lx, lx)
-
-    def _row(self, xs, vs, slot):
-        """Slot ``slot`` of history fields ``xs``, ``vs``: (n, 3) each (with friction, ``adj.hw``
-        holds the solve's v' before friction changed it)."""
-        x, v = np.empty((1, self.n, 3)), np.empty((1, self.n, 3))
-        state_kernels.read_states(xs, vs, np.array([slot], dtype=np.int32), x, v, self.n, self.stride)
-        return x[0], v[0]
-
-    def add_stiffness(self, stiffness):
-        """Add dL/dk_r to ``stiffness`` (the springs' gradient, the user's numbering) where
-        the repulsion stiffness is the model's median spring stiffness (``SelfCollision``):
-        to the median spring, shared equally among springs of the median's value (and half
-        to each middle value of an even count)."""
-        model = self.sim.model
-        if model.self_collision.stiffness is not None or self.k_r == 0.0:
-            return
-        values = model.stiffness[model.stiffness > 0]
-        middle = np.sort(values)[[(len(values) - 1) // 2, len(values) // 2]]
-        for value in middle:
-            tied = model.stiffness == value
-            stiffness[tied] += 0.5 * self.k_r / tied.sum()
-
-
 def _read(sim, adj, names, shares=None):
     """The gradients asked for, in the user's numbering (a rest length the controls set
     over time has none of its own: zero)."""
-    model, order = sim.model, sim._order
+    model, order = sim.model, sim.numbering
     n, m = model.n_particles, model.n_springs
     controlled = {} if shares is None else shares.gradients(adj.read("lv", n))
 
@@ -602,23 +440,25 @@ def _read(sim, adj, names, shares=None):
     grads = {}
     for name in names:
         if name in ("positions", "velocities"):
-            rows = sim._to_user(adj.read("lx" if name == "positions" else "lv", n))
+            rows = sim.to_user(adj.read("lx" if name == "positions" else "lv", n))
             rows[model.fixed] = 0.0
             grads[name] = rows
         elif name == "masses":
-            grads[name] = sim._to_user(adj.read("gm", n))
-        elif name == "gravity":
-            grads[name] = adj.read("gg", n).sum(axis=0)
-        elif name == "drag":
-            grads[name] = np.float64(adj.read("gdrag", n).sum())
-        elif name == "wind":
-            grads[name] = adj.read("gwind", n).sum(axis=0)
+            grads[name] = sim.to_user(adj.read("gm", n))
         elif name == "pin_velocity":  # the steps' shares, and the initial velocity's (a pin starts at vp)
-            grads[name] = sim._to_user(adj.read("gp", n) + adj.read("lv", n))[model.fixed]
+            grads[name] = sim.to_user(adj.read("gp", n) + adj.read("lv", n))[model.fixed]
         elif name in controlled:
             grads[name] = controlled[name]
         else:
-            grads[name] = springs({"stiffness": "gks", "damping": "gkd", "rest_lengths": "gl0"}[name])
+            record = TERM_GRADIENTS[name][0]
+            if record.per == "spring":
+                grads[name] = springs(record.field)
+            elif record.per == "vector":
+                grads[name] = adj.read(record.field, n).sum(axis=0)
+            elif record.per == "scalar":
+                grads[name] = np.float64(adj.read(record.field, n).sum())
+            else:
+                grads[name] = sim.to_user(adj.read(record.field, n))
             if name == "rest_lengths" and model.controls is not None and model.controls.springs is not None:
                 grads[name][model.controls.springs] = 0.0
     return grads

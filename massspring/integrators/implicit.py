@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import taichi as ti
 
-from massspring.passes import self_collision
+from massspring.passes.self_collision.forward import declare_solve
 from massspring.device import Config, read_verdict
 from massspring.kernels import cg, divergence, friction, implicit_adjoint, operator
 from massspring.solvers import CHOICES, MULTIGRID_FROM, PRECONDITIONERS, solve
@@ -109,7 +109,7 @@ class ImplicitEuler(Integrator):
             layout.add("stick", ti.i32, "particle", values=np.zeros(model.n_particles))
             layout.vectors("fric", real, values=np.zeros((model.n_particles, 3)))
         if cls.pairs_in_solve(model):
-            self_collision.declare_solve(layout, model)
+            declare_solve(layout, model)
         PRECONDITIONERS[settings.preconditioner].declare(layout, model, settings, cls.config(model, settings))
 
     @property

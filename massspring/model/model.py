@@ -22,6 +22,7 @@ import numpy as np
 from massspring.model import mesh
 from massspring.support.defaults import GRAVITY
 from massspring.model import terms
+from massspring.model.terms import Gradient
 from massspring.model.colliders import COLLIDERS, MAX_COLLIDERS, Collider
 from massspring.model.controls import Controls
 from massspring.model.self_collision import SelfCollision, check_thickness
@@ -33,6 +34,11 @@ from massspring.support.validate import MAX_MAGNITUDE, real_array, real_number  
 # The arrays that make up a model's physics (``Model.fingerprint``); ``triangles`` only draw it.
 # "drag" and "wind" are term parameters kept here, where they were first hashed, so that
 # saved states still restart; a later term's parameters join only when not at their defaults.
+# The Model's own differentiable arguments besides its terms' (``terms.Gradient``): the
+# initial state ("state": rows (n, 3), in ``lx``/``lv``), the masses and the pins' velocities
+# ("pin": a row per pinned particle).
+GRADIENTS = (Gradient("masses", "particle", "gm"), Gradient("positions", "state", "lx"),
+             Gradient("velocities", "state", "lv"), Gradient("pin_velocity", "pin", "gp"))
 PHYSICS = ("positions", "springs", "masses", "stiffness", "damping", "rest_lengths", "velocities", "gravity", "fixed",
            "pin_velocity", "drag", "wind")
 

@@ -67,6 +67,24 @@ class Parameter:
         return bool(np.all(np.asarray(value) == np.asarray(self.default)))
 
 
+@dataclass(frozen=True)
+class Gradient:
+    """A Model argument that ``massspring.gradient`` differentiates (a ``wrt`` name):
+    ``per`` is the shape of its gradient, "spring" (m,), "particle" (n,), "vector" (3,)
+    or "scalar"; ``field`` is its accumulator in the adjoint bundle (a value per spring,
+    per particle, or a 3-vector per particle for "vector"; "vector" and "scalar" ones are
+    summed over the particles when read); ``absent``: if given, it is asked only of a
+    model in which its term is active, and the error otherwise says "the model has no
+    <absent>" (drag's need drag > 0). A term lists its records in
+    ``gradients``, the Model its own (``model.GRADIENTS``), so a term registered with
+    records is differentiable in them by name."""
+
+    name: str
+    per: str
+    field: str
+    absent: str = ""
+
+
 class Term:
     """A force term's host side. ``kernel``: its class of ``ti.func``s (``kernels.terms``),
     whose ``name``, ``kind`` ("spring" or "particle") and ``uniform`` the term takes."""
@@ -76,6 +94,7 @@ class Term:
     kind = ""
     uniform = False
     parameters = ()  # Parameter records: the term's own Model arguments
+    gradients = ()  # Gradient records: the Model arguments of the term that gradients take
 
     def __init_subclass__(cls, **kwargs):
         super().__init_subclass__(**kwargs)
@@ -96,6 +115,7 @@ class Term:
 
 class Springs(Term):
     kernel = kernels.Springs
+    gradients = (Gradient("stiffness", "spring", "gks"), Gradient("rest_lengths", "spring", "gl0"))
 
     @staticmethod
     def active(model):
@@ -110,6 +130,7 @@ class SpringDamping(Term):
     """Active when any spring has kd > 0."""
 
     kernel = kernels.SpringDamping
+    gradients = (Gradient("damping", "spring", "gkd"),)  # also where kd = 0: the gradient of adding damping
 
     @staticmethod
     def active(model):
@@ -124,6 +145,7 @@ class Gravity(Term):
     """Active when g != 0."""
 
     kernel = kernels.Gravity
+    gradients = (Gradient("gravity", "vector", "gg"),)
 
     @staticmethod
     def active(model):
@@ -142,6 +164,8 @@ class Drag(Term):
     """Active when drag > 0; wind needs drag."""
 
     kernel = kernels.Drag
+    gradients = (Gradient("drag", "scalar", "gdrag", "air drag (drag = 0); give it drag > 0"),
+                 Gradient("wind", "vector", "gwind", "air drag (drag = 0); give it drag > 0"))
     parameters = (
         Parameter("drag", 0.0, "N s/m", "Linear air drag on every particle: f_i = -drag (v_i - wind)."),
         Parameter("wind", (0.0, 0.0, 0.0), "m/s",
@@ -168,6 +192,11 @@ TERMS = (Springs, SpringDamping, Gravity, Drag)  # the order forces are summed i
 def active_terms(model) -> tuple:
     """The terms of ``model``, in ``TERMS`` order."""
     return tuple(term for term in TERMS if term.active(model))
+
+
+def gradients() -> dict:
+    """name -> (``Gradient``, its term) of every term's differentiable Model arguments, in ``TERMS`` order."""
+    return {g.name: (g, term) for term in TERMS for g in term.gradients}
 
 
 def parameters() -> dict:

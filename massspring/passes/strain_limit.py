@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import math
 
-import numpy as np
+from massspring.passes.base import Pass
 
 ITERATIONS = 500  # at most this many Jacobi iterations a step
 TOLERANCE = 1e-4  # violated springs are shortened to limit - this (l / l0 - 1); the pass ends with none past the limit
@@ -24,7 +24,7 @@ PASS_BYTES_PER_SPRING = 24  # sl_dx, a vec3 per spring (f64)
 PASS_BYTES = 4 + 48  # per particle: sl_k, and the state before the pass (x_sl_before, v_sl_before: f64 vec3s)
 
 
-def declare(layout):
+def declare(layout, model=None):
     """The pass's fields in ``layout`` (a ``device.Layout``): ``sl_dx`` (a vec3 per spring),
     ``sl_k`` (an i32 per particle) and the state before the pass (``x_sl_before``, ``v_sl_before``)."""
     import taichi as ti
@@ -35,7 +35,7 @@ def declare(layout):
     layout.vectors("v_sl_before", layout.real)
 
 
-class Pass:
+class StrainLimitPass(Pass):
     """The strain limit of one simulation, run on the state after each step (``end``;
     ``serial``: all its iterations in one serial launch, else one parallel launch each):
     Jacobi iterations until no spring is stretched past the limit, at most
@@ -49,10 +49,39 @@ class Pass:
     pins or colliders hold it: a chain pinned 1.5 times its length apart), and was undone.
     """
 
-    def __init__(self, dev, cfg, limit, serial, dt):
-        self.dev, self.cfg, self.limit, self.serial, self.dt = dev, cfg, limit, serial, dt
+    name = "strain-limit"
+    stats_property = "strain_limit_stats"
+    refusal = "a strain limit"
+
+    @staticmethod
+    def wanted(model) -> bool:
+        return model.has_strain_limit
+
+    @staticmethod
+    def bytes(model) -> tuple:
+        return (PASS_BYTES, PASS_BYTES_PER_SPRING)
+
+    declare = staticmethod(declare)
+
+    def __init__(self, dev, cfg, model, serial, dt):
+        super().__init__(dev, cfg, model, serial, dt)
+        self.limit = model.strain_limit
         self.last = (0, 0.0, 0.0)
         self.unmet = self.steps = self.most = self.undone = 0
+
+    def stats(self) -> dict:
+        """At the last step: "iterations" (Jacobi iterations it ran), "before" and "after"
+        (the largest l / l0 - 1 of a spring after the integrator's step and after the
+        pass); of the steps so far: "unmet" (ended with a spring past the limit after
+        ``ITERATIONS``), "undone" (unmet, and whose pass was undone: it left the worst
+        spring worse than it found it), "steps" (whose pass moved particles) and "most"
+        (the most iterations of one)."""
+        iterations, before, after = self.last
+        return {"iterations": iterations, "before": before, "after": after, "unmet": self.unmet,
+                "undone": self.undone, "steps": self.steps, "most": self.most}
+
+    def counters(self) -> dict:
+        return {name: getattr(self, name) for name in ("last", "unmet", "steps", "most", "undone")}
 
     def end(self, state, t):
         """Limit ``state`` (after a step ending at time t, s)."""

@@ -76,13 +76,10 @@ import numpy as np
 from massspring.support import memory
 from massspring.model import mesh
 from massspring.support import validate
-from massspring import solvers as preconditioners
 from massspring.model.colliders import COLLIDERS
 from massspring.support.defaults import GRAVITY
 from massspring.model.controls import Controls
 from massspring.model.self_collision import SelfCollision
-from massspring.passes.self_collision import PASS_BYTES
-from massspring.passes import strain_limit
 from massspring.integrators import INTEGRATORS, OPTIONS
 from massspring.io.camera import DEFAULT_FRAMING, FRAMINGS, View
 from massspring.model import terms
@@ -326,22 +323,18 @@ class Scene:
     def simulation(self, integrator=None, dt=None, **kwargs):
         """A Simulation with the scene's defaults (integrator, dt, [solver]); any Simulation
         argument may be overridden."""
+        from massspring.engine import footprint
+        from massspring.engine.footprint import Sketch
         from massspring.engine.simulation import Simulation
 
         integrator = integrator or self.integrator
         options = {**self.solver, **kwargs}
         particles, springs = self.counts()
-        solver = None
-        if INTEGRATORS.get(integrator) is not None and INTEGRATORS[integrator].linear_solver:
-            solver = preconditioners.resolve_for_count(options.get("preconditioner", "auto"), particles)
-        known = INTEGRATORS.get(integrator)
-        extra = known.extra_bytes if known is not None else 0
-        extra += PASS_BYTES if self.self_collision is not None else 0
-        limited = bool(self.common["strain_limit"])
-        spring_extra = ((known.spring_extra_bytes if known is not None else 0)
-                        + strain_limit.PASS_BYTES_PER_SPRING * limited)
-        self.check_memory(memory.run_bytes(particles, springs, solver, extra=extra + strain_limit.PASS_BYTES * limited,
-                                           spring_extra=spring_extra), particles, springs,
+        validate.choice("integrator", integrator, tuple(INTEGRATORS))
+        sketch = Sketch(particles, springs, particles, self.self_collision is not None, bool(self.common["strain_limit"]))
+        name, precision = options.get("preconditioner") or "auto", options.get("precision", "f64")
+        solver = footprint.preconditioner(sketch, integrator, precision, name)
+        self.check_memory(footprint.run_bytes(sketch, integrator, precision, name), particles, springs,
                           f"a run of it ({integrator}{f', {solver}' if solver else ''})")
         dt = self.default_dt(integrator) if dt is None else dt
         return Simulation(self.model(), integrator=integrator, dt=dt, **options)
