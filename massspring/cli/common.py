@@ -78,14 +78,9 @@ def make_simulation(args):
 
 def check_taken(integrator, options):
     """A UsageError naming the flags of ``options`` that ``integrator`` does not take."""
-    from massspring.integrators import INTEGRATORS, OPTIONS, takers
+    from massspring.integrators import OPTIONS, takers, untaken
 
-    taken = {option.name for option in INTEGRATORS[integrator].options}
-    refused = {}  # what the integrator lacks -> the flags given for it
-    for name in options:
-        if name not in taken:
-            refused.setdefault(OPTIONS[name].lacking, []).append(name)
-    for lacks, names in refused.items():
+    for lacks, names in untaken(integrator, options).items():
         raise UsageError(f"{'/'.join(OPTIONS[n].flag for n in names)}: {integrator} {lacks}; "
                          f"{'these options are' if len(names) > 1 else 'this option is'} for "
                          + ", ".join(takers(names[0])))

@@ -16,7 +16,7 @@ from massspring.model.colliders import COLLIDERS
 from massspring.support.defaults import MAX_STEPS, PRECISIONS
 from massspring.device import ARCHS, CPU_ARCHS, POOL, ensure_taichi, model_layout
 from massspring.support.errors import DivergenceError, SimulationClosedError
-from massspring.integrators import DEFAULT, INTEGRATORS, OPTIONS, takers
+from massspring.integrators import DEFAULT, INTEGRATORS, OPTIONS, takers, untaken
 from massspring.kernels import divergence
 from massspring.model.terms import active_terms
 from massspring.model import Model
@@ -154,6 +154,9 @@ class Simulation:
             raise TypeError(f"Simulation: unexpected keyword argument {unknown[0]!r} (solver options: "
                             f"{', '.join(OPTIONS)})")
         validate.choice("integrator", integrator, tuple(INTEGRATORS))
+        for lacks, names in untaken(integrator, [name for name, value in options.items() if value is not None]).items():
+            raise ValueError(f"{names[0]}: {integrator!r} {lacks}; {'these options are' if len(names) > 1 else 'it is'} "
+                             f"for {', '.join(takers(names[0]))}")
         validate.choice("precision", precision, PRECISIONS)
         dt = validate.positive_float("dt", dt)
         if model.controls is not None:

@@ -33,4 +33,15 @@ def takers(option: str) -> tuple:
     return tuple(name for name, cls in INTEGRATORS.items() if any(o.name == option for o in cls.options))
 
 
-__all__ = ["DEFAULT", "INTEGRATORS", "OPTIONS", "REFERENCE", "SMALLEST_DT", "STUDIED", "Integrator", "takers"]
+def untaken(integrator: str, names) -> dict:
+    """Of the option ``names``, those ``integrator`` does not take, grouped by what it
+    lacks (``Option.lacking``, e.g. "has no linear solve"): lacking -> [names]."""
+    taken = {option.name for option in INTEGRATORS[integrator].options}
+    refused = {}
+    for name in names:
+        if name not in taken:
+            refused.setdefault(OPTIONS[name].lacking, []).append(name)
+    return refused
+
+
+__all__ = ["DEFAULT", "INTEGRATORS", "OPTIONS", "REFERENCE", "SMALLEST_DT", "STUDIED", "Integrator", "takers", "untaken"]

@@ -328,9 +328,10 @@ class Scene:
         from massspring.engine.simulation import Simulation
 
         integrator = integrator or self.integrator
-        options = {**self.solver, **kwargs}
-        particles, springs = self.counts()
         validate.choice("integrator", integrator, tuple(INTEGRATORS))
+        taken = {option.name for option in INTEGRATORS[integrator].options}  # the scene's [solver] keys it takes
+        options = {**{k: v for k, v in self.solver.items() if k in taken}, **kwargs}
+        particles, springs = self.counts()
         sketch = Sketch(particles, springs, particles, self.self_collision is not None, bool(self.common["strain_limit"]))
         name, precision = options.get("preconditioner") or "auto", options.get("precision", "f64")
         solver = footprint.preconditioner(sketch, integrator, precision, name)
