@@ -7,8 +7,21 @@ right-hand side keeps the -dt D v term instead of cancelling it against the
 damping force).
 
 Two tiers: ``python -m pytest`` runs the fast tier (every module and public option,
-sampled matrices); ``python -m pytest --all`` also runs the tests marked ``full``
-(every scene x integrator, long runs, clusters, memory probes). CI runs ``--all``.
+sampled matrices); ``python -m pytest --all`` runs every case (every scene x integrator,
+long runs, clusters, memory probes). CI runs ``--all``.
+
+Which cases the fast tier runs is written at each test, nowhere else (``fast_tier``): a
+case runs there unless it is marked ``full`` (``@FULL`` on a test, or ``marks=FULL`` on a
+``pytest.param``, as ``sampled`` writes) or the test's ``fast_sample`` mark leaves it out:
+``@pytest.mark.fast_sample(integrator=["symplectic", "implicit"], path=["serial"])``
+keeps the cases whose parameters take one of the values named, for each parameter it
+names (the others: every value). A parametrised test with neither runs every case in the
+fast tier. A mark that names a parameter the test does not have, or a value none of its
+cases takes, is an error (in both tiers). A case asked for by its node id runs even where
+the mark leaves it out (of a test whose collected cases it leaves all out, the first).
+Integrator lists are built from ``massspring.integrators.INTEGRATORS`` (filtered by the
+capability a test needs), so a new integrator joins them by itself, in the full suite
+(the marks name the integrators the fast tier runs).
 """
 
 import math
@@ -58,40 +71,66 @@ def pytest_configure(config):
     config.addinivalue_line("markers", "fast_sample(**values): the parameter values of the cases the fast tier runs")
 
 
-# The fast tier's sample of the matrices no test samples by hand: the cases of these
-# integrators (the cheapest to compile of each family) and of the serial driver; a test
-# function with none of them keeps its first case.
-FAST_SAMPLE = {"integrator": ("symplectic", "implicit"), "path": ("serial",)}
-
-
 def fast_tier(items):
-    """The items of the fast tier: none marked ``full``; of a function none of whose cases
-    is marked ``full`` (not sampled by hand), the cases whose parameters take the values
-    its ``fast_sample`` mark names (``@pytest.mark.fast_sample(integrator=["implicit"])``),
-    or else those ``FAST_SAMPLE`` names, or its first case if none do."""
+    """The items of the fast tier: none marked ``full``, and of a test with a ``fast_sample``
+    mark (``@pytest.mark.fast_sample(integrator=["implicit"])``) only the cases whose
+    parameters take the values it names, or, where it leaves out every case collected (a
+    case chosen by its node id), the first. Raises ``pytest.UsageError`` for a mark naming
+    a parameter its test does not have or a value none of its cases takes."""
     by_function = {}
     for item in items:
         by_function.setdefault(getattr(item, "function", item), []).append(item)
     keep = set()
     for cases in by_function.values():
-        marked = [item for item in cases if item.get_closest_marker("full")]
-        if marked:
-            keep.update(id(item) for item in cases if item not in marked)
-            continue
-        chosen = cases[0].get_closest_marker("fast_sample")
-        sample = chosen.kwargs if chosen else FAST_SAMPLE
-        sampled = [item for item in cases
-                   if all(value in sample[name] for name, value in
-                          getattr(getattr(item, "callspec", None), "params", {}).items() if name in sample)]
-        keep.update(id(item) for item in sampled or cases[:1])
+        mark = cases[0].get_closest_marker("fast_sample")
+        sample = check_fast_sample(mark, cases) if mark else {}
+        open_cases = [item for item in cases if not item.get_closest_marker("full")]
+        chosen = [item for item in open_cases
+                  if all(params(item)[name] in values for name, values in sample.items())]
+        keep.update(id(item) for item in chosen or open_cases[:1])
     return [item for item in items if id(item) in keep]
 
 
+def params(item):
+    return getattr(getattr(item, "callspec", None), "params", {})
+
+
+def check_fast_sample(mark, cases):
+    """The mark's {parameter: values}, each parameter one of the test's and each value one
+    of its cases takes (of all its cases, whichever ``-k`` or node ids select)."""
+    where = cases[0].nodeid.split("[")[0]
+    if mark.args or not mark.kwargs:
+        raise pytest.UsageError(f"{where}: fast_sample takes parameter=[values] only")
+    for name, values in mark.kwargs.items():
+        taken = parametrised_values(cases[0], name)
+        if taken is None:  # not by a parametrize mark: the values of the cases collected
+            taken = [params(item)[name] for item in cases if name in params(item)]
+        if not taken:
+            raise pytest.UsageError(f"{where}: fast_sample names {name!r}, which is not one of its parameters")
+        if isinstance(values, str) or any(value not in taken for value in values):
+            raise pytest.UsageError(f"{where}: fast_sample's {name}={values!r} is not a list of values its cases "
+                                    f"take ({taken!r})")
+    return mark.kwargs
+
+
+def parametrised_values(item, name):
+    """The values of the parameter ``name`` in ``item``'s function's parametrize marks, None if none has it."""
+    for mark in item.iter_markers("parametrize"):
+        names = mark.args[0] if mark.args else mark.kwargs["argnames"]
+        names = [part.strip() for part in names.split(",")] if isinstance(names, str) else list(names)
+        if name in names:
+            cases = mark.args[1] if len(mark.args) > 1 else mark.kwargs["argvalues"]
+            rows = [case.values if hasattr(case, "marks") else (case,) if len(names) == 1 else case for case in cases]
+            return [row[names.index(name)] for row in rows]
+    return None
+
+
 def pytest_collection_modifyitems(config, items):
-    """Without ``--all``, the fast tier (``fast_tier``); the rest deselected."""
+    """Without ``--all``, the fast tier (``fast_tier``); the rest deselected. The
+    ``fast_sample`` marks are checked in both tiers."""
+    keep = fast_tier(items)
     if config.getoption("--all"):
         return
-    keep = fast_tier(items)
     if len(keep) < len(items):
         kept = set(map(id, keep))
         config.hook.pytest_deselected(items=[item for item in items if id(item) not in kept])

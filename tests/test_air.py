@@ -14,13 +14,14 @@ import numpy as np
 import pytest
 
 import massspring as ms
+from massspring.integrators import INTEGRATORS
 from conftest import PATHS, simulation
 
 M, C = 0.5, 1.5
 G = np.array([0.0, 0.0, -9.81])
 WIND = np.array([3.0, -1.0, 0.5])
 X0, V0 = np.array([0.2, -0.1, 1.0]), np.array([1.0, 2.0, 4.0])
-ORDER = {"explicit": 1, "symplectic": 1, "implicit": 1, "rk4": 4}
+ORDER = {name: cls.order for name, cls in INTEGRATORS.items()}
 
 
 def falling(drag=C, wind=WIND):
@@ -41,6 +42,7 @@ def error_at(integrator, dt, path="serial", end=1.0):
     return max(np.abs(sim.positions[0] - x).max(), np.abs(sim.velocities[0] - v).max())
 
 
+@pytest.mark.fast_sample(integrator=["symplectic", "implicit"], path=["serial"])
 @pytest.mark.parametrize("path", PATHS)
 @pytest.mark.parametrize("integrator", list(ORDER))
 def test_falling_with_drag_converges_at_the_integrators_order(integrator, path):
@@ -54,6 +56,7 @@ def test_falling_with_drag_converges_at_the_integrators_order(integrator, path):
     assert errors[-1] > 1e-9
 
 
+@pytest.mark.fast_sample(integrator=["symplectic", "implicit"])
 @pytest.mark.parametrize("integrator", list(ORDER))
 def test_terminal_velocity(integrator):
     """After 30 time constants the velocity is m g / drag + wind: every integrator's

@@ -15,9 +15,10 @@ import pytest
 
 import massspring as ms
 from conftest import FULL, PATHS, dense_matrices, simulation
+from massspring.integrators import INTEGRATORS as REGISTRY
 from massspring.scene import generators
 
-INTEGRATORS = ("explicit", "symplectic", "implicit", "backward-euler", "bdf2", "rk4")
+INTEGRATORS = tuple(REGISTRY)  # every integrator takes colliders
 G = 9.81
 EPS = np.finfo(float).eps
 NO_SPRINGS = np.zeros((0, 2), dtype=int)
@@ -30,6 +31,7 @@ def particle(x, colliders, v=(0.0, 0.0, 0.0), **kw):
 # ----------------------------------------------------------------------------- one particle
 
 
+@pytest.mark.fast_sample(integrator=["symplectic", "implicit"])
 @pytest.mark.parametrize("integrator", INTEGRATORS)
 def test_particle_rests_on_a_plane(integrator):
     """At rest on the ground for 10 s: no penetration, no drift, energy never above its start."""
@@ -44,6 +46,7 @@ def test_particle_rests_on_a_plane(integrator):
     assert np.abs(sim.velocities).max() <= G * 0.01  # at most one step of gravity not yet removed
 
 
+@pytest.mark.fast_sample(integrator=["symplectic", "implicit"])
 @pytest.mark.parametrize("integrator", INTEGRATORS)
 def test_particle_rests_on_a_tilted_plane_below_the_friction_angle(integrator):
     mu, theta = 0.6, math.atan(0.5 * 0.6)
@@ -57,6 +60,7 @@ def test_particle_rests_on_a_tilted_plane_below_the_friction_angle(integrator):
         assert sim.energy()["total"] <= e0 + 1e-12
 
 
+@pytest.mark.fast_sample(integrator=["symplectic", "implicit"])
 @pytest.mark.parametrize("integrator", INTEGRATORS)
 @pytest.mark.parametrize("restitution", [0.0, 0.5, 1.0])
 def test_restitution_sets_the_bounce_height(integrator, restitution):
@@ -82,6 +86,7 @@ def test_restitution_sets_the_bounce_height(integrator, restitution):
         assert np.all(heights == 0.0) and np.abs(speeds[1:]).max() <= G * dt
 
 
+@pytest.mark.fast_sample(integrator=["symplectic", "implicit"])
 @pytest.mark.parametrize("integrator", INTEGRATORS)
 @pytest.mark.parametrize("ratio", [0.9, 1.1])
 def test_friction_threshold_on_a_tilted_plane(integrator, ratio):
@@ -125,6 +130,7 @@ def test_a_moving_collider_carries_a_resting_particle(integrator, collider):
     assert np.abs(sim.positions[0, :2]).max() <= 1e-12
 
 
+@pytest.mark.fast_sample(integrator=["symplectic", "implicit"])
 @pytest.mark.parametrize("integrator", INTEGRATORS)
 def test_friction_drags_a_particle_along_a_moving_plane(integrator):
     """A conveyor: the ground moves along x at 0.3 m/s under a particle at rest; friction
@@ -166,7 +172,7 @@ def cloth(resolution=8, height=0.5, colliders=(), size=1.0, **kw):
     return ms.Model(**args, colliders=list(colliders), drag=0.05)
 
 
-DT = {"explicit": 5e-4, "symplectic": 5e-4, "rk4": 5e-4, "implicit": 1e-2, "backward-euler": 1e-2, "bdf2": 1e-2}
+DT = {name: 1e-2 if cls.linear_solver else 5e-4 for name, cls in REGISTRY.items()}  # implicit steps: no dt limit
 
 
 @pytest.mark.fast_sample(integrator=["symplectic"])
@@ -242,6 +248,7 @@ def test_cloth_bends_over_a_box_edge(integrator, mu):
         assert x[:, 0].min() > -0.1  # slid off
 
 
+@pytest.mark.fast_sample(integrator=["symplectic", "implicit"])
 @pytest.mark.parametrize("integrator", INTEGRATORS)
 def test_particle_rests_on_a_rounded_box_edge(integrator):
     """A box with rounded edges (radius r): a particle dropped on the top edge line stays
@@ -283,7 +290,6 @@ def test_stiff_contact_at_large_dt_stays_bounded_or_diverges_cleanly():
 
 
 @FULL
-@pytest.mark.fast_sample(integrator=["explicit"])
 @pytest.mark.parametrize("integrator", ["explicit", "implicit", "rk4"])
 def test_serial_and_parallel_drivers_agree_with_colliders(integrator):
     model = cloth(resolution=6, colliders=[ms.Plane((0, 0, -0.35), (0, 0, 1), friction=0.5),
@@ -326,6 +332,7 @@ def rotated_reference(model, dt, contacts):
     return (Q @ y).reshape(-1, 3), A[np.ix_(~fixed, ~fixed)]
 
 
+@pytest.mark.fast_sample(path=["serial"])
 @pytest.mark.parametrize("path", PATHS)
 def test_implicit_contact_step_matches_dense_solve(path):
     """A cloth whose first two rows lie on a tilted plane and move into it, the others

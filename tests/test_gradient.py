@@ -215,6 +215,7 @@ def test_checkpointed_gradients_equal_those_of_the_stored_trajectory(integrator)
             np.testing.assert_array_equal(grads[name], results[0][1][name])
 
 
+@pytest.mark.fast_sample(integrator=["symplectic"])
 @pytest.mark.parametrize("integrator", ["explicit", "symplectic"])
 def test_steps_run_backwards_in_one_launch_give_the_step_by_step_bits(integrator, monkeypatch):
     """The explicit steps' adjoints between frames run in one launch (``adjoint_steps``):
@@ -243,6 +244,7 @@ def test_steps_run_backwards_in_one_launch_give_the_step_by_step_bits(integrator
     assert scale > 0 and gap <= 1e-13 * scale  # measured 2.5e-16 (explicit) and 4.9e-16 (symplectic)
 
 
+@pytest.mark.fast_sample(integrator=["implicit"])
 @pytest.mark.parametrize("integrator", ["implicit", "bdf2"])
 def test_checkpointed_gradients_with_contact_equal_those_of_the_stored_trajectory(integrator):
     """The same with friction on a sphere (the sheet landing within the run): the contact
@@ -258,6 +260,7 @@ def test_checkpointed_gradients_with_contact_equal_those_of_the_stored_trajector
             np.testing.assert_array_equal(grads[name], results[0][1][name])
 
 
+@pytest.mark.fast_sample(integrator=["symplectic"])
 @pytest.mark.parametrize("integrator, checkpoint", [("symplectic", None), ("symplectic", 2), ("explicit", 4),
                                                     ("rk4", None)])
 def test_frames_are_the_run_at_every_kth_step(integrator, checkpoint):

@@ -84,6 +84,7 @@ def has_compressed(model, factor=1.0):
     return np.any(model.rest_lengths > factor * length)
 
 
+@pytest.mark.fast_sample(path=["serial"])
 @pytest.mark.parametrize("path", PATHS)
 @pytest.mark.parametrize("seed", range(4))
 def test_implicit_step_matches_dense_solve_with_fix(seed, path):
@@ -97,6 +98,7 @@ def test_implicit_step_matches_dense_solve_with_fix(seed, path):
     assert_far_from_other_variant(sim, model, definiteness_fix=True)
 
 
+@pytest.mark.fast_sample(path=["serial"])
 @pytest.mark.parametrize("path", PATHS)
 def test_coincident_zero_rest_length_springs_are_stiff_in_the_solve(path):
     """A zero-rest-length spring is linear, f_i = ks (x_j - x_i): K_ii = -ks I also
@@ -123,6 +125,7 @@ def assert_far_from_other_variant(sim, model, definiteness_fix):
     assert np.linalg.norm(sim.velocities - v_own) < 1e-3 * gap
 
 
+@pytest.mark.fast_sample(path=["serial"])
 @pytest.mark.parametrize("path", PATHS)
 @pytest.mark.parametrize("seed", range(2))
 def test_implicit_step_matches_dense_solve_without_fix_stretched(seed, path):
@@ -132,6 +135,7 @@ def test_implicit_step_matches_dense_solve_without_fix_stretched(seed, path):
     check_implicit_step(model, definiteness_fix=False, path=path)
 
 
+@pytest.mark.fast_sample(path=["serial"])
 @pytest.mark.parametrize("path", PATHS)
 def test_implicit_step_matches_dense_solve_without_fix_mildly_compressed(path):
     """Mildly compressed springs, small enough that M keeps Eq. 13's matrix SPD: the
@@ -145,6 +149,7 @@ def test_implicit_step_matches_dense_solve_without_fix_mildly_compressed(path):
     assert_far_from_other_variant(sim, model, definiteness_fix=False)
 
 
+@pytest.mark.fast_sample(path=["serial"])
 @pytest.mark.parametrize("path", PATHS)
 def test_implicit_several_steps_match_dense_solves(path):
     """Three steps: each step's state is the previous step's output (warm start from
@@ -169,6 +174,7 @@ def test_implicit_several_steps_match_dense_solves(path):
         x, v = sim.positions, sim.velocities  # continue from the simulated state
 
 
+@pytest.mark.fast_sample(integrator=["symplectic"], path=["serial"])
 @pytest.mark.parametrize("path", PATHS)
 @pytest.mark.parametrize("integrator", ["explicit", "symplectic"])
 @pytest.mark.parametrize("seed", range(3))
@@ -222,6 +228,7 @@ def test_serial_and_parallel_drivers_agree(integrator):
         assert all(abs(a - b) <= 1 for a, b in zip(out[0][2], out[1][2])), out
 
 
+@pytest.mark.fast_sample(integrator=["symplectic"], path=["serial"])
 @pytest.mark.parametrize("path", PATHS)
 @pytest.mark.parametrize("integrator", ["explicit", "symplectic"])
 def test_multi_step_call_equals_single_steps(integrator, path):
@@ -248,6 +255,7 @@ def moving_pins_system(seed, drag=0.0, wind=(0.0, 0.0, 0.0)):
     return random_system(seed, n_fixed=2, pin_velocity=rng.normal(size=(2, 3)), drag=drag, wind=wind)
 
 
+@pytest.mark.fast_sample(path=["serial"])
 @pytest.mark.parametrize("path", PATHS)
 @pytest.mark.parametrize("seed", range(3))
 def test_implicit_step_with_moving_pins_matches_dense_solve(seed, path):
@@ -274,6 +282,7 @@ def test_implicit_step_with_moving_pins_matches_dense_solve(seed, path):
     assert np.linalg.norm(dense_step(still, DT, True) - v_ref) > 1e3 * bound
 
 
+@pytest.mark.fast_sample(path=["serial"])
 @pytest.mark.parametrize("path", PATHS)
 @pytest.mark.parametrize("seed", range(2))
 def test_implicit_step_with_drag_and_wind_matches_dense_solve(seed, path):
@@ -290,6 +299,7 @@ def test_implicit_step_with_drag_and_wind_matches_dense_solve(seed, path):
     assert np.linalg.norm(dense_step(calm, DT, True) - v_ref) > 1e3 * bound
 
 
+@pytest.mark.fast_sample(integrator=["symplectic"])
 @pytest.mark.parametrize("integrator", ["explicit", "symplectic"])
 def test_euler_step_with_drag_and_moving_pins_matches_numpy(integrator):
     """One explicit/symplectic step with drag, wind and moving pins, against numpy."""

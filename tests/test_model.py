@@ -221,6 +221,7 @@ def test_simulation_bad_dt(dt):
     raises_naming("dt", ms.Simulation, model(), dt=dt)
 
 
+@pytest.mark.fast_sample(integrator=["rk2"])
 @pytest.mark.parametrize("integrator", ["rk2", "Implicit", "", None])
 def test_simulation_bad_integrator(integrator):
     raises_naming("integrator", ms.Simulation, model(), integrator=integrator)

@@ -13,16 +13,18 @@ import numpy as np
 import pytest
 
 import massspring as ms
+from massspring.integrators import INTEGRATORS
 from massspring.scene import load_scene
 from conftest import FULL, PATHS, numpy_forces, predicted, random_system, simulation
 
-NEWTON = ("backward-euler", "bdf2", "midpoint")
+NEWTON = tuple(name for name, cls in INTEGRATORS.items() if cls.newton)
 
 
 def free_rows(model):
     return model.free_mask()
 
 
+@pytest.mark.fast_sample(path=["serial"])
 @pytest.mark.parametrize("path", PATHS)
 @pytest.mark.parametrize("seed", [0, 1])
 def test_one_step_solves_the_backward_euler_equations(seed, path):
@@ -92,6 +94,7 @@ def test_newton_converges_quadratically_without_the_fix(damped):
         assert b <= a**1.5, residuals
 
 
+@pytest.mark.fast_sample(integrator=["backward-euler"])
 @pytest.mark.parametrize("integrator", NEWTON)
 def test_overwhelming_damping_at_a_huge_step_does_not_run_away(integrator):
     """The cloth with spring damping 1e9 N s/m at dt 1 s: with the damping's direction taken
@@ -115,7 +118,7 @@ def test_overwhelming_damping_at_a_huge_step_does_not_run_away(integrator):
 
 
 @FULL
-@pytest.mark.parametrize("integrator", ("backward-euler", "bdf2"))
+@pytest.mark.parametrize("integrator", NEWTON)
 def test_newton_converges_on_a_heavily_damped_cloth(integrator):
     """The shipped cloth with ten times its spring damping (20 N s/m), 20 steps at dt 1/60:
     every step meets newton_tol within the default 50 iterations (14 of 20 backward-Euler

@@ -215,6 +215,7 @@ def test_block_jacobi_reduces_cg_iterations(path):
     assert counts["block-jacobi"] < 0.5 * counts["none"], counts
 
 
+@pytest.mark.fast_sample(path=["serial"])
 @pytest.mark.parametrize("path", PATHS)
 def test_preconditioners_agree(path):
     """Both preconditioners solve the same system: after one step each velocity is
@@ -233,6 +234,7 @@ def test_preconditioners_agree(path):
     assert np.linalg.norm(out[0] - out[1]) <= bound
 
 
+@pytest.mark.fast_sample(path=["serial"])
 @pytest.mark.parametrize("path", PATHS)
 @pytest.mark.parametrize("preconditioner", ["block-jacobi", "none"])
 def test_warm_start_at_solution_needs_no_iterations(preconditioner, path):

@@ -7,9 +7,8 @@ import numpy as np
 import pytest
 
 import massspring as ms
+from massspring.integrators import INTEGRATORS
 from conftest import PATHS, simulation
-
-INTEGRATORS = ("explicit", "symplectic", "implicit", "rk4")
 
 
 def swinging(pin_velocity=((0.3, -0.2, 0.5), (-1.0, 0.0, 0.25))):
@@ -19,8 +18,9 @@ def swinging(pin_velocity=((0.3, -0.2, 0.5), (-1.0, 0.0, 0.25))):
                     fixed=[3, 0], pin_velocity=[pin_velocity[1], pin_velocity[0]])
 
 
+@pytest.mark.fast_sample(integrator=["symplectic", "implicit"], path=["serial"])
 @pytest.mark.parametrize("path", PATHS)
-@pytest.mark.parametrize("integrator", INTEGRATORS)
+@pytest.mark.parametrize("integrator", tuple(INTEGRATORS))
 def test_pins_move_exactly_with_their_velocity(integrator, path):
     """After k steps a pin is at x0 + k dt v (to the round-off of k additions) with velocity
     exactly v, while the free particles follow the springs."""

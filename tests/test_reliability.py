@@ -110,6 +110,7 @@ def test_implicit_overflowing_right_hand_side_is_reported():
 # ------------------------------------------------------------------- counts beyond int32
 
 
+@pytest.mark.fast_sample(integrator=["symplectic"])
 @pytest.mark.parametrize("n", [2**32 + 3, 2**31])
 @pytest.mark.parametrize("integrator", ["explicit", "symplectic"])
 def test_step_counts_beyond_int32_are_not_wrapped(n, integrator):

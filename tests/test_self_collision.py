@@ -15,6 +15,7 @@ import taichi as ti
 
 import massspring as ms
 from massspring.device import ensure_taichi
+from massspring.integrators import INTEGRATORS
 from massspring.kernels import proximity
 from massspring.model.self_collision import mesh_edges
 
@@ -579,7 +580,8 @@ def test_a_too_thick_scene_is_one_line_at_the_command_line(tmp_path, capsys):
     one_line_error(capsys, "thickness 0.03 m is more than half the mesh's spacing")
 
 
-@pytest.mark.parametrize("integrator", ["backward-euler", "bdf2"])
+@pytest.mark.fast_sample(integrator=["backward-euler"])
+@pytest.mark.parametrize("integrator", [name for name, cls in INTEGRATORS.items() if cls.newton])
 def test_a_newton_solved_step_starts_from_the_velocities_the_pass_left(integrator):
     """The pass changes velocities after a step; a Newton-solved step takes its v_n from
     what the last step committed, so the pass's change must reach it: a run continued

@@ -144,6 +144,7 @@ def test_implicit_far_above_symplectic_limit_stays_finite(path):
     assert stability.energy_ratio(sim.model, sim.positions, sim.velocities, sim.check) <= 1.0
 
 
+@pytest.mark.fast_sample(path=["serial"])
 @pytest.mark.parametrize("path", PATHS)
 def test_implicit_rejected_step_restores_previous_state(path):
     """The stiff cloth without the definiteness fix runs away at step k > 1: the rejected
@@ -183,6 +184,7 @@ def test_implicit_runaway_reports_the_rejected_states_energy_and_bound(path):
     assert f"kinetic energy {kinetic:.3g} J above the bound {bound:.3g} J" in str(exc)
 
 
+@pytest.mark.fast_sample(integrator=["symplectic", "implicit"])
 @pytest.mark.parametrize("integrator", ["implicit", "backward-euler", "bdf2", "midpoint", "symplectic"])
 def test_spring_energy_counts_in_the_implicit_steps_divergence_check(integrator):
     """A particle at rest on a stretched spring, stepped by 1 ns (the step changes
@@ -239,6 +241,7 @@ LINEARISATION_GAIN = pytest.mark.xfail(strict=True, reason=(
     "backward-euler (solved by Newton) passes"))
 
 
+@pytest.mark.fast_sample(integrator=["implicit"])
 @pytest.mark.parametrize("integrator", ["implicit", "backward-euler"])
 @pytest.mark.parametrize("name", sorted(EXTREME))
 def test_extreme_scene_implicit_bounded(name, integrator, request):

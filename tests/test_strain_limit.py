@@ -31,6 +31,7 @@ def hanging(strain_limit=None, **kw):
 DT = {"explicit": 2e-4, "symplectic": 2e-4, "rk4": 2e-4}
 
 
+@pytest.mark.fast_sample(integrator=["symplectic", "implicit"])
 @pytest.mark.parametrize("integrator", sorted(INTEGRATORS))
 def test_no_spring_ends_a_step_past_the_limit(integrator):
     """Every step of 0.2 s ends with every spring within the limit (+ the pass's tolerance),
