@@ -35,6 +35,7 @@ import time
 import numpy as np
 
 import massspring as ms
+from massspring.integrators import taken
 from massspring.io.files import write_json
 import output
 
@@ -89,7 +90,7 @@ def measure(model, integrator, dt, repeats, preconditioner, capped=40):
     """{"ms": median ms per step, and for implicit: "its" mean CG iterations per step, and from
     solves capped at ``capped`` and 2 ``capped`` iterations, "ms_per_it" (one CG iteration)
     and "ms_fixed" (the rest of a step: refresh, contact detection, friction, commit)}."""
-    sim = ms.Simulation(model, integrator=integrator, dt=dt, preconditioner=preconditioner)
+    sim = ms.Simulation(model, integrator=integrator, dt=dt, **taken(integrator, {"preconditioner": preconditioner}))
     chunk = 1 if integrator == "implicit" else 20
     sim.step(2 * chunk)  # compile, and leave the first step's special case behind
     start = len(sim.cg_iterations)

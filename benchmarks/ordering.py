@@ -30,7 +30,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import output  # noqa: E402
 
 import massspring as ms  # noqa: E402
-from massspring import ordering  # noqa: E402
+from massspring.model import ordering  # noqa: E402
 from massspring.io.files import write_json  # noqa: E402
 
 ORDERS = ("grid", "scrambled", "renumbered")

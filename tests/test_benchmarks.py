@@ -61,3 +61,24 @@ def test_benchmarks_write_outside_the_committed_results_by_default():
     for name, option in (("plot_performance.py", "--png"), ("study_figures.py", "--docs")):
         text = (ROOT / "benchmarks" / name).read_text()
         assert "default=str(output.OUT" in text and 'default="docs' not in text, (name, option)
+
+
+def test_every_massspring_name_a_benchmark_or_example_imports_exists():
+    """The benchmarks and examples run no test of their own here: each name they import
+    from massspring (a module path, or a name from one) must exist, so a module moved
+    or renamed inside the package cannot leave one of them broken."""
+    import importlib
+
+    missing = []
+    for path in BENCHMARKS + sorted((ROOT / "examples").glob("*.py")):
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.ImportFrom) and node.level == 0 and node.module.split(".")[0] == "massspring":
+                module = importlib.import_module(node.module)
+                missing += [f"{path.name}: {node.module}.{alias.name}" for alias in node.names
+                            if not hasattr(module, alias.name)
+                            and importlib.util.find_spec(f"{node.module}.{alias.name}") is None]
+            elif isinstance(node, ast.Import):
+                for alias in node.names:
+                    if alias.name.startswith("massspring.") and importlib.util.find_spec(alias.name) is None:
+                        missing.append(f"{path.name}: {alias.name}")
+    assert not missing, missing

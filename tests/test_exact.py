@@ -27,7 +27,7 @@ import numpy as np
 import pytest
 
 import massspring as ms
-from massspring.integrators import INTEGRATORS
+from massspring.integrators import INTEGRATORS, taken
 from conftest import PATHS, simulation
 
 KS, KD, M, L0, U0, DT, STEPS = 100.0, 2.0, 1.0, 1.0, 0.1, 1e-2, 200
@@ -98,7 +98,8 @@ def spring_model(origin, direction):
 
 def run(model, integrator, precision, cg_tol, path):
     """Positions and velocities of both particles after each of STEPS steps."""
-    sim = simulation(model, path, integrator=integrator, dt=DT, precision=precision, cg_tol=cg_tol)
+    sim = simulation(model, path, integrator=integrator, dt=DT, precision=precision,
+                     **taken(integrator, {"cg_tol": cg_tol}))
     xs, vs = [sim.positions], [sim.velocities]
     for _ in range(STEPS):
         sim.step()

@@ -31,7 +31,7 @@ import numpy as np
 
 from massspring.analysis import cluster
 from massspring.support.errors import DivergenceError
-from massspring.integrators import INTEGRATORS
+from massspring.integrators import INTEGRATORS, taken
 from massspring.integrators.rk4 import rk4_stable_dt
 from massspring.engine.operators import Jacobians
 from massspring.model import Model
@@ -235,7 +235,8 @@ def run_case(scene, integrator, dt, definiteness_fix=True, duration=1.0, max_ste
     "diverged at step k"; energy_ratio and max_strain (the largest over ``samples``
     evenly spaced checks) of the last good state.
     """
-    sim = scene.simulation(integrator=integrator, dt=dt, definiteness_fix=definiteness_fix, **sim_kwargs)
+    sim = scene.simulation(integrator=integrator, dt=dt, **taken(integrator, {"definiteness_fix": definiteness_fix}),
+                           **sim_kwargs)
     model = sim.model
     steps = max(1, int(math.ceil(min(duration / dt - 1e-9, int(max_steps)))))
     chunk = max(1, steps // samples)

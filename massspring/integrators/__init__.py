@@ -33,6 +33,13 @@ def takers(option: str) -> tuple:
     return tuple(name for name, cls in INTEGRATORS.items() if any(o.name == option for o in cls.options))
 
 
+def taken(integrator: str, options: dict) -> dict:
+    """The entries of ``options`` (name -> value) that ``integrator`` takes (a scene's
+    [solver] table, or options meant for several integrators)."""
+    names = {option.name for option in INTEGRATORS[integrator].options}
+    return {name: value for name, value in options.items() if name in names}
+
+
 def untaken(integrator: str, names) -> dict:
     """Of the option ``names``, those ``integrator`` does not take, grouped by what it
     lacks (``Option.lacking``, e.g. "has no linear solve"): lacking -> [names]."""
@@ -44,4 +51,4 @@ def untaken(integrator: str, names) -> dict:
     return refused
 
 
-__all__ = ["DEFAULT", "INTEGRATORS", "OPTIONS", "REFERENCE", "SMALLEST_DT", "STUDIED", "Integrator", "takers", "untaken"]
+__all__ = ["DEFAULT", "INTEGRATORS", "OPTIONS", "REFERENCE", "SMALLEST_DT", "STUDIED", "Integrator", "taken", "takers", "untaken"]

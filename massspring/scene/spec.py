@@ -80,7 +80,7 @@ from massspring.model.colliders import COLLIDERS
 from massspring.support.defaults import GRAVITY
 from massspring.model.controls import Controls
 from massspring.model.self_collision import SelfCollision
-from massspring.integrators import INTEGRATORS, OPTIONS
+from massspring.integrators import INTEGRATORS, OPTIONS, taken
 from massspring.io.camera import DEFAULT_FRAMING, FRAMINGS, View
 from massspring.model import terms
 from massspring.model import Model
@@ -329,8 +329,7 @@ class Scene:
 
         integrator = integrator or self.integrator
         validate.choice("integrator", integrator, tuple(INTEGRATORS))
-        taken = {option.name for option in INTEGRATORS[integrator].options}  # the scene's [solver] keys it takes
-        options = {**{k: v for k, v in self.solver.items() if k in taken}, **kwargs}
+        options = {**taken(integrator, self.solver), **kwargs}  # of the scene's [solver] keys, those it takes
         particles, springs = self.counts()
         sketch = Sketch(particles, springs, particles, self.self_collision is not None, bool(self.common["strain_limit"]))
         name, precision = options.get("preconditioner") or "auto", options.get("precision", "f64")
