@@ -104,7 +104,7 @@ def timed(args, integrator):
     model = scene.model()
     dt = INTEGRATORS[integrator].suggest_dt(predict(model))
     names = ["stiffness", "damping", "rest_lengths", "masses", "positions", "velocities"]
-    steps = args.solved_steps if INTEGRATORS[integrator].linear_solver else args.steps
+    steps = args.solved_steps if INTEGRATORS[integrator].traits.linear_solver else args.steps
 
     def forward():
         ms.Simulation(model, integrator, dt=dt).step(steps).close()

@@ -35,7 +35,7 @@ def test_run_every_scene(scene, integrator, tmp_path, capsys):
     not hold fails soon: steps 3 to 96 where they were wrong or cannot hold); the others,
     whose steps cost more, run 3 steps of a smaller model."""
     out = tmp_path / "state.npz"
-    limited = not INTEGRATORS[integrator].linear_solver
+    limited = not INTEGRATORS[integrator].traits.linear_solver
     if (scene, integrator) == ("stiffchain", "explicit"):
         # undamped: explicit Euler grows an undamped oscillation at every dt (|1 + i w dt| > 1), the
         # scene's point; its run must stop as diverged (exit 3, one line) with a dt and integrators to try
@@ -53,7 +53,7 @@ def test_run_every_scene(scene, integrator, tmp_path, capsys):
     assert code == 0
     text = capsys.readouterr().out
     assert f"steps       {steps}" in text
-    assert ("CG " in text) == INTEGRATORS[integrator].linear_solver
+    assert ("CG " in text) == INTEGRATORS[integrator].traits.linear_solver
     data = np.load(out)
     assert data["positions"].shape == data["velocities"].shape
     assert np.all(np.isfinite(data["positions"]))

@@ -15,7 +15,7 @@ DT = 2e-3
 PER = 3  # steps an interval
 INTERVALS = 3
 SPRINGS = np.array([0, 5, 7])  # the actuated springs
-KEYFRAMED = tuple(name for name, cls in INTEGRATORS.items() if cls.keyframed_pins)
+KEYFRAMED = tuple(name for name, cls in INTEGRATORS.items() if cls.traits.keyframed_pins)
 
 
 def control_values(seed=5):

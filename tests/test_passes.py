@@ -97,7 +97,7 @@ def test_a_restored_snapshot_continues_to_the_bit(integrator):
     first = (sim.positions, sim.velocities, sim.pass_stats(), sim.cg_iterations, sim.newton_iterations, sim.steps)
     assert first[2]["self-collision"]["passes"] > 0 and first[2]["strain-limit"]["steps"] > 0  # both acted
     sim.restore(kept)
-    assert sim.steps == 15 and len(sim.cg_iterations) == len(first[3]) - (10 if INTEGRATORS[integrator].has_stats
+    assert sim.steps == 15 and len(sim.cg_iterations) == len(first[3]) - (10 if INTEGRATORS[integrator].traits.has_stats
                                                                          else 0)
     sim.step(10)
     again = (sim.positions, sim.velocities, sim.pass_stats(), sim.cg_iterations, sim.newton_iterations, sim.steps)

@@ -329,15 +329,38 @@ def test_cli_stability_rejects_bad_options(capsys):
 
 
 def test_ladder_has_every_integrator_that_declares_one():
-    """The ladder comes from the integrators' own ``ladder`` attributes: the Newton-solved ones
+    """The ladder comes from the integrators' rows of ``analysis.hints``: the Newton-solved ones
     are in it (with the fix only), the linearised step with and without the fix, symplectic first."""
+    from massspring.analysis.hints import hints
     from massspring.integrators import INTEGRATORS
 
     names = [row[0] for row in stability.LADDER]
     assert names[0] == "symplectic"
-    assert {name for name, cls in INTEGRATORS.items() if cls.ladder} == set(names) >= {"backward-euler", "bdf2"}
+    assert {name for name in INTEGRATORS if hints(name).ladder} == set(names) >= {"backward-euler", "bdf2"}
     assert [row[1] for row in stability.LADDER if row[0] == "implicit"] == [True, False]
     assert [row[1] for row in stability.LADDER if row[0] == "bdf2"] == [True]
+
+
+def test_every_row_of_the_hints_names_an_integrator_and_what_it_has():
+    """``analysis.hints``: each row is a registered integrator's, its ladder is relative to
+    a ``Prediction`` field, its swept option is one the integrator takes and has a sweep
+    for; an integrator without a row gets no ladder and no sweep, a name that is not an
+    integrator is refused."""
+    import dataclasses
+
+    from massspring.analysis.hints import HINTS, NO_HINTS, hints
+    from massspring.integrators import INTEGRATORS, OPTIONS
+
+    assert set(HINTS) <= set(INTEGRATORS)
+    fields = {f.name for f in dataclasses.fields(stability.Prediction)}
+    for name, row in HINTS.items():
+        if row.ladder is not None:
+            assert row.ladder[0] in fields and all(m > 0 for m in row.ladder[1]), (name, row)
+        if row.swept is not None:
+            assert row.swept in {o.name for o in INTEGRATORS[name].options} and OPTIONS[row.swept].sweep, (name, row)
+    assert hints("rk4") is NO_HINTS and "rk4" not in HINTS
+    with pytest.raises(ValueError, match="integrator: unknown value 'no-such'"):
+        hints("no-such")
 
 
 def test_rk4_stable_dt_meets_rk4s_region_on_both_axes_and_for_overdamped_modes():

@@ -30,6 +30,7 @@ from pathlib import Path
 import numpy as np
 
 from massspring.analysis import cluster
+from massspring.analysis.hints import hints
 from massspring.support.errors import DivergenceError
 from massspring.integrators import INTEGRATORS, taken
 from massspring.integrators.rk4 import rk4_stable_dt
@@ -194,10 +195,10 @@ def predict(model: Model, positions=None, iterations=40) -> Prediction:
 
 
 # Ladder: integrator, definiteness fix, the prediction its dt is relative to, multiples
-# (each integrator's ``ladder``; the symplectic one first: its limit is the reference).
-LADDER = tuple((name, fix, *cls.ladder)
-               for name, cls in sorted(INTEGRATORS.items(), key=lambda item: not item[1].limit_reference)
-               if cls.ladder for fix in ((True, False) if cls.ladder_without_fix else (True,)))
+# (each integrator's ``hints.ladder``; the symplectic one first: its limit is the reference).
+LADDER = tuple((name, fix, *hints(name).ladder)
+               for name in sorted(INTEGRATORS, key=lambda name: not INTEGRATORS[name].traits.limit_reference)
+               if hints(name).ladder for fix in ((True, False) if hints(name).ladder_without_fix else (True,)))
 COLUMNS = ("integrator", "definiteness_fix", "dt", "dt_ratio", "relative_to", "outcome", "steps",
            "simulated_time", "energy_ratio", "max_strain", "cg_iterations_mean", "cg_iterations_max",
            "cg_failures")
@@ -257,7 +258,7 @@ def run_case(scene, integrator, dt, definiteness_fix=True, duration=1.0, max_ste
            "max_strain": strain,
            "cg_iterations_mean": float(its.mean()) if its is not None else None,
            "cg_iterations_max": int(its.max()) if its is not None else None,
-           "cg_failures": sim.cg_failures if INTEGRATORS[integrator].linear_solver else None}
+           "cg_failures": sim.cg_failures if INTEGRATORS[integrator].traits.linear_solver else None}
     sim.close()  # the next run of the ladder reuses its fields, already compiled
     return row
 
@@ -329,7 +330,7 @@ def format_table(rows) -> str:
     short = {"symplectic_dt": "sympl", "explicit_doubling_dt": "double"}
     cells = [head] + [tuple(short.get(r[k], _cell(r[k])) if k == "relative_to" else
                             _cell(r[k], 4 if k in ("dt", "dt_ratio") else 3)
-                            if not (k == "definiteness_fix" and not INTEGRATORS[r["integrator"]].linear_solver)
+                            if not (k == "definiteness_fix" and not INTEGRATORS[r["integrator"]].traits.linear_solver)
                             else "-"
                             for k in keys) for r in rows]
     widths = [max(len(c[i]) for c in cells) for i in range(len(head))]
@@ -376,7 +377,7 @@ def plot(rows, path, title):
     fig, ax = plt.subplots(figsize=(6.4, 4.4), dpi=90)
     lines = {}
     for row in rows:
-        if INTEGRATORS[row["integrator"]].ladder_without_fix:
+        if hints(row["integrator"]).ladder_without_fix:
             label = f"{row['integrator']} (fix {'on' if row['definiteness_fix'] else 'off'}) vs symplectic limit"
         else:
             label = f"{row['integrator']} vs {'symplectic limit' if row['relative_to'] == 'symplectic_dt' else 'doubling dt'}"

@@ -40,6 +40,7 @@ from massspring import solvers
 from massspring.support import validate
 from massspring.analysis import cluster, reference
 from massspring.analysis.fits import TARGETS, cheapest, fit_orders
+from massspring.analysis.hints import hints
 from massspring.support.errors import DivergenceError
 from massspring.integrators import INTEGRATORS, OPTIONS, REFERENCE, SMALLEST_DT, STUDIED, Integrator
 from massspring.engine.simulation import Simulation
@@ -239,10 +240,10 @@ def run_study(scene, *, integrators=DEFAULT_INTEGRATORS, duration=None, rungs=DE
     reference_dts = [] if exact is not None else [first, first / 2]  # RK4's first pair: tasks too
     tasks = [("reference", (model, times, dt, cache, use_cache)) for dt in reference_dts]
     for name in integrators:
-        cls = INTEGRATORS[name]
-        tols = [{cls.swept: t} for t in {"cg_tol": cg_tols, "newton_tol": newton_tols}.get(cls.swept, ())]
-        for pre in (line_preconditioners(model, name, preconditioners) if cls.linear_solver else [None]):
-            for tol in (tols if cls.linear_solver else [{}]):
+        cls, swept = INTEGRATORS[name], hints(name).swept
+        tols = [{swept: t} for t in {"cg_tol": cg_tols, "newton_tol": newton_tols}.get(swept, ())]
+        for pre in (line_preconditioners(model, name, preconditioners) if cls.traits.linear_solver else [None]):
+            for tol in (tols if cls.traits.linear_solver else [{}]):
                 for dt in ladders[name]:
                     tasks.append(("run", (model, name, ladders[name][0], dt, tol, pre, times, size, repeats,
                                           time_budget)))

@@ -150,9 +150,9 @@ def plan(scene, vary, integrator=None, confirm=False, limit=MAX_CASES, option="v
             except ValueError as exc:
                 raise ValueError(f"{where}: value {value_text(value)}: {exc}") from None
     fixed = integrator or scene.integrator
-    if "preconditioner" in vary and "integrator" not in vary and not INTEGRATORS[fixed].linear_solver:
+    if "preconditioner" in vary and "integrator" not in vary and not INTEGRATORS[fixed].traits.linear_solver:
         raise ValueError(f"{option} preconditioner: {fixed} solves no linear system; vary it with "
-                         + ", ".join(k for k, cls in INTEGRATORS.items() if cls.linear_solver))
+                         + ", ".join(k for k, cls in INTEGRATORS.items() if cls.traits.linear_solver))
     keys = list(vary)
     return [Case(n, tuple(zip(keys, combo))) for n, combo in enumerate(itertools.product(*vary.values()), start=1)]
 
@@ -209,7 +209,7 @@ def run_case(scene, case, integrator=None, dt=None, duration=None, steps=None, o
     start = time.perf_counter()
     sim = None
     try:
-        solves = INTEGRATORS[integrator or scene.integrator].linear_solver
+        solves = INTEGRATORS[integrator or scene.integrator].traits.linear_solver
         if "preconditioner" in values and not solves:
             raise ValueError(f"preconditioner: {integrator} solves no linear system")
         case_scene = scene.with_params(**params)

@@ -181,7 +181,7 @@ def divergence_hint(sim, exc):
     from massspring.analysis.stability import predict
     from massspring.integrators import DEFAULT, INTEGRATORS
 
-    if INTEGRATORS[sim.integrator].linear_solver:
+    if INTEGRATORS[sim.integrator].traits.linear_solver:
         tips = ["a smaller --dt"]
         if not sim.definiteness_fix:
             tips.insert(0, "dropping --no-definiteness-fix")
@@ -196,8 +196,8 @@ def divergence_hint(sim, exc):
         return (f"try --dt {sim.dt / 4:.3g} (a quarter of this run's; the stability estimate for {sim.integrator} "
                 f"at the initial state, {suggested:.3g} s, did not hold as the state changed) or --integrator "
                 f"{DEFAULT} (no stability limit)")
-    if INTEGRATORS[sim.integrator].grows_undamped and not prediction.explicit_stable_dt > 0:
-        stable = [name for name, cls in INTEGRATORS.items() if cls.limit_reference or cls.linear_solver]
+    if INTEGRATORS[sim.integrator].traits.grows_undamped and not prediction.explicit_stable_dt > 0:
+        stable = [name for name, cls in INTEGRATORS.items() if cls.traits.limit_reference or cls.traits.linear_solver]
         stable = ", ".join(stable[:-1]) + " or " + stable[-1]
         return (f"{sim.integrator} grows at every dt on this scene's undamped stiffest mode; --dt {suggested:.3g} "
                 f"keeps that growth under 2x per simulated second, or try --integrator {stable}")

@@ -34,7 +34,7 @@ def preconditioner(sketch, integrator, precision, name) -> str | None:
     """The preconditioner ``name`` ("auto" or one of ``solvers.CHOICES``) stands for in a
     run of ``integrator`` on ``sketch``; None for an integrator without a linear solve."""
     cls = INTEGRATORS[integrator]
-    if not cls.linear_solver:
+    if not cls.traits.linear_solver:
         return None
     return resolve_for_count(name, sketch.n_free, cls.finest_f32(sketch, precision))
 
@@ -42,12 +42,12 @@ def preconditioner(sketch, integrator, precision, name) -> str | None:
 def run_bytes(sketch, integrator, precision="f64", preconditioner_name="auto", model_built=False) -> float:
     """Bytes a run of ``integrator`` on ``sketch`` may add at its peak (``memory.run_bytes``,
     margin included): the linearised step's per-particle and per-spring bytes for its
-    preconditioner, the integrator's own (``extra_bytes``, ``spring_extra_bytes``), the
+    preconditioner, the integrator's own (its ``traits``' ``extra_bytes``, ``spring_extra_bytes``), the
     self-collision pairs of its solve, and every pass's (``Pass.bytes``). ``model_built``:
     the Model's own arrays exist already."""
     cls = INTEGRATORS[integrator]
-    per_particle = cls.extra_bytes + SOLVE_BYTES * cls.pairs_in_solve(sketch)
-    per_spring = cls.spring_extra_bytes
+    per_particle = cls.traits.extra_bytes + SOLVE_BYTES * cls.pairs_in_solve(sketch)
+    per_spring = cls.traits.spring_extra_bytes
     for pass_cls in for_model(sketch):
         particle_bytes, spring_bytes = pass_cls.bytes(sketch)
         per_particle += particle_bytes

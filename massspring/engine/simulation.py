@@ -161,10 +161,10 @@ class Simulation:
         dt = validate.positive_float("dt", dt)
         if model.controls is not None:
             model.controls.steps_per_interval(dt)
-            if model.controls.pin_targets is not None and not INTEGRATORS[integrator].keyframed_pins:
+            if model.controls.pin_targets is not None and not INTEGRATORS[integrator].traits.keyframed_pins:
                 raise ValueError(f"integrator: {integrator!r} does not move keyframed pins "
                                  f"(controls.pin_targets); these do: "
-                                 f"{', '.join(k for k, c in INTEGRATORS.items() if c.keyframed_pins)}")
+                                 f"{', '.join(k for k, c in INTEGRATORS.items() if c.traits.keyframed_pins)}")
         options = {name: option.default if options.get(name) is None else option.check(options[name])
                    for name, option in OPTIONS.items()}
         if options["cg_max_iter"] is None:
@@ -178,7 +178,7 @@ class Simulation:
         preconditioner = resolve(preconditioner, model, INTEGRATORS[integrator].finest_f32(model, precision))
         if loops == "auto":
             below = SERIAL_BELOW
-            if INTEGRATORS[integrator].linear_solver:
+            if INTEGRATORS[integrator].traits.linear_solver:
                 below = PRECONDITIONERS[preconditioner].serial_below or SERIAL_BELOW
             loops = "serial" if model.n_springs < below and arch in CPU_ARCHS else "parallel"
         self._model = model
@@ -452,7 +452,7 @@ class Simulation:
         time. Counts the good steps and the solver statistics; raises ``DivergenceError``
         at a failed step."""
         schedule = self._schedule
-        if not integrator.has_stats and not self._passes:
+        if not integrator.traits.has_stats and not self._passes:
             while n:
                 chunk = min(n, STEPS_PER_LAUNCH)
                 if schedule is not None:
@@ -474,7 +474,7 @@ class Simulation:
                 for p in self._passes:
                     p.end(integrator.state, integrator.time)
                 integrator.changed()
-            if not integrator.has_stats:
+            if not integrator.traits.has_stats:
                 self._steps += done
                 self._raise_if_diverged(check)
                 continue
@@ -489,12 +489,12 @@ class Simulation:
             self._raise_if_diverged(check)
 
     def _raise_if_diverged(self, check):
-        code, kinetic, bound = check  # kinetic: the integrator's checked_energy
+        code, kinetic, bound = check  # kinetic: the integrator's traits.checked_energy
         if code == divergence.OK:
             return
         failed = self._steps + 1
         raise DivergenceError(failed, failed * self.dt, divergence.CAUSES[code], kinetic, bound,
-                              self.integrator, self.dt, self._integrator.checked_energy)
+                              self.integrator, self.dt, self._integrator.traits.checked_energy)
 
     def energy(self) -> dict:
         """Kinetic, spring, each uniform force's potential and total energy (J) of the current
@@ -521,11 +521,11 @@ class Simulation:
         out = {"integrator": self.integrator, "precision": self.precision, "dt": self.dt,
                "particles": self._model.n_particles, "springs": self._model.n_springs,
                "terms": terms, "arrays": list(self._layout_names), "loops": self.loops,
-               "preconditioner": self.preconditioner if integrator.linear_solver else None,
-               "newton": integrator.newton, "bytes": self._bytes,
+               "preconditioner": self.preconditioner if integrator.traits.linear_solver else None,
+               "newton": integrator.traits.newton, "bytes": self._bytes,
                "options": {option.name: getattr(self._settings, option.name) for option in integrator.options},
                "order": "given" if self._order is None else "z-order"}
-        if integrator.linear_solver:
+        if integrator.traits.linear_solver:
             extra = integrator.preconditioner.describe()
             out["bytes"] += extra.pop("bytes")
             out.update(extra)

@@ -75,7 +75,7 @@ class Frames:
 
 def differentiable() -> tuple:
     """The integrators ``gradient`` can run backwards."""
-    return tuple(name for name, cls in INTEGRATORS.items() if cls.differentiable)
+    return tuple(name for name, cls in INTEGRATORS.items() if cls.traits.differentiable)
 
 
 def gradient(model, objective, wrt, *, steps, every=1, integrator="symplectic", dt=1e-2, precision="f64",
@@ -132,7 +132,7 @@ def gradient(model, objective, wrt, *, steps, every=1, integrator="symplectic", 
         value, partials = _call(objective, frames, model.n_particles)
         wants = Wants(masses="masses" in names, rate_gradient="damping" in names and not model.has_damping,
                       pins="pin_velocity" in names or "controls.pin_targets" in names,
-                      friction=model.has_friction and INTEGRATORS[integrator].linear_solver)
+                      friction=model.has_friction and INTEGRATORS[integrator].traits.linear_solver)
         shares = ControlShares(sim, adj) if model.controls is not None else None
         with np.errstate(over="ignore", invalid="ignore"):  # an overflow is refused below, by name
             _backward(sim, adj, wants, partials, frames.steps, kept, last, steps, checkpoint, shares, backward)
@@ -155,7 +155,7 @@ def check_arguments(model, wrt, integrator, precision="f64") -> list:
     checked as ``gradient`` checks them (a ValueError naming the argument otherwise)."""
     names = _check_wrt(wrt, model)
     validate.choice("integrator", integrator, tuple(INTEGRATORS))
-    if not INTEGRATORS[integrator].differentiable:
+    if not INTEGRATORS[integrator].traits.differentiable:
         raise ValueError(f"integrator: gradients through {integrator!r} steps are not built yet; "
                          f"they are for: {', '.join(differentiable())}")
     if precision != "f64":

@@ -3,11 +3,13 @@
 An integrator is a subclass of :class:`base.Integrator`: it declares the fields it
 needs (``declare``), advances the simulation's bundle (``advance``), and suggests a
 default time step from a stability prediction (``suggest_dt``) for scenes whose
-``[dt]`` table does not name it; its solver's options are ``options.Option`` records
-(``OPTIONS``). Adding one means a module here and an entry below.
+``[dt]`` table does not name it; its capabilities are one ``base.Traits`` record
+(``traits``), its solver's options ``options.Option`` records (``OPTIONS``). Adding one
+means a module here and an entry below (and a row of ``analysis.hints`` if the stability
+ladder or the study is to take it).
 """
 
-from .base import Integrator
+from .base import Integrator, Traits
 from .explicit import ExplicitEuler
 from .implicit import ImplicitEuler
 from .midpoint import Midpoint
@@ -51,4 +53,5 @@ def untaken(integrator: str, names) -> dict:
     return refused
 
 
-__all__ = ["DEFAULT", "INTEGRATORS", "OPTIONS", "REFERENCE", "SMALLEST_DT", "STUDIED", "Integrator", "taken", "takers", "untaken"]
+__all__ = ["DEFAULT", "INTEGRATORS", "OPTIONS", "REFERENCE", "SMALLEST_DT", "STUDIED", "Integrator", "Traits", "taken",
+           "takers", "untaken"]

@@ -1,6 +1,9 @@
-"""The integrator protocol."""
+"""The integrator protocol, and ``Traits``: what an integrator can do, which the rest of
+the code asks instead of its name."""
 
 from __future__ import annotations
+
+import dataclasses
 
 import numpy as np
 
@@ -8,39 +11,55 @@ from massspring.device import Config
 from massspring.kernels import state as state_kernels
 
 
+@dataclasses.dataclass(frozen=True)
+class Traits:
+    """An integrator class's capabilities (``Integrator.traits``), read as
+    ``cls.traits.<name>`` or ``integrator.traits.<name>``; a subclass that changes some
+    declares ``traits = dataclasses.replace(Parent.traits, ...)``.
+
+    ``order``: of accuracy. ``has_stats``: steps one at a time, each with solver
+    statistics. ``linear_solver``: solves a linear system each step with CG and a
+    preconditioner. ``newton``: solves nonlinear equations each step by Newton's method
+    (takes ``newton_tol`` and ``newton_max_iter``). ``differentiable``: has ``adjoint``,
+    ``massspring.gradient`` can run it backwards. ``keyframed_pins``: moves pins with a
+    velocity that changes between steps (``Controls.pin_targets``). ``checked_energy``:
+    what its steps' divergence check holds to the bound (``kernels/divergence.py``).
+    ``extra_bytes``, ``spring_extra_bytes``: bytes per particle and per spring beyond the
+    linearised step's (``memory.run_bytes``). ``grows_undamped``: unstable for undamped
+    oscillation at every dt (damping alone can make it stable). ``limit_reference``: its
+    measured stability limit is the one the others' are relative to (the stability
+    ladder's reference, the integrator ``run`` suggests after such a growth).
+    """
+
+    order: int = 1
+    has_stats: bool = False
+    linear_solver: bool = False
+    newton: bool = False
+    differentiable: bool = False
+    keyframed_pins: bool = True
+    checked_energy: str = "kinetic energy"
+    extra_bytes: int = 0
+    spring_extra_bytes: int = 0
+    grows_undamped: bool = False
+    limit_reference: bool = False
+
+
 class Integrator:
     """Advances a simulation's bundle ``dev`` by steps of ``settings.dt``.
 
-    Class attributes: ``name`` (the registry key), ``order`` (of accuracy),
-    ``description`` (one line for the CLI), ``has_stats`` (steps one at a time,
-    each with solver statistics), ``linear_solver`` (solves a linear system each step
-    with CG and a preconditioner), ``newton`` (solves nonlinear equations each step by
-    Newton's method: takes ``newton_tol`` and ``newton_max_iter``), ``swept``,
-``grows_undamped``, ``limit_reference`` (see below), ``ladder`` and
-    ``ladder_without_fix`` (its rows of ``analysis.stability``'s ladder), ``options`` (its
-solver's options, ``options.Option`` records: ``integrators.OPTIONS``). ``serial`` (from
+    Class attributes: ``name`` (the registry key), ``description`` (one line for the
+    CLI), ``traits`` (its capabilities: ``Traits``), ``options`` (its solver's options,
+    ``options.Option`` records: ``integrators.OPTIONS``). What the stability ladder and
+    the study do with it is theirs (``analysis.hints``). ``serial`` (from
     ``settings.loops``):
     run whole steps or solves in one launch with serial loops (small systems), else
     one parallel launch per phase.
     """
 
     name = ""
-    order = 1
     description = ""
-    has_stats = False
-    linear_solver = False
-    newton = False
-    ladder = None  # stability ladder: (the Prediction attribute dt is relative to, multiples), None: none
-    extra_bytes = 0  # bytes per particle beyond the linearised step's (memory.run_bytes)
-    spring_extra_bytes = 0  # and per spring
-    ladder_without_fix = False  # also run the ladder without the definiteness fix
+    traits = Traits()
     options = ()  # options.Option records: the solver's Simulation arguments (none by default)
-    swept = None  # the option the study sweeps (a tolerance: its Option.sweep), None: none
-    grows_undamped = False  # unstable for undamped oscillation at every dt (damping alone can make it stable)
-    limit_reference = False  # its measured stability limit is what the others' ladders are relative to
-    checked_energy = "kinetic energy"  # what its steps' divergence check holds to the bound (kernels/divergence.py)
-    differentiable = False  # has ``adjoint``: ``massspring.gradient`` can run it backwards
-    keyframed_pins = True  # moves pins with a velocity that changes between steps (``Controls.pin_targets``)
 
     def __init__(self, dev, model, settings):
         self.dev = dev
@@ -141,7 +160,7 @@ solver's options, ``options.Option`` records: ``integrators.OPTIONS``). ``serial
         """Run a step backwards (``massspring.gradient``) from the state kept at ``slot``
         of ``adj``'s history (made the current state): ``adj`` (its bundle) holds dL/dx', dL/dv' of the step's end state on entry and
         dL/dx, dL/dv of the current state on exit, with the step's share of each
-        parameter gradient added; ``wants``: ``gradients.Wants``. Only where ``differentiable``.
+        parameter gradient added; ``wants``: ``gradients.Wants``. Only where ``traits.differentiable``.
         Returns the ``SolverStats`` of a step's adjoint solve, None where it has none."""
         raise NotImplementedError
 

@@ -9,7 +9,7 @@ from massspring.support.defaults import FALLBACK_DT
 from massspring.device import read_verdict
 from massspring.kernels import divergence, euler
 
-from .base import SwappingStates
+from .base import SwappingStates, Traits
 
 
 class ExplicitEuler(SwappingStates):
@@ -21,12 +21,9 @@ class ExplicitEuler(SwappingStates):
     """
 
     name = "explicit"
-    ladder = ("explicit_doubling_dt", (0.5, 1.0, 2.0, 10.0, 100.0))
-    order = 1
     description = "explicit Euler: x' = x + dt v, v' = v + dt f(x, v)/m"
+    traits = Traits(order=1, grows_undamped=True, differentiable=True)
     symplectic = False
-    grows_undamped = True
-    differentiable = True
 
     @property
     def records_history(self) -> bool:

@@ -10,7 +10,7 @@ from massspring.device import Config, read_verdict
 from massspring.kernels import cg, divergence, friction, implicit_adjoint, operator
 from massspring.solvers import CHOICES, MULTIGRID_FROM, PRECONDITIONERS, solve
 
-from .base import Integrator
+from .base import Integrator, Traits
 from .options import Option
 
 LINEAR_SOLVER = "solves no linear system"
@@ -51,15 +51,9 @@ class ImplicitEuler(Integrator):
     """
 
     name = "implicit"
-    order = 1
     description = "linearised implicit Euler (Eq. 15), matrix-free preconditioned CG"
-    has_stats = True
-    linear_solver = True
-    ladder = ("symplectic_dt", (1.0, 10.0, 100.0, 1000.0))
-    ladder_without_fix = True
+    traits = Traits(order=1, has_stats=True, linear_solver=True, differentiable=True)
     options = LINEAR_OPTIONS
-    swept = "cg_tol"
-    differentiable = True
 
     def __init__(self, dev, model, settings):
         super().__init__(dev, model, settings)
@@ -81,14 +75,14 @@ class ImplicitEuler(Integrator):
         of the f64 ones' step time from 128 x 128 on. Not the Newton-solved steps: a setup
         (and its narrowing) per Newton iteration for 2-3 cycles each, 1.07x slower at
         128 x 128 (``benchmarks/results/multigrid_precision.json``)."""
-        return precision == "f64" and not cls.newton and not cls.pairs_in_solve(model)
+        return precision == "f64" and not cls.traits.newton and not cls.pairs_in_solve(model)
 
     @classmethod
     def pairs_in_solve(cls, model):
         """Whether self-collision pairs are penalties of Eq. 15 (``kernels/pair_penalty.py``):
         with self-collision, in the linearised step (the Newton-solved steps leave them
         to the pass that follows every step)."""
-        return model.has_self_collision and not cls.newton
+        return model.has_self_collision and not cls.traits.newton
 
     @classmethod
     def declare(cls, layout, model, settings):

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 from massspring.kernels import newton
 
 from .newton import BackwardEuler
@@ -36,9 +38,8 @@ class Midpoint(BackwardEuler):
     """
 
     name = "midpoint"
-    order = 2
     description = "implicit midpoint (second order, symplectic) solved by Newton's method with a line search"
-    half_step = True
+    traits = dataclasses.replace(BackwardEuler.traits, order=2)
 
     @staticmethod
     def suggest_dt(prediction):
@@ -53,6 +54,10 @@ class Midpoint(BackwardEuler):
 
     def step_size(self, touching):
         return self.settings.dt if touching else 0.5 * self.settings.dt
+
+    def solves_mean(self, touching):
+        """Every step but one with a particle in contact (a backward-Euler step)."""
+        return not touching
 
     def finish(self, h, touching):
         if not touching:

@@ -61,18 +61,15 @@ class BackwardEuler(ImplicitEuler):
     """
 
     name = "backward-euler"
-    order = 1
     description = "backward Euler solved by Newton's method with a line search (CG per iteration)"
-    newton = True
-    checked_energy = "kinetic and spring energy"  # cg.advance_positions with springs
-    differentiable = True  # kernels/newton_adjoint.py: the true Jacobian at the converged iterate
-    half_step = False  # (*) of kernels/newton.py is solved for (v_n + v')/2 with h = dt/2 (implicit midpoint)
+    traits = dataclasses.replace(
+        ImplicitEuler.traits, order=1, newton=True,
+        checked_energy="kinetic and spring energy",  # cg.advance_positions with springs
+        differentiable=True,  # kernels/newton_adjoint.py: the true Jacobian at the converged iterate
+        extra_bytes=7 * 24,  # xb, vb, xk, vk, dir, res and a contact's carrier: f64 3-vectors
+        spring_extra_bytes=3 * 32)  # damping's lagged direction and coefficient, per spring and per entry (2 a spring)
     options = LINEAR_OPTIONS + NEWTON_OPTIONS
-    swept = "newton_tol"
     carries = False  # whether a step's commit keeps the state it replaces (BDF2's history)
-    ladder_without_fix = False
-    extra_bytes = 7 * 24  # xb, vb, xk, vk, dir, res and a contact's carrier: f64 3-vectors
-    spring_extra_bytes = 3 * 32  # damping's lagged direction and coefficient, per spring and per entry (2 a spring)
 
     @classmethod
     def declare(cls, layout, model, settings):
@@ -118,17 +115,17 @@ class BackwardEuler(ImplicitEuler):
         s = self.settings
         exact = dataclasses.replace(self.cfg, fix=False)
         touching = self.taken[self.steps][0]
-        half = self.half_step and not touching  # the midpoint rule takes a backward-Euler step at a contact
-        h = 0.5 * s.dt if half else self.step_size(touching)
-        hx = s.dt if half else h  # x' = base + hx u
-        newton_adjoint.newton_adjoint_rhs(self.dev, self.cfg, exact, adj, h, hx, s.dt, self.time, slot, half,
+        mean = self.solves_mean(touching)
+        h = self.step_size(touching)
+        hx = s.dt if mean else h  # x' = base + hx u
+        newton_adjoint.newton_adjoint_rhs(self.dev, self.cfg, exact, adj, h, hx, s.dt, self.time, slot, mean,
                                           wants, self.ahead(h), self.serial)
-        stats = self._adjoint_solve(adj, exact, h, slot, wants, half)
-        newton_adjoint.newton_adjoint_gather(self.dev, exact, adj, h, self.time, slot, half, wants,
+        stats = self._adjoint_solve(adj, exact, h, slot, wants)
+        newton_adjoint.newton_adjoint_gather(self.dev, exact, adj, h, self.time, slot, mean, wants,
                                              self.ahead(h), self.carries, self.serial)
         return stats
 
-    def _adjoint_solve(self, adj, exact, h, slot, wants, half):
+    def _adjoint_solve(self, adj, exact, h, slot, wants):
         """mu for J mu = dL/du (J symmetric: K and D are, spring damping acting along fixed
         directions). Without the definiteness fix J is the step's own operator S: one CG
         solve. With it, J = S less what the fix adds where springs are compressed, and may
@@ -197,6 +194,13 @@ class BackwardEuler(ImplicitEuler):
         """h of (*) in ``kernels/newton.py`` for the step being taken (``touching``: its
         particles in contact)."""
         return self.settings.dt
+
+    def solves_mean(self, touching) -> bool:
+        """Whether the step being taken (``touching``: its particles in contact) solves (*)
+        for its mean velocity u = (v_n + v')/2, so that v' = 2 u - v_n and x' = x_n + dt u
+        (``finish`` makes them; a gradient's adjoint takes them back), rather than for v'
+        itself (backward Euler's and BDF2's: False)."""
+        return False
 
     def finish(self, h, touching):
         """Turn the solution v of (*) into the step's velocity, with ``dev.xb`` and h such
@@ -309,9 +313,9 @@ class BDF2(BackwardEuler):
     in every integrator). Carries (x_{n-1}, v_{n-1}) and whether it may use them."""
 
     name = "bdf2"
-    order = 2
-    extra_bytes = BackwardEuler.extra_bytes + 2 * 24  # and x_{n-1}, v_{n-1}
     description = "BDF2 (second order, first step backward Euler) solved by Newton's method with a line search"
+    traits = dataclasses.replace(BackwardEuler.traits, order=2,
+                                 extra_bytes=BackwardEuler.traits.extra_bytes + 2 * 24)  # and x_{n-1}, v_{n-1}
     carries = True
 
     def __init__(self, dev, model, settings):

@@ -8,7 +8,7 @@ from massspring.support.defaults import FALLBACK_DT
 from massspring.device import read_verdict
 from massspring.kernels import divergence, rk4
 
-from .base import SwappingStates
+from .base import SwappingStates, Traits
 
 RK4_IMAGINARY_LIMIT = 2.0 * math.sqrt(2.0)  # |dt omega| where RK4's stability region meets the imaginary axis
 
@@ -43,10 +43,9 @@ class RK4(SwappingStates):
     integrators' contact response after each step, which is first order in dt."""
 
     name = "rk4"
-    order = 4
     description = "classical Runge-Kutta, 4th order (4 force evaluations per step)"
-    differentiable = True
-    keyframed_pins = False  # its stages move a pin with the velocity in its state
+    # keyframed_pins: its stages move a pin with the velocity in its state
+    traits = Traits(order=4, differentiable=True, keyframed_pins=False)
 
     def __init__(self, dev, model, settings):
         super().__init__(dev, model, settings)

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 from .explicit import ExplicitEuler
 
 
@@ -10,12 +12,9 @@ class SymplecticEuler(ExplicitEuler):
     velocity in the position update. First order; stable for dt < 2 / omega_max undamped."""
 
     name = "symplectic"
-    order = 1
     description = "symplectic Euler: v' = v + dt f(x, v)/m, x' = x + dt v'"
+    traits = dataclasses.replace(ExplicitEuler.traits, order=1, grows_undamped=False, limit_reference=True)
     symplectic = True
-    ladder = ("symplectic_dt", (0.5, 0.9, 1.1, 1.5, 3.0))
-    grows_undamped = False
-    limit_reference = True
 
     @staticmethod
     def stability_limit(prediction):
