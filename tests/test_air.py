@@ -21,7 +21,7 @@ M, C = 0.5, 1.5
 G = np.array([0.0, 0.0, -9.81])
 WIND = np.array([3.0, -1.0, 0.5])
 X0, V0 = np.array([0.2, -0.1, 1.0]), np.array([1.0, 2.0, 4.0])
-ORDER = {name: cls.order for name, cls in INTEGRATORS.items()}
+ORDER = {name: cls.traits.order for name, cls in INTEGRATORS.items()}
 
 
 def falling(drag=C, wind=WIND):

@@ -172,7 +172,7 @@ def cloth(resolution=8, height=0.5, colliders=(), size=1.0, **kw):
     return ms.Model(**args, colliders=list(colliders), drag=0.05)
 
 
-DT = {name: 1e-2 if cls.linear_solver else 5e-4 for name, cls in REGISTRY.items()}  # implicit steps: no dt limit
+DT = {name: 1e-2 if cls.traits.linear_solver else 5e-4 for name, cls in REGISTRY.items()}  # implicit steps: no dt limit
 
 
 @pytest.mark.fast_sample(integrator=["symplectic"])

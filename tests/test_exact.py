@@ -105,7 +105,7 @@ def run(model, integrator, precision, cg_tol, path):
         sim.step()
         xs.append(sim.positions)
         vs.append(sim.velocities)
-        if INTEGRATORS[integrator].has_stats:
+        if INTEGRATORS[integrator].traits.has_stats:
             assert sim.solver_stats.converged, sim.solver_stats
     assert sim.steps == STEPS and sim.time == pytest.approx(STEPS * DT)
     return np.array(xs), np.array(vs)
@@ -269,7 +269,7 @@ def test_zero_length_springs_stay_finite(integrator, precision, separate, path):
     model = zero_length_model(separate)
     sim = simulation(model, path, integrator=integrator, dt=DT, precision=precision)
     steps = 10
-    solved = INTEGRATORS[integrator].has_stats
+    solved = INTEGRATORS[integrator].traits.has_stats
     for _ in range(steps):
         sim.step()
         assert np.all(np.isfinite(sim.positions)) and np.all(np.isfinite(sim.velocities))

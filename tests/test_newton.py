@@ -17,7 +17,7 @@ from massspring.integrators import INTEGRATORS
 from massspring.scene import load_scene
 from conftest import FULL, PATHS, numpy_forces, predicted, random_system, simulation
 
-NEWTON = tuple(name for name, cls in INTEGRATORS.items() if cls.newton)
+NEWTON = tuple(name for name, cls in INTEGRATORS.items() if cls.traits.newton)
 
 
 def free_rows(model):

@@ -29,7 +29,7 @@ from massspring.scene import load_scene
 from massspring.scene.spec import parse_scene
 
 ALL = tuple(INTEGRATORS)
-IMPLICIT = tuple(name for name, cls in INTEGRATORS.items() if cls.linear_solver)  # contact predicted in the solve
+IMPLICIT = tuple(name for name, cls in INTEGRATORS.items() if cls.traits.linear_solver)  # contact predicted in the solve
 NO_SPRINGS = np.zeros((0, 2), dtype=int)
 G = np.array([0.0, 0.0, -9.81])
 P = np.array([0.7, -0.3, 1.1])
