@@ -67,9 +67,8 @@ def start(dev, cfg: ti.template(), dt, t, bdf2: ti.template()):
         if ti.static(bdf2):
             xb = (4 * dev.x[i] - dev.xo[i]) / 3
             vb = (4 * dev.keep[i] - dev.vo[i]) / 3
-            if ti.static(cfg.moving_pins):  # a pin moves by dt times its velocity: x' = xb + 2/3 dt v'
-                if is_pinned(i, dev, cfg):
-                    xb = dev.x[i] + dt / 3 * prescribed(i, dev, cfg)
+            if is_pinned(i, dev, cfg):  # a pin moves by dt times its velocity: x' = xb + 2/3 dt v' (a still
+                xb = dev.x[i] + dt / 3 * prescribed(i, dev, cfg)  # pin's xb is x_n exactly, as the adjoint has it)
         dev.xb[i] = xb
         dev.vb[i] = vb
         if ti.static(cfg.contact_filter):

@@ -169,7 +169,7 @@ def random_direction(seed):
 @pytest.mark.fast_sample(integrator=["symplectic", "implicit"], path=["serial"])
 @pytest.mark.parametrize("path", PATHS)
 @pytest.mark.parametrize("integrator", tuple(INTEGRATORS))
-def test_one_spring_rotated(integrator, path, request):
+def test_one_spring_rotated(integrator, path):
     """The same spring along a random unit direction e, anchored off the origin: the
     motion is x1 = x0 + (l0 + u) e with the same (u, w) sequence. Rotation makes the
     unit vector inexact (components rounded), so the along-axis dynamics see a
@@ -177,9 +177,8 @@ def test_one_spring_rotated(integrator, path, request):
     up round-off that is not amplified (the transverse stiffness is that of a
     string in tension, or, when compressed and in the implicit step, removed by the
     definiteness fix); the same TOL applies. The fixed particle stays exactly where it
-    is (its velocity is exactly 0)."""
-    if integrator == "bdf2":
-        request.applymarker(STILL_PIN_MOVES)
+    is, not an ulp off (BDF2 once based a pin on (4 x_n - x_{n-1}) / 3), and its velocity
+    is exactly 0."""
     e = random_direction(7)
     origin = np.array([0.3, -0.2, 0.5])
     xs, vs = run(spring_model(origin, e), integrator, "f64", CG_TOL["f64"], path)
@@ -188,20 +187,7 @@ def test_one_spring_rotated(integrator, path, request):
     assert np.max(np.abs(xs[:, 1] - (origin + np.outer(L0 + u, e)))) <= tol * 1.1
     assert np.max(np.abs(vs[:, 1] - np.outer(w, e))) <= tol
     assert np.all(vs[:, 0] == 0)
-    moved = np.abs(xs[:, 0] - origin).max()
-    if moved:
-        assert moved <= 4 * np.finfo(float).eps * np.abs(origin).max()  # round-off, not a motion
-        raise StillPinMoved(f"the fixed particle moved by {moved:.3g} m")
-
-
-class StillPinMoved(AssertionError):
-    """A fixed particle (pin velocity 0) moved by round-off."""
-
-
-STILL_PIN_MOVES = pytest.mark.xfail(strict=True, raises=StillPinMoved, reason=(
-    "known defect: BDF2's base position (4 x_n - x_{n-1}) / 3 (kernels/newton.py, start) is a still pin's "
-    "x_n only to an ulp (2.8e-17 m at 0.3 m here); a moving pin's base is x_n + dt/3 v, exact, but only "
-    "where the model has moving pins (cfg.moving_pins)"))
+    np.testing.assert_array_equal(xs[:, 0], np.broadcast_to(origin, xs[:, 0].shape))
 
 
 @pytest.mark.fast_sample(integrator=["symplectic", "implicit"], path=["serial"])

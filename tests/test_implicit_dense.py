@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 
 import massspring as ms
+from massspring.integrators import taken
 from conftest import PATHS, dense_step, dense_system, free_dofs, numpy_forces, random_system, simulation
 
 DT = 2e-2
@@ -215,7 +216,7 @@ def test_serial_and_parallel_drivers_agree(integrator):
     model = random_system(400)
     out = []
     for path in PATHS:
-        sim = simulation(model, path, integrator=integrator, dt=DT, cg_tol=1e-12)
+        sim = simulation(model, path, integrator=integrator, dt=DT, **taken(integrator, {"cg_tol": 1e-12}))
         sim.step(3)  # multi-step calls of odd and even length
         sim.step(7)
         sim.step(0)
