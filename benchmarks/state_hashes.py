@@ -3,9 +3,9 @@ scene's default dt, as a SHA-1 of its positions and velocities: run it in two ch
 and compare the JSON files to see that a refactor left every forward result bit for bit
 the same (``--compare`` does that and exits 1 on a difference).
 
-    python benchmarks/state_hashes.py --json /tmp/new.json
-    (cd ../other-checkout && python benchmarks/state_hashes.py --json /tmp/base.json)
-    python benchmarks/state_hashes.py --compare /tmp/base.json /tmp/new.json
+    python benchmarks/state_hashes.py --json benchmarks/out/new.json
+    (cd OTHER_CHECKOUT && python benchmarks/state_hashes.py --json benchmarks/out/base.json)
+    python benchmarks/state_hashes.py --compare OTHER_CHECKOUT/benchmarks/out/base.json benchmarks/out/new.json
 
 Scenes of more than ``LARGE`` particles take ``--large-steps`` steps, the others
 ``--steps``. A run that raises is recorded as "error: ..." (and so compared too).
