@@ -55,20 +55,30 @@ from .terms import uniform_acceleration
 
 
 @ti.func
-def start(dev, cfg: ti.template(), dt, t, bdf2: ti.template()):
+def start(dev, cfg: ti.template(), dt, t, bdf2: ti.template(), variable: ti.template(), omega):
     """The base state (x^, v^) of the step from (x_n, v_n) = (``dev.x``, ``dev.keep``) at
     time t; contacts detected from (x_n, v_n) as the linearised step detects them
     (``contact.detect``, step dt); the iterate v = v^ with the prescribed directions set.
+    BDF2's base: (4 x_n - x_{n-1}) / 3; ``variable`` (an error-controlled run's), with the
+    step ratio omega = dt / (the step before's): ((1 + omega)^2 x_n - omega^2 x_{n-1}) / (1 + 2 omega).
     Returns the number of particles in contact."""
     touching = 0
     for i in range(dev.size[0]):
         xb = dev.x[i]
         vb = dev.keep[i]  # v_n, also when dev.v holds a base already
-        if ti.static(bdf2):
+        if ti.static(bdf2 and not variable):
             xb = (4 * dev.x[i] - dev.xo[i]) / 3
             vb = (4 * dev.keep[i] - dev.vo[i]) / 3
             if is_pinned(i, dev, cfg):  # a pin moves by dt times its velocity: x' = xb + 2/3 dt v' (a still
                 xb = dev.x[i] + dt / 3 * prescribed(i, dev, cfg)  # pin's xb is x_n exactly, as the adjoint has it)
+        if ti.static(bdf2 and variable):
+            now = (1 + omega) * (1 + omega)
+            before = omega * omega
+            den = 1 + 2 * omega
+            xb = (now * dev.x[i] - before * dev.xo[i]) / den
+            vb = (now * dev.keep[i] - before * dev.vo[i]) / den
+            if is_pinned(i, dev, cfg):
+                xb = dev.x[i] + dt * omega / den * prescribed(i, dev, cfg)
         dev.xb[i] = xb
         dev.vb[i] = vb
         if ti.static(cfg.contact_filter):
@@ -83,19 +93,20 @@ def start(dev, cfg: ti.template(), dt, t, bdf2: ti.template()):
 
 @ti.kernel
 def newton_start(dev: ti.template(), cfg: ti.template(), dt: ti.f64, t: ti.f64, bdf2: ti.template(),
-                 serial: ti.template()) -> ti.i32:
-    """``start`` of a step of size dt (s) at time t (s); ``bdf2``: BDF2's base. Returns
-    the number of particles in contact."""
+                 variable: ti.template(), omega: ti.f64, serial: ti.template()) -> ti.i32:
+    """``start`` of a step of size dt (s) at time t (s); ``bdf2``: BDF2's base, ``variable``
+    with the step ratio ``omega``. Returns the number of particles in contact."""
     step = ti.cast(dt, cfg.real)
     now = ti.cast(t, cfg.real)
+    ratio = ti.cast(omega, cfg.real)
     out = 0
     if ti.static(serial):
         ti.loop_config(serialize=True)
         for _ in range(1):
-            touching = start(dev, cfg, step, now, bdf2)
+            touching = start(dev, cfg, step, now, bdf2, variable, ratio)
             out = touching
     else:
-        touching = start(dev, cfg, step, now, bdf2)
+        touching = start(dev, cfg, step, now, bdf2, variable, ratio)
         out = touching
     return out
 

@@ -77,3 +77,13 @@ def restore_state(hx, hv, dst, n, slot, stride):
     for i in range(n):
         dst.x[i] = hx[slot * stride + i]
         dst.v[i] = hv[slot * stride + i]
+
+
+@ti.kernel
+def read_state(src: ti.template(), out: ti.types.ndarray(dtype=ti.f64, ndim=2), n: ti.i32):
+    """out[i] = (x_i, v_i) (n, 6) float64 of the state ``src`` (m, m/s): a state read in
+    one launch (an error-controlled run reads each step's)."""
+    for i in range(n):
+        for c in ti.static(range(3)):
+            out[i, c] = ti.cast(src.x[i][c], ti.f64)
+            out[i, 3 + c] = ti.cast(src.v[i][c], ti.f64)

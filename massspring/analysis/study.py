@@ -41,6 +41,7 @@ from massspring.support import validate
 from massspring.analysis import cluster, reference
 from massspring.analysis.fits import TARGETS, cheapest, fit_orders
 from massspring.analysis.hints import hints
+from massspring.engine.adaptive import scene_size
 from massspring.support.errors import DivergenceError
 from massspring.integrators import INTEGRATORS, OPTIONS, REFERENCE, SMALLEST_DT, STUDIED, Integrator
 from massspring.engine.simulation import Simulation
@@ -176,12 +177,6 @@ def ladder_tops(scene, model, integrators, duration) -> dict:
             if math.isfinite(limit) and limit > 0:
                 tops[name] = 0.9 * limit
     return {name: min(top, duration / 10) for name, top in tops.items()}
-
-
-def scene_size(model) -> float:
-    """Largest side (m) of the bounding box of the initial positions (1 if 0)."""
-    extent = float(np.max(np.ptp(model.positions, axis=0)))
-    return extent if extent > 0 else 1.0
 
 
 DEFAULT_INTEGRATORS = STUDIED

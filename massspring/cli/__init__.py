@@ -21,7 +21,8 @@ import sys
 
 from massspring.analysis.cluster import ClusterError
 from massspring.cli.common import (EXIT_DIVERGED, EXIT_INTERRUPTED, EXIT_OK, EXIT_OUTPUT, EXIT_USAGE, Terminated,
-                                   UsageError, add_scene_arguments, main_thread)
+                                   UsageError, add_scene_arguments, add_tolerance_arguments,
+                                   main_thread)
 from massspring.cli.pictures import add_export_arguments, add_frame_arguments
 from massspring.cli.run import cmd_run
 from massspring.cli.scenes import cmd_info, cmd_scenes
@@ -53,6 +54,7 @@ def build_parser():
 
     run = verbs["run"] = sub.add_parser("run", help="run a scene and print a summary")
     add_scene_arguments(run, INTEGRATORS)
+    add_tolerance_arguments(run)
     length = run.add_mutually_exclusive_group()
     length.add_argument("--steps", type=int, help="number of steps (default: the scene's duration / dt)")
     length.add_argument("--duration", type=float, help="simulated seconds (default: the scene's)")
@@ -70,6 +72,7 @@ def build_parser():
 
     info = verbs["info"] = sub.add_parser("info", help="show a scene's size, defaults, and what a run compiles")
     add_scene_arguments(info, INTEGRATORS)
+    add_tolerance_arguments(info)
 
     stab = verbs["stability"] = sub.add_parser(
         "stability", help="predict each integrator's dt limit from the spectrum, then run a ladder of dt around it")

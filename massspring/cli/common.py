@@ -41,6 +41,39 @@ def add_scene_arguments(p, integrators):
                    "--set gravity=[0,0,-1.62] or --set drag=0.005 (TOML values; repeatable)")
 
 
+def add_tolerance_arguments(p):
+    """--tol, --min-dt, --max-dt: an error-controlled run (``Simulation(tol=...)``)."""
+    p.add_argument("--tol", type=float, help="error-controlled steps: the error wanted at the end of the run (RMS "
+                   "position error of the moving particles over the scene's size, as `massspring study` reports "
+                   "it); the run picks each step from an estimate of its error, --dt is then the first step, and "
+                   "Newton's and CG's tolerances follow (default: the scene's tol, else fixed steps of --dt)")
+    p.add_argument("--min-dt", type=float, help="with --tol: the smallest step in s (default 1e-9 x the duration); "
+                   "a run whose step would fall below it stops with exit 3")
+    p.add_argument("--max-dt", type=float, help="with --tol: the largest step in s (default the duration)")
+
+
+def tolerance_options(args):
+    """The Simulation arguments of --tol, --min-dt, --max-dt (those given), checked: a
+    UsageError naming the flag."""
+    from massspring.engine.adaptive import Tolerance
+
+    given = {name: getattr(args, name, None) for name in ("tol", "min_dt", "max_dt")}
+    given = {name: value for name, value in given.items() if value is not None}
+    if not given:
+        return {}
+    if "tol" not in given:
+        raise UsageError(f"--{next(iter(given)).replace('_', '-')}: only with --tol (an error-controlled run)")
+    try:
+        Tolerance.of(given["tol"], given.get("min_dt"), given.get("max_dt"), 1.0 if "max_dt" in given else None)
+    except ValueError as exc:
+        raise UsageError("--" + str(exc).replace("_", "-", 1)) from None
+    for name in ("newton_tol", "cg_tol"):
+        if getattr(args, name, None) is not None:
+            raise UsageError(f"--{name.replace('_', '-')}: an error-controlled run (--tol) derives it from --tol; "
+                             f"give one or the other")
+    return given
+
+
 def add_option_flag(p, option):
     """The flag of a solver option (``integrators.options.Option``): --cg-tol, --no-definiteness-fix."""
     from massspring.integrators import takers
@@ -69,6 +102,7 @@ def make_simulation(args):
     except ValueError as exc:
         raise UsageError(str(exc)) from None
     check_taken(args.integrator or scene.integrator, options)
+    options.update(tolerance_options(args))
     with progress.phase(f"{args.command} {scene.name}: building the model and the simulation",
                         show=not getattr(args, "quiet", False)):
         sim = scene.simulation(integrator=args.integrator, dt=args.dt, precision=args.precision, arch=args.arch,

@@ -60,9 +60,10 @@ class PicturePlan:
     png: str | None
 
 
-def plan_frames(args, sim, steps):
+def plan_frames(args, sim, steps, seconds=None):
     """The steps of this run (0..steps) at which --gif/--png record and --export writes a
-    frame (``render.frame_steps``); None without any of them."""
+    frame (``render.frame_steps``); None without any of them. An error-controlled run's
+    (``seconds``: its duration) are slots of ``steps`` over its duration, which it lands on."""
     from massspring.io import render
 
     if not (args.gif or args.png or args.export):
@@ -74,8 +75,12 @@ def plan_frames(args, sim, steps):
     if not (math.isfinite(fps) and render.MIN_FPS <= fps <= render.MAX_FPS):
         raise UsageError(f"--fps: must be within {render.MIN_FPS:.4g}..{render.MAX_FPS} (a GIF frame lasts "
                          f"at most 655.35 s), got {fps:g}")
+    if seconds is not None and args.every is not None:
+        raise UsageError("--every: counts steps, which an error-controlled run (--tol) picks itself; give --frames "
+                         "or --fps")
     try:
-        return render.frame_steps(steps, frames=args.frames, every=args.every, duration=steps * sim.dt, fps=fps)
+        return render.frame_steps(steps, frames=args.frames, every=args.every,
+                                  duration=steps * sim.dt if seconds is None else seconds, fps=fps)
     except ValueError as exc:
         raise UsageError(f"--{exc}") from None  # "frames: ..." or "every: ..."
 

@@ -40,6 +40,26 @@ def run_steps(args, scene, sim, start_steps=0):
     return round(steps)
 
 
+SLOTS = 10**9  # an error-controlled run's frame plan: frames at multiples of duration / SLOTS
+PROGRESS_UNITS = 1000
+
+
+def run_seconds(args, scene, sim):
+    """The simulated seconds of an error-controlled ``run`` (--tol): --duration, else what is
+    left of the scene's duration after a restart; --steps is refused (UsageError)."""
+    if args.steps is not None:
+        raise UsageError("--steps: an error-controlled run (--tol) picks its own steps; give --duration (s)")
+    if args.duration is not None:
+        if not (math.isfinite(args.duration) and args.duration > 0):
+            raise UsageError(f"--duration: must be a finite number > 0, got {args.duration:g}")
+        return args.duration
+    left = scene.duration - sim.time
+    if not left > 0:
+        raise UsageError(f"--restart: the saved state is at t = {sim.time:g} s, at or past the scene's duration "
+                         f"{scene.duration:g} s; give --duration")
+    return left
+
+
 def cmd_run(args):
     from massspring.support.errors import DivergenceError
     from massspring.io.files import check_writable
@@ -47,10 +67,15 @@ def cmd_run(args):
 
     scene, sim = make_simulation(args)
     start_steps = restart(args, scene, sim)
-    steps = run_steps(args, scene, sim, start_steps)
+    controlled = sim.tol is not None
+    if controlled:  # measured in time: "steps" are slots of the frame plan (SLOTS over the duration)
+        seconds = run_seconds(args, scene, sim)
+        steps = SLOTS
+    else:
+        steps = run_steps(args, scene, sim, start_steps)
     if args.out is not None:
         check_writable(args.out, "--out", (".npz",))
-    frames = plan_frames(args, sim, steps)
+    frames = plan_frames(args, sim, steps, seconds if controlled else None)
     pictures = plan_pictures(args, scene, sim, steps, frames)
     export = plan_export(args, scene, sim, steps, frames)  # last: it creates the directory
     callbacks = [c for c in (pictures.recording.record if pictures else None, export) if c is not None]
@@ -64,10 +89,20 @@ def cmd_run(args):
         start = time.perf_counter()
         stopped, diverged = None, None
         try:
-            label = f"run {scene.name} ({sim.integrator}, dt {format_seconds(sim.dt)})"
-            with progress.steps(label, steps, sim.dt, show=not args.quiet and steps > 1) as on_progress:
-                run(sim, steps, frames=frames if callbacks else (), on_frame=on_frame if callbacks else None,
-                    progress=on_progress)
+            if controlled:
+                label = f"run {scene.name} ({sim.integrator}, tol {sim.tol:g})"
+                with progress.steps(label, PROGRESS_UNITS, seconds / PROGRESS_UNITS, show=not args.quiet,
+                                    unit="1/1000 of the run") as on_progress:
+                    times = None if frames is None else [k * seconds / SLOTS for k in frames]
+                    run(sim, duration=seconds, frames=times if callbacks else (),
+                        on_frame=on_frame if callbacks else None,
+                        progress=None if on_progress is None else
+                        (lambda done, total: on_progress(round(PROGRESS_UNITS * done / total), PROGRESS_UNITS)))
+            else:
+                label = f"run {scene.name} ({sim.integrator}, dt {format_seconds(sim.dt)})"
+                with progress.steps(label, steps, sim.dt, show=not args.quiet and steps > 1) as on_progress:
+                    run(sim, steps, frames=frames if callbacks else (), on_frame=on_frame if callbacks else None,
+                        progress=on_progress)
         except KeyboardInterrupt as exc:  # Ctrl-C or SIGTERM: the simulation holds the state reached
             stopped = exc
         except DivergenceError as exc:  # the simulation holds the last good state

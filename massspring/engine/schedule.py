@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from massspring.kernels import state as state_kernels
@@ -11,12 +13,13 @@ class Schedule:
     """Writes each interval's pin velocities (``dev.pin_velocity``), wind (``dev.wind``)
     and rest lengths (``dev.l0``) of ``model.controls`` (``massspring.model.controls``) before
     a run's steps enter it. ``model`` is the model the kernels step (renumbered where
-    the run renumbers); ``dt`` must divide the interval (ValueError naming ``dt``)."""
+    the run renumbers); ``dt`` must divide the interval (ValueError naming ``dt``); None
+    for an error-controlled run, whose steps land on the intervals' ends (``at``, ``end``)."""
 
     def __init__(self, model, dev, dt):
         controls = model.controls
         self.controls = controls
-        self.per = controls.steps_per_interval(dt)
+        self.per = None if dt is None else controls.steps_per_interval(dt)
         self.count = controls.intervals
         self.dev = dev
         self.applied = None
@@ -33,15 +36,29 @@ class Schedule:
         """The interval step ``step`` (from 0) is in; ``count`` and above: after the last."""
         return min(step // self.per, self.count)
 
+    def at(self, t) -> int:
+        """The interval the step from time ``t`` (s) is in (``count`` and above: after the last)."""
+        return min(int(math.floor(t / self.controls.interval + 1e-9)), self.count)
+
+    def before(self, t) -> int:
+        """The interval of a step that ended at time ``t`` (s) > 0."""
+        return min(max(math.ceil(t / self.controls.interval - 1e-9) - 1, 0), self.count)
+
+    def end(self, t) -> float:
+        """The end (s) of the interval the step from ``t`` is in (inf after the last)."""
+        s = self.at(t)
+        return math.inf if s >= self.count else (s + 1) * self.controls.interval
+
     def steps_left(self, step) -> int:
         """Steps from ``step`` to the next interval's first (None after the last)."""
         if step // self.per >= self.count:
             return None
         return (step // self.per + 1) * self.per - step
 
-    def apply(self, step):
-        """The fields for the step from ``step`` (its interval's values), if not already there."""
-        s = self.interval(step)
+    def apply(self, step, t=None):
+        """The fields for the step from ``step`` (its interval's values; from time ``t``, s,
+        where given), if not already there."""
+        s = self.interval(step) if t is None else self.at(t)
         if s == self.applied:
             return
         held = min(s, self.count - 1)  # wind and rest lengths keep their last values

@@ -2,13 +2,15 @@
 
 from __future__ import annotations
 
+import dataclasses
+import math
 import textwrap
 import weakref
 from dataclasses import dataclass, make_dataclass
 
 import numpy as np
 
-from massspring.engine import footprint
+from massspring.engine import adaptive, footprint
 from massspring.model import ordering
 from massspring.passes import PASSES, for_model
 from massspring.support import memory, validate
@@ -18,6 +20,7 @@ from massspring.device import ARCHS, CPU_ARCHS, POOL, ensure_taichi, model_layou
 from massspring.support.errors import DivergenceError, SimulationClosedError
 from massspring.integrators import DEFAULT, INTEGRATORS, OPTIONS, takers, untaken
 from massspring.kernels import divergence
+from massspring.kernels import state as state_kernels
 from massspring.model.terms import active_terms
 from massspring.model import Model
 from massspring.engine.schedule import Schedule
@@ -41,7 +44,8 @@ F32_MAX_MAGNITUDE = 1e18  # model values an f32 run accepts: their squares stay 
 # A simulation's settings (see ``Simulation``), fixed at construction: the run's own,
 # then every integrator's solver options (``integrators.OPTIONS``).
 Settings = make_dataclass("Settings", [(name, object) for name in
-                                       ("integrator", "dt", "precision", "arch", "loops", *OPTIONS)], frozen=True)
+                                       ("integrator", "dt", "precision", "arch", "loops", *OPTIONS,
+                                        "tol", "min_dt", "max_dt", "horizon")], frozen=True)
 Settings.__module__ = __name__  # where pickle finds it
 
 
@@ -77,6 +81,7 @@ class Snapshot:
     carried: dict
     passes: tuple
     counters: tuple
+    time: float | None = None  # an error-controlled run's time (s)
 
 
 def divergence_check(model: Model, factor=DIVERGENCE_FACTOR):
@@ -123,6 +128,18 @@ class Simulation:
     integrator : {integrators}
         (``integrators.INTEGRATORS``)
     dt : float, s, > 0
+        The step; with ``tol``, the first step.
+    tol : float, optional, 1e-14 .. (the error the study reports: RMS position error of
+        the moving particles over the scene's size)
+        An error-controlled run: each step's size is chosen from an estimate of its
+        local error so that the error at the end of ``horizon`` s is about ``tol``
+        (``engine.adaptive``); Newton's and CG's tolerances follow from it (giving
+        ``newton_tol`` or ``cg_tol`` too is a ValueError). None (default): fixed steps of dt.
+    min_dt, max_dt : float, s, optional (with ``tol``)
+        Bounds on the steps: default 1e-9 x horizon and the horizon. A step that would
+        fall below min_dt raises ``StepSizeError`` (a ``DivergenceError``).
+    horizon : float, s, optional (with ``tol``)
+        The run's duration the tolerance is for (default 1 s).
     precision : "f64" (default) | "f32"
 {options}    arch : Taichi arch name, "cpu" by default; one that cannot start is a ValueError.
     loops : "auto" (default) | "serial" | "parallel"
@@ -146,7 +163,7 @@ class Simulation:
     """
 
     def __init__(self, model, integrator=DEFAULT, dt=1e-2, precision="f64", arch="cpu", loops="auto",
-                 **options):
+                 tol=None, min_dt=None, max_dt=None, horizon=None, **options):
         if not isinstance(model, Model):
             raise ValueError(f"model: expected a massspring.Model, got {type(model).__name__}")
         unknown = sorted(set(options) - set(OPTIONS))
@@ -159,8 +176,20 @@ class Simulation:
                              f"for {', '.join(takers(names[0]))}")
         validate.choice("precision", precision, PRECISIONS)
         dt = validate.positive_float("dt", dt)
+        tolerance = None
+        if tol is None:
+            for name, value in (("min_dt", min_dt), ("max_dt", max_dt), ("horizon", horizon)):
+                if value is not None:
+                    raise ValueError(f"{name}: only for an error-controlled run (give tol)")
+        else:
+            tolerance = adaptive.Tolerance.of(tol, min_dt, max_dt, horizon)
+            for name in ("newton_tol", "cg_tol"):
+                if options.get(name) is not None:
+                    raise ValueError(f"{name}: an error-controlled run (tol) derives it from tol; give one or "
+                                     f"the other")
         if model.controls is not None:
-            model.controls.steps_per_interval(dt)
+            if tolerance is None:
+                model.controls.steps_per_interval(dt)
             if model.controls.pin_targets is not None and not INTEGRATORS[integrator].traits.keyframed_pins:
                 raise ValueError(f"integrator: {integrator!r} does not move keyframed pins "
                                  f"(controls.pin_targets); these do: "
@@ -183,7 +212,9 @@ class Simulation:
             loops = "serial" if model.n_springs < below and arch in CPU_ARCHS else "parallel"
         self._model = model
         options["preconditioner"] = preconditioner
-        self._settings = Settings(integrator, dt, precision, arch, loops, **options)
+        self._settings = Settings(integrator, dt, precision, arch, loops, **options,
+                                  **({"tol": None, "min_dt": None, "max_dt": None, "horizon": None}
+                                     if tolerance is None else vars(tolerance)))
         self._check = divergence_check(model)
         self._steps = 0
         self._cg_iterations = []
@@ -208,9 +239,17 @@ class Simulation:
         dev = layout.allocate()
         dev.check[None] = self._check
         self._integrator = cls(dev, inner, self._settings)
-        self._schedule = None if model.controls is None else Schedule(inner, dev, dt)
+        self._schedule = None if model.controls is None else Schedule(inner, dev, None if tolerance else dt)
         self._passes = tuple(kind(dev, self._integrator.cfg, inner, self._integrator.serial, dt) for kind in kinds)
         self._release = weakref.finalize(self, _release, dev, self._integrator, self._passes)
+        self._controller = self._estimator = None
+        if tolerance is not None:
+            self._integrator.clock = 0.0
+            size = adaptive.scene_size(model)
+            self._controller = adaptive.Controller(tolerance, dt, size)
+            cls = self._integrator.traits
+            self._estimator = adaptive.Estimator(cls.order, cls.error_constant, np.flatnonzero(inner.free_mask()),
+                                                 size, tolerance.horizon)
 
     # ------------------------------------------------------------------ settings
 
@@ -252,8 +291,19 @@ class Simulation:
 
     @property
     def time(self) -> float:
-        """Simulated time (s): steps x dt."""
+        """Simulated time (s): steps x dt (an error-controlled run's clock)."""
+        if self._controller is not None:
+            return self._open().clock
         return self._steps * self._settings.dt
+
+    tol = property(lambda self: self._settings.tol, doc="The error-controlled run's tolerance (None: fixed dt).")
+
+    def control_stats(self):
+        """An error-controlled run's steps: accepted, rejected by cause ("error": the
+        estimate above its bound, "solver": Newton or CG missed, "divergence": the check
+        refused the state), the smallest and largest accepted step and the next (s); None
+        with a fixed dt."""
+        return None if self._controller is None else self._controller.stats()
 
     @property
     def positions(self) -> np.ndarray:
@@ -306,14 +356,18 @@ class Simulation:
         self._open()
         return Snapshot(self.positions, self.velocities, self._steps, self.carried_state(),
                         tuple(p.snapshot() for p in self._passes),
-                        (len(self._cg_iterations), len(self._newton_iterations), self._cuts, self._cg_failures))
+                        (len(self._cg_iterations), len(self._newton_iterations), self._cuts, self._cg_failures),
+                        None if self._controller is None else self.time)
 
     def restore(self, snapshot: "Snapshot"):
         """Back to ``snapshot`` (a ``snapshot()`` of this run): a run continued from here
         equals, to the bit, one continued from where the snapshot was taken."""
         if not isinstance(snapshot, Snapshot) or len(snapshot.passes) != len(self._passes):
             raise ValueError("snapshot: expected a Simulation.snapshot() of this run")
-        self.set_state(snapshot.positions, snapshot.velocities, snapshot.steps, snapshot.carried)
+        history = None if self._estimator is None else self._estimator.points
+        self.set_state(snapshot.positions, snapshot.velocities, snapshot.steps, snapshot.carried, snapshot.time)
+        if history is not None:
+            self._estimator.points = history  # the estimate's history of the run, not a restart's
         for p, kept in zip(self._passes, snapshot.passes):
             p.restore(self._integrator.state, kept)
         cg, newton, self._cuts, self._cg_failures = snapshot.counters
@@ -369,10 +423,11 @@ class Simulation:
             names.update(p.carried)
         return names
 
-    def set_state(self, positions, velocities, steps=0, carried=None):
+    def set_state(self, positions, velocities, steps=0, carried=None, time=None):
         """Continue from a given state (a restart): ``positions`` (n, 3) in m,
         ``velocities`` (n, 3) in m/s, ``steps`` taken so far (``time`` is steps x dt:
-        where moving pins and colliders are), ``carried``: a ``carried_state()`` of the
+        where moving pins and colliders are; an error-controlled run's ``time``, s, is
+        given, by default steps x dt), ``carried``: a ``carried_state()`` of the
         same model and integrator (None: such memory starts afresh, e.g. no contact
         sticks yet).
 
@@ -396,7 +451,12 @@ class Simulation:
                                  f"(|value| <= {F32_MAX_MAGNITUDE:g})")
             arrays[name] = np.ascontiguousarray(arr)
         steps = validate.count("steps", steps, low=0, high=MAX_STEPS)
-        fixed, pinned = self._model.fixed, self._pin_velocity_before(steps)
+        if time is not None and self._controller is None:
+            raise ValueError("time: only for an error-controlled run (tol); a fixed-dt run's time is steps x dt")
+        clock = None
+        if self._controller is not None:
+            clock = steps * self.dt if time is None else validate.real_number("time", time, 0.0, ">=")
+        fixed, pinned = self._model.fixed, self._pin_velocity_before(steps, clock)
         wrong = np.flatnonzero(np.any(arrays["velocities"][fixed] != pinned, axis=1))
         if wrong.size:
             k = int(wrong[0])
@@ -413,16 +473,19 @@ class Simulation:
             p.load(integrator.state, None if carried is None else {k: carried[k] for k in p.carried})
         integrator.steps = steps  # moving pins and colliders are where they are at steps x dt
         self._steps = steps
+        if clock is not None:
+            integrator.clock = clock
+            self._estimator.points = []  # the history starts afresh at the next step
         return self
 
-    def _pin_velocity_before(self, steps):
-        """(k, 3) m/s: the pins' velocities in a state after ``steps`` steps: their pin
-        velocity, or with keyframed pins (``Controls.pin_targets``) the velocity each last
-        moved with."""
+    def _pin_velocity_before(self, steps, clock=None):
+        """(k, 3) m/s: the pins' velocities in a state after ``steps`` steps (at time
+        ``clock``, s, in an error-controlled run): their pin velocity, or with keyframed
+        pins (``Controls.pin_targets``) the velocity each last moved with."""
         model, schedule = self._model, self._schedule
         if steps == 0 or schedule is None or schedule.pins is None:
             return model.pin_velocity
-        s = schedule.interval(steps - 1)
+        s = schedule.interval(steps - 1) if clock is None else schedule.before(clock)
         if s >= schedule.count:
             return np.zeros_like(model.pin_velocity)
         return model.controls.pin_velocities(model.positions[model.fixed])[s]
@@ -430,20 +493,137 @@ class Simulation:
     # ------------------------------------------------------------------ stepping
 
     def step(self, n=1):
-        """Advance ``n`` steps of size ``dt``.
+        """Advance ``n`` steps of size ``dt`` (an error-controlled run: ``n`` accepted steps
+        of the sizes it chooses).
 
         Every step is checked (``divergence_check``). A step whose state has a
         non-finite value or runaway kinetic energy raises ``DivergenceError``
         naming it; the simulation then holds the last good state (``steps``,
         ``time``, ``positions`` and ``velocities`` are those of the step before).
+        An error-controlled run retries such a step, and one whose error is too large
+        or whose solve failed, with a smaller one; it raises ``StepSizeError`` (a
+        ``DivergenceError``) where that would be below ``min_dt``.
         """
         integrator = self._open()
         n = validate.count("n", n, low=0, high=MAX_STEPS)
         try:
-            self._advance(integrator, n)
+            if self._controller is not None:
+                for _ in range(n):
+                    self._controlled_step(integrator, math.inf)
+            else:
+                self._advance(integrator, n)
         finally:
             integrator.settle()
         return self
+
+    def advance(self, seconds):
+        """Advance by ``seconds`` (s) of simulated time, ending on it exactly: an
+        error-controlled run shortens its last step to land there; a fixed-dt run takes
+        seconds / dt steps, which must be a whole number (ValueError naming ``seconds``)."""
+        integrator = self._open()
+        seconds = validate.real_number("seconds", seconds, 0.0, ">=")
+        if self._controller is None:
+            ratio = seconds / self.dt
+            steps = round(ratio)
+            if abs(ratio - steps) > 1e-9 * max(1.0, ratio):
+                raise ValueError(f"seconds: {seconds:g} s is not a whole number of steps of dt {self.dt:g} s "
+                                 f"(a fixed-dt run; give tol for an error-controlled one)")
+            return self.step(steps)
+        end = integrator.clock + seconds
+        try:
+            while integrator.clock < end:
+                self._controlled_step(integrator, end)
+        finally:
+            integrator.settle()
+        return self
+
+    def _read_state(self, integrator):
+        """(x, v) (n, 3) float64 of the current state, in the run's inner numbering."""
+        integrator.settle()
+        n = self._model.n_particles
+        out = np.empty((n, 6))
+        state_kernels.read_state(integrator.state, out, n)
+        return out[:, :3], out[:, 3:]
+
+    def _kept(self):
+        """What a rejected try goes back to besides the state (``_controlled_step`` holds
+        that): a ``Snapshot`` without positions and velocities."""
+        carried = self.carried_state() if self._carried_names(self._integrator) else None
+        return Snapshot(None, None, self._steps, carried, tuple(p.snapshot() for p in self._passes),
+                        (len(self._cg_iterations), len(self._newton_iterations), self._cuts, self._cg_failures),
+                        self._integrator.clock)
+
+    def _controlled_step(self, integrator, end):
+        """One accepted step of an error-controlled run (``engine.adaptive``), ending at
+        ``end`` (s) if the step would pass it or the end of the control interval it is in,
+        after as many rejected tries as it takes."""
+        ctl, est, schedule = self._controller, self._estimator, self._schedule
+        t = integrator.clock
+        if not est.points:
+            self._current = self._read_state(integrator)
+            est.reset(t, *self._current)
+        if schedule is not None:
+            end = min(end, schedule.end(t))
+        while True:
+            h = ctl.dt
+            landing = t + h >= end
+            if landing:
+                h = end - t
+            kept = self._kept()
+            integrator.dt = h
+            for p in self._passes:
+                p.dt = h
+            change = est.velocity_change()
+            for name in ("newton_tol", "cg_tol"):
+                if getattr(integrator, name) is not None:
+                    derived = ctl.solver_tolerance(name, h, change)
+                    setattr(integrator, name, getattr(self._settings, name) if derived is None else derived)
+            if integrator.traits.newton:  # Newton's linear solves: at least as tight as Newton asks
+                integrator.cg_tol = min(self._settings.cg_tol, 1e-3 * integrator.newton_tol)
+            failure, estimate, order = self._try_step(integrator, t)
+            if failure is None:
+                x, v = self._read_state(integrator)
+                estimate, order = est.error(t + h, x, v)
+            if ctl.judge(h, estimate, order, failure):
+                if landing:
+                    integrator.clock = end
+                self._current = (x, v)
+                est.push(integrator.clock, x, v)
+                return
+            x, v = self._current
+            self.restore(dataclasses.replace(kept, positions=self.to_user(x), velocities=self.to_user(v)))
+            if ctl.dt < ctl.tolerance.min_dt:
+                cause = {"divergence": "the state diverged", "solver": "the step's solve did not converge"}.get(
+                    failure, f"error estimate {estimate / ctl.bound(h):.3g} x its bound")
+                raise adaptive.StepSizeError(self._steps, t, ctl.dt, ctl.tolerance.min_dt, cause, self.integrator)
+            if ctl.in_a_row >= adaptive.DROP_AFTER and len(est.points) > 1:
+                est.points = est.points[-1:]  # a kink: the history before it does not help
+
+    def _try_step(self, integrator, t):
+        """One step of ``integrator.dt`` from time t with the passes and controls: (failure
+        "divergence" | "solver" | None, None, 1)."""
+        if self._schedule is not None:
+            self._schedule.apply(self._steps, t)
+        for p in self._passes:
+            p.begin(integrator.state)
+        done, check = integrator.advance(1)
+        if done and self._passes:
+            integrator.settle()
+            for p in self._passes:
+                p.end(integrator.state, integrator.time)
+            integrator.changed()
+        if not done:
+            return "divergence", None, 1
+        self._steps += 1
+        if integrator.traits.has_stats:
+            stats = integrator.stats
+            self._cg_iterations.append(stats.iterations)
+            if stats.newton_iterations is not None:
+                self._newton_iterations.append(stats.newton_iterations)
+                self._cuts += stats.cuts
+            if not stats.converged:
+                return "solver", None, 1
+        return None, None, 1
 
     def _advance(self, integrator, n):
         """``n`` steps of ``integrator``: in launches of up to ``STEPS_PER_LAUNCH`` steps
@@ -593,8 +773,9 @@ def _check_f32_range(model):
                          f"(>= {1.0 / F32_MAX_MAGNITUDE:g}); use precision='f64'")
 
 
-def run(sim, steps, *, frames=(), on_frame=None, progress=None):
-    """Advance ``sim`` by ``steps`` steps, in chunks of at most 1/200 of the run.
+def run(sim, steps=None, *, duration=None, frames=(), on_frame=None, progress=None):
+    """Advance ``sim`` by ``steps`` steps, in chunks of at most 1/200 of the run; or by
+    ``duration`` seconds (``run_for``).
 
     ``on_frame(sim)`` is called each time the steps taken here reach an entry of
     ``frames`` (sorted ints within 0..steps; 0 is before the first step), and
@@ -602,6 +783,12 @@ def run(sim, steps, *, frames=(), on_frame=None, progress=None):
     ``DivergenceError`` or ``KeyboardInterrupt`` propagates with ``sim`` at its last
     good state and every frame up to it delivered. Returns ``steps``.
     """
+    if duration is not None:
+        if steps is not None:
+            raise ValueError("steps, duration: give one")
+        return run_for(sim, duration, frames=frames, on_frame=on_frame, progress=progress)
+    if steps is None:
+        raise ValueError("steps: give steps or duration")
     steps = validate.count("steps", steps, low=0, high=MAX_STEPS)
     chunk = max(1, steps // 200)
     pending = iter(frames if on_frame is not None else ())  # read as the run goes: frames may be lazy
@@ -621,3 +808,35 @@ def run(sim, steps, *, frames=(), on_frame=None, progress=None):
         done += k
         if progress is not None:
             progress(done, steps)
+
+
+def run_for(sim, duration, *, frames=(), on_frame=None, progress=None):
+    """Advance ``sim`` by ``duration`` s of simulated time (``Simulation.advance``), in
+    chunks of 1/200 of it. ``frames``: sorted instants (s) within 0..duration from the
+    run's start (0: before the first step), at which ``on_frame(sim)`` is called: an
+    error-controlled run lands a step on each; a fixed-dt run's must be whole steps.
+    ``progress(done, duration)`` (s) after each chunk. Errors propagate as ``run``'s do.
+    Returns the steps taken."""
+    duration = validate.real_number("duration", duration, 0.0, ">=")
+    first, start = sim.steps, sim.time
+    pending = iter(frames if on_frame is not None else ())
+    upcoming = next(pending, None)
+    chunk = duration / 200
+    done = 0.0
+    while True:
+        while upcoming is not None and upcoming <= done:
+            if upcoming == done:
+                on_frame(sim)
+            upcoming = next(pending, None)
+        if done >= duration:
+            return sim.steps - first
+        target = min(done + chunk, duration)
+        if upcoming is not None:
+            target = min(target, float(upcoming))
+        if sim.tol is None:
+            sim.step(round((start + target) / sim.dt) - sim.steps)
+        else:
+            sim.advance(start + target - sim.time)
+        done = target
+        if progress is not None:
+            progress(done, duration)

@@ -29,6 +29,9 @@ class Traits:
     oscillation at every dt (damping alone can make it stable). ``limit_reference``: its
     measured stability limit is the one the others' are relative to (the stability
     ladder's reference, the integrator ``run`` suggests after such a growth).
+    ``error_constant``: C of its local error C h^(order+1) y^(order+1) on the linear test
+    equation y' = lambda y, which an error-controlled run's estimate (``engine.adaptive``)
+    scales by.
     """
 
     order: int = 1
@@ -42,6 +45,7 @@ class Traits:
     spring_extra_bytes: int = 0
     grows_undamped: bool = False
     limit_reference: bool = False
+    error_constant: float = 0.5
 
 
 class Integrator:
@@ -68,11 +72,25 @@ class Integrator:
         self.cfg = self.config(model, settings)
         self.state = dev.state
         self.steps = 0  # good steps taken: the current state is at time steps * dt (moving colliders need it)
+        self.dt = settings.dt  # the next step's size (s); an error-controlled run changes it between steps
+        self.clock = None  # an error-controlled run's time (s) of the current state; None: steps * dt
+        self.cg_tol = getattr(settings, "cg_tol", None)  # the next step's tolerances (error control sets them)
+        self.newton_tol = getattr(settings, "newton_tol", None)
 
     @property
     def time(self) -> float:
         """Simulated time (s) of the current state."""
-        return self.steps * self.settings.dt
+        return self.steps * self.dt if self.clock is None else self.clock
+
+    def time_after(self) -> float:
+        """Simulated time (s) after the step being taken: (steps + 1) dt with a fixed dt."""
+        return (self.steps + 1) * self.dt if self.clock is None else self.clock + self.dt
+
+    def count(self, done):
+        """Count ``done`` (0 or 1 where the clock runs) good steps."""
+        if self.clock is not None and done:
+            self.clock = self.clock + self.dt
+        self.steps += done
 
     @classmethod
     def config(cls, model, settings) -> Config:

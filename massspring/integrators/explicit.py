@@ -32,7 +32,7 @@ class ExplicitEuler(SwappingStates):
         return self.serial
 
     def advance(self, steps):
-        dev, cfg, dt = self.dev, self.cfg, self.settings.dt
+        dev, cfg, dt = self.dev, self.cfg, self.dt
         if self.serial:
             a, b = self.states
             adj, slot = (dev, 0) if self.history is None else (self.history[0], self.steps + 1 - self.history[1])
@@ -41,7 +41,7 @@ class ExplicitEuler(SwappingStates):
             done, check = int(result[0]), read_verdict(result[1:])
             if done % 2:
                 self.state, self.spare = self.spare, self.state
-            self.steps += done
+            self.count(done)
             return done, check
         done, check = 0, (divergence.OK, 0.0, 0.0)
         while done < steps and check[0] == divergence.OK:
@@ -50,13 +50,13 @@ class ExplicitEuler(SwappingStates):
             if check[0] == divergence.OK:
                 self.state, self.spare = self.spare, self.state
                 done += 1
-                self.steps += 1
+                self.count(1)
         return done, check
 
     def adjoint(self, adj, slot, wants):
         """``euler.euler_adjoint`` of the step from the state kept at ``slot`` (no solve: None)."""
         wants, own = self._masses(wants)
-        euler.euler_adjoint(self.dev, self.cfg, adj, self.state, self.settings.dt, self.time + self.settings.dt, slot,
+        euler.euler_adjoint(self.dev, self.cfg, adj, self.state, self.dt, self.time + self.dt, slot,
                             self.symplectic, wants, own, self.serial)
 
     def adjoint_steps(self, adj, slot, count, wants):
@@ -65,7 +65,7 @@ class ExplicitEuler(SwappingStates):
         if not self.serial or self.cfg.has_colliders:
             return False
         wants, own = self._masses(wants)
-        euler.euler_adjoints(self.dev, self.cfg, adj, self.state, self.settings.dt, slot, count, self.symplectic,
+        euler.euler_adjoints(self.dev, self.cfg, adj, self.state, self.dt, slot, count, self.symplectic,
                              wants, own)
         return True
 

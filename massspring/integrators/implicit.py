@@ -137,8 +137,8 @@ class ImplicitEuler(Integrator):
         """One implicit step (``steps`` must be 1: each step has its own solver stats)."""
         assert steps == 1
         s = self.settings
-        self._stats = solve(self.dev, self.cfg, self.preconditioner, s.dt, s.cg_tol, s.cg_max_iter, self.serial,
-                            self.time)
+        self._stats = solve(self.dev, self.cfg, self.preconditioner, self.dt, self.cg_tol, s.cg_max_iter,
+                            self.serial, self.time)
         if self._stats.reason == "non-finite":  # Eq. 15 overflowed: no velocity to step with
             self.dev.v.copy_from(self.dev.keep)
             return 0, divergence.NONFINITE_VERDICT
@@ -147,12 +147,12 @@ class ImplicitEuler(Integrator):
                 adj, first = self.history
                 implicit_adjoint.keep_solved(self.dev, adj, self.dev.n, self.steps - first)
             friction.contact_friction(self.dev, self.cfg, self.time, self.serial)
-        check = read_verdict(cg.advance_positions(self.dev, self.cfg, self.dev.x, s.dt, s.dt,
-                                                       (self.steps + 1) * s.dt, self.serial, False, False))
+        check = read_verdict(cg.advance_positions(self.dev, self.cfg, self.dev.x, self.dt, self.dt,
+                                                  self.time_after(), self.serial, False, False))
         accepted = check[0] == divergence.OK
         if not accepted:
             self.dev.v.copy_from(self.dev.keep)
-        self.steps += accepted
+        self.count(int(accepted))
         return int(accepted), check
 
     @classmethod
@@ -188,11 +188,11 @@ class ImplicitEuler(Integrator):
         """The adjoint of Eq. 15 at the state kept at ``slot`` (``kernels/implicit_adjoint.py``):
         one solve with this run's operator, CG and preconditioner at its cg_tol; returns
         the solve's ``SolverStats``."""
-        s = self.settings
-        implicit_adjoint.adjoint_rhs(self.dev, self.cfg, adj, s.dt, self.time, slot, wants, self.serial)
-        stats = solve(self.dev, self.cfg, self.preconditioner, s.dt, s.cg_tol, s.cg_max_iter, self.serial,
+        s, dt = self.settings, self.dt
+        implicit_adjoint.adjoint_rhs(self.dev, self.cfg, adj, dt, self.time, slot, wants, self.serial)
+        stats = solve(self.dev, self.cfg, self.preconditioner, dt, s.cg_tol, s.cg_max_iter, self.serial,
                       self.time, mode=operator.REFRESHED)
-        implicit_adjoint.implicit_adjoint(self.dev, self.cfg, adj, s.dt, self.time, slot, wants, self.serial)
+        implicit_adjoint.implicit_adjoint(self.dev, self.cfg, adj, dt, self.time, slot, wants, self.serial)
         return stats
 
     @staticmethod

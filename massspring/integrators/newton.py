@@ -117,8 +117,8 @@ class BackwardEuler(ImplicitEuler):
         touching = self.taken[self.steps][0]
         mean = self.solves_mean(touching)
         h = self.step_size(touching)
-        hx = s.dt if mean else h  # x' = base + hx u
-        newton_adjoint.newton_adjoint_rhs(self.dev, self.cfg, exact, adj, h, hx, s.dt, self.time, slot, mean,
+        hx = self.dt if mean else h  # x' = base + hx u
+        newton_adjoint.newton_adjoint_rhs(self.dev, self.cfg, exact, adj, h, hx, self.dt, self.time, slot, mean,
                                           wants, self.ahead(h), self.serial)
         stats = self._adjoint_solve(adj, exact, h, slot, wants)
         newton_adjoint.newton_adjoint_gather(self.dev, exact, adj, h, self.time, slot, mean, wants,
@@ -188,12 +188,12 @@ class BackwardEuler(ImplicitEuler):
     def ahead(self, h) -> float:
         """How far ahead (s) of x_n the rate-dependent terms take their directions:
         x_n + ahead v_n is within O(dt^2) of where (*) evaluates the forces."""
-        return self.settings.dt
+        return self.dt
 
     def step_size(self, touching) -> float:
         """h of (*) in ``kernels/newton.py`` for the step being taken (``touching``: its
         particles in contact)."""
-        return self.settings.dt
+        return self.dt
 
     def solves_mean(self, touching) -> bool:
         """Whether the step being taken (``touching``: its particles in contact) solves (*)
@@ -209,16 +209,21 @@ class BackwardEuler(ImplicitEuler):
     def base_is_bdf2(self) -> bool:
         return False
 
+    def ratio(self) -> float:
+        """BDF2's step ratio omega = dt / (the step before's size): 1 with a fixed dt."""
+        return 1.0
+
     def advance(self, steps):
         """One step (``steps`` must be 1: each step has its own solver stats)."""
         assert steps == 1
         s = self.settings
         dev, cfg, serial, eps = self.dev, self.cfg, self.serial, EPS64 if s.precision == "f64" else EPS32
         t = self.time
-        touching = newton.newton_start(dev, cfg, s.dt, t, self.base_is_bdf2(), serial)
+        variable = self.clock is not None
+        touching = newton.newton_start(dev, cfg, self.dt, t, self.base_is_bdf2(), variable, self.ratio(), serial)
         if touching and self.base_is_bdf2():  # contact breaks the history: a backward-Euler step
             self.ready = False
-            newton.newton_start(dev, cfg, s.dt, t, False, serial)
+            newton.newton_start(dev, cfg, self.dt, t, False, False, 1.0, serial)
         h = self.step_size(touching)
         if self.history is not None:
             self.taken[self.steps] = (touching > 0, self.base_is_bdf2())
@@ -242,8 +247,8 @@ class BackwardEuler(ImplicitEuler):
                 if safeguard > 0.1:
                     eta = max(eta, safeguard)
             if cut:  # a line search has cut a step: loose solves' directions are not to be trusted
-                eta = s.cg_tol
-            eta = min(max(eta, s.cg_tol), ETA_MAX)
+                eta = self.cg_tol
+            eta = min(max(eta, self.cg_tol), ETA_MAX)
             last = solve(dev, cfg, self.preconditioner, h, eta, s.cg_max_iter, serial, t, mode=operator.REFRESHED)
             solves.append(last.iterations)
             total += last.iterations
@@ -267,7 +272,7 @@ class BackwardEuler(ImplicitEuler):
             norm = math.sqrt(g2)
             norms.append(norm)
             floor = max(floor, ROUNDOFF * eps * math.sqrt(scale2))
-            if tried == 0 and moved2 <= s.newton_tol**2 * change2:
+            if tried == 0 and moved2 <= self.newton_tol**2 * change2:
                 if moved2 == 0.0 and not last.converged:
                     reason = last.reason  # CG could not move v (indefinite, stalled): nor can Newton
                 break  # a full Newton step this small: what is left is smaller still
@@ -289,12 +294,12 @@ class BackwardEuler(ImplicitEuler):
         self.finish(h, touching)
         if cfg.contact_filter and self.history is not None:  # x' = x^ + h v' from here
             implicit_adjoint.keep_base(dev, self.history[0], dev.n, self.steps - self.history[1])
-        check = read_verdict(cg.advance_positions(dev, cfg, dev.xb, h, s.dt, (self.steps + 1) * s.dt, serial,
-                                                       self.carries, True))
+        check = read_verdict(cg.advance_positions(dev, cfg, dev.xb, h, self.dt, self.time_after(), serial,
+                                                  self.carries, True))
         accepted = check[0] == divergence.OK
         if not accepted:
             dev.v.copy_from(dev.keep)
-        self.steps += accepted
+        self.count(int(accepted))
         self.after_step(accepted, touching)
         return int(accepted), check
 
@@ -314,13 +319,14 @@ class BDF2(BackwardEuler):
 
     name = "bdf2"
     description = "BDF2 (second order, first step backward Euler) solved by Newton's method with a line search"
-    traits = dataclasses.replace(BackwardEuler.traits, order=2,
+    traits = dataclasses.replace(BackwardEuler.traits, order=2, error_constant=2 / 9,
                                  extra_bytes=BackwardEuler.traits.extra_bytes + 2 * 24)  # and x_{n-1}, v_{n-1}
     carries = True
 
     def __init__(self, dev, model, settings):
         super().__init__(dev, model, settings)
         self.ready = False
+        self.previous = None  # an error-controlled run's size (s) of the step that made the current state
 
     @classmethod
     def declare(cls, layout, model, settings):
@@ -347,37 +353,62 @@ class BDF2(BackwardEuler):
         particle in contact or following one)."""
         self.ready = self.taken[self.steps][1]
         stats = super().adjoint(adj, slot, wants)
-        newton_adjoint.bdf2_split(self.dev, self.cfg, adj, int(self.ready), self.settings.dt / 3, wants)
+        newton_adjoint.bdf2_split(self.dev, self.cfg, adj, int(self.ready), self.dt / 3, wants)
         return stats
 
+    def ratio(self):
+        """dt over the size of the step that made the current state (``previous``: None with a
+        fixed dt, whose ratio is 1)."""
+        return 1.0 if self.previous is None else self.dt / self.previous
+
     def step_size(self, touching):
-        return 2.0 * self.settings.dt / 3.0 if self.ready else self.settings.dt
+        """Variable-step BDF2's h = dt (1 + omega) / (1 + 2 omega) with its base
+        ((1 + omega)^2 x_n - omega^2 x_{n-1}) / (1 + 2 omega) (``kernels/newton.py``), omega the
+        step ratio (``ratio``): 2 dt / 3 and (4 x_n - x_{n-1}) / 3 at a fixed dt."""
+        if not self.ready:
+            return self.dt
+        if self.previous is None:
+            return 2.0 * self.dt / 3.0
+        omega = self.ratio()
+        return (1.0 + omega) * self.dt / (1.0 + 2.0 * omega)
 
     def after_step(self, accepted, touching):
         if accepted:
             self.ready = not touching
+            if self.clock is not None:
+                self.previous = self.dt
 
     def carried_names(self):
         """The previous state x_{n-1} ("x_prev", m), v_{n-1} ("v_prev", m/s) and "ready"
         (1: they hold the previous step; 0: the next step is backward Euler), with the
-        linearised step's contact memory."""
-        return {**super().carried_names(), "x_prev": (np.float64, (3,)), "v_prev": (np.float64, (3,)),
-                "ready": (np.int32, ())}
+        linearised step's contact memory; in an error-controlled run also "h_prev" (s, the
+        size of the step that made the current state, on every row)."""
+        names = {**super().carried_names(), "x_prev": (np.float64, (3,)), "v_prev": (np.float64, (3,)),
+                 "ready": (np.int32, ())}
+        if self.clock is not None:
+            names["h_prev"] = (np.float64, ())
+        return names
 
     def carried(self):
         out = {name: self.dev.read(name).astype(dtype) for name, (dtype, _) in super().carried_names().items()}
         out["x_prev"] = self.dev.read("xo").astype(np.float64)
         out["v_prev"] = self.dev.read("vo").astype(np.float64)
         out["ready"] = np.full(len(out["x_prev"]), int(self.ready), np.int32)
+        if self.clock is not None:
+            out["h_prev"] = np.full(len(out["x_prev"]), self.previous or 0.0)
         return out
 
     def load_state(self, positions, velocities, carried=None):
         """Continue from (positions, velocities); with ``carried``, from its previous state."""
-        rest = None if carried is None else {k: v for k, v in carried.items() if k not in ("x_prev", "v_prev", "ready")}
+        own = ("x_prev", "v_prev", "ready", "h_prev")
+        rest = None if carried is None else {k: v for k, v in carried.items() if k not in own}
         super().load_state(positions, velocities, rest)
+        self.previous = None
         if carried is None:
             self.ready = False
             return
+        if "h_prev" in carried and len(carried["h_prev"]) and carried["h_prev"][0] > 0:
+            self.previous = float(carried["h_prev"][0])
         state_kernels.load_vectors(self.dev.xo, carried["x_prev"].astype(np.float64))
         state_kernels.load_vectors(self.dev.vo, carried["v_prev"].astype(np.float64))
         self.ready = bool(np.all(carried["ready"] != 0)) and len(carried["ready"]) > 0

@@ -45,7 +45,7 @@ class RK4(SwappingStates):
     name = "rk4"
     description = "classical Runge-Kutta, 4th order (4 force evaluations per step)"
     # keyframed_pins: its stages move a pin with the velocity in its state
-    traits = Traits(order=4, differentiable=True, keyframed_pins=False)
+    traits = Traits(order=4, differentiable=True, keyframed_pins=False, error_constant=1 / 120)
 
     def __init__(self, dev, model, settings):
         super().__init__(dev, model, settings)
@@ -69,18 +69,18 @@ class RK4(SwappingStates):
 
     def adjoint(self, adj, slot, wants):
         """``rk4.rk4_adjoint`` of the step from the state kept at ``slot`` (no solve: None)."""
-        rk4.rk4_adjoint(self.dev, self.cfg, adj, self.state, self.stage, self.settings.dt,
-                        self.time + self.settings.dt, slot, wants, self.serial)
+        rk4.rk4_adjoint(self.dev, self.cfg, adj, self.state, self.stage, self.dt,
+                        self.time + self.dt, slot, wants, self.serial)
 
     def advance(self, steps):
-        dev, cfg, dt = self.dev, self.cfg, self.settings.dt
+        dev, cfg, dt = self.dev, self.cfg, self.dt
         if self.serial:
             a, b = self.states
             result = rk4.rk4_steps(dev, cfg, a, b, self.stage, dt, self.time, steps, int(self.state is b))
             done, check = int(result[0]), read_verdict(result[1:])
             if done % 2:
                 self.state, self.spare = self.spare, self.state
-            self.steps += done
+            self.count(done)
             return done, check
         done, check = 0, (divergence.OK, 0.0, 0.0)
         while done < steps and check[0] == divergence.OK:
@@ -89,7 +89,7 @@ class RK4(SwappingStates):
             if check[0] == divergence.OK:
                 self.state, self.spare = self.spare, self.state
                 done += 1
-                self.steps += 1
+                self.count(1)
         return done, check
 
     @staticmethod

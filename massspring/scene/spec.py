@@ -80,6 +80,7 @@ from massspring.model.colliders import COLLIDERS
 from massspring.support.defaults import GRAVITY
 from massspring.model.controls import Controls
 from massspring.model.self_collision import SelfCollision
+from massspring.engine.adaptive import Tolerance
 from massspring.integrators import INTEGRATORS, OPTIONS, taken
 from massspring.io.camera import DEFAULT_FRAMING, FRAMINGS, View
 from massspring.model import terms
@@ -95,7 +96,7 @@ class SceneError(ValueError):
 MAX_FLOAT = sys.float_info.max
 MAX_SCENE_BYTES = 64 * 2**20  # a scene file's size limit (a hand-made [particles] table of about a million rows)
 SIZE_KEYS = {"chain": ("count",), "grid": ("resolution",), "lattice": ("resolution",)}
-TOP_KEYS = {"description": str, "integrator": str, "duration": float, "dt": dict, "model": dict,
+TOP_KEYS = {"description": str, "integrator": str, "duration": float, "tol": float, "dt": dict, "model": dict,
             "solver": dict, "view": dict, "particles": dict, "springs": dict, "collider": list, "pin": list,
             "self_collision": dict, "controls": dict}
 # [solver]: the integrators' solver options a scene may set (``integrators.OPTIONS``; the
@@ -173,6 +174,7 @@ class Scene:
     pins: tuple = ()
     self_collision: object = None
     controls: object = None
+    tol: float | None = None  # an error-controlled run's tolerance (``Simulation(tol=...)``), None: fixed dt
     set_keys: tuple = ()
     builtin: bool = False
     _suggested: dict = field(default_factory=dict, repr=False, compare=False)  # default dts, and the prediction
@@ -321,8 +323,10 @@ class Scene:
         return self._suggested["prediction"]
 
     def simulation(self, integrator=None, dt=None, **kwargs):
-        """A Simulation with the scene's defaults (integrator, dt, [solver]); any Simulation
-        argument may be overridden."""
+        """A Simulation with the scene's defaults (integrator, dt, [solver], tol); any
+        Simulation argument may be overridden. With a tolerance (``tol``: the scene's or
+        given), the run is error-controlled over the scene's duration (``horizon``) and the
+        scene's [solver] newton_tol and cg_tol give way to those tol derives."""
         from massspring.engine import footprint
         from massspring.engine.footprint import Sketch
         from massspring.engine.simulation import Simulation
@@ -330,6 +334,14 @@ class Scene:
         integrator = integrator or self.integrator
         validate.choice("integrator", integrator, tuple(INTEGRATORS))
         options = {**taken(integrator, self.solver), **kwargs}  # of the scene's [solver] keys, those it takes
+        tol = options.setdefault("tol", self.tol)
+        if tol is not None:
+            options.setdefault("horizon", self.duration)
+            for name in ("newton_tol", "cg_tol"):
+                if name not in kwargs:
+                    options.pop(name, None)
+        else:
+            options.pop("tol")
         particles, springs = self.counts()
         sketch = Sketch(particles, springs, particles, self.self_collision is not None, bool(self.common["strain_limit"]))
         name, precision = options.get("preconditioner") or "auto", options.get("precision", "f64")
@@ -417,6 +429,12 @@ def parse_scene(data: dict, name: str, source: str) -> Scene:
     duration = float(data["duration"])
     if not (math.isfinite(duration) and duration > 0):
         raise SceneError(f"{source}: duration: must be a finite number > 0, got {data['duration']}")
+    tol = None
+    if "tol" in data:
+        try:
+            tol = Tolerance.of(data["tol"]).tol
+        except ValueError as exc:
+            raise SceneError(f"{source}: {exc}") from None
     dt = {}
     for key, value in data.get("dt", {}).items():
         if key not in INTEGRATORS:
@@ -429,7 +447,7 @@ def parse_scene(data: dict, name: str, source: str) -> Scene:
     colliders = tuple(_collider(k, table, source) for k, table in enumerate(data.get("collider", [])))
     pins = tuple(_pin(k, table, source) for k, table in enumerate(data.get("pin", [])))
     scene = Scene(name=name, source=source, description=data.get("description", ""), integrator=integrator,
-                  duration=duration, dt=dt, generator=None, view=view, framing=framing, solver=_solver(data, source),
+                  duration=duration, tol=tol, dt=dt, generator=None, view=view, framing=framing, solver=_solver(data, source),
                   form=_form(data, source), colliders=colliders, pins=pins,
                   self_collision=_self_collision(data.get("self_collision"), source),
                   controls=_controls(data.get("controls"), source))

@@ -25,10 +25,10 @@ def interactive(stream) -> bool:
         return False
 
 
-def step_line(label, done, total, dt, elapsed, rate=None) -> str:
+def step_line(label, done, total, dt, elapsed, rate=None, unit="step") -> str:
     """One plain progress line of a run: ``done`` of ``total`` steps of ``dt`` s after
     ``elapsed`` s of wall time; with ``rate`` (steps per second), the time left."""
-    line = (f"{label}: step {done:,}/{total:,} ({100 * done / total:.0f}%), "
+    line = (f"{label}: {unit} {done:,}/{total:,} ({100 * done / total:.0f}%), "
             f"{done * dt:.4g} s simulated, {elapsed:.0f} s elapsed")
     if rate and done < total:
         line += f", ~{(total - done) / rate:.0f} s left"
@@ -44,8 +44,8 @@ class steps:
     is reported too (until a step is done, a line and the bar say it compiles kernels); the time left is estimated from the pace after the first report
     of steps done (which includes compiling)."""
 
-    def __init__(self, label, total, dt, show=True, stream=None, clock=time.monotonic):
-        self.label, self.total, self.dt, self.show = label, total, dt, show
+    def __init__(self, label, total, dt, show=True, stream=None, clock=time.monotonic, unit="step"):
+        self.label, self.total, self.dt, self.show, self.unit = label, total, dt, show, unit
         self.stream = sys.stderr if stream is None else stream
         self.clock = clock
         self.bar = self.ticker = None
@@ -59,7 +59,7 @@ class steps:
             from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
             self.bar = Progress(TextColumn("[progress.description]{task.description}"), BarColumn(),
-                                TextColumn("{task.completed}/{task.total} steps"), TimeElapsedColumn(),
+                                TextColumn("{task.completed}/{task.total} " + ("steps" if self.unit == "step" else self.unit)), TimeElapsedColumn(),
                                 TimeRemainingColumn(), transient=True, console=Console(file=self.stream))
             self.bar.__enter__()
             task = self.bar.add_task(f"{self.label}: compiling kernels", total=self.total)
@@ -78,7 +78,7 @@ class steps:
         rate = None
         if self.first is not None and self.done > self.first[1]:
             rate = (self.done - self.first[1]) / max(self.clock() - self.first[0], 1e-9)
-        return step_line(self.label, self.done, self.total, self.dt, elapsed, rate)
+        return step_line(self.label, self.done, self.total, self.dt, elapsed, rate, self.unit)
 
     def __exit__(self, *exc):
         if self.bar is not None:

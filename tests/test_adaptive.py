@@ -1,0 +1,156 @@
+"""Error-controlled steps (``Simulation(tol=...)``, ``massspring.engine.adaptive``):
+the error at the end against the exact solution of a damped spring, landing on given
+times and control boundaries, retries instead of divergence, the min_dt stop, and bad
+input refused before anything is built."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+import massspring as ms
+from massspring.engine.adaptive import StepSizeError
+from massspring.integrators import INTEGRATORS
+
+KS, KD, MASS, U0 = 100.0, 0.5, 1.0, 0.1  # the spring scene's
+
+
+def spring_model():
+    """One spring of rest length 1 m along x, its first particle pinned, the second pulled
+    U0 out: a damped oscillator u'' = -(KS u + KD u') / MASS (no gravity)."""
+    return ms.Model(positions=[[0, 0, 0], [1 + U0, 0, 0]], springs=[[0, 1]], masses=[MASS, MASS], stiffness=KS,
+                    rest_lengths=[1.0],
+                    damping=KD, fixed=[0], gravity=[0, 0, 0])
+
+
+def exact_u(t):
+    """The damped oscillator's displacement (m) at t (s), from u(0) = U0, u'(0) = 0."""
+    rate = KD / (2 * MASS)
+    omega = math.sqrt(KS / MASS - rate * rate)
+    return U0 * math.exp(-rate * t) * (math.cos(omega * t) + rate / omega * math.sin(omega * t))
+
+
+def end_error(sim, t):
+    """The study's error: the moving particle's distance from the exact one over the
+    scene's size (1.1 m)."""
+    exact = np.array([1 + exact_u(t), 0, 0])
+    return float(np.linalg.norm(sim.positions[1] - exact)) / 1.1
+
+
+@pytest.mark.fast_sample(integrator=["bdf2", "rk4", "symplectic"])
+@pytest.mark.parametrize("integrator", list(INTEGRATORS))
+def test_the_error_at_the_end_follows_the_tolerance(integrator):
+    """Asked for tol 1e-2 and 1e-3 over 1 s, every integrator ends within 0.03x to 30x of
+    tol of the exact solution (the issue's band), and the smaller tol gives the smaller
+    error; the run ends on 1 s exactly."""
+    errors = []
+    for tol in (1e-2, 1e-3):
+        sim = ms.Simulation(spring_model(), integrator=integrator, dt=1e-3, tol=tol, horizon=1.0)
+        sim.advance(1.0)
+        assert sim.time == 1.0
+        errors.append(end_error(sim, 1.0))
+        assert 0.03 * tol <= errors[-1] <= 30 * tol, (tol, errors[-1])
+        stats = sim.control_stats()
+        assert stats["accepted"] == sim.steps
+        assert stats["smallest_dt"] < stats["largest_dt"]  # it did choose its steps
+    assert errors[1] < errors[0]
+
+
+def test_without_tol_a_run_is_fixed_dt():
+    """No tol: steps of dt, time steps x dt, no control statistics."""
+    sim = ms.Simulation(spring_model(), integrator="bdf2", dt=0.01)
+    sim.advance(0.5)
+    assert sim.steps == 50 and sim.time == 50 * 0.01 and sim.control_stats() is None and sim.tol is None
+
+
+def test_a_fixed_dt_advance_must_be_whole_steps():
+    sim = ms.Simulation(spring_model(), integrator="symplectic", dt=0.01)
+    with pytest.raises(ValueError, match="^seconds: "):
+        sim.advance(0.015)
+
+
+@pytest.mark.parametrize("kwargs, message", [
+    ({"tol": 0.0}, "^tol: "), ({"tol": -1e-3}, "^tol: "), ({"tol": math.nan}, "^tol: "),
+    ({"tol": math.inf}, "^tol: "), ({"tol": "1e-3"}, "^tol: "), ({"tol": 1e-15}, "^tol: .*below 1e-14"),
+    ({"min_dt": 1e-6}, "^min_dt: only"), ({"max_dt": 1e-2}, "^max_dt: only"), ({"horizon": 2.0}, "^horizon: only"),
+    ({"tol": 1e-3, "min_dt": 0.1, "max_dt": 0.01}, "^min_dt: .*above max_dt"),
+    ({"tol": 1e-3, "newton_tol": 1e-4}, "^newton_tol: .*derives it from tol"),
+    ({"tol": 1e-3, "cg_tol": 1e-8}, "^cg_tol: .*derives it from tol"),
+])
+def test_bad_tolerances_are_refused_naming_the_argument(kwargs, message):
+    with pytest.raises(ValueError, match=message):
+        ms.Simulation(spring_model(), integrator="backward-euler", dt=0.01, **kwargs)
+
+
+def test_a_diverging_step_is_retried_smaller():
+    """Symplectic Euler at a first step 10x its stability limit (2 / omega = 0.2 s... of
+    a stiff spring: omega = 1000 rad/s, limit 2e-3 s): a fixed-dt run diverges, the
+    error-controlled one shrinks and ends on time, rejections counted."""
+    model = ms.Model(positions=[[0, 0, 0], [1.1, 0, 0]], springs=[[0, 1]], masses=[1.0, 1.0], stiffness=1e6, rest_lengths=[1.0],
+                     damping=0.0, fixed=[0], gravity=[0, 0, 0])
+    with pytest.raises(ms.DivergenceError):
+        ms.Simulation(model, integrator="symplectic", dt=2e-2).step(200)
+    sim = ms.Simulation(model, integrator="symplectic", dt=2e-2, tol=1e-3, horizon=0.1)
+    sim.advance(0.1)
+    assert sim.time == 0.1
+    stats = sim.control_stats()
+    assert sum(stats["rejected"].values()) >= 1 and stats["largest_dt"] < 2e-3
+    assert np.all(np.abs(sim.positions[1] - [1.0, 0, 0]) <= 0.1 + 1e-9)  # energy kept: |u| <= U0
+
+
+def test_below_min_dt_it_stops_naming_time_step_and_cause():
+    """A min_dt above what the stiff spring allows: StepSizeError (a DivergenceError, the
+    CLI's exit 3) naming the time, the step and the cause; the state kept is the last good one."""
+    model = ms.Model(positions=[[0, 0, 0], [1.1, 0, 0]], springs=[[0, 1]], masses=[1.0, 1.0], stiffness=1e6, rest_lengths=[1.0],
+                     damping=0.0, fixed=[0], gravity=[0, 0, 0])
+    sim = ms.Simulation(model, integrator="explicit", dt=1e-2, tol=1e-3, min_dt=1e-3, horizon=0.1)
+    with pytest.raises(StepSizeError, match=r"stopped at t = 0 s .*below min_dt") as info:
+        sim.advance(0.1)
+    assert isinstance(info.value, ms.DivergenceError)
+    assert info.value.time == 0.0 and info.value.dt < 1e-3
+    assert sim.steps == 0 and np.array_equal(sim.positions, model.positions)
+
+
+def test_controls_boundaries_are_landed_on():
+    """Keyframed pins: an error-controlled run's steps end on each interval's end, where
+    the pin stands exactly at its target (to round-off), as a fixed-dt run's do."""
+    model = ms.Model(positions=[[0, 0, 0], [1, 0, 0]], springs=[[0, 1]], masses=[1.0, 1.0], stiffness=100.0,
+                     damping=1.0, fixed=[0], gravity=[0, 0, -9.81],
+                     controls=ms.Controls(interval=0.3, pin_targets=[[[0, 0, 0.5]], [[0.5, 0, 0.5]]]))
+    sim = ms.Simulation(model, integrator="backward-euler", dt=0.07, tol=1e-3, horizon=0.9)
+    sim.advance(0.3)
+    assert sim.time == 0.3
+    np.testing.assert_allclose(sim.positions[0], [0, 0, 0.5], atol=1e-12)
+    sim.advance(0.3)
+    np.testing.assert_allclose(sim.positions[0], [0.5, 0, 0.5], atol=1e-12)
+    sim.advance(0.3)
+    np.testing.assert_allclose(sim.positions[0], [0.5, 0, 0.5], atol=1e-12)
+    np.testing.assert_array_equal(sim.velocities[0], [0, 0, 0])
+
+
+def test_frames_of_run_for_are_at_their_times():
+    """``run(sim, duration=...)`` calls on_frame at each given instant, the run landing there."""
+    sim = ms.Simulation(spring_model(), integrator="midpoint", dt=1e-2, tol=1e-3, horizon=0.5)
+    seen = []
+    ms.run(sim, duration=0.5, frames=[0.0, 0.125, 0.25, 0.5], on_frame=lambda s: seen.append(s.time))
+    np.testing.assert_allclose(seen, [0.0, 0.125, 0.25, 0.5], rtol=0, atol=1e-15)
+
+
+def test_a_restart_continues_from_its_time():
+    """``set_state(..., time=)`` of an error-controlled run: the clock continues from it,
+    and the run ends within tolerance of the exact solution (BDF2 with its carried
+    previous state and step)."""
+    sim = ms.Simulation(spring_model(), integrator="bdf2", dt=1e-3, tol=1e-3, horizon=1.0)
+    sim.advance(0.4)
+    x, v, t, carried = sim.positions, sim.velocities, sim.time, sim.carried_state()
+    assert "h_prev" in carried
+    again = ms.Simulation(spring_model(), integrator="bdf2", dt=1e-3, tol=1e-3, horizon=1.0)
+    again.set_state(x, v, sim.steps, carried, time=t)
+    assert again.time == t
+    again.advance(0.6)
+    assert abs(again.time - 1.0) < 1e-12
+    assert end_error(again, again.time) <= 30 * 1e-3
+    with pytest.raises(ValueError, match="^time: only"):
+        ms.Simulation(spring_model(), integrator="bdf2", dt=1e-2).set_state(x, v, 10, time=0.1)
