@@ -246,7 +246,14 @@ def print_summary(scene, sim, wall, energy0, out, start_steps=0):
     done = sim.steps - start_steps
     rate = done / wall if wall > 0 else float("inf")
     print(f"scene       {scene.name} ({info['particles']} particles, {info['springs']} springs)")
-    print(f"integrator  {sim.integrator}, dt = {format_seconds(sim.dt)}, {sim.precision}")
+    control = sim.control_stats()
+    if control is None:
+        print(f"integrator  {sim.integrator}, dt = {format_seconds(sim.dt)}, {sim.precision}")
+    else:
+        rejected = ", ".join(f"{count} {cause}" for cause, count in control["rejected"].items() if count) or "none"
+        span = ("no step" if control["smallest_dt"] is None else
+                f"dt {format_seconds(control['smallest_dt'])} to {format_seconds(control['largest_dt'])}")
+        print(f"integrator  {sim.integrator}, tol {sim.tol:g} ({span}; rejected: {rejected}), {sim.precision}")
     if start_steps:
         print(f"steps       {done} from the restart at step {start_steps} to step {sim.steps} (t = "
               f"{start_steps * sim.dt:g} to {sim.time:g} s) in {wall:.2f} s wall, {rate:.3g} steps/s")
@@ -254,8 +261,9 @@ def print_summary(scene, sim, wall, energy0, out, start_steps=0):
         print(f"steps       {sim.steps} ({sim.time:g} s simulated) in {wall:.2f} s wall, {rate:.3g} steps/s")
     if sim.newton_iterations:
         newton = np.array(sim.newton_iterations)
+        tol = "from --tol" if control is not None else f"tol {sim.newton_tol:g}"
         print(f"Newton      {newton.mean():.2f} iterations/step mean, {newton.max()} max, {sim.line_search_cuts} "
-              f"line-search cut(s), {sim.cg_failures} step(s) not converged (tol {sim.newton_tol:g})")
+              f"line-search cut(s), {sim.cg_failures} step(s) not converged ({tol})")
         if sim.cg_failures:
             print(f"note        Newton stopped at --newton-max-iter {sim.newton_max_iter} before --newton-tol "
                   f"{sim.newton_tol:g} on {sim.cg_failures} of {len(newton)} steps: raise --newton-max-iter, "
@@ -263,7 +271,8 @@ def print_summary(scene, sim, wall, energy0, out, start_steps=0):
     if sim.cg_iterations:
         its = np.array(sim.cg_iterations)
         failed = "" if sim.newton_iterations else f", {sim.cg_failures} step(s) not converged"
-        print(f"CG          {its.mean():.1f} iterations/step mean, {its.max()} max{failed} (tol {sim.cg_tol:g}, "
+        tol = "from --tol" if control is not None else f"tol {sim.cg_tol:g}"
+        print(f"CG          {its.mean():.1f} iterations/step mean, {its.max()} max{failed} ({tol}, "
               f"{sim.preconditioner})")
         if sim.cg_failures and sim.precision == "f32":
             print("note        f32 CG stalls where round-off stops the residual, 1e-5 to 1e-4 relative "

@@ -60,7 +60,8 @@ GROWTH = 5.0  # the largest growth of the step from one step to the next
 SHRINK = 0.2  # the smallest factor on a step whose error was too large
 FAILURE_SHRINK = 0.25  # the factor on a step whose solve failed or that diverged
 PI_BETA = 0.2  # the PI controller's beta times the estimate's order (Hairer's DOPRI5: 0.04 at order 5)
-DROP_AFTER = 2  # rejections of one step in a row after which the history is dropped (a kink)
+DROP_AFTER = 3  # rejections of one step in a row after which the history is dropped (a kink)
+STRETCH = 1.1  # a step this much longer lands on the next end time (no sliver of a step before it)
 MIN_TOL = 1e-14  # tolerances below this are round-off in f64
 DEFAULT_HORIZON = 1.0  # s
 MIN_DT_FRACTION = 1e-9  # default min_dt: this times the horizon
@@ -230,15 +231,17 @@ class Controller:
                 "smallest_dt": self.smallest if self.accepted else None,
                 "largest_dt": self.largest if self.accepted else None, "next_dt": self.dt}
 
-    def solver_tolerance(self, name, h, velocity_change) -> float | None:
-        """Newton's or CG's stopping tolerance (``name``: "newton_tol" or "cg_tol") for a
-        step of h: the fraction (``NEWTON_FRACTION``, ``CG_FRACTION``) of the step's
-        velocity error bound (tol h / H times L / H, m/s RMS) over the velocity change the
-        last step made (``velocity_change``, m/s RMS), within ``TOL_RANGE``; None before a
+    def solver_tolerance(self, name, velocity_change) -> float | None:
+        """Newton's or CG's stopping tolerance (``name``: "newton_tol" or "cg_tol"), both
+        relative to the step's velocity change: a velocity error dv moves the step's
+        positions by h dv, so the step's position error bound tol L h / H allows
+        dv = tol L / H; a fraction of that (``NEWTON_FRACTION``, ``CG_FRACTION``, as
+        CVODE stops Newton at 0.1 of its error test) over the velocity change the last
+        step made (``velocity_change``, m/s RMS), within ``TOL_RANGE``; None before a
         step has been made (the option's default then)."""
         if velocity_change <= 0.0:
             return None
-        size_speed = self.size / self.tolerance.horizon
         fraction = NEWTON_FRACTION if name == "newton_tol" else CG_FRACTION
         low, high = TOL_RANGE[name]
-        return min(max(fraction * self.bound(h) * size_speed / velocity_change, low), high)
+        speed = self.tolerance.tol * self.size / self.tolerance.horizon
+        return min(max(fraction * speed / velocity_change, low), high)

@@ -566,9 +566,11 @@ class Simulation:
             end = min(end, schedule.end(t))
         while True:
             h = ctl.dt
-            landing = t + h >= end
+            landing = t + adaptive.STRETCH * h >= end
             if landing:
                 h = end - t
+            elif t + 2 * h > end:  # two even steps to the end rather than a sliver last
+                h = 0.5 * (end - t)
             kept = self._kept()
             integrator.dt = h
             for p in self._passes:
@@ -576,7 +578,7 @@ class Simulation:
             change = est.velocity_change()
             for name in ("newton_tol", "cg_tol"):
                 if getattr(integrator, name) is not None:
-                    derived = ctl.solver_tolerance(name, h, change)
+                    derived = ctl.solver_tolerance(name, change)
                     setattr(integrator, name, getattr(self._settings, name) if derived is None else derived)
             if integrator.traits.newton:  # Newton's linear solves: at least as tight as Newton asks
                 integrator.cg_tol = min(self._settings.cg_tol, 1e-3 * integrator.newton_tol)
@@ -705,6 +707,8 @@ class Simulation:
                "newton": integrator.traits.newton, "bytes": self._bytes,
                "options": {option.name: getattr(self._settings, option.name) for option in integrator.options},
                "order": "given" if self._order is None else "z-order"}
+        if self._controller is not None:
+            out["tol"] = {name: getattr(self._settings, name) for name in ("tol", "min_dt", "max_dt", "horizon")}
         if integrator.traits.linear_solver:
             extra = integrator.preconditioner.describe()
             out["bytes"] += extra.pop("bytes")
