@@ -85,16 +85,16 @@ def test_bad_tolerances_are_refused_naming_the_argument(kwargs, message):
 
 
 def test_a_diverging_step_is_retried_smaller():
-    """Symplectic Euler at a first step 10x its stability limit (2 / omega = 0.2 s... of
-    a stiff spring: omega = 1000 rad/s, limit 2e-3 s): a fixed-dt run diverges, the
-    error-controlled one shrinks and ends on time, rejections counted."""
+    """Symplectic Euler at a first step 10x its stability limit on a stiff spring (omega
+    = 1000 rad/s, limit 2 / omega = 2e-3 s): a fixed-dt run diverges, the error-controlled
+    one shrinks and ends on time, rejections counted."""
     model = ms.Model(positions=[[0, 0, 0], [1.1, 0, 0]], springs=[[0, 1]], masses=[1.0, 1.0], stiffness=1e6, rest_lengths=[1.0],
                      damping=0.0, fixed=[0], gravity=[0, 0, 0])
     with pytest.raises(ms.DivergenceError):
         ms.Simulation(model, integrator="symplectic", dt=2e-2).step(200)
-    sim = ms.Simulation(model, integrator="symplectic", dt=2e-2, tol=1e-3, horizon=0.1)
-    sim.advance(0.1)
-    assert sim.time == 0.1
+    sim = ms.Simulation(model, integrator="symplectic", dt=2e-2, tol=1e-2, horizon=0.01)
+    sim.advance(0.01)
+    assert sim.time == 0.01
     stats = sim.control_stats()
     assert sum(stats["rejected"].values()) >= 1 and stats["largest_dt"] < 2e-3
     assert np.all(np.abs(sim.positions[1] - [1.0, 0, 0]) <= 0.1 + 1e-9)  # energy kept: |u| <= U0
@@ -154,3 +154,41 @@ def test_a_restart_continues_from_its_time():
     assert end_error(again, again.time) <= 30 * 1e-3
     with pytest.raises(ValueError, match="^time: only"):
         ms.Simulation(spring_model(), integrator="bdf2", dt=1e-2).set_state(x, v, 10, time=0.1)
+
+
+def test_the_cli_runs_a_scene_to_a_tolerance(capsys):
+    """`massspring run spring --tol 1e-3`: exit 0, to the scene's duration, the summary
+    naming the tolerance and the steps' range."""
+    from massspring.cli import main
+
+    assert main(["run", "spring", "--integrator", "bdf2", "--tol", "1e-3", "--duration", "0.5", "--quiet"]) == 0
+    out = capsys.readouterr().out
+    assert "tol 0.001 (dt " in out and "(0.5 s simulated)" in out and "from --tol" in out
+
+
+@pytest.mark.parametrize("args, flag", [
+    (["--tol", "0"], "--tol"), (["--tol", "1e-20"], "--tol"), (["--min-dt", "1e-6"], "--min-dt"),
+    (["--max-dt", "1e-2"], "--max-dt"), (["--tol", "1e-3", "--newton-tol", "1e-4"], "--newton-tol"),
+    (["--tol", "1e-3", "--steps", "10"], "--steps"),
+    (["--tol", "1e-3", "--export", "frames-dir", "--every", "2"], "--every"),
+])
+def test_the_cli_refuses_bad_tolerances_in_one_line(capsys, tmp_path, monkeypatch, args, flag):
+    """Exit 2, one line naming the flag, nothing run or written."""
+    from conftest import one_line_error
+    from massspring.cli import main
+
+    monkeypatch.chdir(tmp_path)
+    assert main(["run", "spring", "--integrator", "bdf2", "--quiet", *args]) == 2
+    one_line_error(capsys, flag)
+    assert not (tmp_path / "frames-dir").exists()
+
+
+def test_the_cli_exits_3_below_min_dt(capsys):
+    """A min_dt the run cannot keep to: exit 3, the message naming the time and min_dt."""
+    from massspring.cli import main
+
+    code = main(["run", "stiffchain", "--integrator", "explicit", "--tol", "1e-3", "--min-dt", "1e-3",
+                 "--duration", "0.1", "--quiet"])
+    assert code == 3
+    err = capsys.readouterr().err
+    assert "below min_dt 1 ms" in err or "below min_dt" in err

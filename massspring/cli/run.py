@@ -118,7 +118,9 @@ def cmd_run(args):
                       start_steps)
         done = sim.steps - start_steps
         if diverged is not None:
-            print(f"massspring: {diverged}; {divergence_hint(sim, diverged)}", file=sys.stderr)
+            hint = ("give a smaller --min-dt, a looser --tol or another --integrator" if sim.tol is not None
+                    else divergence_hint(sim, diverged))
+            print(f"massspring: {diverged}; {hint}", file=sys.stderr)
             return EXIT_DIVERGED
         if stopped is not None:
             what = "terminated" if isinstance(stopped, Terminated) else "interrupted"
