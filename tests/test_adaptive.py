@@ -183,6 +183,19 @@ def test_the_cli_refuses_bad_tolerances_in_one_line(capsys, tmp_path, monkeypatc
     assert not (tmp_path / "frames-dir").exists()
 
 
+def test_a_step_that_keeps_diverging_stops_naming_divergence():
+    """Symplectic Euler from a first step of 0.1 s on a spring of omega = 1e6 rad/s: 0.1,
+    0.025 and 0.00625 s each multiply its energy by about (h omega)^2 > 1e7 in one step
+    (the divergence check refuses them), and the next try, 0.0016 s, is below min_dt
+    2e-3 s: the stop names divergence as the cause."""
+    model = ms.Model(positions=[[0, 0, 0], [1.1, 0, 0]], springs=[[0, 1]], masses=[1.0, 1.0], stiffness=1e12,
+                     rest_lengths=[1.0], damping=0.0, fixed=[0], gravity=[0, 0, 0])
+    sim = ms.Simulation(model, integrator="symplectic", dt=1e-1, tol=1e-3, min_dt=2e-3, horizon=1.0)
+    with pytest.raises(StepSizeError, match="the state diverged"):
+        sim.advance(1.0)
+    assert sim.control_stats()["rejected"]["divergence"] == 3
+
+
 def test_the_cli_exits_3_below_min_dt(capsys):
     """A min_dt the run cannot keep to: exit 3, the message naming the time and min_dt."""
     from massspring.cli import main

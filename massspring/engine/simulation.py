@@ -595,8 +595,10 @@ class Simulation:
             x, v = self._current
             self.restore(dataclasses.replace(kept, positions=self.to_user(x), velocities=self.to_user(v)))
             if ctl.dt < ctl.tolerance.min_dt:
-                cause = {"divergence": "the state diverged", "solver": "the step's solve did not converge"}.get(
-                    failure, f"error estimate {estimate / ctl.bound(h):.3g} x its bound")
+                if failure is None:
+                    cause = f"error estimate {estimate / ctl.bound(h):.3g} x its bound"
+                else:
+                    cause = "the state diverged" if failure == "divergence" else "the step's solve did not converge"
                 raise adaptive.StepSizeError(self._steps, t, ctl.dt, ctl.tolerance.min_dt, cause, self.integrator)
             if ctl.in_a_row >= adaptive.DROP_AFTER and len(est.points) > 1:
                 est.points = est.points[-1:]  # a kink: the history before it does not help
