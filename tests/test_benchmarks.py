@@ -8,7 +8,7 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 BENCHMARKS = sorted((ROOT / "benchmarks").glob("*.py"))
-DISTRIBUTIONS = {"warp": "warp-lang", "PIL": "pillow"}  # import name -> package name, where they differ
+DISTRIBUTIONS = {"warp": "warp-lang", "PIL": "pillow", "sksundae": "scikit-sundae"}  # import name -> package name, where they differ
 
 
 def requirement_names(requirements):
