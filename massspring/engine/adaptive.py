@@ -186,6 +186,8 @@ class Controller:
         self.previous_ratio = None  # r of the last accepted step
         self.after_rejection = False
         self.in_a_row = 0  # rejections of the step being tried
+        self.last_try = None  # (t, h, ratio) of the last step rejected for its error
+        self.kinks = 0  # steps accepted at a kink
         self.accepted = 0
         self.rejected = {"error": 0, "solver": 0, "divergence": 0}
         self.smallest, self.largest = math.inf, 0.0
@@ -194,9 +196,16 @@ class Controller:
         """The estimate's bound for a step of h (s): tol h / H (error per unit step)."""
         return self.tolerance.tol * h / self.tolerance.horizon
 
-    def judge(self, h, estimate=None, order=1, failure=None) -> bool:
-        """Whether the step of h (s) is accepted, from its error ``estimate`` (weighted RMS)
-        of ``order`` in h, or its ``failure`` ("solver" or "divergence"): sets ``dt``."""
+    def judge(self, h, estimate=None, order=1, failure=None, t=0.0) -> bool:
+        """Whether the step of h (s) from time t is accepted, from its error ``estimate``
+        (weighted RMS) of ``order`` in h, or its ``failure`` ("solver" or "divergence"):
+        sets ``dt``. A step too large for its error is accepted all the same where it lies
+        within the last step so rejected, is shorter, and its ratio to the bound shrank by
+        less than its order predicts, as h^(order - 1/2) rather than h^order: a kink
+        (an impact, a contact made or released), where the estimate of a smooth solution
+        does not hold and no step would meet it (a velocity jump is an O(h) position error,
+        as its bound is), so the run steps across it (its error there, ratio x tol h / H, is
+        small with h) instead of closing in on it forever; the next step keeps h."""
         if failure is not None:
             self.rejected[failure] += 1
             self.in_a_row += 1
@@ -204,7 +213,13 @@ class Controller:
             self.dt = FAILURE_SHRINK * h
             return False
         ratio = estimate / self.bound(h)
-        if ratio > 1.0:
+        kink = False
+        if ratio > 1.0 and self.last_try is not None:
+            start, before_h, before_ratio = self.last_try
+            within = start <= t and t + h <= start + before_h * (1 + 1e-9)
+            kink = within and h < before_h and ratio > before_ratio * (h / before_h) ** (order - 0.5)
+        if ratio > 1.0 and not kink:
+            self.last_try = (t, h, ratio)
             self.rejected["error"] += 1
             self.in_a_row += 1
             self.after_rejection = True
@@ -216,7 +231,13 @@ class Controller:
             beta = PI_BETA / order if self.previous_ratio else 0.0
             factor = SAFETY * ratio ** -(1.0 / order - 0.75 * beta) * (self.previous_ratio or 1.0) ** beta
         factor = min(max(factor, 1.0 / GROWTH), 1.0 if self.after_rejection else GROWTH)
+        if kink:
+            self.kinks += 1
+            factor = 1.0
+            ratio = 1.0
         self.previous_ratio = max(ratio, 1e-10)
+        if kink or (self.last_try is not None and t >= sum(self.last_try[:2])):
+            self.last_try = None  # stepped past it
         self.after_rejection = False
         self.in_a_row = 0
         self.accepted += 1
@@ -225,9 +246,9 @@ class Controller:
         return True
 
     def stats(self) -> dict:
-        """Accepted steps, rejections by cause, the smallest and largest accepted step (s)
-        and the next step (s)."""
-        return {"accepted": self.accepted, "rejected": dict(self.rejected),
+        """Accepted steps, rejections by cause, steps accepted at a kink (``judge``), the
+        smallest and largest accepted step (s) and the next step (s)."""
+        return {"accepted": self.accepted, "rejected": dict(self.rejected), "kinks": self.kinks,
                 "smallest_dt": self.smallest if self.accepted else None,
                 "largest_dt": self.largest if self.accepted else None, "next_dt": self.dt}
 

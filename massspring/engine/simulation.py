@@ -586,7 +586,10 @@ class Simulation:
             if failure is None:
                 x, v = self._read_state(integrator)
                 estimate, order = est.error(t + h, x, v)
-            if ctl.judge(h, estimate, order, failure):
+            kinks = ctl.kinks
+            if ctl.judge(h, estimate, order, failure, t):
+                if ctl.kinks > kinks:
+                    est.points = est.points[-1:]  # the history before a kink does not help
                 if landing:
                     integrator.clock = end
                 self._current = (x, v)
