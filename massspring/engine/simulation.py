@@ -582,8 +582,13 @@ class Simulation:
                     setattr(integrator, name, getattr(self._settings, name) if derived is None else derived)
             if integrator.traits.newton:  # Newton's linear solves: at least as tight as Newton asks
                 integrator.cg_tol = min(self._settings.cg_tol, 1e-3 * integrator.newton_tol)
-            failure, estimate, order = self._try_step(integrator, t)
-            if failure is None:
+            done, _ = self._one_step(integrator, t)
+            failure, estimate, order = None, None, 1
+            if not done:
+                failure = "divergence"
+            elif integrator.traits.has_stats and not integrator.stats.converged:
+                failure = "solver"
+            else:
                 x, v = self._read_state(integrator)
                 estimate, order = est.error(t + h, x, v)
             kinks = ctl.kinks
@@ -606,9 +611,10 @@ class Simulation:
             if ctl.in_a_row >= adaptive.DROP_AFTER and len(est.points) > 1:
                 est.points = est.points[-1:]  # a kink: the history before it does not help
 
-    def _try_step(self, integrator, t):
-        """One step of ``integrator.dt`` from time t with the passes and controls: (failure
-        "divergence" | "solver" | None, None, 1)."""
+    def _one_step(self, integrator, t=None):
+        """One step of ``integrator.dt`` with the controls (from time t, s, in an
+        error-controlled run) and the passes around it; counts it and its solver
+        statistics if it was good. Returns (good steps: 0 or 1, ``divergence.verdict``)."""
         if self._schedule is not None:
             self._schedule.apply(self._steps, t)
         for p in self._passes:
@@ -619,18 +625,15 @@ class Simulation:
             for p in self._passes:
                 p.end(integrator.state, integrator.time)
             integrator.changed()
-        if not done:
-            return "divergence", None, 1
-        self._steps += 1
-        if integrator.traits.has_stats:
+        self._steps += done
+        if done and integrator.traits.has_stats:
             stats = integrator.stats
             self._cg_iterations.append(stats.iterations)
+            self._cg_failures += not stats.converged
             if stats.newton_iterations is not None:
                 self._newton_iterations.append(stats.newton_iterations)
                 self._cuts += stats.cuts
-            if not stats.converged:
-                return "solver", None, 1
-        return None, None, 1
+        return done, check
 
     def _advance(self, integrator, n):
         """``n`` steps of ``integrator``: in launches of up to ``STEPS_PER_LAUNCH`` steps
@@ -651,28 +654,7 @@ class Simulation:
                 n -= chunk
             return
         for _ in range(n):
-            if schedule is not None:
-                schedule.apply(self._steps)
-            for p in self._passes:
-                p.begin(integrator.state)
-            done, check = integrator.advance(1)
-            if done and self._passes:
-                integrator.settle()
-                for p in self._passes:
-                    p.end(integrator.state, integrator.time)
-                integrator.changed()
-            if not integrator.traits.has_stats:
-                self._steps += done
-                self._raise_if_diverged(check)
-                continue
-            stats = integrator.stats
-            if done:
-                self._steps += 1
-                self._cg_iterations.append(stats.iterations)
-                self._cg_failures += not stats.converged
-                if stats.newton_iterations is not None:
-                    self._newton_iterations.append(stats.newton_iterations)
-                    self._cuts += stats.cuts
+            _, check = self._one_step(integrator)
             self._raise_if_diverged(check)
 
     def _raise_if_diverged(self, check):
