@@ -18,7 +18,7 @@ take the mismatch of the step's positions with the trapezoidal rule on its veloc
 x' - x - h (v + v') / 2 = -+h^2 a / 2, their position error, from the step alone: their
 history-based estimate made the step sizes zigzag (a first-order run's global error
 jumps with its step size, and the divided differences read the jumps as curvature:
-backward Euler on the spring, 25% of its steps rejected, against 0.01% with this one).
+docs/solvers.md, "Error-controlled steps").
 
 The norm. The error the study reports is the RMS over the moving particles of the
 position error, over the scene's size L (``analysis.study``). The estimate is measured
@@ -28,15 +28,13 @@ duration H then add up to about tol, so the error at its end falls in proportion
 ``tol``, where error per step would give tol^(p/(p+1))). Velocities count through the
 positions they make: weighting their own estimate by L / H (as CVODE weighs every
 component alike) made the stiff chain resolve the axial vibrations that hold no
-position error (linearised implicit at tol 1e-2: 2,668 steps, 828 rejected, error 0.07
-tol; positions only: 46 steps, error 0.97 tol).
+position error (docs/solvers.md).
 
 The controller (a PI controller, Hairer and Wanner II, IV.2, with their DOPRI5 gains):
 with r the ratio of the estimate to its bound and k = q the estimate's order in h (error
 per unit step), an accepted step proposes h r^(-alpha) r_prev^beta times ``SAFETY``,
 beta = 0.2 / k, alpha = 1 / k - 0.75 beta (Gustafsson's PI.3.4, r^(-0.3/k) (r_prev /
-r)^(0.4/k), grew too slowly for runs of a few dozen steps: RK4 on the spring spent half
-of a 23-step run growing, error 0.016 tol),
+r)^(0.4/k), grew the step too slowly for runs of a few dozen steps),
 within [1 / ``GROWTH``, ``GROWTH``] of h; a rejected one retries with
 max(``SHRINK``, ``SAFETY`` r^(-1/k)) h and may not grow on the step after. A step
 whose solve failed (Newton or CG missed its tolerance) or that the divergence check
