@@ -58,6 +58,50 @@ def test_the_error_at_the_end_follows_the_tolerance(integrator):
     assert errors[1] < errors[0]
 
 
+G, DROP, BOUNCE, WIDTH = 9.81, 0.2, 0.5, 0.1  # the bouncing dumbbell's gravity, height, restitution, length
+
+
+def dumbbell_model():
+    """A level spring of WIDTH at rest, DROP above a frictionless ground plane of
+    restitution BOUNCE: it falls and bounces as one particle would."""
+    ground = ms.Plane(point=[0, 0, 0], normal=[0, 0, 1], restitution=BOUNCE, friction=0.0)
+    return ms.Model(positions=[[0, 0, DROP], [WIDTH, 0, DROP]], springs=[[0, 1]], masses=[1.0, 1.0], stiffness=100.0,
+                    damping=0.5, gravity=[0, 0, -G], colliders=[ground])
+
+
+def bouncing_height(t):
+    """The height (m) at t (s) of a point dropped from DROP that bounces with restitution
+    BOUNCE: free flight between impacts, the normal speed times BOUNCE at each."""
+    z, v, start = DROP, 0.0, 0.0
+    while True:
+        flight = (v + math.sqrt(v * v + 2 * G * z)) / G
+        if start + flight >= t:
+            s = t - start
+            return z + v * s - 0.5 * G * s * s
+        start, z, v = start + flight, 0.0, BOUNCE * (G * flight - v)
+
+
+@pytest.mark.fast_sample(integrator=["bdf2", "symplectic"])
+@pytest.mark.parametrize("integrator", list(INTEGRATORS))
+def test_impacts_are_stepped_across_within_the_tolerance(integrator):
+    """Through two impacts (at 0.20 s and 0.40 s) to 0.45 s, every integrator ends within
+    0.03x to 30x of tol of the exact bounce, smaller with the smaller tol, without
+    stopping: at an impact the estimate of a smooth solution is replaced by the impact's
+    own error (``Estimator.error``). Before, BDF2 and RK4 ended 47x and 124x tol 1e-3
+    off. Second-order and higher at tol 1e-2 and 1e-3, first-order (about 1 / tol steps:
+    free fall is their largest error) at 2e-2 and 5e-3."""
+    end = 0.45
+    tols = (1e-2, 1e-3) if INTEGRATORS[integrator].traits.order > 1 else (2e-2, 5e-3)
+    errors = []
+    for tol in tols:
+        sim = ms.Simulation(dumbbell_model(), integrator=integrator, dt=1e-3, tol=tol, horizon=end)
+        sim.advance(end)
+        errors.append(float(np.sqrt(np.mean((sim.positions[:, 2] - bouncing_height(end)) ** 2))) / WIDTH)
+        assert 0.03 * tol <= errors[-1] <= 30 * tol, (tol, errors[-1])
+        assert np.all(sim.positions[:, 2] >= -1e-12)
+    assert errors[1] < errors[0]
+
+
 def test_without_tol_a_run_is_fixed_dt():
     """No tol: steps of dt, time steps x dt, no control statistics."""
     sim = ms.Simulation(spring_model(), integrator="bdf2", dt=0.01)
@@ -86,13 +130,14 @@ def test_bad_tolerances_are_refused_naming_the_argument(kwargs, message):
 
 def test_a_diverging_step_is_retried_smaller():
     """Symplectic Euler at a first step 10x its stability limit on a stiff spring (omega
-    = 1000 rad/s, limit 2 / omega = 2e-3 s): a fixed-dt run diverges, the error-controlled
-    one shrinks and ends on time, rejections counted."""
+    = 1000 rad/s, limit 2 / omega = 2e-3 s), max_dt given (no bound from the predicted
+    limit): a fixed-dt run diverges, the error-controlled one shrinks and ends on time,
+    rejections counted."""
     model = ms.Model(positions=[[0, 0, 0], [1.1, 0, 0]], springs=[[0, 1]], masses=[1.0, 1.0], stiffness=1e6, rest_lengths=[1.0],
                      damping=0.0, fixed=[0], gravity=[0, 0, 0])
     with pytest.raises(ms.DivergenceError):
         ms.Simulation(model, integrator="symplectic", dt=2e-2).step(200)
-    sim = ms.Simulation(model, integrator="symplectic", dt=2e-2, tol=1e-2, horizon=0.01)
+    sim = ms.Simulation(model, integrator="symplectic", dt=2e-2, tol=1e-2, horizon=0.01, max_dt=1.0)
     sim.advance(0.01)
     assert sim.time == 0.01
     stats = sim.control_stats()
@@ -183,6 +228,30 @@ def test_the_cli_refuses_bad_tolerances_in_one_line(capsys, tmp_path, monkeypatc
     assert not (tmp_path / "frames-dir").exists()
 
 
+@pytest.mark.parametrize("integrator", ["rk4", "symplectic"])
+def test_explicit_steps_stay_below_the_predicted_stability_limit(integrator):
+    """A free-falling rope (rope-drop with 10 particles, before it lands at 0.32 s) is
+    integrated almost exactly, so the estimate let RK4's steps grow past its stability
+    limit until the rope vibrated and the run stopped at 0.11 s with StepSizeError (the
+    divergence check refusing every step; symplectic Euler's steps reached 0.008 s with
+    180 rejections). Without max_dt, an
+    explicit integrator's steps stay at most its ``suggest_dt`` of the model: the run
+    ends with no step refused by the divergence check; with max_dt given, that bound
+    is the user's."""
+    from massspring.analysis.stability import predict
+
+    scene = ms.load_scene("rope-drop").with_params(count=10)
+    limit = INTEGRATORS[integrator].suggest_dt(predict(scene.model()))
+    sim = scene.simulation(integrator, tol=1e-2, horizon=0.3)
+    sim.advance(0.3)
+    stats = sim.control_stats()
+    assert sim.time == 0.3 and stats["rejected"]["divergence"] == 0 and stats["largest_dt"] <= limit
+    assert np.abs(sim.velocities).max() < 4.0  # the free fall's 2.9 m/s, no vibration
+    given = scene.simulation(integrator, tol=1e-2, horizon=0.3, max_dt=4 * limit, dt=4 * limit)
+    given.step(1)
+    assert given.control_stats()["largest_dt"] > limit
+
+
 def test_a_step_that_keeps_diverging_stops_naming_divergence():
     """Symplectic Euler from a first step of 0.1 s on a spring of omega = 1e6 rad/s: 0.1,
     0.025 and 0.00625 s each multiply its energy by about (h omega)^2 > 1e7 in one step
@@ -190,7 +259,7 @@ def test_a_step_that_keeps_diverging_stops_naming_divergence():
     2e-3 s: the stop names divergence as the cause."""
     model = ms.Model(positions=[[0, 0, 0], [1.1, 0, 0]], springs=[[0, 1]], masses=[1.0, 1.0], stiffness=1e12,
                      rest_lengths=[1.0], damping=0.0, fixed=[0], gravity=[0, 0, 0])
-    sim = ms.Simulation(model, integrator="symplectic", dt=1e-1, tol=1e-3, min_dt=2e-3, horizon=1.0)
+    sim = ms.Simulation(model, integrator="symplectic", dt=1e-1, tol=1e-3, min_dt=2e-3, max_dt=1.0, horizon=1.0)
     with pytest.raises(StepSizeError, match="the state diverged"):
         sim.advance(1.0)
     assert sim.control_stats()["rejected"]["divergence"] == 3

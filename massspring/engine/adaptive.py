@@ -45,7 +45,7 @@ refused retries at ``FAILURE_SHRINK`` h. Below ``min_dt`` the run stops
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -60,6 +60,7 @@ FAILURE_SHRINK = 0.25  # the factor on a step whose solve failed or that diverge
 PI_BETA = 0.2  # the PI controller's beta times the estimate's order (Hairer's DOPRI5: 0.04 at order 5)
 DROP_AFTER = 3  # rejections of one step in a row after which the history is dropped (a kink)
 STRETCH = 1.1  # a step this much longer lands on the next end time (no sliver of a step before it)
+CONTACT_MARGIN = 1e-9  # a particle this far (times the scene's size) from a collider is touching it
 MIN_TOL = 1e-14  # tolerances below this are round-off in f64
 DEFAULT_HORIZON = 1.0  # s
 MIN_DT_FRACTION = 1e-9  # default min_dt: this times the horizon
@@ -116,52 +117,117 @@ class Tolerance:
         return cls(tol, min_dt, max_dt, horizon)
 
 
+def stable_bound(tolerance: Tolerance, integrator_class, model) -> Tolerance:
+    """``tolerance`` with max_dt at most the dt ``integrator_class`` suggests for ``model``
+    (half its stability limit predicted at the initial state, ``analysis.stability``;
+    never below min_dt): an explicit integrator's error estimate does not see an
+    instability until it has grown (a free fall, integrated exactly, lets the steps grow
+    past the limit)."""
+    from massspring.analysis.stability import predict
+
+    bound = integrator_class.suggest_dt(predict(model))
+    return replace(tolerance, max_dt=max(min(tolerance.max_dt, bound), tolerance.min_dt))
+
+
 class Estimator:
     """The local error of each step from the accepted states (module docstring):
     ``order`` p and ``constant`` C of the integrator, ``moving`` the particles whose
     error counts (inner numbering), ``size`` L (m), ``horizon`` H (s)."""
 
-    def __init__(self, order, constant, moving, size, horizon):
+    def __init__(self, order, constant, moving, size, horizon, colliders=()):
         self.order, self.constant = int(order), float(constant)
         self.moving = np.asarray(moving)
         self.size, self.horizon = float(size), float(horizon)
-        self.points = []  # (t, y (k, 6)) of accepted states, oldest first, at most order + 1
+        self.colliders = tuple(colliders)
+        # (t, y (k, 6), d (k,) or None, touched (k,) or None) of accepted states, oldest
+        # first, at most order + 1: d the distance to the nearest collider, touched whether
+        # the particle may have touched one in the step that ended there
+        self.points = []
+        self._tried = None
 
     def reset(self, t, x, v):
         """Start the history afresh at the state (t, x, v)."""
-        self.points = [(float(t), self._y(x, v))]
+        self.points = [(float(t), self._y(x, v), self._distance(t, x), None)]
 
     def _y(self, x, v):
         return np.concatenate([x[self.moving], v[self.moving]], axis=1).astype(np.float64)
 
+    def _distance(self, t, x):
+        """(k,) distance (m) of each moving particle to the nearest collider at time t (s);
+        None without colliders."""
+        if not self.colliders:
+            return None
+        points = x[self.moving]
+        return np.min([c.at(t).signed_distance(points) for c in self.colliders], axis=0)
+
+    def _touched(self, start, t, y, d):
+        """(k,) whether each moving particle may have touched a collider in the step from
+        the accepted point ``start`` to (t, y, d): it began or ended within the distance its
+        speed carries it in the step (h (|v| + |v'| + |v' - v|), m, with a margin for round-off
+        of ``CONTACT_MARGIN`` times the scene's size); None without colliders."""
+        if d is None:
+            return None
+        t0, y0, d0, _ = start
+        h = t - t0
+        speed = np.linalg.norm(y0[:, 3:], axis=1) + np.linalg.norm(y[:, 3:], axis=1)
+        speed += np.linalg.norm(y[:, 3:] - y0[:, 3:], axis=1)
+        reach = h * speed + CONTACT_MARGIN * self.size
+        return (np.minimum(d0, d) <= reach)
+
     def error(self, t, x, v):
-        """(the weighted RMS of the estimate of the step to (t, x, v), its order in h)."""
-        y = self._y(x, v)
-        t0, y0 = self.points[-1]
+        """(the weighted RMS of the estimate of the step to (t, x, v), its order in h).
+
+        A particle that may have touched a collider in any of the steps the estimate
+        spans (``_touched``) counts no error of a smooth solution: the contact response
+        changes its velocity within one step, a kink no such estimate describes, and is
+        first order in the step whatever the integrator (``kernels/contact.py``). Its error
+        is that of the impact's timing instead: up to half the step times its velocity
+        change, h |v' - v| / 2 for the particles touching in this step, which the run bounds
+        by ``tol`` itself, not by tol h / H: an impact happens once, its error does not add
+        up step after step. It is returned in the units of the smooth estimate (times
+        h / H) and of order 1 where it is the larger."""
+        y, d = self._y(x, v), self._distance(t, x)
+        t0, y0 = self.points[-1][:2]
         h = t - t0
         if y.size == 0:
             return 0.0, 1
+        touched = self._touched(self.points[-1], t, y, d)
+        self._tried = (float(t), y, d, touched)  # what ``push`` adds if the step is accepted
+        spanned = ()  # the accepted points whose steps the estimate spans besides this one
         if self.order == 1 or len(self.points) == 1:
-            return self._companion(h, y0, y), 1
-        q = min(self.order, len(self.points) - 1)
-        times = [p[0] for p in self.points[-(q + 1):]] + [float(t)]
-        table = [p[1] for p in self.points[-(q + 1):]] + [y]
-        for m in range(1, q + 2):
-            table = [(table[j + 1] - table[j]) / (times[j + m] - times[j]) for j in range(len(table) - 1)]
-        constant = self.constant if q == self.order else 0.5
-        e = constant * math.factorial(q + 1) * h ** (q + 1) * table[0][:, :3]
-        return math.sqrt(float(np.mean(np.sum(e * e, axis=1)))) / self.size, q
-
-    def _companion(self, h, y0, y):
-        """The weighted RMS of a first-order step's position error against the trapezoidal
-        rule on the same states, x' - x - h (v + v') / 2: h^2 a / 2 for a step that moved
-        x by h v (explicit) or by h v' (symplectic, implicit), whose error that is."""
-        ex = y[:, :3] - y0[:, :3] - 0.5 * h * (y[:, 3:] + y0[:, 3:])
-        return math.sqrt(float(np.mean(np.sum(ex * ex, axis=1)))) / self.size
+            q = 1
+            e = y[:, :3] - y0[:, :3] - 0.5 * h * (y[:, 3:] + y0[:, 3:])  # the trapezoidal companion
+        else:
+            q = min(self.order, len(self.points) - 1)
+            times = [p[0] for p in self.points[-(q + 1):]] + [float(t)]
+            table = [p[1] for p in self.points[-(q + 1):]] + [y]
+            for m in range(1, q + 2):
+                table = [(table[j + 1] - table[j]) / (times[j + m] - times[j]) for j in range(len(table) - 1)]
+            constant = self.constant if q == self.order else 0.5
+            e = constant * math.factorial(q + 1) * h ** (q + 1) * table[0][:, :3]
+            spanned = self.points[-q:]
+        squares = np.sum(e * e, axis=1)
+        if touched is None:
+            return math.sqrt(float(np.mean(squares))) / self.size, q
+        jump = np.sum((y[touched, 3:] - y0[touched, 3:]) ** 2, axis=1)
+        impact = 0.5 * h * math.sqrt(float(np.sum(jump)) / len(y)) / self.size * h / self.horizon
+        for p in spanned:
+            touched = touched | p[3]
+        squares[touched] = 0.0
+        smooth = math.sqrt(float(np.mean(squares))) / self.size
+        return (impact, 1) if impact > smooth else (smooth, q)
 
     def push(self, t, x, v):
-        """Add an accepted state."""
-        self.points.append((float(t), self._y(x, v)))
+        """Add the accepted state (t, x, v): the one ``error`` was last asked about, or another."""
+        if self._tried is not None and self._tried[0] == float(t):
+            point = self._tried
+        else:
+            y, d = self._y(x, v), self._distance(t, x)
+            point = (float(t), y, d, self._touched(self.points[-1], t, y, d) if self.points else None)
+        if point[3] is None and point[2] is not None:
+            point = point[:3] + (np.zeros(len(point[2]), dtype=bool),)
+        self._tried = None
+        self.points.append(point)
         del self.points[:-max(self.order + 1, 2)]
 
     def velocity_change(self) -> float:

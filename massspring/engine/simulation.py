@@ -187,6 +187,8 @@ class Simulation:
                 if options.get(name) is not None:
                     raise ValueError(f"{name}: an error-controlled run (tol) derives it from tol; give one or "
                                      f"the other")
+            if max_dt is None and INTEGRATORS[integrator].traits.stability_limited:
+                tolerance = adaptive.stable_bound(tolerance, INTEGRATORS[integrator], model)
         if model.controls is not None:
             if tolerance is None:
                 model.controls.steps_per_interval(dt)
@@ -249,7 +251,7 @@ class Simulation:
             self._controller = adaptive.Controller(tolerance, dt, size)
             cls = self._integrator.traits
             self._estimator = adaptive.Estimator(cls.order, cls.error_constant, np.flatnonzero(inner.free_mask()),
-                                                 size, tolerance.horizon)
+                                                 size, tolerance.horizon, model.colliders)
 
     # ------------------------------------------------------------------ settings
 

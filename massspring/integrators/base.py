@@ -31,7 +31,10 @@ class Traits:
     ladder's reference, the integrator ``run`` suggests after such a growth).
     ``error_constant``: C of its local error C h^(order+1) y^(order+1) on the linear test
     equation y' = lambda y, which an error-controlled run's estimate (``engine.adaptive``)
-    scales by.
+    scales by. ``stability_limited``: explicit, stable only below a step size set by the
+    stiffest mode, which an error estimate does not see until the instability has grown:
+    an error-controlled run keeps its steps at most its ``suggest_dt`` (half the limit
+    predicted at the initial state) unless given ``max_dt``.
     """
 
     order: int = 1
@@ -46,6 +49,7 @@ class Traits:
     grows_undamped: bool = False
     limit_reference: bool = False
     error_constant: float = 0.5
+    stability_limited: bool = False
 
 
 class Integrator:

@@ -22,7 +22,7 @@ class ExplicitEuler(SwappingStates):
 
     name = "explicit"
     description = "explicit Euler: x' = x + dt v, v' = v + dt f(x, v)/m"
-    traits = Traits(order=1, grows_undamped=True, differentiable=True)
+    traits = Traits(order=1, grows_undamped=True, differentiable=True, stability_limited=True)
     symplectic = False
 
     @property

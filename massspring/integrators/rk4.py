@@ -45,7 +45,7 @@ class RK4(SwappingStates):
     name = "rk4"
     description = "classical Runge-Kutta, 4th order (4 force evaluations per step)"
     # keyframed_pins: its stages move a pin with the velocity in its state
-    traits = Traits(order=4, differentiable=True, keyframed_pins=False, error_constant=1 / 120)
+    traits = Traits(order=4, differentiable=True, keyframed_pins=False, error_constant=1 / 120, stability_limited=True)
 
     def __init__(self, dev, model, settings):
         super().__init__(dev, model, settings)
