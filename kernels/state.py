@@ -80,10 +80,19 @@ def restore_state(hx, hv, dst, n, slot, stride):
 
 
 @ti.kernel
-def read_state(src: ti.template(), out: ti.types.ndarray(dtype=ti.f64, ndim=2), n: ti.i32):
-    """out[i] = (x_i, v_i) (n, 6) float64 of the state ``src`` (m, m/s): a state read in
-    one launch (an error-controlled run reads each step's)."""
+def read_state(src: ti.template(), out: ti.types.ndarray(dtype=ti.f64, ndim=2), n: ti.i32,
+               extra: ti.template()):
+    """out[i] = (x_i, v_i, then the fields of ``extra`` at i) float64 of the state ``src``
+    (m, m/s): a state read in one launch (an error-controlled run reads each step's, with
+    what its integrator carries from step to step). ``extra``: a tuple of (field, first
+    column, width; 0 for a scalar field), read as float64 (int32 and f32 values exactly)."""
     for i in range(n):
         for c in ti.static(range(3)):
             out[i, c] = ti.cast(src.x[i][c], ti.f64)
             out[i, 3 + c] = ti.cast(src.v[i][c], ti.f64)
+        for e in ti.static(range(len(extra))):
+            if ti.static(extra[e][2] == 0):
+                out[i, extra[e][1]] = ti.cast(extra[e][0][i], ti.f64)
+            else:
+                for c in ti.static(range(extra[e][2])):
+                    out[i, extra[e][1] + c] = ti.cast(extra[e][0][i][c], ti.f64)

@@ -120,6 +120,26 @@ def test_diverged_and_failed_cases_are_rows_and_the_sweep_goes_on(tmp_path):
     assert state.steps == steps and state.dt == 0.05
 
 
+def test_a_ladder_of_tolerances_runs_each_case_to_its_duration():
+    """``tol`` varied: each case is an error-controlled run that ends on the duration
+    exactly, the tighter tol taking more steps and coming closer to a reference run (BDF2
+    at a tenth of the tightest tol); its row is the direct run's."""
+    scene = chain()
+    rows = sweep.sweep(scene, {"tol": [1e-2, 1e-3]}, integrator="bdf2", duration=0.2)
+    assert [r["status"] for r in rows] == ["ok", "ok"] and all(r["time"] == 0.2 for r in rows)
+    assert rows[0]["steps"] < rows[1]["steps"]
+    finals = []
+    for tol in (1e-2, 1e-3, 1e-4):
+        sim = scene.simulation("bdf2", tol=tol, horizon=0.2)
+        sim.advance(0.2)
+        finals.append((sim.positions, sim.energy()["total"], sim.steps))
+        sim.close()
+    assert [r["energy"] for r in rows] == [finals[0][1], finals[1][1]]
+    assert [r["steps"] for r in rows] == [finals[0][2], finals[1][2]]
+    errors = [np.abs(x - finals[2][0]).max() for x, _, _ in finals[:2]]
+    assert errors[1] < errors[0]
+
+
 def test_cli_sweep_writes_csv_and_table(tmp_path, capsys):
     out = tmp_path / "s.csv"
     code = main(["sweep", "chain", "--set", "count=5", "--vary", "stiffness=1e2,1e3", "--vary", "damping=0,0.1",
@@ -158,6 +178,10 @@ def test_plot_marks_diverged_cases(tmp_path):
     (["--vary", "count=2", "--vary", "stiffness=1", "--vary", "damping=0", "--plot", "p.png"], ["--plot", "two"]),
     (["--vary", "count=2", "--workers", "0"], ["--workers", "1..1024"]),
     (["--vary", "count=2", "--steps", "0"], ["--steps"]),
+    (["--vary", "tol=1e-3,0"], ["--vary tol", "tol"]),
+    (["--vary", "tol=1e-3", "--steps", "10"], ["--steps", "measured in time"]),
+    (["--vary", "count=2", "--tol", "1e-3", "--steps", "10"], ["--steps", "measured in time"]),
+    (["--vary", "count=2", "--tol", "1e-3", "--cg-tol", "1e-6"], ["--cg-tol", "derives it from --tol"]),
 ])
 def test_cli_bad_input_exits_2_naming_it(argv, words, tmp_path, capsys, monkeypatch):
     monkeypatch.chdir(tmp_path)

@@ -32,7 +32,7 @@ import numpy as np
 from massspring.support import validate
 from massspring.analysis import cluster
 
-RUN_KEYS = ("dt", "integrator", "preconditioner")
+RUN_KEYS = ("dt", "integrator", "preconditioner", "tol")
 COLUMNS = ("status", "message", "steps", "time", "wall_s", "energy", "max_strain", "cg_iterations")
 SETUP = "setup"  # the last column: what every case of the sweep ran with (setup_text)
 NUMBERS = ("steps", "time", "wall_s", "energy", "max_strain", "cg_iterations")
@@ -111,6 +111,7 @@ def plan(scene, vary, integrator=None, confirm=False, limit=MAX_CASES, option="v
     that solves linear systems (``integrator``, else the scene's, unless the integrator is
     varied too), at most ``limit`` cases unless ``confirm``. Raises ValueError naming
     ``option``, the key and the value."""
+    from massspring.engine.adaptive import Tolerance
     from massspring.integrators import INTEGRATORS
     from massspring.solvers import CHOICES
 
@@ -145,6 +146,8 @@ def plan(scene, vary, integrator=None, confirm=False, limit=MAX_CASES, option="v
                     validate.choice("integrator", value, tuple(INTEGRATORS))
                 elif key == "preconditioner":
                     validate.choice("preconditioner", value, CHOICES)
+                elif key == "tol":
+                    Tolerance.of(value)
                 else:
                     scene.with_params(**{key: value}).model()
             except ValueError as exc:
@@ -203,8 +206,11 @@ def run_case(scene, case, integrator=None, dt=None, duration=None, steps=None, o
     integrator = values.get("integrator", integrator)
     dt = values.get("dt", dt)
     options = dict(options or {})
-    if "preconditioner" in values:
-        options["preconditioner"] = values["preconditioner"]
+    for key in ("preconditioner", "tol"):
+        if key in values:
+            options[key] = values[key]
+    if options.get("tol") is not None and duration is not None:
+        options.setdefault("horizon", duration)
     row = {"status": "ok", "message": "", **{k: "" for k in NUMBERS}}
     start = time.perf_counter()
     sim = None
@@ -214,9 +220,11 @@ def run_case(scene, case, integrator=None, dt=None, duration=None, steps=None, o
             raise ValueError(f"preconditioner: {integrator} solves no linear system")
         case_scene = scene.with_params(**params)
         sim = case_scene.simulation(integrator, dt=dt, **options)
-        count = steps if steps is not None else max(1, round((duration or case_scene.duration) / sim.dt))
         try:
-            sim.step(count)
+            if sim.tol is not None:  # error-controlled: measured in time
+                sim.advance(duration or case_scene.duration)
+            else:
+                sim.step(steps if steps is not None else max(1, round((duration or case_scene.duration) / sim.dt)))
         except DivergenceError as exc:
             row.update(status="diverged", message=str(exc))
         model = sim.model
@@ -386,9 +394,11 @@ def sweep(scene, vary, *, integrator=None, dt=None, duration=None, steps=None, o
     """Run every combination of ``vary`` ({key: [values]}) on ``scene`` (a Scene or a
     built-in scene's name) and return the rows in case order.
 
-    ``integrator``, ``dt``, ``options`` (Simulation arguments such as cg_tol): for every
-    case, unless varied. ``duration`` (s) or ``steps``: each run's length (default: the
-    scene's duration). ``out``: the CSV (a row appended as each case finishes; cases
+    ``integrator``, ``dt``, ``options`` (Simulation arguments such as cg_tol, or tol for
+    error-controlled runs): for every case, unless varied (``tol`` may be varied: a
+    ladder of tolerances). ``duration`` (s) or ``steps``: each run's length (default: the
+    scene's duration; an error-controlled case runs for a duration, ending on it
+    exactly, its ``steps`` column the steps it chose). ``out``: the CSV (a row appended as each case finishes; cases
     already in it are skipped and their rows returned as read; one holding a case with
     another number, values or setup is refused, ``Results.check``). ``states``: a directory
     for each case's final state (``case0001.npz``...). ``client``: a
@@ -406,7 +416,13 @@ def sweep(scene, vary, *, integrator=None, dt=None, duration=None, steps=None, o
         duration = validate.positive_float("duration", duration)
     if dt is not None:
         dt = validate.positive_float("dt", dt)
-    if duration is not None:
+    adaptive = (options or {}).get("tol") is not None or "tol" in vary
+    if adaptive and steps is not None:
+        raise ValueError("steps: an error-controlled sweep (tol) is measured in time; give duration")
+    for name in ("newton_tol", "cg_tol"):
+        if "tol" in vary and (options or {}).get(name) is not None:
+            raise ValueError(f"{name}: an error-controlled run (tol) derives it from tol; give one or the other")
+    if duration is not None and not adaptive:
         check_duration(scene, cases, duration, integrator, dt)
     if states is not None:
         states = Path(states)

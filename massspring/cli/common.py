@@ -49,7 +49,8 @@ def add_tolerance_arguments(p):
                    "Newton's and CG's tolerances follow (default: the scene's tol, else fixed steps of --dt)")
     p.add_argument("--min-dt", type=float, help="with --tol: the smallest step in s (default 1e-9 x the duration); "
                    "a run whose step would fall below it stops with exit 3")
-    p.add_argument("--max-dt", type=float, help="with --tol: the largest step in s (default the duration)")
+    p.add_argument("--max-dt", type=float, help="with --tol: the largest step in s (default the duration; explicit, "
+                   "symplectic, rk4: the dt they suggest, half the predicted stability limit)")
 
 
 def tolerance_options(args):

@@ -10,7 +10,7 @@ from massspring.support.defaults import MAX_STEPS
 from massspring.support.extras import install_hint
 from massspring.cli.common import (
     EXIT_INTERRUPTED, EXIT_OK, Terminated, UsageError, needs_matplotlib, add_cluster_arguments, add_scene_arguments,
-    solver_options)
+    add_tolerance_arguments, solver_options, tolerance_options)
 
 
 def add_sweep_arguments(p, integrators):
@@ -18,7 +18,7 @@ def add_sweep_arguments(p, integrators):
 
     add_scene_arguments(p, integrators)
     p.add_argument("--vary", action="append", default=[], metavar="KEY=V1,V2,...", required=True,
-                   help="a model parameter (as --set), dt, integrator or preconditioner and its values; "
+                   help="a model parameter (as --set), dt, integrator, preconditioner or tol and its values; "
                    "repeatable: one case per combination")
     length = p.add_mutually_exclusive_group()
     length.add_argument("--steps", type=int, help="steps per case (default: the scene's duration / dt)")
@@ -31,6 +31,7 @@ def add_sweep_arguments(p, integrators):
     p.add_argument("--metric", choices=METRICS, default="energy", help="what --plot draws (default energy)")
     p.add_argument("--yes", action="store_true", help=f"run more than {MAX_CASES} cases")
     p.add_argument("--quiet", action="store_true", help="no line per finished case")
+    add_tolerance_arguments(p)
     add_cluster_arguments(p)
 
 
@@ -41,13 +42,16 @@ def cmd_sweep(args):
     from massspring.scene import load_scene
 
     scene = load_scene(args.scene).with_settings(args.set)
+    tolerance = tolerance_options(args)
     try:
         vary = sweep.parse_vary(args.vary)
+        if (tolerance or "tol" in vary) and args.steps is not None:
+            raise ValueError("--steps: an error-controlled sweep (--tol) is measured in time; give --duration")
         cases = sweep.plan(scene, vary, integrator=args.integrator, confirm=args.yes, option="--vary")
         for name in ("dt", "duration"):
             if getattr(args, name) is not None:
                 validate.positive_float(f"--{name}", getattr(args, name))
-        if args.duration is not None:
+        if args.duration is not None and not (tolerance or "tol" in vary):
             sweep.check_duration(scene, cases, args.duration, args.integrator, args.dt, "--duration")
         if args.steps is not None and not 1 <= args.steps <= MAX_STEPS:
             raise ValueError(f"--steps: must be within 1..{MAX_STEPS}, got {args.steps}")
@@ -63,7 +67,7 @@ def cmd_sweep(args):
         ensure_taichi(args.arch, "--arch")
     except ValueError as exc:
         raise UsageError(str(exc)) from None
-    options = dict(precision=args.precision, arch=args.arch, **solver_options(args))
+    options = dict(precision=args.precision, arch=args.arch, **solver_options(args), **tolerance)
     setup = sweep.setup_text(scene, args.integrator, args.dt, args.duration, args.steps, options)
     try:
         before = sweep.resumable(args.out, list(vary), cases, setup)

@@ -30,6 +30,15 @@ positions they make: weighting their own estimate by L / H (as CVODE weighs ever
 component alike) made the stiff chain resolve the axial vibrations that hold no
 position error (docs/solvers.md).
 
+Impacts. A particle that may have touched a collider within a step (``Estimator._touched``)
+has its velocity changed by the contact response in that one step, first order whatever
+the integrator: it counts no smooth error in any estimate spanning the step, and its
+impact's timing error, h |v' - v| / 2, is bounded by tol itself (``Estimator.error``).
+
+Stability. An explicit integrator's steps stay at most its ``suggest_dt`` of the model
+unless ``max_dt`` is given (``stable_bound``): the estimate sees an instability only once
+it has grown.
+
 The controller (a PI controller, Hairer and Wanner II, IV.2, with their DOPRI5 gains):
 with r the ratio of the estimate to its bound and k = q the estimate's order in h (error
 per unit step), an accepted step proposes h r^(-alpha) r_prev^beta times ``SAFETY``,
@@ -119,11 +128,11 @@ class Tolerance:
 
 def stable_bound(tolerance: Tolerance, integrator_class, model) -> Tolerance:
     """``tolerance`` with max_dt at most the dt ``integrator_class`` suggests for ``model``
-    (half its stability limit predicted at the initial state, ``analysis.stability``;
+    (half its stability limit predicted at the initial state, ``engine.spectrum``;
     never below min_dt): an explicit integrator's error estimate does not see an
     instability until it has grown (a free fall, integrated exactly, lets the steps grow
     past the limit)."""
-    from massspring.analysis.stability import predict
+    from massspring.engine.spectrum import predict
 
     bound = integrator_class.suggest_dt(predict(model))
     return replace(tolerance, max_dt=max(min(tolerance.max_dt, bound), tolerance.min_dt))

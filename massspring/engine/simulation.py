@@ -540,20 +540,44 @@ class Simulation:
         return self
 
     def _read_state(self, integrator):
-        """(x, v) (n, 3) float64 of the current state, in the run's inner numbering."""
+        """(x, v) (n, 3) float64 of the current state, in the run's inner numbering, and
+        the arrays of the integrator's ``carried_fields`` (name -> (n,) or (n, k)), read
+        in one launch."""
         integrator.settle()
         n = self._model.n_particles
-        out = np.empty((n, 6))
-        state_kernels.read_state(integrator.state, out, n)
-        return out[:, :3], out[:, 3:]
+        extra, rows, column = [], {}, 6
+        for name, field in integrator.carried_fields().items():
+            width = getattr(integrator.dev, field).n if name in self._vector_fields(integrator) else 0
+            extra.append((getattr(integrator.dev, field), column, width))
+            rows[name] = (column, max(width, 1), width)
+            column += max(width, 1)
+        out = np.empty((n, column))
+        state_kernels.read_state(integrator.state, out, n, tuple(extra))
+        carried = {name: out[:, a:a + k] if w else out[:, a] for name, (a, k, w) in rows.items()}
+        return out[:, :3], out[:, 3:6], carried
+
+    @staticmethod
+    def _vector_fields(integrator):
+        return {name for name, (_, shape) in integrator.carried_names().items() if shape}
 
     def _kept(self):
-        """What a rejected try goes back to besides the state (``_controlled_step`` holds
-        that): a ``Snapshot`` without positions and velocities."""
-        carried = self.carried_state() if self._carried_names(self._integrator) else None
-        return Snapshot(None, None, self._steps, carried, tuple(p.snapshot() for p in self._passes),
+        """What a rejected try goes back to besides the state and the integrator's carried
+        fields (``_controlled_step`` holds those): a ``Snapshot`` without them, its
+        ``carried`` only the integrator's ``carried_values``."""
+        return Snapshot(None, None, self._steps, self._integrator.carried_values(), tuple(p.snapshot() for p in self._passes),
                         (len(self._cg_iterations), len(self._newton_iterations), self._cuts, self._cg_failures),
                         self._integrator.clock)
+
+    def _carried_of(self, integrator, rows, kept):
+        """``carried_state()`` of the state a try started from: the integrator's arrays
+        from ``rows``, read with that state (``_read_state``), and the passes' from their
+        snapshots in ``kept`` (``_kept``); None if nothing is carried."""
+        if not self._carried_names(integrator):
+            return None
+        carried = {**integrator.carried(rows), **kept.carried}
+        for _, theirs in kept.passes:
+            carried.update(theirs)
+        return {name: self.to_user(values) for name, values in carried.items()}
 
     def _controlled_step(self, integrator, end):
         """One accepted step of an error-controlled run (``engine.adaptive``), ending at
@@ -563,7 +587,7 @@ class Simulation:
         t = integrator.clock
         if not est.points:
             self._current = self._read_state(integrator)
-            est.reset(t, *self._current)
+            est.reset(t, *self._current[:2])
         if schedule is not None:
             end = min(end, schedule.end(t))
         while True:
@@ -591,7 +615,7 @@ class Simulation:
             elif integrator.traits.has_stats and not integrator.stats.converged:
                 failure = "solver"
             else:
-                x, v = self._read_state(integrator)
+                x, v, rows = self._read_state(integrator)
                 estimate, order = est.error(t + h, x, v)
             kinks = ctl.kinks
             if ctl.judge(h, estimate, order, failure, t):
@@ -599,11 +623,12 @@ class Simulation:
                     est.points = est.points[-1:]  # the history before a kink does not help
                 if landing:
                     integrator.clock = end
-                self._current = (x, v)
+                self._current = (x, v, rows)
                 est.push(integrator.clock, x, v)
                 return
-            x, v = self._current
-            self.restore(dataclasses.replace(kept, positions=self.to_user(x), velocities=self.to_user(v)))
+            x, v, rows = self._current
+            self.restore(dataclasses.replace(kept, positions=self.to_user(x), velocities=self.to_user(v),
+                                             carried=self._carried_of(integrator, rows, kept)))
             if ctl.dt < ctl.tolerance.min_dt:
                 if failure is None:
                     cause = f"error estimate {estimate / ctl.bound(h):.3g} x its bound"

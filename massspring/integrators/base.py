@@ -140,9 +140,26 @@ class Integrator:
         """The current state was changed after a step (a strain limit's or the self-collision
         pass's positions and velocities): update what the integrator keeps of it (nothing by default)."""
 
-    def carried(self) -> dict:
-        """The arrays of ``carried_names`` at the current state (numpy, a row per particle)."""
-        return {name: self.dev.read(name).astype(dtype) for name, (dtype, _) in self.carried_names().items()}
+    def carried(self, rows=None) -> dict:
+        """The arrays of ``carried_names`` at the current state (numpy, a row per particle):
+        those of ``carried_fields`` from ``rows`` (name -> the field's values as read
+        already, e.g. with the state: ``kernels.state.read_state``) or read here, with
+        ``carried_values``."""
+        names = self.carried_names()
+        out = {}
+        for name, field in self.carried_fields().items():
+            values = self.dev.read(field) if rows is None else rows[name]
+            out[name] = values.astype(names[name][0])
+        return {**out, **self.carried_values()}
+
+    def carried_fields(self) -> dict:
+        """Of ``carried_names``, those a field holds as they are: name -> the field's name
+        in the bundle (all of them by default)."""
+        return {name: name for name in self.carried_names()}
+
+    def carried_values(self) -> dict:
+        """Of ``carried_names``, those the integrator holds in Python, as arrays (none by default)."""
+        return {}
 
     def carried_names(self) -> dict:
         """What this run carries from step to step besides x and v: name -> (numpy dtype,
@@ -199,14 +216,14 @@ class Integrator:
 
     @staticmethod
     def stability_limit(prediction):
-        """The largest dt (s) the prediction (``analysis.stability.Prediction``) lets this
+        """The largest dt (s) the prediction (``engine.spectrum.Prediction``) lets this
         integrator take (inf: none), or None if it has no such limit (the study then starts
         its ladder at the scene's dt)."""
         return None
 
     @staticmethod
     def suggest_dt(prediction) -> float:
-        """A default dt (s) for a scene without one, from ``analysis.stability.Prediction``."""
+        """A default dt (s) for a scene without one, from ``engine.spectrum.Prediction``."""
         raise NotImplementedError
 
     def release(self):

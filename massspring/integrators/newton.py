@@ -389,13 +389,14 @@ class BDF2(BackwardEuler):
             names["h_prev"] = (np.float64, ())
         return names
 
-    def carried(self):
-        out = {name: self.dev.read(name).astype(dtype) for name, (dtype, _) in super().carried_names().items()}
-        out["x_prev"] = self.dev.read("xo").astype(np.float64)
-        out["v_prev"] = self.dev.read("vo").astype(np.float64)
-        out["ready"] = np.full(len(out["x_prev"]), int(self.ready), np.int32)
+    def carried_fields(self):
+        return {**{name: name for name in super().carried_names()}, "x_prev": "xo", "v_prev": "vo"}
+
+    def carried_values(self):
+        n = self.dev.n
+        out = {"ready": np.full(n, int(self.ready), np.int32)}
         if self.clock is not None:
-            out["h_prev"] = np.full(len(out["x_prev"]), self.previous or 0.0)
+            out["h_prev"] = np.full(n, self.previous or 0.0)
         return out
 
     def load_state(self, positions, velocities, carried=None):

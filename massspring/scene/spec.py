@@ -314,10 +314,10 @@ class Scene:
         return self._suggested[name]
 
     def prediction(self):
-        """The stability prediction (``analysis.stability.predict``) at the initial state,
+        """The stability prediction (``engine.spectrum.predict``) at the initial state,
         computed once."""
         if "prediction" not in self._suggested:
-            from massspring.analysis.stability import predict
+            from massspring.engine.spectrum import predict
 
             self._suggested["prediction"] = predict(self.model())
         return self._suggested["prediction"]
