@@ -273,6 +273,30 @@ def test_csv_and_json_have_one_row_per_run(chain_study, tmp_path):
         assert (record["cg_tol"] is None) == (run.integrator != "implicit") == (row["cg_tol"] == "")
 
 
+def test_error_controlled_lines_follow_their_tolerance():
+    """``tols``: a run per tolerance and integrator, its error against the exact spring
+    (computed here from its end state) within 0.03x..30x of tol and smaller at the smaller
+    tol; a line of their own, no order fitted to it, and among the cheapest runs."""
+    scene = ms.load_scene("spring")
+    s = study.run_study(scene, integrators=["bdf2", "implicit"], duration=END, cg_tols=[1e-10], newton_tols=[1e-8],
+                        ladders={"bdf2": [8e-3, 4e-3], "implicit": [8e-3, 4e-3]}, tols=[1e-2, 1e-3], repeats=1,
+                        use_cache=False)
+    adaptive = [r for r in s.runs if r.tol is not None]
+    assert [(r.integrator, r.tol) for r in adaptive] == [("bdf2", 1e-2), ("bdf2", 1e-3), ("implicit", 1e-2),
+                                                         ("implicit", 1e-3)]
+    u_ref = exact_state(END)[0]
+    for run in adaptive:
+        assert run.line.endswith("error-controlled") and not run.diverged and run.steps > 0
+        error = abs(run.positions[-1][1, 0] - (L0 + u_ref)) / SIZE
+        assert run.error == pytest.approx(error, rel=1e-9)
+        assert 0.03 * run.tol <= run.error <= 30 * run.tol, (run.integrator, run.tol, run.error)
+    for name in ("bdf2", "implicit"):
+        loose, tight = (r for r in adaptive if r.integrator == name)
+        assert tight.error < loose.error and tight.steps > loose.steps
+    assert not any(line.endswith("error-controlled") for line in s.orders)
+    assert "chosen" in report.report(s)  # the table's dt column of an error-controlled run
+
+
 def test_cli_study(tmp_path, capsys):
     out = tmp_path / "study"
     code = main(["study", "spring", "--out", str(out), "--duration", "0.2", "--rungs", "2",
@@ -281,6 +305,12 @@ def test_cli_study(tmp_path, capsys):
     assert code == 0
     assert "measured order" in text and "reference: exact solution" in text
     assert len(json.loads((out / "runs.json").read_text())) == 6
+    adaptive = tmp_path / "adaptive"
+    assert main(["study", "spring", "--out", str(adaptive), "--duration", "0.2", "--rungs", "2",
+                 "--integrators", "bdf2", "--newton-tols", "1e-6", "--tol", "1e-2", "--repeats", "1",
+                 "--cache-dir", str(tmp_path / "cache")]) == 0
+    assert "tol 1e-02" in capsys.readouterr().err
+    assert [row["tol"] for row in json.loads((adaptive / "runs.json").read_text())] == [None, None, 0.01]
     import matplotlib  # noqa: F401  (in the [test] extra: a missing one fails here, not a skip)
     assert (out / "work_precision.png").read_bytes()[:4] == b"\x89PNG"
 
@@ -291,7 +321,8 @@ def test_cli_study(tmp_path, capsys):
                                        (["--duration", "-1"], "--duration: must be a finite number > 0"),
                                        (["--repeats", "0"], "--repeats: expected an integer"),
                                        (["--preconditioners", "amg"], "--preconditioners: unknown value 'amg'"),
-                                       (["--cg-tols", "x"], "--cg-tols: expected a number")])
+                                       (["--cg-tols", "x"], "--cg-tols: expected a number"),
+                                       (["--tol", "0"], "--tol: "), (["--tol", "1e-3,x"], "--tol: expected a number")])
 def test_cli_study_bad_input(args, key, tmp_path, capsys):
     assert main(["study", "spring", "--out", str(tmp_path / "o"), *args]) == 2
     err = capsys.readouterr().err.strip()

@@ -11,13 +11,14 @@ def fit_orders(runs, finest=3) -> dict:
     """{line: {"integrator", "cg_tol", "newton_tol", "preconditioner", "order", "order_finest", "points"}}.
 
     ``order``: least-squares slope of log(error) against log(dt) over the line's
-    non-diverged runs with a positive error (None with fewer than 2 dt values);
+    non-diverged runs (fixed-dt lines only) with a positive error (None with fewer than 2 dt values);
     ``order_finest``: the same over its ``finest`` smallest dts only (the asymptotic
     order, free of runs near the stability limit).
     """
     lines = {}
     for run in runs:
-        lines.setdefault(run.line, []).append(run)
+        if run.tol is None:  # an error-controlled line has no dt ladder to fit
+            lines.setdefault(run.line, []).append(run)
     out = {}
     for line, members in lines.items():
         good = sorted((r for r in members if not r.diverged and r.error is not None and r.error > 0),
@@ -54,6 +55,7 @@ def cheapest(runs, target) -> dict | None:
     if not good:
         return None
     best = min(good, key=lambda r: r.wall_s)
-    return {"integrator": best.integrator, "dt": best.dt, "cg_tol": best.cg_tol, "newton_tol": best.newton_tol,
+    return {"integrator": best.integrator, "dt": best.dt, "tol": best.tol, "cg_tol": best.cg_tol,
+            "newton_tol": best.newton_tol,
             "preconditioner": best.preconditioner,
             "error": best.error, "wall_s": best.wall_s}

@@ -26,10 +26,10 @@ def _fmt(value, spec=".3g"):
 
 def table(study) -> str:
     """The runs as a fixed-width text table."""
-    head = ("integrator", "precond", "tol", "dt", "steps", "error", "err(t)", "energy", "wall_s", "CG its",
-            "status")
+    head = ("integrator", "precond", "solver tol", "dt", "tol", "steps", "error", "err(t)", "energy", "wall_s",
+            "CG its", "status")
     rows = [(r.integrator, _fmt(r.preconditioner), _fmt(r.cg_tol if r.newton_tol is None else r.newton_tol, ".0e"),
-             _fmt(r.dt, ".4g"), str(r.steps), _fmt(r.error),
+             _fmt(r.dt, ".4g") if r.tol is None else "chosen", _fmt(r.tol, ".0e"), str(r.steps), _fmt(r.error),
              _fmt(r.error_over_time), _fmt(r.energy_error), _fmt(r.wall_s, ".4g"),
              str(r.cg_iterations), r.status) for r in study.runs]
     widths = [max(len(h), *(len(row[i]) for row in rows)) if rows else len(h) for i, h in enumerate(head)]
@@ -55,7 +55,8 @@ def report(study) -> str:
             tol = "" if best["cg_tol"] is None else f" ({best['preconditioner']}), cg_tol {best['cg_tol']:g}"
             if best["newton_tol"] is not None:
                 tol = f" ({best['preconditioner']}), newton_tol {best['newton_tol']:g}"
-            out.append(f"error <= {target:g}: cheapest {best['integrator']} dt {best['dt']:.4g} s{tol} "
+            step = f"dt {best['dt']:.4g} s" if best["tol"] is None else f"error-controlled, tol {best['tol']:g}"
+            out.append(f"error <= {target:g}: cheapest {best['integrator']} {step}{tol} "
                        f"(error {best['error']:.3g}, {best['wall_s']:.3g} s)")
     return "\n".join(out)
 
@@ -84,7 +85,8 @@ def write_outputs(study, out_dir) -> list:
 
 def plot(study, path, title=None):
     """Work-precision PNG: end-time error against wall time, log-log, one line per
-    integrator and CG tolerance, each point labelled with its dt. Needs matplotlib."""
+    integrator and CG tolerance, each point labelled with its dt, and a dashed line per
+    integrator's error-controlled runs, each point labelled with its tol. Needs matplotlib."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -97,18 +99,20 @@ def plot(study, path, title=None):
             lines.setdefault(run.line, []).append(run)
     markers = dict(zip(INTEGRATORS, "os^vPD*X"))
     for line, members in lines.items():
-        members.sort(key=lambda r: r.dt)
+        adaptive = members[0].tol is not None
+        members.sort(key=lambda r: r.tol if adaptive else r.dt)
         ax.plot([r.wall_s for r in members], [r.error for r in members],
-                marker=markers.get(members[0].integrator, "v"),
+                marker=markers.get(members[0].integrator, "v"), linestyle="--" if adaptive else "-",
                 markersize=4, linewidth=1.2, label=line)
         for r in members:
-            ax.annotate(f"{r.dt:.2g}", (r.wall_s, r.error), textcoords="offset points", xytext=(3, 3),
+            label = f"tol {r.tol:.0e}" if adaptive else f"{r.dt:.2g}"
+            ax.annotate(label, (r.wall_s, r.error), textcoords="offset points", xytext=(3, 3),
                         fontsize=5.5, color=ax.lines[-1].get_color())
     ax.set_xscale("log")
     ax.set_yscale("log")
     ax.set_xlabel("wall time of stepping (s)")
     ax.set_ylabel("RMS position error at end / scene size")
-    ax.set_title(title or f"{study.scene}: work-precision, end time {study.duration:g} s (labels: dt in s)",
+    ax.set_title(title or f"{study.scene}: work-precision, end time {study.duration:g} s (labels: dt in s, or tol)",
                  fontsize=9)
     ax.grid(True, which="both", linewidth=0.3, alpha=0.5)
     ax.legend(fontsize=7)
@@ -133,8 +137,8 @@ def new_out_dir(scene_name, base=".") -> Path:
 
 
 def progress_line(run) -> str:
-    what = f"{run.integrator:10s} dt {run.dt:<10.4g}" + ("" if run.line == run.integrator else
-                                                         run.line[len(run.integrator):])
+    step = f"dt {run.dt:<10.4g}" if run.tol is None else f"tol {run.tol:<9.0e}"
+    what = f"{run.integrator:10s} {step}" + ("" if run.line == run.integrator else run.line[len(run.integrator):])
     done = run.status if run.diverged else f"{run.steps} steps in {run.wall_s:.3g} s"
     return f"  {what}: {done}"
 

@@ -26,6 +26,11 @@ Measures of a run (all dimensionless unless stated):
 
 ``order``: the least-squares slope of log(error) against log(dt) over a line's
 non-diverged runs (about 1 for all three Euler variants on smooth problems).
+
+Error-controlled lines (``tols``): each integrator also run with ``Simulation(tol=t)``
+for each t (its first step the top of its dt ladder, ``horizon`` the end time), landing
+on every save instant; ``steps`` is then the steps it chose. They are in the table, the
+files and the plot, and among the cheapest runs; no order is fitted to them.
 """
 
 from __future__ import annotations
@@ -41,7 +46,7 @@ from massspring.support import validate
 from massspring.analysis import cluster, reference
 from massspring.analysis.fits import TARGETS, cheapest, fit_orders
 from massspring.analysis.hints import hints
-from massspring.engine.adaptive import scene_size
+from massspring.engine.adaptive import Tolerance, scene_size
 from massspring.support.errors import DivergenceError
 from massspring.integrators import INTEGRATORS, OPTIONS, REFERENCE, SMALLEST_DT, STUDIED, Integrator
 from massspring.engine.simulation import Simulation
@@ -56,8 +61,8 @@ DEFAULT_REPEATS = 3
 DEFAULT_TIME_BUDGET = 2.0    # s of timed runs per configuration before repeats stop
 REFERENCE_RATIO = 1e-3       # RK4 halving change / smallest reported error must be below this
 REFERENCE_HALVINGS = 4       # extra RK4 refinements tried before the check is reported failed
-COLUMNS = ("integrator", "dt", "cg_tol", "newton_tol", "preconditioner", "error", "error_over_time", "energy_error", "wall_s",
-           "steps", "cg_iterations", "diverged", "timed_runs", "status")
+COLUMNS = ("integrator", "dt", "tol", "cg_tol", "newton_tol", "preconditioner", "error", "error_over_time",
+           "energy_error", "wall_s", "steps", "cg_iterations", "diverged", "timed_runs", "status")
 
 
 @dataclass
@@ -69,6 +74,7 @@ class Run:
     cg_tol: float | None
     preconditioner: str | None = None  # implicit runs: the one used ("auto" resolved)
     newton_tol: float | None = None  # Newton-solved runs: their newton_tol (cg_tol is then None)
+    tol: float | None = None  # an error-controlled run's tol (``Simulation(tol=...)``; dt is then its first step)
     error: float | None = None
     error_over_time: float | None = None
     energy_error: float | None = None
@@ -87,6 +93,9 @@ class Run:
     @property
     def line(self) -> str:
         """The plot line (and slope fit) this run belongs to."""
+        if self.tol is not None:
+            pre = f" ({self.preconditioner})" if self.preconditioner else ""
+            return f"{self.integrator}{pre} error-controlled"
         if self.newton_tol is not None:
             return f"{self.integrator} ({self.preconditioner}) newton_tol={self.newton_tol:g}"
         if self.cg_tol is None:
@@ -184,6 +193,7 @@ DEFAULT_INTEGRATORS = STUDIED
 
 def run_study(scene, *, integrators=DEFAULT_INTEGRATORS, duration=None, rungs=DEFAULT_RUNGS,
               ladders=None, cg_tols=DEFAULT_CG_TOLS, newton_tols=DEFAULT_NEWTON_TOLS, preconditioners=("auto",),
+              tols=(),
               repeats=DEFAULT_REPEATS,
               time_budget=DEFAULT_TIME_BUDGET, cache=None, use_cache=True,
               reference_ratio=REFERENCE_RATIO, reference_dt=None, progress=None, client=None) -> Study:
@@ -193,7 +203,8 @@ def run_study(scene, *, integrators=DEFAULT_INTEGRATORS, duration=None, rungs=DE
     the scene's default dt per integrator, ``dt_ladder``); save instants then follow
     the largest dt given. ``preconditioners``: the runs' of integrators that solve a
     linear system (``solvers.CHOICES``; ``line_preconditioners``), each a line per
-    tolerance. ``reference_dt``: the RK4 step to start the self-check from
+    tolerance. ``tols``: error-controlled lines, a run per tolerance and integrator (with
+    the first preconditioner). ``reference_dt``: the RK4 step to start the self-check from
     (default: the scene's explicit dt). ``progress``: a callable given each finished Run.
     ``client``: a ``dask.distributed.Client`` to run the runs and the first two RK4
     references on, a task each (None: in this process); further halvings of the
@@ -213,6 +224,7 @@ def run_study(scene, *, integrators=DEFAULT_INTEGRATORS, duration=None, rungs=DE
     newton_tols = [validate.fraction("newton_tols", t) for t in newton_tols] or list(DEFAULT_NEWTON_TOLS)
     for name in preconditioners:
         validate.choice("preconditioners", name, solvers.CHOICES)
+    tols = [Tolerance.of(t).tol for t in tols]
     model = scene.model()
     preconditioners = list(preconditioners) or ["auto"]
     if ladders is None:
@@ -236,12 +248,16 @@ def run_study(scene, *, integrators=DEFAULT_INTEGRATORS, duration=None, rungs=DE
     tasks = [("reference", (model, times, dt, cache, use_cache)) for dt in reference_dts]
     for name in integrators:
         cls, swept = INTEGRATORS[name], hints(name).swept
-        tols = [{swept: t} for t in {"cg_tol": cg_tols, "newton_tol": newton_tols}.get(swept, ())]
+        solver_tols = [{swept: t} for t in {"cg_tol": cg_tols, "newton_tol": newton_tols}.get(swept, ())]
         for pre in (line_preconditioners(model, name, preconditioners) if cls.traits.linear_solver else [None]):
-            for tol in (tols if cls.traits.linear_solver else [{}]):
+            for tol in (solver_tols if cls.traits.linear_solver else [{}]):
                 for dt in ladders[name]:
                     tasks.append(("run", (model, name, ladders[name][0], dt, tol, pre, times, size, repeats,
                                           time_budget)))
+        own = line_preconditioners(model, name, preconditioners)[0] if cls.traits.linear_solver else None
+        for t in tols:
+            tasks.append(("run", (model, name, ladders[name][0], ladders[name][0], {"tol": t}, own, times, size,
+                                  repeats, time_budget)))
 
     def finished(index, result):
         if progress and index >= len(reference_dts):
@@ -291,22 +307,36 @@ def _warm_up(model, integrator, dt, preconditioner):
 
 
 def _solver(tol, preconditioner):
-    """Simulation arguments of a run: its tolerance ({"cg_tol": t}, {"newton_tol": t} or
-    {}) and preconditioner (None for integrators without a linear solve)."""
+    """Simulation arguments of a run: its tolerance ({"cg_tol": t}, {"newton_tol": t},
+    {"tol": t} for an error-controlled run, or {}) and preconditioner (None for
+    integrators without a linear solve)."""
     return dict(tol) if preconditioner is None else {**tol, "preconditioner": preconditioner}
+
+
+def _advance(sim, until, steps):
+    """Step ``sim`` to save instant number ``steps`` (a fixed-dt run) or to time ``until``
+    (s, an error-controlled one)."""
+    if sim.tol is None:
+        sim.step(int(steps - sim.steps))
+    else:
+        sim.advance(until - sim.time)
 
 
 def _measure(model, integrator, dt, tol, preconditioner, times, size, repeats, time_budget) -> Run:
     """The measured run (states at the save instants, stepping timed) and the extra timed runs."""
     kwargs = _solver(tol, preconditioner)
-    run = Run(integrator, dt, tol.get("cg_tol"), preconditioner, tol.get("newton_tol"))
-    counts = reference.steps_between(times, dt)
+    run = Run(integrator, dt, tol.get("cg_tol"), preconditioner, tol.get("newton_tol"), tol.get("tol"))
+    if run.tol is not None:
+        kwargs["horizon"] = float(times[-1])
+        counts = np.zeros(len(times))
+    else:
+        counts = reference.steps_between(times, dt)
     sim = Simulation(model, integrator=integrator, dt=dt, **kwargs)
     positions, wall = [], 0.0
-    for count in counts:
+    for until, count in zip(times, counts):
         start = time.perf_counter()
         try:
-            sim.step(int(count - sim.steps))
+            _advance(sim, until, count)
         except DivergenceError as exc:
             run.diverged, run.status = True, f"diverged ({exc.cause}, step {exc.step})"
             break
@@ -331,7 +361,7 @@ def _measure(model, integrator, dt, tol, preconditioner, times, size, repeats, t
         timed = Simulation(model, integrator=integrator, dt=dt, **kwargs)
         timed.step(1)  # untimed: first launch on this Simulation's arrays
         start = time.perf_counter()
-        timed.step(int(counts[-1]))
+        _advance(timed, times[-1], counts[-1] + 1)
         walls.append(time.perf_counter() - start)
         timed.close()
     run.wall_s, run.timed_runs = min(walls), len(walls)

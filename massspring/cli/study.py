@@ -26,6 +26,9 @@ def add_study_arguments(p):
                    help="implicit, backward-euler, bdf2, midpoint: comma-separated preconditioners, a line each "
                    "(auto, block-jacobi, multigrid, multigrid-f32, none; default auto: what each integrator's own "
                    "run picks)")
+    p.add_argument("--tol", default="", help="error-controlled lines: comma-separated tolerances, a run each per "
+                   "integrator with its steps chosen for that error (`run --tol`), beside the dt ladders "
+                   "(default none)")
     p.add_argument("--repeats", type=int, default=3, help="timed runs per configuration, at most (default 3)")
     p.add_argument("--cache-dir", help="RK4 reference cache (default $MASSSPRING_CACHE, "
                    "else $XDG_CACHE_HOME/massspring or ~/.cache/massspring)")
@@ -35,7 +38,7 @@ def add_study_arguments(p):
 # run_study's arguments -> the options of `massspring study` that give them
 STUDY_OPTIONS = {"integrators": "--integrators", "duration": "--duration", "rungs": "--rungs",
                  "cg_tols": "--cg-tols", "newton_tols": "--newton-tols", "preconditioners": "--preconditioners",
-                 "repeats": "--repeats"}
+                 "repeats": "--repeats", "tol": "--tol"}
 
 
 def cmd_study(args):
@@ -47,11 +50,12 @@ def cmd_study(args):
     if out.exists() and not out.is_dir():
         raise UsageError(f"--out: {str(out)!r} exists and is not a directory")
     tols = {}
-    for key in ("cg_tols", "newton_tols"):
+    for key, flag, given in (("cg_tols", "--cg-tols", args.cg_tols), ("newton_tols", "--newton-tols", args.newton_tols),
+                             ("tols", "--tol", args.tol)):
         try:
-            tols[key] = [_number(text) for text in filter(str.strip, getattr(args, key).split(","))]
+            tols[key] = [_number(text) for text in filter(str.strip, given.split(","))]
         except ValueError as exc:
-            raise UsageError(f"--{key.replace('_', '-')}: {exc}") from None
+            raise UsageError(f"{flag}: {exc}") from None
     try:
         cluster.check_options(args.workers, args.address)
     except ValueError as exc:
