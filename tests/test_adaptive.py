@@ -211,6 +211,23 @@ def test_the_cli_runs_a_scene_to_a_tolerance(capsys):
     assert "tol 0.001 (dt " in out and "(0.5 s simulated)" in out and "from --tol" in out
 
 
+def test_an_obj_mesh_runs_as_a_scene_to_a_tolerance(capsys, tmp_path):
+    """An OBJ file where a scene goes: the mesh scene with the defaults (implicit, 2 s, no
+    dt table); `massspring run my.obj --tol 1e-2` runs it with the steps it picks."""
+    from pathlib import Path
+
+    from massspring.cli import main
+
+    mesh = tmp_path / "my.obj"
+    mesh.write_bytes((Path(__file__).resolve().parents[1] / "examples" / "cloth.obj").read_bytes())
+    scene = ms.load_scene(str(mesh))
+    assert (scene.integrator, scene.duration, scene.dt, scene.model().n_particles) == ("implicit", 2.0, {}, 144)
+    assert main(["run", str(mesh), "--tol", "1e-2", "--duration", "0.05", "--quiet",
+                 "--set", "pin_box=[[-0.01,0.99,-0.01],[1.01,1.01,0.01]]"]) == 0
+    out = capsys.readouterr().out
+    assert "implicit, tol 0.01 (dt " in out and "(0.05 s simulated)" in out
+
+
 @pytest.mark.parametrize("args, flag", [
     (["--tol", "0"], "--tol"), (["--tol", "1e-20"], "--tol"), (["--min-dt", "1e-6"], "--min-dt"),
     (["--max-dt", "1e-2"], "--max-dt"), (["--tol", "1e-3", "--newton-tol", "1e-4"], "--newton-tol"),

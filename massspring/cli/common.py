@@ -28,7 +28,8 @@ def add_scene_arguments(p, integrators):
     from massspring.device import ARCHS
     from massspring.integrators import OPTIONS
 
-    p.add_argument("scene", help="a built-in scene name (see `massspring scenes`) or a TOML file")
+    p.add_argument("scene", help="a built-in scene name (see `massspring scenes`), a TOML file or an OBJ mesh (run with "
+                   "the defaults of docs/scenes.md, 'Your own mesh')")
     p.add_argument("--integrator", choices=tuple(integrators), help="time integrator (default: the scene's)")
     p.add_argument("--dt", type=float, help="time step in s (default: the scene's for the integrator)")
     p.add_argument("--precision", choices=PRECISIONS, default=PRECISIONS[0])

@@ -17,7 +17,8 @@ def add_fit_arguments(p):
     from massspring.gradients import differentiable
     from massspring.integrators import OPTIONS
 
-    p.add_argument("scene", help="a built-in scene name (see `massspring scenes`) or a TOML file")
+    p.add_argument("scene", help="a built-in scene name (see `massspring scenes`), a TOML file or an OBJ mesh (run with "
+                   "the defaults of docs/scenes.md, 'Your own mesh')")
     p.add_argument("--frames", required=True, metavar="DIR",
                    help="the recording: a folder written by `massspring run SCENE --export DIR --format npz` "
                    "(the fit starts from its first frame and steps with its dt)")

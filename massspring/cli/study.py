@@ -12,7 +12,8 @@ from massspring.support.extras import install_hint
 def add_study_arguments(p):
     from massspring.integrators import STUDIED
 
-    p.add_argument("scene", help="a built-in scene name (see `massspring scenes`) or a TOML file")
+    p.add_argument("scene", help="a built-in scene name (see `massspring scenes`), a TOML file or an OBJ mesh (run with "
+                   "the defaults of docs/scenes.md, 'Your own mesh')")
     p.add_argument("--out", help="output directory (default: a new ./study-SCENE)")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                    help="override a scene model parameter (repeatable)")

@@ -384,8 +384,14 @@ def setting_value(text):
         return text.strip()
 
 
+MESH_SCENE = {"integrator": "implicit", "duration": 2.0}  # an OBJ file given as the scene: these, the model's defaults
+
+
 def load_scene(name_or_path) -> Scene:
-    """Load a built-in scene by name (see ``builtin_scenes``) or a TOML file by path."""
+    """Load a built-in scene by name (see ``builtin_scenes``), a TOML file by path, or an
+    OBJ mesh by path (a ``.obj`` file: the scene of ``mesh = "file.obj"`` with the
+    defaults of ``MESH_SCENE`` and of docs/scenes.md; no dt: the integrator suggests it,
+    or pass ``tol``)."""
     scenes = builtin_scenes()
     path = scenes.get(str(name_or_path))
     if path is None:
@@ -399,6 +405,10 @@ def load_scene(name_or_path) -> Scene:
             raise SceneError(f"scene: {brief(str(name_or_path))} is neither a built-in scene "
                              f"({', '.join(sorted(scenes))}) nor a file")
     source = str(path)
+    if path.suffix.lower() == ".obj":
+        data = {"description": f"the mesh {path.name} with the mesh form's defaults", **MESH_SCENE,
+                "model": {"mesh": path.name}}
+        return parse_scene(data, name=path.stem, source=source)
     try:
         with open(path, "rb") as fh:
             raw = fh.read(MAX_SCENE_BYTES + 1)
