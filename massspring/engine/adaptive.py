@@ -30,10 +30,12 @@ positions they make: weighting their own estimate by L / H (as CVODE weighs ever
 component alike) made the stiff chain resolve the axial vibrations that hold no
 position error (docs/solvers.md).
 
-Impacts. A particle that may have touched a collider within a step (``Estimator._touched``)
-has its velocity changed by the contact response in that one step, first order whatever
-the integrator: it counts no smooth error in any estimate spanning the step, and its
-impact's timing error, h |v' - v| / 2, is bounded by tol itself (``Estimator.error``).
+Impacts. A particle that may have hit or left a collider within a step
+(``Estimator._contacts``) has its velocity changed by the contact response in that one
+step, first order whatever the integrator: it counts no smooth error in any estimate
+spanning the step, and its impact's timing error, h |v' - v| / 2, is bounded by tol
+itself (``Estimator.error``). One in contact at both ends of a step (resting, sliding)
+keeps its estimate.
 
 Stability. An explicit integrator's steps stay at most its ``suggest_dt`` of the model
 unless ``max_dt`` is given (``stable_bound``): the estimate sees an instability only once
@@ -69,7 +71,7 @@ FAILURE_SHRINK = 0.25  # the factor on a step whose solve failed or that diverge
 PI_BETA = 0.2  # the PI controller's beta times the estimate's order (Hairer's DOPRI5: 0.04 at order 5)
 DROP_AFTER = 3  # rejections of one step in a row after which the history is dropped (a kink)
 STRETCH = 1.1  # a step this much longer lands on the next end time (no sliver of a step before it)
-CONTACT_MARGIN = 1e-9  # a particle this far (times the scene's size) from a collider is touching it
+CONTACT_MARGIN = 1e-9  # a particle this close (times the scene's size) to a collider is in contact with it
 MIN_TOL = 1e-14  # tolerances below this are round-off in f64
 DEFAULT_HORIZON = 1.0  # s
 MIN_DT_FRACTION = 1e-9  # default min_dt: this times the horizon
@@ -169,43 +171,49 @@ class Estimator:
         points = x[self.moving]
         return np.min([c.at(t).signed_distance(points) for c in self.colliders], axis=0)
 
-    def _touched(self, start, t, y, d):
-        """(k,) whether each moving particle may have touched a collider in the step from
-        the accepted point ``start`` to (t, y, d): it began or ended within the distance its
-        speed carries it in the step (h (|v| + |v'| + |v' - v|), m, with a margin for round-off
-        of ``CONTACT_MARGIN`` times the scene's size); None without colliders."""
+    def _contacts(self, start, t, y, d):
+        """((k,) whether each moving particle may have hit or left a collider in the step
+        from the accepted point ``start`` to (t, y, d), (k,) whether it was in contact at
+        both ends), or (None, None) without colliders. Hit or left: it began or ended
+        within the distance its speed carries it in the step (h (|v| + |v'| + |v' - v|),
+        m) of one, and was not in contact at both ends (within ``CONTACT_MARGIN`` times the
+        scene's size: resting or sliding)."""
         if d is None:
-            return None
+            return None, None
         t0, y0, d0, _ = start
         h = t - t0
         speed = np.linalg.norm(y0[:, 3:], axis=1) + np.linalg.norm(y[:, 3:], axis=1)
         speed += np.linalg.norm(y[:, 3:] - y0[:, 3:], axis=1)
-        reach = h * speed + CONTACT_MARGIN * self.size
-        return (np.minimum(d0, d) <= reach)
+        margin = CONTACT_MARGIN * self.size
+        staying = (d0 <= margin) & (d <= margin)
+        return (np.minimum(d0, d) <= h * speed + margin) & ~staying, staying
 
     def error(self, t, x, v):
         """(the weighted RMS of the estimate of the step to (t, x, v), its order in h).
 
-        A particle that may have touched a collider in any of the steps the estimate
-        spans (``_touched``) counts no error of a smooth solution: the contact response
-        changes its velocity within one step, a kink no such estimate describes, and is
-        first order in the step whatever the integrator (``kernels/contact.py``). Its error
-        is that of the impact's timing instead: up to half the step times its velocity
-        change, h |v' - v| / 2 for the particles touching in this step, which the run bounds
-        by ``tol`` itself, not by tol h / H: an impact happens once, its error does not add
-        up step after step. It is returned in the units of the smooth estimate (times
-        h / H) and of order 1 where it is the larger."""
+        Contact (``_contacts``). A particle that may have hit or left a collider in any of
+        the steps the estimate spans counts no error of a smooth solution: the contact
+        response changes its velocity within one step, a kink no such estimate describes,
+        and is first order in the step whatever the integrator (``kernels/contact.py``).
+        Its error is that of the impact's timing instead: up to half the step times its
+        velocity change, h |v' - v| / 2 for the particles hitting or leaving one in this
+        step, which the run bounds by ``tol`` itself, not by tol h / H: an impact happens
+        once, its error does not add up step after step. A particle in contact at both
+        ends of the step (resting, sliding) moves by the first-order response every step,
+        whose error accumulates with a smooth trajectory a higher-order estimate cannot
+        see: it counts the trapezoidal companion's estimate, as the first-order
+        integrators do. Either is of order 1 in h, which the estimate is where they are
+        the larger part; the impact's is returned in the units of the others (times h / H)."""
         y, d = self._y(x, v), self._distance(t, x)
         t0, y0 = self.points[-1][:2]
         h = t - t0
         if y.size == 0:
             return 0.0, 1
-        touched = self._touched(self.points[-1], t, y, d)
+        touched, staying = self._contacts(self.points[-1], t, y, d)
         self._tried = (float(t), y, d, touched)  # what ``push`` adds if the step is accepted
-        spanned = ()  # the accepted points whose steps the estimate spans besides this one
+        companion = y[:, :3] - y0[:, :3] - 0.5 * h * (y[:, 3:] + y0[:, 3:])
         if self.order == 1 or len(self.points) == 1:
-            q = 1
-            e = y[:, :3] - y0[:, :3] - 0.5 * h * (y[:, 3:] + y0[:, 3:])  # the trapezoidal companion
+            q, e, spanned = 1, companion, ()  # spanned: the accepted points whose steps it spans besides this one
         else:
             q = min(self.order, len(self.points) - 1)
             times = [p[0] for p in self.points[-(q + 1):]] + [float(t)]
@@ -222,9 +230,12 @@ class Estimator:
         impact = 0.5 * h * math.sqrt(float(np.sum(jump)) / len(y)) / self.size * h / self.horizon
         for p in spanned:
             touched = touched | p[3]
-        squares[touched] = 0.0
+        sliding = staying & ~touched
+        squares[touched | staying] = 0.0
         smooth = math.sqrt(float(np.mean(squares))) / self.size
-        return (impact, 1) if impact > smooth else (smooth, q)
+        first = math.sqrt(float(np.sum(companion[sliding] ** 2)) / len(y)) / self.size
+        estimate = math.sqrt(smooth * smooth + first * first + impact * impact)
+        return estimate, (1 if max(first, impact) > smooth else q)
 
     def push(self, t, x, v):
         """Add the accepted state (t, x, v): the one ``error`` was last asked about, or another."""
@@ -232,7 +243,7 @@ class Estimator:
             point = self._tried
         else:
             y, d = self._y(x, v), self._distance(t, x)
-            point = (float(t), y, d, self._touched(self.points[-1], t, y, d) if self.points else None)
+            point = (float(t), y, d, self._contacts(self.points[-1], t, y, d)[0] if self.points else None)
         if point[3] is None and point[2] is not None:
             point = point[:3] + (np.zeros(len(point[2]), dtype=bool),)
         self._tried = None
