@@ -18,7 +18,7 @@ if not os.path.isdir(os.path.join(os.path.dirname(__file__), "kernels")) and os.
 os.environ.setdefault("ENABLE_TAICHI_HEADER_PRINT", "0")
 
 from massspring.support.defaults import VERSION  # noqa: E402
-from massspring.support.errors import DivergenceError, SimulationClosedError  # noqa: E402
+from massspring.support.errors import DivergenceError, KinkWarning, SimulationClosedError  # noqa: E402
 from massspring.model.controls import Controls  # noqa: E402
 from massspring.model import Model  # noqa: E402
 from massspring.model.colliders import Box, Plane, Sphere  # noqa: E402
@@ -29,5 +29,5 @@ from massspring.gradients import Frames, gradient  # noqa: E402
 from massspring.analysis.sweep import sweep  # noqa: E402
 
 __all__ = ["Model", "Controls", "Plane", "Sphere", "Box", "SelfCollision", "Simulation", "run", "Scene", "SceneError", "load_scene",
-           "sweep", "gradient", "Frames", "DivergenceError", "SimulationClosedError"]
+           "sweep", "gradient", "Frames", "DivergenceError", "KinkWarning", "SimulationClosedError"]
 __version__ = VERSION

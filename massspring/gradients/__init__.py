@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import bisect
 import math
+import warnings
 from dataclasses import dataclass
 
 import numpy as np
@@ -37,7 +38,7 @@ from massspring.support import memory
 from massspring.support import validate
 from massspring.support.defaults import MAX_STEPS
 from massspring.device import POOL, Layout, capacity
-from massspring.support.errors import GradientError, SelfCollisionGradientError
+from massspring.support.errors import GradientError, KinkWarning, SelfCollisionGradientError
 from massspring.integrators import INTEGRATORS
 from massspring.kernels import state as state_kernels
 from massspring.model import Model, terms
@@ -124,6 +125,7 @@ def gradient(model, objective, wrt, *, steps, every=1, integrator="symplectic", 
                  f"{checkpoint:,} steps and a frame every {every:,} (give a larger checkpoint or every)")
 
     sim = Simulation(model, integrator, dt=dt, precision=precision, **options)
+    _warn_at_a_kink(sim)
     adj = None
     try:
         adj = _adjoint_bundle(sim, checkpoint)
@@ -148,6 +150,30 @@ def gradient(model, objective, wrt, *, steps, every=1, integrator="symplectic", 
         sim.close()
         if adj is not None:
             POOL.give(adj)
+
+
+AT_REST = 1e-12  # |l / l0 - 1| of a spring this close to its rest length is at the clamp's kink
+
+
+def _warn_at_a_kink(sim):
+    """A ``KinkWarning`` when ``sim`` solves with the definiteness fix and some of its
+    model's springs start at their rest length (|l / l0 - 1| <= ``AT_REST``), where the
+    fix's clamp of the transverse stiffness, max(0, 1 - l0 / l), has a kink: the gradient
+    there is one side's (measured on the cloth scene's start state: -0.1625 where one-sided
+    differences gave -0.0947 and -0.1478)."""
+    if not getattr(sim.settings, "definiteness_fix", False) or not INTEGRATORS[sim.integrator].traits.linear_solver:
+        return
+    model = sim.model
+    springs, rest = model.springs, model.rest_lengths
+    if not len(springs):
+        return
+    length = np.linalg.norm(model.positions[springs[:, 1]] - model.positions[springs[:, 0]], axis=1)
+    at_rest = int(np.count_nonzero((rest > 0) & (np.abs(length - rest) <= AT_REST * rest)))
+    if at_rest:
+        warnings.warn(f"gradient: {at_rest:,} of {len(springs):,} springs start at their rest length, where the "
+                      f"definiteness fix's clamp has a kink: the gradient there is one side's and central "
+                      f"differences straddle it (docs/gradients.md); give definiteness_fix=False, or start off "
+                      f"the rest lengths", KinkWarning, stacklevel=3)
 
 
 def check_arguments(model, wrt, integrator, precision="f64") -> list:

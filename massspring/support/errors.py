@@ -68,3 +68,10 @@ class SelfCollisionGradientError(GradientError):
         self.step, self.reason, self.residual = int(step), "self-collision", math.nan
         RuntimeError.__init__(self, f"{integrator} gradient: the self-collision of step {self.step + 1} could not be "
                                     f"run backwards: {why}. No gradient is returned: take fewer steps or a smaller dt")
+
+
+class KinkWarning(RuntimeWarning):
+    """A gradient taken where the run is not differentiable: ``massspring.gradient``
+    starting from springs at their rest length with the definiteness fix on, whose clamp
+    has a kink there (the derivative is one side's; central differences straddle it)."""
+
