@@ -17,9 +17,11 @@ from __future__ import annotations
 
 import argparse
 import signal
+import warnings
 import sys
 
 from massspring.analysis.cluster import ClusterError
+from massspring.support.errors import KinkWarning
 from massspring.cli.common import (EXIT_DIVERGED, EXIT_INTERRUPTED, EXIT_OK, EXIT_OUTPUT, EXIT_USAGE, Terminated,
                                    UsageError, add_scene_arguments, add_tolerance_arguments,
                                    main_thread)
@@ -112,6 +114,17 @@ def joined_values(argv):
     return out
 
 
+def _one_line(show):
+    """``warnings.showwarning`` that prints a ``KinkWarning`` as "massspring: warning: ..."
+    (no file and line of the library) and hands others to ``show``."""
+    def showwarning(message, category, filename, lineno, file=None, line=None):
+        if issubclass(category, KinkWarning):
+            print(f"massspring: warning: {message}", file=sys.stderr)
+        else:
+            show(message, category, filename, lineno, file, line)
+    return showwarning
+
+
 def main(argv=None):
     parser, verbs = build_parser()
     args, unknown = parser.parse_known_args(joined_values(sys.argv[1:] if argv is None else argv))
@@ -119,7 +132,10 @@ def main(argv=None):
         verbs[args.command].error(f"unrecognized arguments: {' '.join(unknown)}")
     previous = signal.signal(signal.SIGTERM, _terminate) if main_thread() else None
     try:
-        return COMMANDS[args.command](args)
+        with warnings.catch_warnings():  # massspring's own warnings: one line each, once
+            warnings.simplefilter("once", KinkWarning)
+            warnings.showwarning = _one_line(warnings.showwarning)
+            return COMMANDS[args.command](args)
     except ValueError as exc:  # SceneError, UsageError and Model/Simulation validation
         print(f"massspring: error: {clipped(str(exc))}", file=sys.stderr)
         return EXIT_USAGE
