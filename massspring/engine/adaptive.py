@@ -211,7 +211,8 @@ class Estimator:
             return 0.0, 1
         touched, staying = self._contacts(self.points[-1], t, y, d)
         self._tried = (float(t), y, d, touched)  # what ``push`` adds if the step is accepted
-        companion = y[:, :3] - y0[:, :3] - 0.5 * h * (y[:, 3:] + y0[:, 3:])
+        if self.order == 1 or len(self.points) == 1 or touched is not None:
+            companion = y[:, :3] - y0[:, :3] - 0.5 * h * (y[:, 3:] + y0[:, 3:])
         if self.order == 1 or len(self.points) == 1:
             q, e, spanned = 1, companion, ()  # spanned: the accepted points whose steps it spans besides this one
         else:

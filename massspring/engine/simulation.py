@@ -244,7 +244,7 @@ class Simulation:
         self._schedule = None if model.controls is None else Schedule(inner, dev, None if tolerance else dt)
         self._passes = tuple(kind(dev, self._integrator.cfg, inner, self._integrator.serial, dt) for kind in kinds)
         self._release = weakref.finalize(self, _release, dev, self._integrator, self._passes)
-        self._controller = self._estimator = None
+        self._controller = self._estimator = self._read_plan = None
         if tolerance is not None:
             self._integrator.clock = 0.0
             size = adaptive.scene_size(model)
@@ -542,23 +542,20 @@ class Simulation:
     def _read_state(self, integrator):
         """(x, v) (n, 3) float64 of the current state, in the run's inner numbering, and
         the arrays of the integrator's ``carried_fields`` (name -> (n,) or (n, k)), read
-        in one launch."""
+        in one launch (its columns laid out once a run: ``_read_plan``)."""
         integrator.settle()
-        n = self._model.n_particles
-        extra, rows, column = [], {}, 6
-        for name, field in integrator.carried_fields().items():
-            width = getattr(integrator.dev, field).n if name in self._vector_fields(integrator) else 0
-            extra.append((getattr(integrator.dev, field), column, width))
-            rows[name] = (column, max(width, 1), width)
-            column += max(width, 1)
-        out = np.empty((n, column))
-        state_kernels.read_state(integrator.state, out, n, tuple(extra))
-        carried = {name: out[:, a:a + k] if w else out[:, a] for name, (a, k, w) in rows.items()}
-        return out[:, :3], out[:, 3:6], carried
-
-    @staticmethod
-    def _vector_fields(integrator):
-        return {name for name, (_, shape) in integrator.carried_names().items() if shape}
+        if self._read_plan is None:
+            names, extra, rows, column = integrator.carried_names(), [], {}, 6
+            for name, field in integrator.carried_fields().items():
+                width = names[name][1][0] if names[name][1] else 0
+                extra.append((getattr(integrator.dev, field), column, width))
+                rows[name] = slice(column, column + width) if width else column
+                column += max(width, 1)
+            self._read_plan = (tuple(extra), rows, column)
+        extra, rows, columns = self._read_plan
+        out = np.empty((self._model.n_particles, columns))
+        state_kernels.read_state(integrator.state, out, self._model.n_particles, extra)
+        return out[:, :3], out[:, 3:6], {name: out[:, where] for name, where in rows.items()}
 
     def _kept(self):
         """What a rejected try goes back to besides the state and the integrator's carried
