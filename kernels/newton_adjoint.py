@@ -349,14 +349,17 @@ def newton_adjoint_gather(dev: ti.template(), cfg: ti.template(), adj: ti.templa
 
 @ti.kernel
 def bdf2_split(dev: ti.template(), cfg: ti.template(), adj: ti.template(), history: ti.i32, third: ti.f64,
-               wants: ti.template()):
+               wants: ti.template(), variable: ti.template(), now: ti.f64, before: ti.f64):
     """After a BDF2 step's adjoint, whose ``adj.lx``, ``adj.lv`` hold dL/d(x^, v^) of its
     base: with ``history`` (the step used x^ = (4 x_n - x_{n-1}) / 3, v^ likewise), 4/3 of
     it goes to the state before the step and -1/3 to the one before that, kept in
     ``adj.kx``, ``adj.kv`` until the backward pass reaches it; without (a backward-Euler
     step), all to the state before. The share kept for x_n by the step after is added
     either way. A pin's base is x_n moved by ``third`` = dt / 3 times its velocity: all of
-    it to x_n, and ``third`` dL/dx^ to its velocity's gradient (``wants.pins``)."""
+    it to x_n, and ``third`` dL/dx^ to its velocity's gradient (``wants.pins``).
+    ``variable`` (a replayed run's steps, ``kernels/newton.py``'s ``start``): the base is
+    ``now`` x_n - ``before`` x_{n-1}, with now = (1 + omega)^2 / (1 + 2 omega), before =
+    omega^2 / (1 + 2 omega) and ``third`` = dt omega / (1 + 2 omega) for the step ratio omega."""
     for i in range(dev.size[0]):
         lx = adj.lx[i]
         lv = adj.lv[i]
@@ -364,10 +367,16 @@ def bdf2_split(dev: ti.template(), cfg: ti.template(), adj: ti.template(), histo
         kv = ti.Vector.zero(ti.f64, 3)
         if history != 0:
             if not is_pinned(i, dev, cfg):
-                kx = -lx / 3
-                kv = -lv / 3
-                lx = 4 * lx / 3
-                lv = 4 * lv / 3
+                if ti.static(variable):
+                    kx = -before * lx
+                    kv = -before * lv
+                    lx = now * lx
+                    lv = now * lv
+                else:
+                    kx = -lx / 3
+                    kv = -lv / 3
+                    lx = 4 * lx / 3
+                    lv = 4 * lv / 3
             elif ti.static(wants.pins):
                 adj.gp[i] = adj.gp[i] + third * lx
         if ti.static(cfg.lagged):

@@ -175,6 +175,9 @@ def test_a_diverging_step_is_retried_smaller():
     assert sim.time == 0.01
     stats = sim.control_stats()
     assert sum(stats["rejected"].values()) >= 1 and stats["largest_dt"] < 2e-3
+    sizes = sim.step_sizes  # the accepted steps only, in order
+    assert len(sizes) == sim.steps and math.isclose(math.fsum(sizes), 0.01, rel_tol=1e-12)
+    assert sizes.max() == stats["largest_dt"]
     assert np.all(np.abs(sim.positions[1] - [1.0, 0, 0]) <= 0.1 + 1e-9)  # energy kept: |u| <= U0
 
 
@@ -214,6 +217,12 @@ def test_frames_of_run_for_are_at_their_times():
     seen = []
     ms.run(sim, duration=0.5, frames=[0.0, 0.125, 0.25, 0.5], on_frame=lambda s: seen.append(s.time))
     np.testing.assert_allclose(seen, [0.0, 0.125, 0.25, 0.5], rtol=0, atol=1e-15)
+    # run_for's progress points (1/200 of the run) are not landed on: the steps of
+    # sim.advance(0.5), which lands once
+    again = ms.Simulation(spring_model(), integrator="midpoint", dt=1e-2, tol=1e-3, horizon=0.5)
+    ms.run(again, duration=0.5, progress=lambda done, total: None)
+    alone = ms.Simulation(spring_model(), integrator="midpoint", dt=1e-2, tol=1e-3, horizon=0.5).advance(0.5)
+    assert again.steps == alone.steps < 200 and np.array_equal(again.step_sizes, alone.step_sizes)
 
 
 def test_a_restart_continues_from_its_time():

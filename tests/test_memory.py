@@ -159,7 +159,7 @@ def test_a_gradients_kept_states_and_frames_are_counted_before_any_step(monkeypa
     from massspring import gradients
 
     model = ms.load_scene("cloth").with_params(resolution=128).model()
-    assert gradients.host_bytes(model, "symplectic", 6000, 1, 1) == (5999 + 6001) * 48 * 16384
+    assert gradients.host_bytes(model, "symplectic", 6000, 6001, 1) == (5999 + 6001) * 48 * 16384
     monkeypatch.setattr(gradients, "Simulation", lambda *a, **k: pytest.fail("a simulation was made"))
     with pytest.raises(memory.MemoryNeedError, match=r"checkpoint: .* needs about 9.44 GB; 3 GB"):
         ms.gradient(model, lambda frames: (0.0, {}), "stiffness", steps=6000, every=1, checkpoint=1)

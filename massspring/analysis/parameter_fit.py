@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from massspring.support.extras import install_hint
-from massspring.gradients import check_arguments, gradient
+from massspring.gradients import check_arguments, chosen_steps, gradient
 from massspring.io.frames import read_frames
 from massspring.io.state import read_state
 from massspring.model import Model
@@ -30,6 +30,7 @@ from massspring.model import Model
 FITTABLE = ("stiffness", "damping", "rest_lengths", "masses", "drag")  # scaled by one factor each
 FACTOR_RANGE = (1e-3, 1e3)  # L-BFGS-B's bounds on every factor
 MAX_ITER = 30  # L-BFGS-B iterations, default
+STAGES = 2  # fits with error-controlled steps: steps chosen at the start, then again at the first fit's result
 MAX_FIT_STEPS = 10**7  # steps of a fitted run at most: a frame past it is a damaged recording, not a fit
 STATIONARY = 1e-6  # a stop with the projected gradient this far below its first is a converged fit
 
@@ -96,13 +97,18 @@ def read_recording(directory, model: Model) -> Recording:
 
 
 def fit_parameters(model: Model, recording: Recording, params, *, integrator, start=1.0, max_iter=MAX_ITER,
-                   progress=None, **options) -> dict:
+                   progress=None, tol=None, min_dt=None, max_dt=None, **options) -> dict:
     """The factors on ``model``'s ``params`` that make a run of it from the recording's
     first frame match its frames (module docstring).
 
     ``start``: every factor's first value; ``max_iter``: L-BFGS-B iterations at most;
     ``progress(iteration, factors, rms)`` after each; ``options``: the Simulation's
-    solver options. Returns {"factors", "values" (each parameter's fitted mean),
+    solver options. ``tol`` (``min_dt``, ``max_dt``): the fit runs in ``STAGES``, each
+    with the steps an error-controlled run of its starting factors takes to the
+    recording's frames (``massspring.gradients.chosen_steps``), frozen
+    (``gradient(dts=)``, whose misfit is smooth in the factors: steps chosen anew per run
+    make it jump at tol's level, where L-BFGS-B's line search stalls); ``options``'
+    newton_tol and cg_tol are the frozen runs'. Else steps of the recording's dt. Returns {"factors", "values" (each parameter's fitted mean),
     "rms_m" (the root mean square distance over the frames after the first), "iterations",
     "evaluations" (runs with their gradient), "converged", "message"}. Bad arguments
     raise ValueError before any step runs (``massspring.gradient`` checks the model
@@ -117,9 +123,13 @@ def fit_parameters(model: Model, recording: Recording, params, *, integrator, st
         raise ValueError(f"start: {start!r} is outside the factors' range {FACTOR_RANGE}")
     first = model.replaced(positions=recording.positions[0], velocities=recording.velocities)
     base = {name: np.asarray(getattr(first, name), dtype=np.float64) for name in params}
-    every = int(reduce(math.gcd, (int(k) for k in recording.steps[1:])))
-    total = int(recording.steps[-1])
-    used = recording.steps // every  # the recorded frames among the run's
+    if tol is None:
+        every = int(reduce(math.gcd, (int(k) for k in recording.steps[1:])))
+        run = dict(steps=int(recording.steps[-1]), every=every, dt=recording.dt)
+        used = recording.steps // every  # the recorded frames among the run's
+    else:  # frames at the recorded times exactly, the steps chosen at each stage's start
+        used = np.arange(len(recording.steps))
+    scaled = lambda factors: first.replaced(**{name: f * base[name] for name, f in zip(params, factors)})  # noqa: E731
     count = (len(recording.steps) - 1) * recording.positions[0].size
 
     def misfit(frames):
@@ -133,9 +143,7 @@ def fit_parameters(model: Model, recording: Recording, params, *, integrator, st
     first_gradient = []  # the projected gradient at the start
 
     def value_and_gradient(factors):
-        scaled = first.replaced(**{name: f * base[name] for name, f in zip(params, factors)})
-        value, grads = gradient(scaled, misfit, list(params), steps=total, every=every, integrator=integrator,
-                                dt=recording.dt, **options)
+        value, grads = gradient(scaled(factors), misfit, list(params), integrator=integrator, **run, **options)
         values[tuple(factors)] = value
         if not scale:
             scale.append(value if value > 0 else 1.0)
@@ -151,14 +159,22 @@ def fit_parameters(model: Model, recording: Recording, params, *, integrator, st
         if progress is not None:
             progress(iteration[0], dict(zip(params, factors)), math.sqrt(2.0 * values.get(tuple(factors), math.nan)))
 
-    result = minimize(value_and_gradient, np.full(len(params), float(start)), jac=True, method="L-BFGS-B",
-                      bounds=[FACTOR_RANGE] * len(params), callback=report,
-                      options=dict(maxiter=max_iter, ftol=0.0, gtol=1e-14))
+    at, evaluations = np.full(len(params), float(start)), 0
+    for _ in range(1 if tol is None else STAGES):
+        if tol is not None:  # steps chosen for the stage's start, then frozen: a smooth misfit to minimise
+            times = recording.steps[1:] * recording.dt
+            dts, frames = chosen_steps(scaled(at), integrator, tol, times, recording.dt, min_dt, max_dt, "f64",
+                                       options)
+            run = dict(dts=dts, every=frames[1:])
+        result = minimize(value_and_gradient, at, jac=True, method="L-BFGS-B",
+                          bounds=[FACTOR_RANGE] * len(params), callback=report,
+                          options=dict(maxiter=max(max_iter - iteration[0], 1), ftol=0.0, gtol=1e-14))
+        at, evaluations = result.x, evaluations + int(result.nfev)
     factors = {name: float(f) for name, f in zip(params, result.x)}
     converged, message = verdict(result, projected_norm(result.x, result.jac), first_gradient[0])
     return {"factors": factors, "values": {name: float(np.mean(base[name])) * factors[name] for name in params},
-            "rms_m": math.sqrt(2.0 * float(result.fun) * scale[0]), "iterations": int(result.nit),
-            "evaluations": int(result.nfev), "converged": converged, "message": message}
+            "rms_m": math.sqrt(2.0 * float(result.fun) * scale[0]), "iterations": iteration[0],
+            "evaluations": evaluations, "converged": converged, "message": message}
 
 
 def projected_norm(factors, slope) -> float:

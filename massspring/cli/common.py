@@ -42,21 +42,29 @@ def add_scene_arguments(p, integrators):
                    "--set gravity=[0,0,-1.62] or --set drag=0.005 (TOML values; repeatable)")
 
 
-def add_tolerance_arguments(p):
-    """--tol, --min-dt, --max-dt: an error-controlled run (``Simulation(tol=...)``)."""
-    p.add_argument("--tol", type=float, help="error-controlled steps: the error wanted at the end of the run (RMS "
-                   "position error of the moving particles over the scene's size, as `massspring study` reports "
-                   "it); the run picks each step from an estimate of its error, --dt is then the first step, and "
-                   "Newton's and CG's tolerances follow (default: the scene's tol, else fixed steps of --dt)")
+def add_tolerance_arguments(p, frozen=False):
+    """--tol, --min-dt, --max-dt: an error-controlled run (``Simulation(tol=...)``);
+    ``frozen``: a fit's, whose gradient is that of the chosen steps frozen."""
+    if frozen:
+        p.add_argument("--tol", type=float, help="error-controlled steps: each run's steps are chosen by an "
+                       "error-controlled run (the error wanted at the end, as `massspring run --tol` takes it) landing "
+                       "on the recorded frames, and its gradient is that of those steps frozen; --newton-tol and "
+                       "--cg-tol then solve the frozen run (default: steps of the recording's dt)")
+    else:
+        p.add_argument("--tol", type=float, help="error-controlled steps: the error wanted at the end of the run "
+                       "(RMS position error of the moving particles over the scene's size, as `massspring study` "
+                       "reports it); the run picks each step from an estimate of its error, --dt is then the first "
+                       "step, and Newton's and CG's tolerances follow (default: the scene's tol, else fixed steps of "
+                       "--dt)")
     p.add_argument("--min-dt", type=float, help="with --tol: the smallest step in s (default 1e-9 x the duration); "
                    "a run whose step would fall below it stops with exit 3")
     p.add_argument("--max-dt", type=float, help="with --tol: the largest step in s (default the duration; explicit, "
                    "symplectic, rk4: the dt they suggest, half the predicted stability limit)")
 
 
-def tolerance_options(args):
+def tolerance_options(args, frozen=False):
     """The Simulation arguments of --tol, --min-dt, --max-dt (those given), checked: a
-    UsageError naming the flag."""
+    UsageError naming the flag (``frozen``: a fit's, which takes --newton-tol, --cg-tol too)."""
     from massspring.engine.adaptive import Tolerance
 
     given = {name: getattr(args, name, None) for name in ("tol", "min_dt", "max_dt")}
@@ -69,7 +77,7 @@ def tolerance_options(args):
         Tolerance.of(given["tol"], given.get("min_dt"), given.get("max_dt"), 1.0 if "max_dt" in given else None)
     except ValueError as exc:
         raise UsageError("--" + str(exc).replace("_", "-", 1)) from None
-    for name in ("newton_tol", "cg_tol"):
+    for name in () if frozen else ("newton_tol", "cg_tol"):
         if getattr(args, name, None) is not None:
             raise UsageError(f"--{name.replace('_', '-')}: an error-controlled run (--tol) derives it from --tol; "
                              f"give one or the other")

@@ -5,11 +5,13 @@ from __future__ import annotations
 import sys
 from contextlib import contextmanager
 
-from massspring.cli.common import EXIT_DIVERGED, EXIT_OK, UsageError, add_option_flag, check_taken, solver_options
+from massspring.cli.common import (EXIT_DIVERGED, EXIT_OK, UsageError, add_option_flag, add_tolerance_arguments,
+                                   check_taken, solver_options, tolerance_options)
 
 
 # massspring.gradient's arguments -> the options of `massspring fit` that give them
-FIT_OPTIONS = {"wrt": "--params", "integrator": "--integrator", "model": "scene"}
+FIT_OPTIONS = {"wrt": "--params", "integrator": "--integrator", "model": "scene", "dts": "--tol", "tol": "--tol",
+               "min_dt": "--min-dt", "max_dt": "--max-dt"}
 
 
 def add_fit_arguments(p):
@@ -28,6 +30,7 @@ def add_fit_arguments(p):
                    help="time integrator of the fitted runs (default: the scene's)")
     for option in OPTIONS.values():
         add_option_flag(p, option)
+    add_tolerance_arguments(p, frozen=True)
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                    help="override a scene model parameter (repeatable), as `massspring run` takes it")
     p.add_argument("--start", type=float, default=1.0,
@@ -72,6 +75,7 @@ def cmd_fit(args):
     except ValueError as exc:
         raise UsageError(str(exc)) from None
     options = solver_options(args)
+    tolerance = tolerance_options(args, frozen=True)
     scene = load_scene(args.scene).with_settings(args.set)
     integrator = args.integrator or scene.integrator
     check_taken(integrator, options)
@@ -84,13 +88,14 @@ def cmd_fit(args):
         text = ", ".join(f"{name} x{value:.8g}" for name, value in factors.items())
         print(f"iteration {iteration}: {text}; rms distance {rms:.4g} m", file=sys.stderr, flush=True)
 
-    print(f"fit {scene.name}: {', '.join(params)} ({integrator}, dt {recording.dt:g} s, {len(recording.steps)} "
+    steps = f"tol {tolerance['tol']:g}" if tolerance else f"dt {recording.dt:g} s"
+    print(f"fit {scene.name}: {', '.join(params)} ({integrator}, {steps}, {len(recording.steps)} "
           f"frames over {int(recording.steps[-1])} steps from {args.frames})", flush=True)
     try:
         with named_options():
             result = parameter_fit.fit_parameters(model, recording, params, integrator=integrator, start=args.start,
                                                   max_iter=args.max_iter, progress=None if args.quiet else show,
-                                                  **options)
+                                                  **tolerance, **options)
     except DivergenceError as exc:
         print(f"massspring: a run of the fit diverged: {exc}; try a --start nearer the truth or a smaller "
               "recorded dt", file=sys.stderr)
@@ -103,6 +108,6 @@ def cmd_fit(args):
           f"({result['evaluations']} runs with their gradient); {result['message']}")
     if args.out:
         write_json(args.out, {"scene": scene.name, "integrator": integrator, "frames": str(args.frames),
-                              "dt": recording.dt, **result})
+                              "dt": recording.dt, "tol": tolerance.get("tol"), **result})
         print(f"wrote {args.out}")
     return EXIT_OK

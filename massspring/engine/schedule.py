@@ -96,14 +96,20 @@ class ControlShares:
         return (self.adj.read("gwind", n).sum(axis=0), self.adj.read("gl0", m) if m else np.zeros(0),
                 self.adj.read("gp", n))
 
-    def after(self, k):
-        """Called after step k's adjoint."""
-        if k % self.schedule.per:
-            return
+    def after(self, k, t=None, t_before=None):
+        """Called after step k's adjoint (of a replayed run: the step from time ``t``, s,
+        the one before it from ``t_before``)."""
+        if t is None:
+            if k % self.schedule.per:
+                return
+            s = self.schedule.interval(k)
+        else:
+            s = self.schedule.at(t)
+            if k and self.schedule.at(t_before) == s:
+                return
         totals = self._totals()
         wind, rest, pins = (now - before for now, before in zip(totals, self.seen))
         self.seen = totals
-        s = self.schedule.interval(k)
         held = min(s, self.controls.intervals - 1)
         self.wind[held] += wind
         if self.rest.shape[1]:

@@ -222,6 +222,8 @@ class Simulation:
         self._cg_iterations = []
         self._newton_iterations = []
         self._cuts = 0
+        self._sizes = []  # the sizes (s) of the latest steps of a run whose clock runs (step_sizes)
+        self._sizes_from = 0  # the step they start from
         self._cg_failures = 0
 
         cls = INTEGRATORS[integrator]
@@ -241,6 +243,7 @@ class Simulation:
         dev = layout.allocate()
         dev.check[None] = self._check
         self._integrator = cls(dev, inner, self._settings)
+        self._inner = inner
         self._schedule = None if model.controls is None else Schedule(inner, dev, None if tolerance else dt)
         self._passes = tuple(kind(dev, self._integrator.cfg, inner, self._integrator.serial, dt) for kind in kinds)
         self._release = weakref.finalize(self, _release, dev, self._integrator, self._passes)
@@ -293,10 +296,23 @@ class Simulation:
 
     @property
     def time(self) -> float:
-        """Simulated time (s): steps x dt (an error-controlled run's clock)."""
-        if self._controller is not None:
+        """Simulated time (s): steps x dt (an error-controlled or replayed run's clock)."""
+        if self._clocked:
             return self._open().clock
         return self._steps * self._settings.dt
+
+    @property
+    def _clocked(self) -> bool:
+        """Whether steps vary in size (an error-controlled run, or one that replays one)."""
+        return self._open().clock is not None
+
+    @property
+    def step_sizes(self) -> np.ndarray:
+        """(k,) s: the sizes of the last k steps of an error-controlled or replayed run, in
+        order (all of them since it started; ``set_state`` and ``restore`` cut them back
+        to the state set, or start them afresh at a state not among them). Empty for a run
+        of fixed steps of dt. What ``replay`` and ``massspring.gradient(dts=...)`` take."""
+        return np.array(self._sizes, dtype=np.float64)
 
     tol = property(lambda self: self._settings.tol, doc="The error-controlled run's tolerance (None: fixed dt).")
 
@@ -359,7 +375,7 @@ class Simulation:
         return Snapshot(self.positions, self.velocities, self._steps, self.carried_state(),
                         tuple(p.snapshot() for p in self._passes),
                         (len(self._cg_iterations), len(self._newton_iterations), self._cuts, self._cg_failures),
-                        None if self._controller is None else self.time)
+                        self.time if self._clocked else None)
 
     def restore(self, snapshot: "Snapshot"):
         """Back to ``snapshot`` (a ``snapshot()`` of this run): a run continued from here
@@ -453,10 +469,11 @@ class Simulation:
                                  f"(|value| <= {F32_MAX_MAGNITUDE:g})")
             arrays[name] = np.ascontiguousarray(arr)
         steps = validate.count("steps", steps, low=0, high=MAX_STEPS)
-        if time is not None and self._controller is None:
-            raise ValueError("time: only for an error-controlled run (tol); a fixed-dt run's time is steps x dt")
+        if time is not None and not self._clocked:
+            raise ValueError("time: only for an error-controlled or replayed run (tol, replay); a fixed-dt run's "
+                             "time is steps x dt")
         clock = None
-        if self._controller is not None:
+        if self._clocked:
             clock = steps * self.dt if time is None else validate.real_number("time", time, 0.0, ">=")
         fixed, pinned = self._model.fixed, self._pin_velocity_before(steps, clock)
         wrong = np.flatnonzero(np.any(arrays["velocities"][fixed] != pinned, axis=1))
@@ -474,10 +491,17 @@ class Simulation:
         for p in self._passes:
             p.load(integrator.state, None if carried is None else {k: carried[k] for k in p.carried})
         integrator.steps = steps  # moving pins and colliders are where they are at steps x dt
+        first = self._sizes_from
+        if first <= steps <= first + len(self._sizes):
+            del self._sizes[steps - first:]
+        else:
+            self._sizes.clear()
+            self._sizes_from = steps
         self._steps = steps
         if clock is not None:
             integrator.clock = clock
-            self._estimator.points = []  # the history starts afresh at the next step
+            if self._estimator is not None:
+                self._estimator.points = []  # the history starts afresh at the next step
         return self
 
     def _pin_velocity_before(self, steps, clock=None):
@@ -518,6 +542,41 @@ class Simulation:
             integrator.settle()
         return self
 
+    def replay(self, sizes):
+        """Advance by steps of the given ``sizes`` (s, each > 0 and finite): the
+        ``step_sizes`` of an error-controlled run, taken again as it took them (controls,
+        moving pins and colliders by time; BDF2 with its variable-step coefficients), with
+        this run's own solver tolerances and no error control (``massspring.gradient``
+        differentiates such a run). Only for a run without ``tol``: from its start (step
+        0) its clock runs from then on, its ``time`` the sum of the sizes. Divergence
+        raises ``DivergenceError`` as ``step`` does. Empty ``sizes`` only starts the clock."""
+        integrator = self._open()
+        sizes = real_array("sizes", sizes)
+        if sizes.ndim != 1 or not np.all(np.isfinite(sizes)) or np.any(sizes <= 0):
+            raise ValueError(f"sizes: expected a 1-D array of step sizes (s), each finite and > 0, got "
+                             f"{'shape ' + str(sizes.shape) if sizes.ndim != 1 else 'a size <= 0 or not finite'}")
+        if self._controller is not None:
+            raise ValueError("sizes: an error-controlled run (tol) chooses its own steps; replay its step_sizes on a "
+                             "Simulation without tol")
+        if integrator.clock is None:
+            if self._steps:
+                raise ValueError(f"sizes: a run of fixed steps replays from its start only (it has taken "
+                                 f"{self._steps:,} steps)")
+            integrator.clock = 0.0
+            if self._schedule is not None:  # the controls by time: an interval need not be whole steps
+                self._schedule = Schedule(self._inner, integrator.dev, None)
+        try:
+            for h in sizes.tolist():
+                integrator.dt = h
+                for p in self._passes:
+                    p.dt = h
+                done, check = self._one_step(integrator, integrator.clock)
+                self._raise_if_diverged(check)
+                self._sizes.append(h)
+        finally:
+            integrator.settle()
+        return self
+
     def advance(self, seconds):
         """Advance by ``seconds`` (s) of simulated time, ending on it exactly: an
         error-controlled run shortens its last step to land there; a fixed-dt run takes
@@ -531,9 +590,16 @@ class Simulation:
                 raise ValueError(f"seconds: {seconds:g} s is not a whole number of steps of dt {self.dt:g} s "
                                  f"(a fixed-dt run; give tol for an error-controlled one)")
             return self.step(steps)
-        end = integrator.clock + seconds
+        return self._advance_to(integrator.clock + seconds)
+
+    def _advance_to(self, end, until=None):
+        """Error-controlled steps toward time ``end`` (s), the last landing on it, until the
+        clock reaches ``until`` (s, at most ``end``; default ``end``): ``run_for``'s
+        progress points, which no step lands on."""
+        integrator = self._open()
+        until = end if until is None else until
         try:
-            while integrator.clock < end:
+            while integrator.clock < until and integrator.clock < end:
                 self._controlled_step(integrator, end)
         finally:
             integrator.settle()
@@ -620,6 +686,7 @@ class Simulation:
                     est.points = est.points[-1:]  # the history before a kink does not help
                 if landing:
                     integrator.clock = end
+                self._sizes.append(h)
                 self._current = (x, v, rows)
                 est.push(integrator.clock, x, v)
                 return
@@ -686,8 +753,10 @@ class Simulation:
         if code == divergence.OK:
             return
         failed = self._steps + 1
-        raise DivergenceError(failed, failed * self.dt, divergence.CAUSES[code], kinetic, bound,
-                              self.integrator, self.dt, self._integrator.traits.checked_energy)
+        integrator = self._integrator
+        at = integrator.clock + integrator.dt if self._clocked else failed * self.dt
+        raise DivergenceError(failed, at, divergence.CAUSES[code], kinetic, bound,
+                              self.integrator, integrator.dt, integrator.traits.checked_energy)
 
     def energy(self) -> dict:
         """Kinetic, spring, each uniform force's potential and total energy (J) of the current
@@ -825,12 +894,16 @@ def run(sim, steps=None, *, duration=None, frames=(), on_frame=None, progress=No
             progress(done, steps)
 
 
+SNAP = 1e-6  # a chunk's end this close (over the chunk) to a frame or the end is taken to be there
+
+
 def run_for(sim, duration, *, frames=(), on_frame=None, progress=None):
     """Advance ``sim`` by ``duration`` s of simulated time (``Simulation.advance``), in
     chunks of 1/200 of it. ``frames``: sorted instants (s) within 0..duration from the
     run's start (0: before the first step), at which ``on_frame(sim)`` is called: an
-    error-controlled run lands a step on each; a fixed-dt run's must be whole steps.
-    ``progress(done, duration)`` (s) after each chunk. Errors propagate as ``run``'s do.
+    error-controlled run lands a step on each and on the end (on no chunk's end: a step
+    may span chunks); a fixed-dt run's must be whole steps. ``progress(done, duration)``
+    (s) after each chunk. Errors propagate as ``run``'s do.
     Returns the steps taken."""
     duration = validate.real_number("duration", duration, 0.0, ">=")
     first, start = sim.steps, sim.time
@@ -845,13 +918,17 @@ def run_for(sim, duration, *, frames=(), on_frame=None, progress=None):
             upcoming = next(pending, None)
         if done >= duration:
             return sim.steps - first
-        target = min(done + chunk, duration)
-        if upcoming is not None:
-            target = min(target, float(upcoming))
+        target = done + chunk
+        if duration - target <= SNAP * chunk:
+            target = duration
+        if upcoming is not None and float(upcoming) - target <= SNAP * chunk:
+            target = float(upcoming)  # not a sliver of a step short of it: the run lands there
         if sim.tol is None:
             sim.step(round((start + target) / sim.dt) - sim.steps)
-        else:
-            sim.advance(start + target - sim.time)
-        done = target
+            done = target
+        else:  # steps land on the frames and the end only; a progress point is where the clock passed it
+            landing = duration if upcoming is None else min(float(upcoming), duration)
+            sim._advance_to(start + landing, start + target)
+            done = landing if sim.time >= start + landing else max(target, sim.time - start)
         if progress is not None:
             progress(done, duration)

@@ -36,6 +36,7 @@ import taichi as ti
 
 from massspring.support import memory
 from massspring.support import validate
+from massspring.support.validate import real_array
 from massspring.support.defaults import MAX_STEPS
 from massspring.device import POOL, Layout, capacity
 from massspring.support.errors import GradientError, KinkWarning, SelfCollisionGradientError
@@ -79,8 +80,8 @@ def differentiable() -> tuple:
     return tuple(name for name, cls in INTEGRATORS.items() if cls.traits.differentiable)
 
 
-def gradient(model, objective, wrt, *, steps, every=1, integrator="symplectic", dt=1e-2, precision="f64",
-             checkpoint=None, **options):
+def gradient(model, objective, wrt, *, steps=None, every=1, integrator="symplectic", dt=1e-2, precision="f64",
+             checkpoint=None, dts=None, tol=None, times=None, min_dt=None, max_dt=None, **options):
     """The value of ``objective`` on a run of ``model`` and its gradient in ``wrt``.
 
     Parameters
@@ -99,13 +100,25 @@ def gradient(model, objective, wrt, *, steps, every=1, integrator="symplectic", 
         ``controls`` (``massspring.Controls``), "controls.pin_targets",
         "controls.wind" and "controls.rest_lengths", shaped as those arrays.
     steps : int >= 1
-    every : int >= 1
-        A frame at step 0 and at every ``every``-th step.
+        Steps of ``dt`` (with ``dts``: len(dts), which it may repeat; with ``tol``: none).
+    every : int >= 1, or increasing step numbers
+        A frame at step 0 and at every ``every``-th step, or at step 0 and each of the
+        given steps (1..steps).
     integrator : one of ``differentiable()``
     dt : float, s
+        The step (with ``tol``: the first try).
     precision : "f64"
     checkpoint : int >= 1 or None
         Steps between kept states (None: about sqrt(steps)).
+    dts : 1-D array of step sizes (s), optional
+        Steps of these sizes (``Simulation.replay``: an error-controlled run's
+        ``step_sizes``), frozen: the gradient of the run with those steps, their sizes
+        constants.
+    tol, times : float; increasing times (s) > 0, optional
+        An error-controlled run (``Simulation(tol=tol, min_dt=, max_dt=, horizon=times[-1])``,
+        its Newton and CG tolerances derived from tol) landing on each of ``times`` chooses the steps, then
+        the gradient is that of ``dts`` = its ``step_sizes``, with frames at 0 and at
+        ``times``; ``newton_tol``, ``cg_tol`` are the frozen run's.
     **options : the Simulation's (``loops``, ...)
 
     Returns ``(value, grads)``: the float value and a dict of one float64 array per
@@ -114,30 +127,34 @@ def gradient(model, objective, wrt, *, steps, every=1, integrator="symplectic", 
     if not callable(objective):
         raise ValueError(f"objective: expected a function of the frames, got {type(objective).__name__}")
     names = check_arguments(model, wrt, integrator, precision)
-    steps = validate.count("steps", steps, low=1, high=MAX_STEPS)
-    every = validate.count("every", every, low=1, high=MAX_STEPS)
+    plan = _plan(model, integrator, steps, every, dt, precision, dts, tol, times, min_dt, max_dt, options)
+    steps = plan.steps
     if checkpoint is None:
         checkpoint = default_checkpoint(model.n_particles, steps,
                                         STATE_BYTES + INTEGRATORS[integrator].kept_bytes(model))
     checkpoint = min(validate.count("checkpoint", checkpoint, low=1, high=MAX_STEPS), steps)
-    memory.check(host_bytes(model, integrator, steps, every, checkpoint),
+    memory.check(host_bytes(model, integrator, steps, len(plan.frames), checkpoint),
                  f"checkpoint: a gradient of {steps:,} steps of {model.n_particles:,} particles keeping a state every "
-                 f"{checkpoint:,} steps and a frame every {every:,} (give a larger checkpoint or every)")
+                 f"{checkpoint:,} steps and {len(plan.frames):,} frames (give a larger checkpoint or every)")
 
+    if plan.sizes is not None and model.controls is not None:
+        dt = model.controls.interval  # a dt the controls accept; ``replay`` sets each step's size
     sim = Simulation(model, integrator, dt=dt, precision=precision, **options)
+    if plan.sizes is not None:
+        sim.replay(plan.sizes[:0])  # the clock runs from the start: the kept states carry what it needs
     _warn_at_a_kink(sim)
     adj = None
     try:
         adj = _adjoint_bundle(sim, checkpoint)
         backward = [b for b in (p.adjoint(sim, adj) for p in sim.passes) if b is not None]  # run back where they acted
-        frames, kept, last = _forward(sim, adj, steps, every, checkpoint, backward)
+        frames, kept, last = _forward(sim, adj, plan, checkpoint, backward)
         value, partials = _call(objective, frames, model.n_particles)
         wants = Wants(masses="masses" in names, rate_gradient="damping" in names and not model.has_damping,
                       pins="pin_velocity" in names or "controls.pin_targets" in names,
                       friction=model.has_friction and INTEGRATORS[integrator].traits.linear_solver)
         shares = ControlShares(sim, adj) if model.controls is not None else None
         with np.errstate(over="ignore", invalid="ignore"):  # an overflow is refused below, by name
-            _backward(sim, adj, wants, partials, frames.steps, kept, last, steps, checkpoint, shares, backward)
+            _backward(sim, adj, wants, partials, plan, kept, last, checkpoint, shares, backward)
             grads = _read(sim, adj, names, shares)
         for b in backward:
             b.add_gradients(grads)
@@ -174,6 +191,110 @@ def _warn_at_a_kink(sim):
                       f"definiteness fix's clamp has a kink: the gradient there is one side's and central "
                       f"differences straddle it (docs/gradients.md); give definiteness_fix=False, or start off "
                       f"the rest lengths", KinkWarning, stacklevel=3)
+
+
+@dataclass(frozen=True)
+class Plan:
+    """A gradient's run: ``steps``; ``frames`` the steps of its frames (0 first,
+    increasing); ``sizes`` (steps,) s of a replayed run's steps, None for steps of dt;
+    ``times`` (steps + 1,) s, the time of each state of a replayed run (None)."""
+
+    steps: int
+    frames: np.ndarray
+    sizes: np.ndarray | None = None
+    times: np.ndarray | None = None
+
+    def next_frame(self, k) -> int:
+        """The first frame's step after step k (``steps`` after the last)."""
+        i = int(np.searchsorted(self.frames, k, side="right"))
+        return int(self.frames[i]) if i < len(self.frames) else self.steps
+
+    def is_frame(self, k) -> bool:
+        i = int(np.searchsorted(self.frames, k))
+        return i < len(self.frames) and int(self.frames[i]) == k
+
+    def step(self, k) -> tuple:
+        """(clock, size, before) of step k of a replayed run (``Integrator.at_step``), else Nones."""
+        if self.sizes is None:
+            return None, None, None
+        return float(self.times[k]), float(self.sizes[k]), float(self.sizes[k - 1]) if k else None
+
+    def time(self, k):
+        """The time (s) of the state after k steps of a replayed run (None: k dt)."""
+        return None if self.times is None else float(self.times[k])
+
+
+def _plan(model, integrator, steps, every, dt, precision, dts, tol, times, min_dt, max_dt, options) -> Plan:
+    """The run ``gradient``'s arguments ask for (ValueError naming the argument); with
+    ``tol``, after the error-controlled run that chooses its steps."""
+    variable = dts is not None or tol is not None or times is not None
+    if variable and any(True for _ in for_model(model)):
+        raise ValueError("dts: gradients through a pass between steps (self-collision) with steps of varying size "
+                         "are not built yet; give steps of dt")
+    if tol is not None or times is not None:
+        for name, value, unset in (("tol", tol, None), ("times", times, None)):
+            if value is unset:
+                raise ValueError(f"{name}: an error-controlled gradient needs tol and times (the frames' times, s)")
+        for name, value, unset in (("steps", steps, None), ("dts", dts, None), ("every", every, 1)):
+            if value is not unset and not (name == "every" and isinstance(value, int) and value == 1):
+                raise ValueError(f"{name}: with tol the run chooses its steps and has its frames at times; "
+                                 f"give {name} or tol, not both")
+        times = real_array("times", times)
+        if times.ndim != 1 or not times.size or not np.all(np.isfinite(times)) or times[0] <= 0 \
+                or np.any(np.diff(times) <= 0):
+            raise ValueError("times: expected increasing finite times (s), the first > 0")
+        dts, frames = chosen_steps(model, integrator, tol, times, dt, min_dt, max_dt, precision, options)
+        return _replayed(dts, frames)
+    for name, value in (("min_dt", min_dt), ("max_dt", max_dt)):
+        if value is not None:
+            raise ValueError(f"{name}: only with tol (an error-controlled run chooses the steps)")
+    if dts is not None:
+        dts = real_array("dts", dts)
+        if dts.ndim != 1 or not dts.size or not np.all(np.isfinite(dts)) or np.any(dts <= 0):
+            raise ValueError("dts: expected a 1-D array of step sizes (s), each finite and > 0")
+        if steps is not None and validate.count("steps", steps, low=1, high=MAX_STEPS) != dts.size:
+            raise ValueError(f"steps: {steps} is not len(dts) = {dts.size}")
+        validate.count("dts", dts.size, low=1, high=MAX_STEPS)
+        return _replayed(dts, _frame_steps(every, dts.size))
+    if steps is None:
+        raise ValueError("steps: give the number of steps (or dts, or tol and times)")
+    steps = validate.count("steps", steps, low=1, high=MAX_STEPS)
+    return Plan(steps, _frame_steps(every, steps))
+
+
+def _replayed(dts, frames) -> Plan:
+    times = np.concatenate(([0.0], np.cumsum(dts)))  # summed in order, as the run's clock is
+    return Plan(int(dts.size), frames, np.ascontiguousarray(dts, dtype=np.float64), times)
+
+
+def _frame_steps(every, steps) -> np.ndarray:
+    """The frames' steps: 0 and every ``every``-th step, or 0 and the given steps."""
+    if isinstance(every, (int, np.integer)) or np.ndim(every) == 0:
+        every = validate.count("every", every, low=1, high=MAX_STEPS)
+        return np.arange(0, steps + 1, every)
+    at = np.asarray(every)
+    if at.ndim != 1 or not at.size or at.dtype.kind not in "iu" or at[0] < 1 or at[-1] > steps \
+            or np.any(np.diff(at) <= 0):
+        raise ValueError(f"every: expected a step count or increasing step numbers within 1..{steps}, got {every!r}")
+    return np.concatenate(([0], at)).astype(np.int64)
+
+
+def chosen_steps(model, integrator, tol, times, dt, min_dt, max_dt, precision, options):
+    """The step sizes (s) an error-controlled run of ``model`` takes to ``times[-1]``,
+    landing on each of ``times``, and the steps of its frames (0 and one per time). Its
+    Newton and CG tolerances are derived from ``tol`` (``newton_tol``, ``cg_tol`` of
+    ``options`` are the frozen run's)."""
+    from massspring.engine.simulation import run_for
+
+    own = {name: value for name, value in options.items() if name not in ("newton_tol", "cg_tol")}
+    sim = Simulation(model, integrator, dt=dt, precision=precision, tol=tol, min_dt=min_dt, max_dt=max_dt,
+                     horizon=float(times[-1]), **own)
+    at = [0]
+    try:
+        run_for(sim, float(times[-1]), frames=times.tolist(), on_frame=lambda s: at.append(s.steps))
+        return sim.step_sizes, np.array(at, dtype=np.int64)
+    finally:
+        sim.close()
 
 
 def check_arguments(model, wrt, integrator, precision="f64") -> list:
@@ -215,13 +336,13 @@ def history_stride(n) -> int:
     return capacity(n, 64)
 
 
-def host_bytes(model, integrator, steps, every, checkpoint) -> int:
+def host_bytes(model, integrator, steps, frames, checkpoint) -> int:
     """Bytes a gradient holds in numpy beside its fields: the states kept at the starts of
     its stretches of ``checkpoint`` steps but the last (``_forward``, with what the
-    integrator carries) and the frames the objective sees, one every ``every`` steps."""
+    integrator carries) and the ``frames`` the objective sees."""
     n = model.n_particles
     kept = (steps - 1) // checkpoint * (STATE_BYTES + INTEGRATORS[integrator].kept_bytes(model)) * n
-    return kept + (steps // every + 1) * STATE_BYTES * n
+    return kept + frames * STATE_BYTES * n
 
 
 def default_checkpoint(n, steps, state_bytes=STATE_BYTES) -> int:
@@ -263,14 +384,15 @@ def _check_wrt(wrt, model):
     return names
 
 
-def _forward(sim, adj, steps, every, checkpoint, backward=()):
-    """Run ``steps`` steps: the frames; the states (numpy, with what the integrator carries:
+def _forward(sim, adj, plan, checkpoint, backward=()):
+    """Run ``plan``'s steps: the frames; the states (numpy, with what the integrator carries:
     BDF2's previous state) at the starts of the stretches of
     ``checkpoint`` steps but the last, whose states (its end's too) go to the history as
     the run passes them (and to each of ``backward``, the passes' adjoints, its steps'
     records); the start of that last stretch."""
     n, stride = sim.model.n_particles, int(adj.stride[None])
     integrator = sim.stepper
+    steps = plan.steps
     last = (steps - 1) // checkpoint * checkpoint
     for b in backward:
         b.start(last)
@@ -281,41 +403,49 @@ def _forward(sim, adj, steps, every, checkpoint, backward=()):
             kept[done] = (sim.positions, sim.velocities, sim.carried_state())
         if done >= last:
             integrator.keep(adj, done - last)
-        if done % every == 0:
+        if plan.is_frame(done):
             positions.append(sim.positions)
             velocities.append(sim.velocities)
             at.append(done)
         if done == steps:
             break
         if done >= last and integrator.records_history:  # the last stretch in launches that record it
-            _recorded(sim, adj, last, steps - done)
-            frames = [k for k in range(done + 1, steps + 1) if k % every == 0]
+            _recorded(sim, adj, last, plan, done, steps - done)
+            frames = plan.frames[plan.frames > done]
             xs, vs = np.empty((len(frames), n, 3)), np.empty((len(frames), n, 3))
-            if frames:
-                state_kernels.read_states(adj.hx, adj.hv, np.array(frames, dtype=np.int32) - last, xs, vs, n, stride)
+            if len(frames):
+                state_kernels.read_states(adj.hx, adj.hv, (frames - last).astype(np.int32), xs, vs, n, stride)
             for k, x, v in zip(frames, xs, vs):
                 positions.append(sim.to_user(x))
                 velocities.append(sim.to_user(v))
-                at.append(k)
+                at.append(int(k))
             break
-        stop = done + 1 if done >= last else min(steps, (done // every + 1) * every, last,
-                                                  (done // checkpoint + 1) * checkpoint)
+        stop = done + 1 if done >= last else min(plan.next_frame(done), last, (done // checkpoint + 1) * checkpoint)
         if done >= last:
-            _recorded(sim, adj, last, stop - done)
+            _recorded(sim, adj, last, plan, done, stop - done)
         else:
-            sim.step(stop - done)
+            _take(sim, plan, done, stop - done)
         done = stop
     at = np.array(at)
-    return Frames(np.array(positions), np.array(velocities), at * sim.dt, at), kept, last
+    times = at * sim.dt if plan.times is None else plan.times[at]
+    return Frames(np.array(positions), np.array(velocities), times, at), kept, last
 
 
-def _recorded(sim, adj, first, steps):
-    """``sim.step(steps)`` with its integrator recording into ``adj``'s history, whose slot 0
+def _take(sim, plan, start, count):
+    """``count`` steps of ``plan`` from step ``start``."""
+    if plan.sizes is None:
+        sim.step(count)
+    else:
+        sim.replay(plan.sizes[start:start + count])
+
+
+def _recorded(sim, adj, first, plan, start, count):
+    """``_take`` with the integrator recording into ``adj``'s history, whose slot 0
     is the state after step ``first`` (``Integrator.history``)."""
     integrator = sim.stepper
     integrator.history = (adj, first)
     try:
-        sim.step(steps)
+        _take(sim, plan, start, count)
     finally:
         integrator.history = None
 
@@ -394,13 +524,13 @@ def _adjoint_bundle(sim, checkpoint):
                            f"with {checkpoint:,} states kept (give a smaller checkpoint)")
 
 
-def _backward(sim, adj, wants, partials, frame_steps, kept, last, steps, checkpoint, shares=None, backward=()):
+def _backward(sim, adj, wants, partials, plan, kept, last, checkpoint, shares=None, backward=()):
     """Run the steps backwards, stretch by stretch: each but the last run again from its
     kept state into the history first; ``shares`` (a ``ControlShares``) collects the
     controls' gradients; ``backward`` (the passes' adjoints, ``Pass.adjoint``) run the
     passes backwards in the steps where they acted."""
-    integrator, n, stride = sim.stepper, sim.model.n_particles, int(adj.stride[None])
-    frame_of = {int(k): f for f, k in enumerate(frame_steps)}
+    integrator, n, steps = sim.stepper, sim.model.n_particles, plan.steps
+    frame_of = {int(k): f for f, k in enumerate(plan.frames)}
     ordered = sorted(frame_of)
 
     def add_frame(k, lx, lv):
@@ -418,22 +548,23 @@ def _backward(sim, adj, wants, partials, frame_steps, kept, last, steps, checkpo
             for b in backward:
                 b.start(start)
             positions, velocities, carried = kept[start]
-            sim.set_state(positions, velocities, steps=start, carried=carried)
+            sim.set_state(positions, velocities, steps=start, carried=carried, time=plan.time(start))
             for k in range(start, end + 1):
                 if k > start:
-                    _recorded(sim, adj, start, 1)
+                    _recorded(sim, adj, start, plan, k - 1, 1)
                 integrator.keep(adj, k - start)
         k = end - 1
         while k >= start:
             below = bisect.bisect_right(ordered, k) - 1  # down to the last frame's step at or before k
             low = max(ordered[below], start) if below >= 0 else start
             plain = not any(b.any_in(low, k) for b in backward)
-            if shares is None and plain and k > low and integrator.adjoint_steps(adj, k - start, k - low + 1, wants):
+            batch = shares is None and plain and plan.sizes is None and k > low
+            if batch and integrator.adjoint_steps(adj, k - start, k - low + 1, wants):
                 k = integrator.steps = low
             else:
-                integrator.steps = k  # the step's start time, k dt (moving colliders)
+                integrator.at_step(k, *plan.step(k))  # the step's start time (moving colliders) and size
                 if shares is not None:
-                    shares.schedule.apply(k)
+                    shares.schedule.apply(k, plan.time(k))
                 acted = [b.before(k, k - start) for b in reversed(backward)]
                 stats = integrator.adjoint(adj, k - start, wants)
                 if stats is not None and not stats.converged:
@@ -442,7 +573,7 @@ def _backward(sim, adj, wants, partials, frame_steps, kept, last, steps, checkpo
                     if done is not None:
                         b.after(done, wants)
                 if shares is not None:
-                    shares.after(k)
+                    shares.after(k, plan.time(k), plan.time(k - 1) if k else None)
             if k in frame_of:
                 add_frame(k, adj.read("lx", n), adj.read("lv", n))
             k -= 1

@@ -195,6 +195,15 @@ class Integrator:
         with what the adjoint of the step from it needs besides x and v."""
         state_kernels.save_state(adj.hx, adj.hv, self.state, self.dev.n, slot, int(adj.stride[None]))
 
+    def at_step(self, k, clock=None, size=None, before=None):
+        """Make the step from step ``k`` the one to take or run backwards (a gradient's
+        backward pass): from time k dt; of a replayed run (``Simulation.replay``), from
+        ``clock`` (s) with size ``size`` (s), the step before it of size ``before`` (s,
+        None for the first)."""
+        self.steps = k
+        if clock is not None:
+            self.clock, self.dt = clock, size
+
     def adjoint(self, adj, slot, wants):
         """Run a step backwards (``massspring.gradient``) from the state kept at ``slot``
         of ``adj``'s history (made the current state): ``adj`` (its bundle) holds dL/dx', dL/dv' of the step's end state on entry and

@@ -353,8 +353,22 @@ class BDF2(BackwardEuler):
         particle in contact or following one)."""
         self.ready = self.taken[self.steps][1]
         stats = super().adjoint(adj, slot, wants)
-        newton_adjoint.bdf2_split(self.dev, self.cfg, adj, int(self.ready), self.dt / 3, wants)
+        variable = self.ready and self.previous is not None
+        if variable:  # the base's coefficients of variable-step BDF2 (``step_size``)
+            omega = self.ratio()
+            den = 1.0 + 2.0 * omega
+            now, before, third = (1.0 + omega) ** 2 / den, omega * omega / den, self.dt * omega / den
+        else:
+            now, before, third = 4.0 / 3.0, 1.0 / 3.0, self.dt / 3
+        newton_adjoint.bdf2_split(self.dev, self.cfg, adj, int(self.ready), third, wants, variable, now, before)
         return stats
+
+    def at_step(self, k, clock=None, size=None, before=None):
+        """The base class's, and the size ``before`` of the step that made step k's state
+        (BDF2's step ratio; None: the first step)."""
+        super().at_step(k, clock, size, before)
+        if clock is not None:
+            self.previous = before
 
     def ratio(self):
         """dt over the size of the step that made the current state (``previous``: None with a
