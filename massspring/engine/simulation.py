@@ -113,6 +113,22 @@ def divergence_check(model: Model, factor=DIVERGENCE_FACTOR):
     return (energy["kinetic"] + energy["spring"] + floor, model.external_work(model.positions), float(factor))
 
 
+def pin_work(model: Model) -> float:
+    """c (J/s^2) such that c t^2 bounds the energy moving pins can have put into the model
+    by time t (s), which ``base`` of ``divergence_check`` grows by as the run goes: pins
+    at most s m/s fast (their velocities, the controls' of every interval) are at most 2 s t
+    further apart than at the start, which stores at most (sum of the stiffnesses) (2 s t)^2
+    / 2 in the springs, and does about as much work. 0 without moving pins. Before, pins
+    pulling a chain apart at 1 m/s ended its run as "diverged" (issue 60)."""
+    if not model.has_fixed or not model.n_springs:
+        return 0.0
+    speeds = [float(np.linalg.norm(v)) for v in model.pin_velocity]
+    if model.controls is not None and model.controls.pin_targets is not None:
+        speeds.append(float(np.linalg.norm(model.controls.pin_velocities(model.positions[model.fixed]), axis=-1).max()))
+    speed = max(speeds, default=0.0)
+    return 2.0 * float(model.stiffness.sum()) * speed * speed
+
+
 def default_cg_max_iter(model: Model) -> int:
     """3 x (free particles): the exact-arithmetic bound of CG on the free DOFs, at least 100."""
     free = model.n_particles - model.fixed.size
@@ -218,6 +234,7 @@ class Simulation:
                                   **({"tol": None, "min_dt": None, "max_dt": None, "horizon": None}
                                      if tolerance is None else vars(tolerance)))
         self._check = divergence_check(model)
+        self._pin_work = pin_work(model)
         self._steps = 0
         self._cg_iterations = []
         self._newton_iterations = []
@@ -710,6 +727,7 @@ class Simulation:
             self._schedule.apply(self._steps, t)
         for p in self._passes:
             p.begin(integrator.state)
+        self._bound_to(integrator.time_after())
         done, check = integrator.advance(1)
         if done and self._passes:
             integrator.settle()
@@ -739,6 +757,7 @@ class Simulation:
                 if schedule is not None:
                     schedule.apply(self._steps)
                     chunk = min(chunk, schedule.steps_left(self._steps) or chunk)
+                self._bound_to((self._steps + chunk) * self.dt)
                 done, check = integrator.advance(chunk)
                 self._steps += done
                 self._raise_if_diverged(check)
@@ -747,6 +766,13 @@ class Simulation:
         for _ in range(n):
             _, check = self._one_step(integrator)
             self._raise_if_diverged(check)
+
+    def _bound_to(self, t):
+        """The divergence check's bound for states up to time ``t`` (s): with moving pins,
+        ``base`` grown by what they can have put in (``pin_work``)."""
+        if self._pin_work:
+            base, gx0, factor = self._check
+            self._integrator.dev.check[None] = (base + self._pin_work * t * t, gx0, factor)
 
     def _raise_if_diverged(self, check):
         code, kinetic, bound = check  # kinetic: the integrator's traits.checked_energy
