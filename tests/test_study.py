@@ -2,6 +2,7 @@
 reference and its self-check, divergence handling, and the CSV/JSON outputs."""
 
 import csv
+import dataclasses
 import json
 
 import numpy as np
@@ -251,6 +252,27 @@ def test_fit_ignores_diverged_runs_even_with_an_error():
     assert entry["order_finest"] == pytest.approx(1.0)
     assert fits.cheapest(runs + [study.Run("explicit", 4e-3, None, error=1e-9, wall_s=1e-9, diverged=True)],
                           1e-2)["dt"] in (1e-3, 5e-4, 2.5e-4)
+
+
+def test_runs_within_the_timing_noise_tie():
+    """Issue 60: ``study cloth --integrators explicit,symplectic --rungs 2`` run twice
+    flipped its "error <= 0.001" verdict (explicit 0.108 s, then symplectic 0.093 s): two
+    runs within ``fits.TIE`` (30%) of each other's time are a tie, named in the verdict,
+    whichever was the faster; a run 50% slower is not, nor one of the same line."""
+    explicit = study.Run("explicit", 1e-4, None, error=5e-4, wall_s=0.108)
+    symplectic = study.Run("symplectic", 2e-4, None, error=8e-4, wall_s=0.093)
+    rk4 = study.Run("rk4", 1e-3, None, error=1e-6, wall_s=0.14)  # 51% slower than symplectic's
+    finer = study.Run("symplectic", 1e-4, None, error=2e-4, wall_s=0.1)  # its own line: not a tie
+    for order in ([explicit, symplectic, rk4, finer], [finer, rk4, symplectic, explicit]):
+        best = fits.cheapest(order, 1e-3)
+        assert best["integrator"] == "symplectic" and best["dt"] == 2e-4
+        assert [(t["integrator"], t["dt"]) for t in best["ties"]] == [("explicit", 1e-4)]
+    slower = dataclasses.replace(explicit, wall_s=0.093 * 1.31)
+    assert fits.cheapest([slower, symplectic], 1e-3)["ties"] == []
+    orders = fits.fit_orders([explicit, symplectic])
+    text = report.report(study.Study("cloth", {}, 0.1, np.array([0.1]), 1.0, [explicit, symplectic],
+                                     study.ReferenceCheck("exact"), orders))
+    assert "cheapest symplectic dt 0.0002 s" in text and "a tie: explicit dt 0.0001 s" in text
 
 
 # ---- outputs ----------------------------------------------------------------

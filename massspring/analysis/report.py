@@ -8,7 +8,7 @@ import json
 import sys
 from pathlib import Path
 
-from massspring.analysis.fits import TARGETS, cheapest
+from massspring.analysis.fits import TARGETS, TIE, cheapest
 from massspring.analysis.study import COLUMNS
 from massspring.integrators import INTEGRATORS
 from massspring.io.files import atomic_output
@@ -52,13 +52,21 @@ def report(study) -> str:
         if best is None:
             out.append(f"error <= {target:g}: no run reached it")
         else:
-            tol = "" if best["cg_tol"] is None else f" ({best['preconditioner']}), cg_tol {best['cg_tol']:g}"
-            if best["newton_tol"] is not None:
-                tol = f" ({best['preconditioner']}), newton_tol {best['newton_tol']:g}"
-            step = f"dt {best['dt']:.4g} s" if best["tol"] is None else f"error-controlled, tol {best['tol']:g}"
-            out.append(f"error <= {target:g}: cheapest {best['integrator']} {step}{tol} "
-                       f"(error {best['error']:.3g}, {best['wall_s']:.3g} s)")
+            line = f"error <= {target:g}: cheapest {_described(best)}"
+            if best["ties"]:
+                line += (f"; within the timing noise ({TIE:.0%}) of it, a tie: "
+                         + ", ".join(_described(tie) for tie in best["ties"]))
+            out.append(line)
     return "\n".join(out)
+
+
+def _described(choice) -> str:
+    """A cheapest run (``fits.cheapest``) in words."""
+    tol = "" if choice["cg_tol"] is None else f" ({choice['preconditioner']}), cg_tol {choice['cg_tol']:g}"
+    if choice["newton_tol"] is not None:
+        tol = f" ({choice['preconditioner']}), newton_tol {choice['newton_tol']:g}"
+    step = f"dt {choice['dt']:.4g} s" if choice["tol"] is None else f"error-controlled, tol {choice['tol']:g}"
+    return f"{choice['integrator']} {step}{tol} (error {choice['error']:.3g}, {choice['wall_s']:.3g} s)"
 
 
 def write_outputs(study, out_dir) -> list:
