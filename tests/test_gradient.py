@@ -445,6 +445,11 @@ STRADDLING_STEP = {"positions": 1e-5, "velocities": 1e-5, "damping": 1e-3}
 # (measured on damping: 2.3e-6, 1.3e-6, 4.0e-7, 2.0e-8 at 1e-4, 1e-3, 1e-2, 3e-2; on
 # stiffness 4.2e-7, 3.6e-8, 1.1e-8 at 1e-4, 1e-3, 1e-2), so these two take larger steps
 STICKING_PENALTY_STEP = {"stiffness": 1e-2, "damping": 3e-2}
+# The repelled triangle's runs carry the pass's fixed-point rounding (1e-12 m), noise that
+# a difference step divides: at 1e-5 in the state the worst of the 14 cases below sat at
+# 0.79 of the 1e-6 bound (BDF2, sticking, velocities; issue 60 met one at its edge on an
+# AMD EPYC), at 2e-5 0.32 (every case, measured on the Intel Xeon; truncation is O(eps^4))
+REPULSION_STEP = dict(STRADDLING_STEP, positions=2e-5, velocities=2e-5)
 
 
 @pytest.mark.fast_sample(integrator=["symplectic"], friction=[0.05])
@@ -473,7 +478,7 @@ def test_gradients_through_self_collision_repulsion_match_differences(integrator
     for name in names:
         direction = rng.normal(size=np.shape(values[name]))
         direction /= np.abs(direction).max()
-        steps = dict(STRADDLING_STEP, **(STICKING_PENALTY_STEP if integrator == "implicit" and friction > 1 else {}))
+        steps = dict(REPULSION_STEP, **(STICKING_PENALTY_STEP if integrator == "implicit" and friction > 1 else {}))
         eps = steps.get(name, 1e-4) * max(1.0, np.abs(values[name]).max())
         numeric = richardson_difference(make, values, name, direction, run, eps)
         exact = float(np.sum(grads[name] * direction))
