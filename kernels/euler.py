@@ -136,7 +136,7 @@ def euler_adjoints(dev: ti.template(), cfg: ti.template(), adj: ti.template(), s
                    slot: ti.i32, count: ti.i32, symplectic: ti.template(), wants: ti.template(),
                    masses_from_history: ti.template()):
     """``count`` steps backwards in one serial launch, from the step kept at ``slot`` down to
-    ``slot - count + 1`` (without colliders: the steps' times are not read)."""
+    ``slot - count + 1`` (without moving colliders: the steps' times are not read)."""
     ti.loop_config(serialize=True)
     for k in range(count):
         adjoint_step(dev, cfg, adj, src, dt, 0.0, slot - k, symplectic, wants, masses_from_history)

@@ -244,6 +244,37 @@ def test_steps_run_backwards_in_one_launch_give_the_step_by_step_bits(integrator
     assert scale > 0 and gap <= 1e-13 * scale  # measured 2.5e-16 (explicit) and 4.9e-16 (symplectic)
 
 
+@pytest.mark.parametrize("integrator", ["explicit", "symplectic"])
+def test_steps_with_controls_and_a_ground_run_backwards_in_one_launch_a_control_interval(integrator, monkeypatch):
+    """Issue 60 (the creature's gradient cost 14x its run, one adjoint launch a step):
+    with controls (wind, rest lengths and pins per interval of 3 steps) and a still ground
+    with friction that the sheet lands on, the explicit steps' adjoints run in one launch
+    per stretch within a control interval; the same value and gradients, to the bit, as
+    one launch a step."""
+    from massspring.integrators.explicit import ExplicitEuler
+    from test_controls import control_values, controlled
+
+    ground = ms.Plane((0.0, 0.0, -0.0075), (0.0, 0.0, 1.0), friction=0.5)
+    fall = dict(control_values(), gravity=np.array([0.0, 0.0, -30.0]))
+    model = controlled(**fall, colliders=[ground])
+    names = ["stiffness", "masses", "positions", "controls.wind", "controls.rest_lengths", "controls.pin_targets"]
+
+    def run(m=model):
+        return ms.gradient(m, objective, names, steps=12, every=4, dt=2e-3, integrator=integrator, checkpoint=7,
+                           loops="serial")
+
+    launches = []
+    batched = ExplicitEuler.adjoint_steps
+    monkeypatch.setattr(ExplicitEuler, "adjoint_steps", lambda self, *a: launches.append(a[2]) or batched(self, *a))
+    together = run()
+    assert len(launches) >= 3 and max(launches) == 3  # a control interval's steps in one launch
+    monkeypatch.setattr(ExplicitEuler, "adjoint_steps", lambda self, *args: False)
+    apart = run()
+    assert together[0] == apart[0] != run(controlled(**fall))[0]  # the ground acts
+    for name in names:
+        np.testing.assert_array_equal(together[1][name], apart[1][name])
+
+
 @pytest.mark.fast_sample(integrator=["symplectic"])
 @pytest.mark.parametrize("integrator, checkpoint", [("symplectic", None), ("symplectic", 2), ("explicit", 4),
                                                     ("rk4", None)])

@@ -92,9 +92,13 @@ class ControlShares:
         self.seen = self._totals()
 
     def _totals(self):
+        """The accumulators of the controls the model has (zeros for the others: not read)."""
         n, m = self.sim.model.n_particles, self.sim.model.n_springs
-        return (self.adj.read("gwind", n).sum(axis=0), self.adj.read("gl0", m) if m else np.zeros(0),
-                self.adj.read("gp", n))
+        controls = self.controls
+        wind = self.adj.read("gwind", n).sum(axis=0) if controls.wind is not None else np.zeros(3)
+        rest = self.adj.read("gl0", m) if m and controls.rest_lengths is not None else np.zeros(m)
+        pins = self.adj.read("gp", n) if controls.pin_targets is not None else np.zeros((n, 3))
+        return wind, rest, pins
 
     def after(self, k, t=None, t_before=None):
         """Called after step k's adjoint (of a replayed run: the step from time ``t``, s,

@@ -557,10 +557,16 @@ def _backward(sim, adj, wants, partials, plan, kept, last, checkpoint, shares=No
         while k >= start:
             below = bisect.bisect_right(ordered, k) - 1  # down to the last frame's step at or before k
             low = max(ordered[below], start) if below >= 0 else start
+            if shares is not None and plan.sizes is None:  # and to the first step of k's control interval
+                low = max(low, k - k % shares.schedule.per)
             plain = not any(b.any_in(low, k) for b in backward)
-            batch = shares is None and plain and plan.sizes is None and k > low
+            batch = plain and plan.sizes is None and k > low
+            if batch and shares is not None:
+                shares.schedule.apply(k)  # the interval's values, for all the steps down to low
             if batch and integrator.adjoint_steps(adj, k - start, k - low + 1, wants):
                 k = integrator.steps = low
+                if shares is not None:
+                    shares.after(k)
             else:
                 integrator.at_step(k, *plan.step(k))  # the step's start time (moving colliders) and size
                 if shares is not None:

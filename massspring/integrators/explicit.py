@@ -59,10 +59,14 @@ class ExplicitEuler(SwappingStates):
         euler.euler_adjoint(self.dev, self.cfg, adj, self.state, self.dt, self.time + self.dt, slot,
                             self.symplectic, wants, own, self.serial)
 
+    def __init__(self, dev, model, settings):
+        super().__init__(dev, model, settings)
+        self.moving_colliders = any(c.moving for c in model.colliders)
+
     def adjoint_steps(self, adj, slot, count, wants):
-        """With serial loops and no colliders (whose places depend on the time): the steps
-        in one launch (``euler.euler_adjoints``)."""
-        if not self.serial or self.cfg.has_colliders:
+        """With serial loops and no moving collider (whose places depend on the time): the
+        steps in one launch (``euler.euler_adjoints``)."""
+        if not self.serial or self.moving_colliders:
             return False
         wants, own = self._masses(wants)
         euler.euler_adjoints(self.dev, self.cfg, adj, self.state, self.dt, slot, count, self.symplectic,
