@@ -39,7 +39,7 @@ from massspring.support import validate
 from massspring.support.validate import real_array
 from massspring.support.defaults import MAX_STEPS
 from massspring.device import POOL, Layout, capacity
-from massspring.support.errors import GradientError, KinkWarning, SelfCollisionGradientError
+from massspring.support.errors import GradientError, KinkWarning
 from massspring.integrators import INTEGRATORS
 from massspring.kernels import state as state_kernels
 from massspring.model import Model, terms
