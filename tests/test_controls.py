@@ -179,6 +179,8 @@ def test_bad_controls_are_refused_naming_what_is_wrong():
         ms.Controls(0.1, rest_lengths=np.ones((3, 1)))
     with pytest.raises(ValueError, match="controls.springs: a spring is listed twice"):
         ms.Controls(0.1, springs=[1, 1], rest_lengths=np.ones((3, 2)))
+    with pytest.raises(ValueError, match="controls.springs: expected spring indices"):  # ragged (issue 60's re-run)
+        ms.Controls(0.1, springs=[[0], [1, 2]], rest_lengths=np.ones((2, 2)))
     with pytest.raises(ValueError, match="controls.rest_lengths: rest lengths must be >= 0"):
         ms.Controls(0.1, springs=[1], rest_lengths=-np.ones((3, 1)))
     with pytest.raises(ValueError, match=r"controls.pin_targets: expected shape \(S, 2, 3\)"):

@@ -129,6 +129,7 @@ def test_bad_step_arguments_are_refused_by_name():
         (dict(dts=[[1e-3]]), "dts: expected"),
         (dict(dts=[1e-3] * 4, every=[3, 2]), "every: expected"),
         (dict(dts=[1e-3] * 4, every=[5]), "every: expected"),
+        (dict(steps=4, every=[[1], [2, 3]]), "every: expected"),  # ragged (the fuzz re-run of issue 60)
         (dict(tol=1e-3), "times: an error-controlled gradient needs"),
         (dict(times=[0.1]), "tol: an error-controlled gradient needs"),
         (dict(tol=1e-3, times=[0.1], steps=4), "steps: with tol"),

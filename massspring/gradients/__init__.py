@@ -269,10 +269,13 @@ def _replayed(dts, frames) -> Plan:
 
 def _frame_steps(every, steps) -> np.ndarray:
     """The frames' steps: 0 and every ``every``-th step, or 0 and the given steps."""
-    if isinstance(every, (int, np.integer)) or np.ndim(every) == 0:
+    try:
+        at = np.asarray(every)
+    except ValueError:  # ragged nesting
+        at = np.zeros((0, 0))
+    if at.ndim == 0:
         every = validate.count("every", every, low=1, high=MAX_STEPS)
         return np.arange(0, steps + 1, every)
-    at = np.asarray(every)
     if at.ndim != 1 or not at.size or at.dtype.kind not in "iu" or at[0] < 1 or at[-1] > steps \
             or np.any(np.diff(at) <= 0):
         raise ValueError(f"every: expected a step count or increasing step numbers within 1..{steps}, got {every!r}")

@@ -76,7 +76,10 @@ class Controls:
             raise ValueError("controls: springs and rest_lengths go together (the actuated springs and their "
                              "rest lengths per interval)")
         if self.springs is not None:
-            springs = np.asarray(self.springs)
+            try:
+                springs = np.asarray(self.springs)
+            except ValueError:  # ragged nesting
+                raise ValueError(f"controls.springs: expected spring indices (c,) int, got {self.springs!r}") from None
             if springs.ndim != 1 or springs.dtype.kind not in "iu":
                 raise ValueError(f"controls.springs: expected spring indices (c,) int, got {springs.dtype} "
                                  f"of shape {springs.shape}")
