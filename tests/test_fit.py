@@ -70,7 +70,7 @@ def test_a_stop_of_the_line_search_is_converged_only_at_a_stationary_point():
 @FULL
 def test_fit_of_masses_and_drag_with_a_frame_step_that_skips(tmp_path):
     """Masses and drag of a cloth with air drag, backward Euler, frames every 3 steps and
-    the last at step 10 (the runs record every step; steps 0, 3, 6, 9 and 10 are compared)."""
+    the last at step 10 (the runs record steps 0, 3, 6, 9 and 10: ``every`` lists them)."""
     frames = record(tmp_path, "mass=1.5", "drag=0.02", steps=10, every=3, integrator="backward-euler")
     scene = ms.load_scene("cloth").with_params(resolution=5).with_settings(["drag=0.01"])
     model = scene.model()
@@ -108,14 +108,17 @@ def test_fit_refuses_bad_input_before_any_run(tmp_path, capsys):
     assert not (tmp_path / "no").exists()
 
 
-def test_a_frame_steps_beyond_any_fit_is_refused(tmp_path, capsys):
+@pytest.mark.parametrize("steps", [10**12, 9_999_999])
+def test_a_frame_steps_beyond_any_fit_is_refused(tmp_path, capsys, steps):
     """Issue 60: a recording whose last frame said ``steps = 10**12`` made ``fit`` run
-    until killed; refused naming the file before any run."""
+    until killed; refused naming the file before any run. Its re-run found 9,999,999
+    (under the most steps a fit runs) ran on past 120 s, asking for a frame at every
+    step; the step the export's list gives the file (2) says the file is damaged."""
     frames = record(tmp_path, steps=2, every=1)
     capsys.readouterr()
     last = sorted(frames.glob("*.npz"))[-1]
     data = dict(np.load(last))
-    data["steps"] = np.array(10**12)
+    data["steps"] = np.array(steps)
     np.savez(last, **data)
     assert main(["fit", *CLOTH, "--frames", str(frames), "--params", "stiffness"]) == 2
     one_line_error(capsys, last.name, "damaged")

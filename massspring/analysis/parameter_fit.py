@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from functools import reduce
 from pathlib import Path
 
 import numpy as np
@@ -82,6 +81,9 @@ def read_recording(directory, model: Model) -> Recording:
         if path.suffix != ".npz":
             raise ValueError(f"{path}: not an npz frame; record with `massspring run ... --export DIR --format npz`")
         state = read_state(path, model, "the scene's model")
+        if state.steps != frame["step"]:
+            raise ValueError(f"{path}: step {state.steps}, where the export's list says {frame['step']}; is the "
+                             f"recording damaged?")
         if first is None:
             first, dt = state, state.dt
         elif not math.isclose(state.dt, dt, rel_tol=1e-12):
@@ -123,12 +125,9 @@ def fit_parameters(model: Model, recording: Recording, params, *, integrator, st
         raise ValueError(f"start: {start!r} is outside the factors' range {FACTOR_RANGE}")
     first = model.replaced(positions=recording.positions[0], velocities=recording.velocities)
     base = {name: np.asarray(getattr(first, name), dtype=np.float64) for name in params}
+    used = np.arange(len(recording.steps))  # the run's frames are the recorded ones
     if tol is None:
-        every = int(reduce(math.gcd, (int(k) for k in recording.steps[1:])))
-        run = dict(steps=int(recording.steps[-1]), every=every, dt=recording.dt)
-        used = recording.steps // every  # the recorded frames among the run's
-    else:  # frames at the recorded times exactly, the steps chosen at each stage's start
-        used = np.arange(len(recording.steps))
+        run = dict(steps=int(recording.steps[-1]), every=recording.steps[1:].astype(np.int64), dt=recording.dt)
     scaled = lambda factors: first.replaced(**{name: f * base[name] for name, f in zip(params, factors)})  # noqa: E731
     count = (len(recording.steps) - 1) * recording.positions[0].size
 
