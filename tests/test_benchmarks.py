@@ -35,7 +35,8 @@ def test_the_bench_extra_installs_what_the_benchmarks_import():
     benchmarks/newton.py, so the test takes the name of the package, not of the file."""
     project = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]
     extras = project["optional-dependencies"]
-    local = {path.stem for path in BENCHMARKS} | {path.stem for path in (ROOT / "tests").glob("*.py")} | {"massspring"}
+    local = ({path.stem for path in BENCHMARKS} | {path.stem for path in (ROOT / "tests").glob("*.py")}
+             | {path.stem for path in (ROOT / "examples").glob("*.py")} | {"massspring"})  # the project's own
     for path in BENCHMARKS:
         extra = OWN_EXTRA.get(path.name, "bench")
         installed = requirement_names(project["dependencies"] + extras[extra])
