@@ -27,19 +27,26 @@ SIDE = 4  # a 4 x 4 sheet with shear springs: 16 particles, 33 springs
 PINNED = [0, SIDE - 1]
 
 
+def sheet_grid(side=3):
+    """A flat side x side sheet of spacing 0.1 m at z = 0: positions (n, 3) and its
+    structural and shear springs (one diagonal a square)."""
+    positions = np.array([[i * 0.1, j * 0.1, 0.0] for j in range(side) for i in range(side)])
+    springs = []
+    for j in range(side):
+        for i in range(side):
+            a = j * side + i
+            springs += [[a, a + 1]] * (i + 1 < side) + [[a, a + side]] * (j + 1 < side)
+            springs += [[a, a + side + 1]] * (i + 1 < side and j + 1 < side)
+    return positions, springs
+
+
 def sheet(seed=1, damped=True, **changes):
     """A jittered sheet pinned at two corners (one pin moving; a pin starts at its pin
     velocity), damped, with random per-item parameters, a tilted gravity, air drag and
     wind: every parameter kind differs from item to item."""
     rng = np.random.default_rng(seed)
-    positions = np.array([[i * 0.1, j * 0.1, 0.0] for j in range(SIDE) for i in range(SIDE)])
+    positions, springs = sheet_grid(SIDE)
     positions += rng.normal(0, 0.01, positions.shape)
-    springs = []
-    for j in range(SIDE):
-        for i in range(SIDE):
-            a = j * SIDE + i
-            springs += [[a, a + 1]] * (i + 1 < SIDE) + [[a, a + SIDE]] * (j + 1 < SIDE)
-            springs += [[a, a + SIDE + 1]] * (i + 1 < SIDE and j + 1 < SIDE)
     n, m = len(positions), len(springs)
     values = dict(positions=positions, masses=rng.uniform(0.5, 1.5, n), stiffness=rng.uniform(50, 150, m),
                   damping=rng.uniform(0.1, 1.0, m) if damped else np.zeros(m),
@@ -341,19 +348,6 @@ def test_bad_arguments_are_refused_before_any_step(kwargs, words):
     for word in words:
         assert word in str(info.value), (word, str(info.value))
     assert not calls
-
-
-def sheet_grid(side=3):
-    """A flat side x side sheet of spacing 0.1 m at z = 0: positions (n, 3) and its
-    structural and shear springs (one diagonal a square)."""
-    positions = np.array([[i * 0.1, j * 0.1, 0.0] for j in range(side) for i in range(side)])
-    springs = []
-    for j in range(side):
-        for i in range(side):
-            a = j * side + i
-            springs += [[a, a + 1]] * (i + 1 < side) + [[a, a + side]] * (j + 1 < side)
-            springs += [[a, a + side + 1]] * (i + 1 < side and j + 1 < side)
-    return positions, springs
 
 
 def sheet_values(rng, positions, velocities, m):
