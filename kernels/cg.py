@@ -216,71 +216,76 @@ def cg_direction(dev: ti.template(), cfg: ti.template(), beta: ti.f64):
     direction(dev, cfg, beta)
 
 
-@ti.kernel
-def cg_solve(dev: ti.template(), cfg: ti.template(), x: ti.template(), dt: ti.f64, t: ti.f64, tol: ti.f64,
-             floor: ti.f64, max_iter: ti.i32, mode: ti.template()) -> ti.types.vector(4, ti.f64):
-    """``refresh`` at (``x``, ``dev.v``) at time t (s) in ``mode`` (none if ``mode`` is
-    ``operator.REFRESHED``: a Newton iteration refreshed the operator itself) and the
-    whole PCG solve of A v = b from the iterate in ``dev.v`` (v_n) in one launch,
-    serial loops.
-
-    The loop of ``massspring.solvers.cg`` (``tol`` and ``floor`` as there), written
-    with ``begin`` once (the first residual and every restart share it: half the code
-    to compile). Returns
-    (iterations, true relative residual, reason code (see ``REASONS``), first residual).
-    """
+@ti.func
+def serial_solve(dev, cfg: ti.template(), tol, floor, max_iter):
+    """The whole PCG solve of A v = b from the iterate in ``dev.v`` with the operator as
+    refreshed, inside a serialised loop: the loop of ``massspring.solvers.cg`` (``tol``
+    and ``floor`` as there), written with ``begin`` once (the first residual and every
+    restart share it: half the code to compile). Returns (iterations, true relative
+    residual, reason code (see ``REASONS``), first residual)."""
     iterations = 0
     reason = CONVERGED
     residual = 0.0
     first = 0.0
     goal = tol
+    bb = 0.0
+    target = 0.0
+    best = 1e308
+    cycle = -1  # iterations of the cycle just ended; -1 before the first
+    done = False
+    while not done:
+        sums = begin(dev, cfg)  # r = b - A v: the start, or the true residual after a cycle
+        rz = sums[0]
+        rr = sums[1]
+        if cycle < 0:
+            bb = rr  # the tolerance is relative to the first residual
+            first = ti.sqrt(ti.max(bb, 0.0))
+            if bb > 0.0:
+                goal = ti.max(tol, floor * ti.sqrt(ti.max(sums[2], 0.0) / bb))
+            target = goal * goal * bb
+            if not is_finite(bb) or not is_finite(sums[2]):  # b or the residual overflowed
+                reason = NONFINITE
+                residual = bb
+                done = True
+            elif bb == 0.0:  # the iterate solves the system exactly
+                done = True
+        else:
+            residual = ti.sqrt(ti.max(rr, 0.0) / bb)
+            done, reason, best = next_action(is_finite(residual), iterations, cycle, residual, goal, best,
+                                             reason, max_iter)
+        if not done:
+            cycle = 0
+            while rr > target and iterations < max_iter:
+                pq = apply(dev, cfg)
+                if not is_finite(pq) or pq <= 0.0 or rz == 0.0:
+                    reason = INDEFINITE
+                    break
+                s2 = update(dev, cfg, rz / pq)
+                iterations += 1
+                cycle += 1
+                direction(dev, cfg, s2[0] / rz)
+                rz = s2[0]
+                rr = s2[1]
+            if cycle == 0:  # nothing to restart from: decide on the residual at hand
+                residual = ti.sqrt(ti.max(rr, 0.0) / bb)
+                done, reason, best = next_action(is_finite(residual), iterations, cycle, residual, goal,
+                                                 best, reason, max_iter)
+    return ti.Vector([iterations, residual, reason, first], ti.f64)
+
+
+@ti.kernel
+def cg_solve(dev: ti.template(), cfg: ti.template(), x: ti.template(), dt: ti.f64, t: ti.f64, tol: ti.f64,
+             floor: ti.f64, max_iter: ti.i32, mode: ti.template()) -> ti.types.vector(4, ti.f64):
+    """``refresh`` at (``x``, ``dev.v``) at time t (s) in ``mode`` (none if ``mode`` is
+    ``operator.REFRESHED``: the caller refreshed the operator itself) and ``serial_solve``
+    from the iterate in ``dev.v`` (v_n) in one launch, serial loops."""
+    out = ti.Vector.zero(ti.f64, 4)
     ti.loop_config(serialize=True)
     for _ in range(1):
         if ti.static(mode != REFRESHED):
             refresh(dev, cfg, x, dev.v, ti.cast(dt, cfg.real), ti.cast(t, cfg.real), mode)
-        bb = 0.0
-        target = 0.0
-        best = 1e308
-        cycle = -1  # iterations of the cycle just ended; -1 before the first
-        done = False
-        while not done:
-            sums = begin(dev, cfg)  # r = b - A v: the start, or the true residual after a cycle
-            rz = sums[0]
-            rr = sums[1]
-            if cycle < 0:
-                bb = rr  # the tolerance is relative to the first residual
-                first = ti.sqrt(ti.max(bb, 0.0))
-                if bb > 0.0:
-                    goal = ti.max(tol, floor * ti.sqrt(ti.max(sums[2], 0.0) / bb))
-                target = goal * goal * bb
-                if not is_finite(bb) or not is_finite(sums[2]):  # b or the residual overflowed
-                    reason = NONFINITE
-                    residual = bb
-                    done = True
-                elif bb == 0.0:  # the iterate solves the system exactly
-                    done = True
-            else:
-                residual = ti.sqrt(ti.max(rr, 0.0) / bb)
-                done, reason, best = next_action(is_finite(residual), iterations, cycle, residual, goal, best,
-                                                 reason, max_iter)
-            if not done:
-                cycle = 0
-                while rr > target and iterations < max_iter:
-                    pq = apply(dev, cfg)
-                    if not is_finite(pq) or pq <= 0.0 or rz == 0.0:
-                        reason = INDEFINITE
-                        break
-                    s2 = update(dev, cfg, rz / pq)
-                    iterations += 1
-                    cycle += 1
-                    direction(dev, cfg, s2[0] / rz)
-                    rz = s2[0]
-                    rr = s2[1]
-                if cycle == 0:  # nothing to restart from: decide on the residual at hand
-                    residual = ti.sqrt(ti.max(rr, 0.0) / bb)
-                    done, reason, best = next_action(is_finite(residual), iterations, cycle, residual, goal,
-                                                     best, reason, max_iter)
-    return ti.Vector([iterations, residual, reason, first], ti.f64)
+        out = serial_solve(dev, cfg, tol, floor, max_iter)
+    return out
 
 
 @ti.func

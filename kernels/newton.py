@@ -35,6 +35,13 @@ E(v + a d) - E(v) for the line search, each element's change computed from the
 difference of its lengths and velocities (not as a difference of two energies), so
 it keeps its relative precision when the change is tiny.
 
+Two drivers run the iteration with the same arithmetic: ``BackwardEuler._newton``
+(``massspring/integrators/newton.py``) from Python, one launch per phase
+(``newton_refresh``, the CG solve, ``newton_direction``, each ``newton_trial``), and
+``newton_solve``, the whole iteration in one launch with serial loops (small systems
+with a pointwise preconditioner, once a run has made enough tries to pay for its
+compile).
+
 Fields (n particles, vec3 in the run's precision; m springs): ``lag`` (m,) and
 ``lag_coef`` (2m, adjacency order) 4-vectors (m, c), c = h kd the damping block's
 coefficient (``cfg.lagged``); ``xb``, ``vb`` (x^, v^), ``xk``,
@@ -47,11 +54,21 @@ velocity of the collider each particle touches, from ``contact.detect``); BDF2's
 import taichi as ti
 
 from .blocks import BLOCK, block_count, block_end, ordered_sum
+from .cg import CONVERGED, NONFINITE, REASONS as CG_REASONS, serial_solve
 from .constraints import constrain, is_free, is_pinned, prescribed
 from .contact import detect, friction_diagonal, friction_impulse
 from .forces import spring_direction, tiny_length
 from .operator import NEWTON, refresh
+from .divergence import is_finite
 from .terms import uniform_acceleration
+
+ARMIJO = 1e-4  # sufficient decrease: E(v + a d) - E(v) <= ARMIJO a g . d
+MAX_CUTS = 12  # halvings of a line search before it takes the shortest step tried
+ETA_FIRST = 1e-2  # CG tolerance of the first linear solve of a step (relative to its first residual)
+ETA_MAX = 0.1  # loosest CG tolerance of a later solve
+GOLDEN = (1 + 5**0.5) / 2  # safeguard exponent of Eisenstat and Walker's first choice
+MAX_NEWTON = len(CG_REASONS)  # reason code: the Newton iteration limit came first
+REASONS = CG_REASONS + ("max_newton",)
 
 
 @ti.func
@@ -281,6 +298,12 @@ def trial(dev, cfg: ti.template(), h, alpha):
 
 @ti.kernel
 def newton_direction(dev: ti.template(), cfg: ti.template()):
+    """``direction``."""
+    direction(dev, cfg)
+
+
+@ti.func
+def direction(dev, cfg: ti.template()):
     """d = S (v' - v_k) after the linear solve (``dev.v`` = v'): the prescribed directions,
     which v' and v_k both hold at their prescribed velocities, projected out of d, so that
     their round-off (eps |v|) neither moves them nor enters the line search's slope and
@@ -309,6 +332,95 @@ def newton_trial(dev: ti.template(), cfg: ti.template(), h: ti.f64, alpha: ti.f6
         sums = trial(dev, cfg, hh, a)
         for k in ti.static(range(3)):
             out[k] = sums[k]
+    return out
+
+
+@ti.kernel
+def newton_solve(dev: ti.template(), cfg: ti.template(), h: ti.f64, t: ti.f64, roundoff: ti.f64, cg_tol: ti.f64,
+                 newton_tol: ti.f64, cg_max_iter: ti.i32, newton_max_iter: ti.i32,
+                 log: ti.types.ndarray(dtype=ti.f64, ndim=2)) -> ti.types.vector(6, ti.f64):
+    """Newton's iteration for (*) with step h (s) at time t (s), from the base and the
+    directions ``newton_start`` and ``newton_lag`` set, in one launch with serial loops:
+    the loop ``BackwardEuler.advance`` (``massspring/integrators/newton.py``) drives from
+    Python with one launch per phase, the same arithmetic, for pointwise preconditioners
+    on small systems.
+
+    ``roundoff``: ROUNDOFF eps of the run's precision (the floors of CG and of ||g||);
+    ``cg_tol``, ``newton_tol``, ``cg_max_iter``, ``newton_max_iter``: the options.
+    ``log`` (at least newton_max_iter + 1 rows, 2 columns) gets ||S g|| at each iterate
+    (column 0, row k: after k solves) and each solve's CG iterations (column 1).
+    Returns (solves, CG iterations in all, line-search cuts, reason code (``REASONS``),
+    the last solve's relative residual (0 without one), ||S g|| at the warm start)."""
+    hh = ti.cast(h, cfg.real)
+    now = ti.cast(t, cfg.real)
+    out = ti.Vector.zero(ti.f64, 6)
+    ti.loop_config(serialize=True)
+    for _ in range(1):
+        solves = 0
+        total = 0
+        cuts = 0
+        tried = 0
+        reason = CONVERGED
+        last_code = CONVERGED
+        last_residual = 0.0
+        previous = 0.0
+        predicted = 0.0
+        eta = ETA_FIRST
+        cut = False
+        floor = 0.0
+        first = 0.0
+        norm = 0.0
+        broken = False  # a solve's right-hand side or residual overflowed
+        while True:
+            sums = iterate(dev, cfg, hh, now)
+            norm = ti.sqrt(sums[0])
+            log[solves, 0] = norm
+            floor = ti.max(floor, roundoff * ti.sqrt(sums[1]))
+            if solves == 0:
+                first = norm
+            elif tried == 0 and sums[2] <= newton_tol * newton_tol * sums[3]:
+                if sums[2] == 0.0 and last_code != CONVERGED:
+                    reason = last_code  # CG could not move v (indefinite, stalled): nor can Newton
+                break  # a full Newton step this small: what is left is smaller still
+            if not is_finite(norm) or norm <= floor:
+                break
+            if solves >= newton_max_iter:
+                reason = MAX_NEWTON
+                break
+            if solves > 0:
+                safeguard = ti.pow(eta, GOLDEN)
+                eta = ti.abs(norm - predicted) / previous  # how far the linear model missed
+                if safeguard > 0.1:
+                    eta = ti.max(eta, safeguard)
+            if cut:  # a line search has cut a step: loose solves' directions are not to be trusted
+                eta = cg_tol
+            eta = ti.min(ti.max(eta, cg_tol), ETA_MAX)
+            result = serial_solve(dev, cfg, eta, roundoff, cg_max_iter)
+            iterations = ti.cast(result[0], ti.i32)
+            log[solves, 1] = result[0]
+            solves += 1
+            total += iterations
+            last_residual = result[1]
+            last_code = ti.cast(result[2], ti.i32)
+            predicted = result[1] * result[3]  # ||g|| the linear model predicts
+            if last_code == NONFINITE:
+                broken = True
+                break
+            direction(dev, cfg)
+            alpha = 1.0
+            tried = 0
+            while True:
+                change = trial(dev, cfg, hh, ti.cast(alpha, cfg.real))
+                if change[0] <= ARMIJO * alpha * change[1] or tried == MAX_CUTS or not is_finite(change[0]):
+                    break
+                alpha *= 0.5
+                tried += 1
+            cuts += tried
+            cut = cut or tried > 0
+            previous = norm
+        if broken or not is_finite(norm):
+            reason = NONFINITE
+        out = ti.Vector([solves, total, cuts, reason, last_residual, first], ti.f64)
     return out
 
 

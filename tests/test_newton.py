@@ -14,6 +14,7 @@ import pytest
 
 import massspring as ms
 from massspring.integrators import INTEGRATORS
+from massspring.integrators import newton as newton_integrators
 from massspring.scene import load_scene
 from conftest import FULL, PATHS, numpy_forces, predicted, random_system, simulation
 
@@ -206,6 +207,66 @@ def test_bdf2_restart_continues_bitwise(path):
     assert np.array_equal(rest.positions, whole.positions) and np.array_equal(rest.velocities, whole.velocities)
     cold = simulation(model, path, integrator="bdf2", dt=2e-3).set_state(x, v, steps=5).step(7)
     assert not np.array_equal(cold.positions, whole.positions)  # without its history it restarts with backward Euler
+
+
+def one_launch_cases():
+    """(id, model, integrator, options, steps): the stiff chain, whose line searches cut
+    steps; a random system falling onto a plane with friction (contacts held through the
+    iterations, friction after them) and drag and wind; Newton stopped by its limit; f32."""
+    chain = load_scene("stiffchain").model()
+    falling = random_system(5, drag=0.3, wind=(0.5, -0.2, 0.1), n_fixed=0,
+                            colliders=[ms.Plane((0.0, 0.0, -1.05), (0.0, 0.0, 1.0), friction=0.5)])
+    return [("stiffchain-bdf2", chain, "bdf2", {"dt": 0.01}, 12),
+            ("stiffchain-backward-euler", chain, "backward-euler", {"dt": 0.01}, 6),
+            ("falling-midpoint", falling, "midpoint", {"dt": 5e-3}, 48),
+            ("falling-bdf2", falling, "bdf2", {"dt": 5e-3}, 48),
+            ("falling-limit", falling, "backward-euler", {"dt": 5e-3, "newton_max_iter": 2}, 48),
+            ("falling-f32", falling, "bdf2", {"dt": 5e-3, "precision": "f32"}, 48)]
+
+
+@FULL  # each case compiles the one-launch kernel: seconds
+@pytest.mark.parametrize("case", [c[0] for c in one_launch_cases()])
+def test_newton_in_one_launch_equals_the_loop_driven_from_python(case, monkeypatch):
+    """On a small system Newton's whole iteration runs in one launch (``newton_solve``) once a
+    run has made ``ONE_LAUNCH_AFTER`` tries (here from the first; the stiff chain's BDF2 from
+    its fourth, switching mid-run); the same serial kernels driven phase by phase from Python
+    give the same bits and the same solver record (CG iterations of each solve, ||g|| of
+    each iterate, cuts, reason)."""
+    _, model, integrator, options, steps = next(c for c in one_launch_cases() if c[0] == case)
+    monkeypatch.setattr(newton_integrators, "ONE_LAUNCH_AFTER", 4 if case == "stiffchain-bdf2" else 0)
+    runs = []
+    for one in (True, False):
+        if not one:
+            monkeypatch.setattr(INTEGRATORS[integrator], "one_launch", lambda self: False)
+        sim = simulation(model, "serial", integrator=integrator, **options)
+        records, lowest = [], math.inf
+        for _ in range(steps):
+            sim.step()
+            records.append(sim.solver_stats)
+            lowest = min(lowest, sim.positions[:, 2].min())
+        assert sim.stepper.one_launch() is one
+        runs.append((sim.positions, sim.velocities, records, lowest))
+    assert np.array_equal(runs[0][0], runs[1][0]) and np.array_equal(runs[0][1], runs[1][1])
+    assert runs[0][2] == runs[1][2]
+    records = runs[0][2]
+    if case.startswith("stiffchain"):
+        assert sum(r.cuts for r in records) > 0
+    if case == "falling-limit":
+        assert any(r.reason == "max_newton" for r in records)
+    if case.startswith("falling"):
+        assert np.isclose(runs[0][3], -1.05, atol=1e-5)  # a particle has been on the plane
+
+
+def test_a_short_run_keeps_the_loop_driven_from_python():
+    """The one-launch kernel costs about 2 s more to compile: a run takes it only after
+    ``ONE_LAUNCH_AFTER`` tries, or when a run before it compiled it for its bundle."""
+    sim = simulation(random_system(7), "serial", integrator="backward-euler", dt=1e-3)
+    sim.step(3)
+    assert sim.stepper.tries == 3
+    if ("newton_solve", sim.stepper.cfg) not in sim.stepper.dev.compiled:
+        assert not sim.stepper.one_launch()
+    sim.stepper.tries = newton_integrators.ONE_LAUNCH_AFTER
+    assert sim.stepper.one_launch()
 
 
 def test_newton_options_are_validated_and_reported():

@@ -66,6 +66,8 @@ def test_simulation_uses_scene_dt():
     assert scene.simulation(dt=0.5).dt == 0.5
     with pytest.raises(ValueError, match="integrator"):
         scene.simulation(integrator="leapfrog")
+    with pytest.raises(ValueError, match="preconditioner: unknown value 'jacobi'"):  # before the memory estimate
+        scene.simulation(integrator="bdf2", preconditioner="jacobi")
 
 
 def test_integrators_without_a_scene_dt_get_one_from_the_stability_estimate(tmp_path):

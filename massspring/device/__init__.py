@@ -264,10 +264,13 @@ class Bundle:
 
     ``state`` is the (x, v) pair; ``states`` maps each declared pair's name to its
     :class:`State`. ``n``, ``m``: particle and spring counts (the fields hold
-    ``capacity`` items; ``dev.size`` = (n, m) tells the kernels).
+    ``capacity`` items; ``dev.size`` = (n, m) tells the kernels). ``compiled``: keys
+    of optional kernels a run has compiled for this bundle (it stays with the bundle in
+    the pool, so the next run of the same kind may launch them at no compile cost).
     """
 
     def __init__(self, fields, pairs):
+        self.compiled = set()
         for name, field in fields.items():
             setattr(self, name, field)
         self.states = {name: State(fields[x], fields[v]) for name, (x, v) in pairs.items()}

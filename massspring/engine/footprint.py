@@ -9,8 +9,8 @@ from dataclasses import dataclass
 from massspring.integrators import INTEGRATORS
 from massspring.passes import for_model
 from massspring.passes.self_collision.forward import SOLVE_BYTES
-from massspring.solvers import resolve_for_count
-from massspring.support import memory
+from massspring.solvers import CHOICES, resolve_for_count
+from massspring.support import memory, validate
 
 
 @dataclass(frozen=True)
@@ -32,7 +32,9 @@ class Sketch:
 
 def preconditioner(sketch, integrator, precision, name) -> str | None:
     """The preconditioner ``name`` ("auto" or one of ``solvers.CHOICES``) stands for in a
-    run of ``integrator`` on ``sketch``; None for an integrator without a linear solve."""
+    run of ``integrator`` on ``sketch``; None for an integrator without a linear solve. An
+    unknown ``name`` is a ValueError naming "preconditioner"."""
+    validate.choice("preconditioner", name, CHOICES)
     cls = INTEGRATORS[integrator]
     if not cls.traits.linear_solver:
         return None

@@ -14,17 +14,14 @@ from massspring.kernels import state as state_kernels
 from massspring.solvers import SolverStats, solve
 from massspring.solvers.cg import EPS32, EPS64, ROUNDOFF
 from massspring.solvers.minres import minres
+from massspring.kernels.newton import ARMIJO, ETA_FIRST, ETA_MAX, GOLDEN, MAX_CUTS
 
 from .implicit import LINEAR_OPTIONS, ImplicitEuler
 from .options import Option
 
 NEWTON_TOL = 1e-3  # default newton_tol: a full Newton step this small relative to the step's velocity change ends it
 NEWTON_MAX_ITER = 50  # default newton_max_iter: linear solves per step
-ARMIJO = 1e-4  # sufficient decrease: E(v + a d) - E(v) <= ARMIJO a g . d
-MAX_CUTS = 12  # halvings of a line search before it takes the shortest step tried
-ETA_FIRST = 1e-2  # CG tolerance of the first linear solve of a step (relative to its first residual)
-ETA_MAX = 0.1  # loosest CG tolerance of a later solve
-GOLDEN = (1 + 5**0.5) / 2  # safeguard exponent of Eisenstat and Walker's first choice
+ONE_LAUNCH_AFTER = 1000  # tries of a run before it compiles newton.newton_solve (BackwardEuler.one_launch)
 NEWTON = "takes no Newton iterations"
 NEWTON_OPTIONS = (
     Option("newton_tol", "fraction", NEWTON_TOL, "Newton stops when a full Newton step changes the velocities by "
@@ -106,13 +103,14 @@ class BackwardEuler(ImplicitEuler):
     def __init__(self, dev, model, settings):
         super().__init__(dev, model, settings)
         self.taken = {}  # step -> (a particle touched, BDF2's base used): a gradient's record of each step
+        self._log = None  # newton.newton_solve's record of a step: ||S g|| and CG iterations of each solve
+        self.tries = 0  # steps tried (accepted or not)
 
     def adjoint(self, adj, slot, wants):
         """The adjoint of (*) at the converged iterate (``kernels/newton_adjoint.py``):
         J^T mu = dL/du with the residual's true Jacobian J, by this run's CG and
         preconditioner at its cg_tol (GMRES around them where J is not the step's own
         operator); returns the ``SolverStats`` of it all."""
-        s = self.settings
         exact = dataclasses.replace(self.cfg, fix=False)
         touching = self.taken[self.steps][0]
         mean = self.solves_mean(touching)
@@ -229,6 +227,55 @@ class BackwardEuler(ImplicitEuler):
             self.taken[self.steps] = (touching > 0, self.base_is_bdf2())
         if cfg.lagged:
             newton.newton_lag(dev, cfg, self.ahead(h))
+        self.tries += 1
+        if self.one_launch():
+            self._stats = self._newton_in_one_launch(h, t, eps)
+        else:
+            self._stats = self._newton(h, t, eps)
+        reason = self._stats.reason
+        if reason == "non-finite":  # no velocity to step with
+            dev.v.copy_from(dev.keep)
+            return 0, divergence.NONFINITE_VERDICT
+        if cfg.contact_filter:
+            if self.history is not None and self.friction:  # a gradient's run: v' before friction
+                implicit_adjoint.keep_solved(dev, self.history[0], dev.n, self.steps - self.history[1])
+            friction.contact_friction(dev, cfg, t, serial)
+            if self.history is not None:  # and the step's impulses
+                implicit_adjoint.keep_impulses(dev, self.history[0], dev.n, self.steps - self.history[1])
+        self.finish(h, touching)
+        if cfg.contact_filter and self.history is not None:  # x' = x^ + h v' from here
+            implicit_adjoint.keep_base(dev, self.history[0], dev.n, self.steps - self.history[1])
+        check = read_verdict(cg.advance_positions(dev, cfg, dev.xb, h, self.dt, self.time_after(), serial,
+                                                  self.carries, True))
+        accepted = check[0] == divergence.OK
+        if not accepted:
+            dev.v.copy_from(dev.keep)
+        self.count(int(accepted))
+        self.after_step(accepted, touching)
+        return int(accepted), check
+
+    def one_launch(self) -> bool:
+        """Whether this try runs Newton's iteration in one launch (``newton.newton_solve``, the
+        same bits as the loop from Python): with serial loops (a small system on the CPU) and
+        a pointwise preconditioner, once the run has made ``ONE_LAUNCH_AFTER`` tries or the
+        kernel is compiled for its bundle already (a run before it in the pool did so). Its
+        compile costs about 2 s more than the loop's kernels (cold, without Taichi's offline
+        cache), what a thousand steps of a 20-particle chain save
+        (``benchmarks/newton_launches.py``), so short runs (tests, sweeps of short runs) keep
+        the loop."""
+        if not (self.serial and self.preconditioner.kernel is not None):
+            return False
+        key = ("newton_solve", self.cfg)
+        if key not in self.dev.compiled and self.tries >= ONE_LAUNCH_AFTER:
+            self.dev.compiled.add(key)
+        return key in self.dev.compiled
+
+    def _newton(self, h, t, eps):
+        """Newton's iteration for (*) (``kernels/newton.py``) from Python, one launch per
+        phase: CG's, the direction's, each line-search trial's, each refresh's. Returns its
+        ``SolverStats``."""
+        s = self.settings
+        dev, cfg, serial = self.dev, self.cfg, self.serial
         g2, scale2, _, _ = newton.newton_refresh(dev, cfg, h, t, serial)
         first = norm = math.sqrt(g2)
         norms = [norm]
@@ -279,29 +326,29 @@ class BackwardEuler(ImplicitEuler):
         if not math.isfinite(norm):
             reason = "non-finite"
         relative = tuple(value / first if first > 0 else 0.0 for value in norms)
-        self._stats = SolverStats(total, last.residual if last else 0.0, reason == "converged", reason, setup,
-                                  newton_iterations=len(solves), cg_per_newton=tuple(solves), cuts=cuts,
-                                  newton_residual=relative[-1], newton_residuals=relative, first_residual=first)
-        if reason == "non-finite":  # no velocity to step with
-            dev.v.copy_from(dev.keep)
-            return 0, divergence.NONFINITE_VERDICT
-        if cfg.contact_filter:
-            if self.history is not None and self.friction:  # a gradient's run: v' before friction
-                implicit_adjoint.keep_solved(dev, self.history[0], dev.n, self.steps - self.history[1])
-            friction.contact_friction(dev, cfg, t, serial)
-            if self.history is not None:  # and the step's impulses
-                implicit_adjoint.keep_impulses(dev, self.history[0], dev.n, self.steps - self.history[1])
-        self.finish(h, touching)
-        if cfg.contact_filter and self.history is not None:  # x' = x^ + h v' from here
-            implicit_adjoint.keep_base(dev, self.history[0], dev.n, self.steps - self.history[1])
-        check = read_verdict(cg.advance_positions(dev, cfg, dev.xb, h, self.dt, self.time_after(), serial,
-                                                  self.carries, True))
-        accepted = check[0] == divergence.OK
-        if not accepted:
-            dev.v.copy_from(dev.keep)
-        self.count(int(accepted))
-        self.after_step(accepted, touching)
-        return int(accepted), check
+        return SolverStats(total, last.residual if last else 0.0, reason == "converged", reason, setup,
+                           newton_iterations=len(solves), cg_per_newton=tuple(solves), cuts=cuts,
+                           newton_residual=relative[-1], newton_residuals=relative, first_residual=first)
+
+    def _newton_in_one_launch(self, h, t, eps):
+        """``_newton``'s iteration in one launch with serial loops (``newton.newton_solve``: the
+        same arithmetic), for a pointwise preconditioner on a small system, where a step's
+        dozen launches cost more than its work. Returns its ``SolverStats``."""
+        s = self.settings
+        log = self._log
+        if log is None or len(log) < s.newton_max_iter + 1:
+            log = self._log = np.zeros((s.newton_max_iter + 1, 2))
+        out = newton.newton_solve(self.dev, self.cfg, h, t, ROUNDOFF * eps, self.cg_tol, self.newton_tol,
+                                  s.cg_max_iter, s.newton_max_iter, log)
+        solves, total, cuts, code, residual, first = (float(value) for value in out)
+        solves = int(solves)
+        reason = newton.REASONS[int(code)]
+        norms = log[:solves + 1, 0]
+        relative = tuple(float(value / first) if first > 0 else 0.0 for value in norms)
+        return SolverStats(int(total), residual, reason == "converged", reason, 0.0,
+                           newton_iterations=solves, cg_per_newton=tuple(int(k) for k in log[:solves, 1]),
+                           cuts=int(cuts), newton_residual=relative[-1], newton_residuals=relative,
+                           first_residual=first)
 
     def after_step(self, accepted, touching):
         """Hook after a step (BDF2 records whether it has a history to use)."""

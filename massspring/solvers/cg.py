@@ -105,7 +105,7 @@ def _global_direction(dev, cfg, preconditioner, rz):
 
 
 def _parallel(dev, cfg, preconditioner, tol, floor, max_iter):
-    """PCG with one kernel launch per phase; the loop of ``kernels.cg.cg_solve``."""
+    """PCG with one kernel launch per phase; the loop of ``kernels.cg.serial_solve``."""
     pointwise = preconditioner.kernel is not None
     rz, rr, bb = _restart(dev, cfg, preconditioner)
     if not math.isfinite(bb):
