@@ -225,6 +225,36 @@ def test_frames_of_run_for_are_at_their_times():
     assert again.steps == alone.steps < 200 and np.array_equal(again.step_sizes, alone.step_sizes)
 
 
+@pytest.mark.fast_sample(integrator=["symplectic"])
+@pytest.mark.parametrize("integrator", ["explicit", "symplectic", "rk4"])
+def test_calm_steps_held_at_max_dt_go_in_batches(integrator, monkeypatch):
+    """The spring held at max_dt 2e-4 s, where its estimate is a small fraction of its
+    bound: most steps go in batches (``engine.adaptive``, "Batches"), the run takes the
+    steps the one-by-one run takes (the same count and sizes, the same end state to
+    round-off), lands on its end time, ends within 30x tol of the exact solution, and
+    ``step(n)`` takes n steps."""
+    from massspring.engine import adaptive
+
+    runs = []
+    for calm_tries in (adaptive.CALM_TRIES, 10**9):
+        with monkeypatch.context() as patch:
+            patch.setattr(adaptive, "CALM_TRIES", calm_tries)
+            sim = ms.Simulation(spring_model(), integrator=integrator, dt=1e-4, tol=1e-2, horizon=1.0, max_dt=2e-4)
+            sim.advance(1.0)
+            runs.append(sim)
+    batched, single = runs
+    stats = batched.control_stats()
+    assert stats["batched"] > 0.5 * batched.steps and single.control_stats()["batched"] == 0
+    assert batched.steps == single.steps and np.allclose(batched.step_sizes, single.step_sizes, rtol=1e-12)
+    assert batched.time == single.time == 1.0
+    np.testing.assert_allclose(batched.positions, single.positions, rtol=0, atol=1e-12)
+    assert end_error(batched, 1.0) <= 30 * 1e-2
+    sim = ms.Simulation(spring_model(), integrator=integrator, dt=1e-4, tol=1e-2, horizon=1.0, max_dt=2e-4)
+    sim.step(1000)
+    assert sim.steps == 1000 and sim.control_stats()["batched"] > 500
+    assert sim.time == pytest.approx(sum(sim.step_sizes), rel=1e-12)
+
+
 def test_a_restart_continues_from_its_time():
     """``set_state(..., time=)`` of an error-controlled run: the clock continues from it,
     and the run ends within tolerance of the exact solution (BDF2 with its carried

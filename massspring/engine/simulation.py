@@ -265,6 +265,7 @@ class Simulation:
         self._passes = tuple(kind(dev, self._integrator.cfg, inner, self._integrator.serial, dt) for kind in kinds)
         self._release = weakref.finalize(self, _release, dev, self._integrator, self._passes)
         self._controller = self._estimator = self._read_plan = None
+        self._calm, self._batch_size = 0, adaptive.BATCH_FIRST  # calm steps in a row; the next batch's steps
         if tolerance is not None:
             self._integrator.clock = 0.0
             size = adaptive.scene_size(model)
@@ -334,10 +335,11 @@ class Simulation:
     tol = property(lambda self: self._settings.tol, doc="The error-controlled run's tolerance (None: fixed dt).")
 
     def control_stats(self):
-        """An error-controlled run's steps: accepted, rejected by cause ("error": the
-        estimate above its bound, "solver": Newton or CG missed, "divergence": the check
-        refused the state), the smallest and largest accepted step and the next (s); None
-        with a fixed dt."""
+        """An error-controlled run's steps: accepted (and "batched": of them, those an
+        explicit run held at max_dt took in calm batches, ``engine.adaptive``), rejected by
+        cause ("error": the estimate above its bound, "solver": Newton or CG missed,
+        "divergence": the check refused the state), the smallest and largest accepted step
+        and the next (s); None with a fixed dt."""
         return None if self._controller is None else self._controller.stats()
 
     @property
@@ -551,8 +553,9 @@ class Simulation:
         n = validate.count("n", n, low=0, high=MAX_STEPS)
         try:
             if self._controller is not None:
-                for _ in range(n):
-                    self._controlled_step(integrator, math.inf)
+                taken = 0
+                while taken < n:
+                    taken += self._controlled_step(integrator, math.inf, most=n - taken)
             else:
                 self._advance(integrator, n)
         finally:
@@ -617,7 +620,7 @@ class Simulation:
         until = end if until is None else until
         try:
             while integrator.clock < until and integrator.clock < end:
-                self._controlled_step(integrator, end)
+                self._controlled_step(integrator, end, stop=until)
         finally:
             integrator.settle()
         return self
@@ -659,10 +662,12 @@ class Simulation:
             carried.update(theirs)
         return {name: self.to_user(values) for name, values in carried.items()}
 
-    def _controlled_step(self, integrator, end):
+    def _controlled_step(self, integrator, end, most=math.inf, stop=None) -> int:
         """One accepted step of an error-controlled run (``engine.adaptive``), ending at
         ``end`` (s) if the step would pass it or the end of the control interval it is in,
-        after as many rejected tries as it takes."""
+        after as many rejected tries as it takes; or, in a calm stretch of an explicit run,
+        a batch of at most ``most`` steps ending by ``stop`` (s, default ``end``: ``_batch``).
+        Returns the steps accepted."""
         ctl, est, schedule = self._controller, self._estimator, self._schedule
         t = integrator.clock
         if not est.points:
@@ -670,6 +675,10 @@ class Simulation:
             est.reset(t, *self._current[:2])
         if schedule is not None:
             end = min(end, schedule.end(t))
+        if self._calm >= adaptive.CALM_TRIES and most > 1:
+            taken = self._batch(integrator, end, end if stop is None else min(stop, end), most)
+            if taken:
+                return taken
         while True:
             h = ctl.dt
             landing = t + adaptive.STRETCH * h >= end
@@ -706,10 +715,13 @@ class Simulation:
                 self._sizes.append(h)
                 self._current = (x, v, rows)
                 est.push(integrator.clock, x, v)
-                return
-            x, v, rows = self._current
-            self.restore(dataclasses.replace(kept, positions=self.to_user(x), velocities=self.to_user(v),
-                                             carried=self._carried_of(integrator, rows, kept)))
+                calm = h == ctl.tolerance.max_dt and estimate <= adaptive.CALM * ctl.bound(h)
+                self._calm = self._calm + 1 if calm and self._batchable() else 0
+                if not self._calm:
+                    self._batch_size = adaptive.BATCH_FIRST
+                return 1
+            self._calm, self._batch_size = 0, adaptive.BATCH_FIRST
+            self._back_to(integrator, kept)
             if ctl.dt < ctl.tolerance.min_dt:
                 if failure is None:
                     cause = f"error estimate {estimate / ctl.bound(h):.3g} x its bound"
@@ -718,6 +730,67 @@ class Simulation:
                 raise adaptive.StepSizeError(self._steps, t, ctl.dt, ctl.tolerance.min_dt, cause, self.integrator)
             if ctl.in_a_row >= adaptive.DROP_AFTER and len(est.points) > 1:
                 est.points = est.points[-1:]  # a kink: the history before it does not help
+
+    def _back_to(self, integrator, kept):
+        """Back to the state a rejected try started from (``_current``) and ``kept`` (``_kept``)."""
+        x, v, rows = self._current
+        self.restore(dataclasses.replace(kept, positions=self.to_user(x), velocities=self.to_user(v),
+                                         carried=self._carried_of(integrator, rows, kept)))
+
+    def _batchable(self) -> bool:
+        """Whether calm steps may go in batches (``engine.adaptive``, "Batches"): an
+        integrator held by its stability limit that keeps no per-step statistics, no pass
+        between steps, no collider (whose impacts the estimate watches step by step), no
+        gradient's record."""
+        integrator = self._integrator
+        return (integrator.traits.stability_limited and not integrator.traits.has_stats and not self._passes
+                and not self._estimator.colliders and integrator.history is None)
+
+    def _batch(self, integrator, end, stop, most) -> int:
+        """Calm steps of ``max_dt`` in one launch, at most ``most`` and ``_batch_size`` of
+        them, with room before ``end`` (s) for a landing after them, and up to the first
+        past ``stop`` (s: a progress point of ``run_for``, not landed on); then
+        ``order`` single steps whose states refill the estimate's history (``push``), as
+        the steps one by one would have left it. Returns the steps accepted (0: no room,
+        or the first step diverged; the caller tries it one by one)."""
+        ctl, est = self._controller, self._estimator
+        h, t = ctl.tolerance.max_dt, integrator.clock
+        refill = est.order
+        room = (end - t) / h - refill - 2 * adaptive.STRETCH if math.isfinite(end) else math.inf
+        progress = math.ceil((stop - t) / h) if math.isfinite(stop) else math.inf
+        span = adaptive.BATCH_SPAN * ctl.tolerance.horizon / h
+        count = int(min(self._batch_size, most - refill, room, progress, span))
+        if count < 2 or ctl.dt != h:
+            self._calm = 0
+            return 0
+        if self._schedule is not None:
+            self._schedule.apply(self._steps, t)
+        integrator.dt = h
+        self._bound_to(t + (count + refill) * h)
+        done, _ = integrator.advance(count)
+        self._steps += done
+        self._sizes.extend([h] * done)
+        ctl.accept_unjudged(h, done)
+        self._current = self._read_state(integrator)
+        est.reset(integrator.clock, *self._current[:2])
+        if done < count:  # the step after diverged: tried one by one from here
+            self._calm, self._batch_size = 0, adaptive.BATCH_FIRST
+            return done
+        for _ in range(refill):
+            kept = self._kept()
+            step, _ = self._one_step(integrator, integrator.clock)
+            if not step:
+                self._back_to(integrator, kept)
+                self._calm, self._batch_size = 0, adaptive.BATCH_FIRST
+                return done
+            done += 1
+            self._sizes.append(h)
+            ctl.accept_unjudged(h, 1)
+            self._current = self._read_state(integrator)
+            est.push(integrator.clock, *self._current[:2])
+        self._batch_size = min(2 * self._batch_size, adaptive.BATCH_MOST)
+        self._calm = adaptive.CALM_TRIES - 1  # the next batch waits for a calm step tried and judged
+        return done
 
     def _one_step(self, integrator, t=None):
         """One step of ``integrator.dt`` with the controls (from time t, s, in an

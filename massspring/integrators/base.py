@@ -91,9 +91,10 @@ class Integrator:
         return (self.steps + 1) * self.dt if self.clock is None else self.clock + self.dt
 
     def count(self, done):
-        """Count ``done`` (0 or 1 where the clock runs) good steps."""
-        if self.clock is not None and done:
-            self.clock = self.clock + self.dt
+        """Count ``done`` good steps (the clock, where it runs, advanced by dt for each)."""
+        if self.clock is not None:
+            for _ in range(done):
+                self.clock = self.clock + self.dt
         self.steps += done
 
     @classmethod
