@@ -255,7 +255,8 @@ def print_summary(scene, sim, wall, energy0, out, start_steps=0):
         rejected = ", ".join(f"{count} {cause}" for cause, count in control["rejected"].items() if count) or "none"
         span = ("no step" if control["smallest_dt"] is None else
                 f"dt {format_seconds(control['smallest_dt'])} to {format_seconds(control['largest_dt'])}")
-        print(f"integrator  {sim.integrator}, tol {sim.tol:g} ({span}; rejected: {rejected}), {sim.precision}")
+        batched = f"; {control['batched']} in calm batches" if control["batched"] else ""
+        print(f"integrator  {sim.integrator}, tol {sim.tol:g} ({span}; rejected: {rejected}{batched}), {sim.precision}")
     if start_steps:
         print(f"steps       {done} from the restart at step {start_steps} to step {sim.steps} (t = "
               f"{start_steps * sim.dt:g} to {sim.time:g} s) in {wall:.2f} s wall, {rate:.3g} steps/s")
