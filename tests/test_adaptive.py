@@ -192,6 +192,12 @@ def test_below_min_dt_it_stops_naming_time_step_and_cause():
     assert isinstance(info.value, ms.DivergenceError)
     assert info.value.time == 0.0 and info.value.dt < 1e-3
     assert sim.steps == 0 and np.array_equal(sim.positions, model.positions)
+    assert "by default" not in str(info.value)
+    # a default min_dt (1e-9 of the horizon) is said to be one, with how to go lower
+    far = ms.Simulation(model, integrator="bdf2", dt=1e-2, tol=1e-3, horizon=1e7)
+    with pytest.raises(StepSizeError, match=r"below min_dt 1/100 s \(by default 1e-09 of the horizon, 1e\+07 s: "
+                                            r"give min_dt for smaller steps\)"):
+        far.advance(1.0)
 
 
 def test_controls_boundaries_are_landed_on():

@@ -110,15 +110,18 @@ class StepSizeError(DivergenceError):
     """An error-controlled run's step would fall below ``min_dt`` (s): ``time`` (s) it
     stopped at, ``dt`` the step it would have taken, ``cause`` why the last try failed."""
 
-    def __init__(self, step, time, dt, min_dt, cause, integrator):
+    def __init__(self, step, time, dt, min_dt, cause, integrator, horizon=None):
+        """``horizon`` (s): given where min_dt is its default, ``MIN_DT_FRACTION`` of it."""
         self.step, self.time, self.dt, self.min_dt, self.cause = int(step), float(time), float(dt), float(min_dt), cause
         self.integrator = integrator
         self.energy = self.kinetic = self.bound = math.nan
         self.measured = "error estimate"
+        default = ("" if horizon is None else
+                   f" (by default {MIN_DT_FRACTION:g} of the horizon, {horizon:g} s: give min_dt for smaller steps)")
         RuntimeError.__init__(self, f"{integrator} stopped at t = {self.time:.6g} s (step {self.step}): the step "
                                     f"would fall to {format_seconds(self.dt)}, below min_dt "
-                                    f"{format_seconds(self.min_dt)} ({cause}); the state at t = {self.time:.6g} s "
-                                    f"is kept")
+                                    f"{format_seconds(self.min_dt)}{default} ({cause}); the state at t = "
+                                    f"{self.time:.6g} s is kept")
 
 
 @dataclass(frozen=True)

@@ -193,6 +193,7 @@ class Simulation:
         validate.choice("precision", precision, PRECISIONS)
         dt = validate.positive_float("dt", dt)
         tolerance = None
+        self._min_dt_given = min_dt is not None  # else StepSizeError says where min_dt comes from
         if tol is None:
             for name, value in (("min_dt", min_dt), ("max_dt", max_dt), ("horizon", horizon)):
                 if value is not None:
@@ -727,7 +728,9 @@ class Simulation:
                     cause = f"error estimate {estimate / ctl.bound(h):.3g} x its bound"
                 else:
                     cause = "the state diverged" if failure == "divergence" else "the step's solve did not converge"
-                raise adaptive.StepSizeError(self._steps, t, ctl.dt, ctl.tolerance.min_dt, cause, self.integrator)
+                tolerance = ctl.tolerance
+                raise adaptive.StepSizeError(self._steps, t, ctl.dt, tolerance.min_dt, cause, self.integrator,
+                                             None if self._min_dt_given else tolerance.horizon)
             if ctl.in_a_row >= adaptive.DROP_AFTER and len(est.points) > 1:
                 est.points = est.points[-1:]  # a kink: the history before it does not help
 
