@@ -1,4 +1,4 @@
-"""Strain limiting after a step (``massspring/passes/strain_limit.py``): springs stretched past
+"""Strain limiting after a step (``massspring/passes/strain_limit/``): springs stretched past
 (1 + s) times their rest length are shortened to it by moving their ends along the
 spring, in the manner of Provot 1995 ("Deformation constraints in a mass-spring model
 to describe rigid cloth behavior"), as Jacobi iterations that do not depend on the
@@ -29,7 +29,7 @@ that ends with its worst spring worse than it found it, is undone).
 import taichi as ti
 
 from .constraints import is_pinned
-from .contact import project
+from .contact import project, project_adjoint
 from .forces import spring_direction, spring_sum, tiny_length
 
 RELAX = 1.5  # over-relaxation of the corrections: 100-150 iterations where 1.0 needs over 200 (a taut hanging cloth)
@@ -44,16 +44,17 @@ def inverse_mass(i, dev, cfg: ti.template()):
 
 
 @ti.func
-def iteration(dev, cfg: ti.template(), state, limit, tol, dt, t, first):
-    n = dev.size[0]
-    m = dev.size[1]
+def violations(dev, cfg: ti.template(), x: ti.template(), limit, tol):
+    """Steps 1-2 at positions ``x`` (a vec3 field, m): ``sl_dx`` = e u of each violated
+    spring (zero for the others), ``sl_k`` the violated springs at each particle. Returns
+    the largest l / l0 - 1 (f64)."""
     worst = ti.cast(-1e300, ti.f64)
-    for i in range(n):
+    for i in range(dev.size[0]):
         dev.sl_k[i] = 0
-    for s in range(m):
+    for s in range(dev.size[1]):
         i = dev.ends[s][0]
         j = dev.ends[s][1]
-        unit, length = spring_direction(state.x[j] - state.x[i], cfg.real)
+        unit, length = spring_direction(x[j] - x[i], cfg.real)
         l0 = dev.l0[s]
         dev.sl_dx[s] = ti.Vector.zero(cfg.real, 3)
         if l0 > tiny_length(cfg.real):
@@ -63,17 +64,34 @@ def iteration(dev, cfg: ti.template(), state, limit, tol, dt, t, first):
                 dev.sl_dx[s] = excess * unit
                 ti.atomic_add(dev.sl_k[i], 1)
                 ti.atomic_add(dev.sl_k[j], 1)
-    go = worst > limit
-    for s in range(m):
+    return worst
+
+
+@ti.func
+def shares(i, j, dev, cfg: ti.template()):
+    """(w_i, w_j, d) of a violated spring (i, j): its ends' inverse masses and
+    d = (w_i + w_j) K, its correction c = ``RELAX`` e u / d (step 3)."""
+    wi = inverse_mass(i, dev, cfg)
+    wj = inverse_mass(j, dev, cfg)
+    return wi, wj, (wi + wj) * ti.cast(ti.max(dev.sl_k[i], dev.sl_k[j]), cfg.real)
+
+
+@ti.func
+def corrections(dev, cfg: ti.template(), go):
+    """Step 3: each violated spring's ``sl_dx`` = e u becomes its correction c (if ``go``)."""
+    for s in range(dev.size[1]):
         c = dev.sl_dx[s]
         if go and c.dot(c) > 0:
-            i = dev.ends[s][0]
-            j = dev.ends[s][1]
-            wi = inverse_mass(i, dev, cfg)
-            wj = inverse_mass(j, dev, cfg)
-            shares = ti.cast(ti.max(dev.sl_k[i], dev.sl_k[j]), cfg.real)
-            dev.sl_dx[s] = ti.cast(RELAX, cfg.real) * c / ((wi + wj) * shares)
-    for i in range(n):
+            _, _, divisor = shares(dev.ends[s][0], dev.ends[s][1], dev, cfg)
+            dev.sl_dx[s] = ti.cast(RELAX, cfg.real) * c / divisor
+
+
+@ti.func
+def iteration(dev, cfg: ti.template(), state, limit, tol, dt, t, first):
+    worst = violations(dev, cfg, state.x, limit, tol)
+    go = worst > limit
+    corrections(dev, cfg, go)
+    for i in range(dev.size[0]):
         if go and first != 0:  # the state before the pass, put back if the pass cannot help (``restore``)
             dev.x_sl_before[i] = state.x[i]
             dev.v_sl_before[i] = state.v[i]
@@ -132,3 +150,57 @@ def strain_limit_restore(dev: ti.template(), state: ti.template()):
     for i in range(dev.size[0]):
         state.x[i] = dev.x_sl_before[i]
         state.v[i] = dev.v_sl_before[i]
+
+
+@ti.kernel
+def strain_limit_adjoint(dev: ti.template(), cfg: ti.template(), adj: ti.template(), limit: ti.f64, tol: ti.f64,
+                         dt: ti.f64, t: ti.f64):
+    """One iteration of ``strain_limit_iteration`` run backwards (a gradient's run, f64
+    models; ``massspring/passes/strain_limit/backward.py``): at the positions it started
+    from, ``adj.sl_x`` (m), with its active set as it finds it there, dL/d(x', v') of the
+    state it left, in ``adj.lx``, ``adj.lv``, becomes dL/d(x, v) of the state it started
+    from (``lv`` is unchanged: v' = v + (x' - x) / dt); the rest lengths' share is added to
+    ``adj.gl0`` (per spring) and the masses' to ``adj.gm``.
+
+    With c = a (l - b) u of each violated spring (a = ``RELAX`` / ((w_i + w_j) K),
+    b = (1 + limit - tol) l0),
+    y_i = x_i + w_i (sum of +-c), x' = P(y) (``project``): dL/dy = P^T (dL/dx' + dL/dv' / dt),
+    dL/dc = w_i dL/dy_i - w_j dL/dy_j, and dL/d(x_j - x_i) = a ((1 - b / l) dL/dc +
+    (b / l) (u . dL/dc) u). Uses ``sl_gy`` (dL/dy) and ``sl_gd`` (dL/d(x_j - x_i))."""
+    s_limit = ti.cast(limit, cfg.real)
+    s_tol = ti.cast(tol, cfg.real)
+    h = ti.cast(dt, ti.f64)
+    worst = violations(dev, cfg, adj.sl_x, s_limit, s_tol)
+    go = worst > limit
+    corrections(dev, cfg, go)
+    for i in range(dev.size[0]):
+        if go and dev.sl_k[i] > 0:
+            w = ti.cast(inverse_mass(i, dev, cfg), ti.f64)
+            moved = spring_sum(i, dev, dev.sl_dx)
+            g = adj.lx[i] + adj.lv[i] / h
+            if ti.static(cfg.has_colliders):
+                y = adj.sl_x[i] + ti.cast(inverse_mass(i, dev, cfg) * ti.cast(moved, cfg.real), ti.f64)
+                g = project_adjoint(dev, cfg, y, ti.cast(t, cfg.real), ti.static(cfg.collider_count), g)
+            adj.sl_gy[i] = g
+            adj.gm[i] -= w * w * g.dot(moved)
+    for s in range(dev.size[1]):
+        adj.sl_gd[s] = ti.Vector.zero(ti.f64, 3)
+        c = dev.sl_dx[s]
+        if go and c.dot(c) > 0:
+            i = dev.ends[s][0]
+            j = dev.ends[s][1]
+            wi, wj, divisor = shares(i, j, dev, cfg)
+            a = ti.cast(RELAX, cfg.real) / divisor
+            unit, length = spring_direction(adj.sl_x[j] - adj.sl_x[i], cfg.real)
+            stretch = 1 + s_limit - s_tol
+            b = stretch * dev.l0[s]
+            gc = wi * adj.sl_gy[i] - wj * adj.sl_gy[j]
+            along = unit.dot(gc)
+            adj.sl_gd[s] = a * ((1 - b / length) * gc + b / length * along * unit)
+            adj.gl0[s] -= stretch * a * along
+            through = -a / (wi + wj) * (length - b) * along  # dL/dw_i (and dL/dw_j) through a
+            ti.atomic_add(adj.gm[i], -wi * wi * through)
+            ti.atomic_add(adj.gm[j], -wj * wj * through)
+    for i in range(dev.size[0]):
+        if go and dev.sl_k[i] > 0:
+            adj.lx[i] = adj.sl_gy[i] - adj.lv[i] / h - spring_sum(i, dev, adj.sl_gd)

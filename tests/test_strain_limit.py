@@ -1,4 +1,4 @@
-"""Strain limiting (``Model(strain_limit=...)``, ``massspring/passes/strain_limit.py``): no spring
+"""Strain limiting (``Model(strain_limit=...)``, ``massspring/passes/strain_limit/``): no spring
 stretched past the limit after any step of any integrator, momentum kept, nothing of it
 in a run without one, bad values refused by name."""
 
@@ -7,6 +7,7 @@ import pytest
 
 import massspring as ms
 from massspring.scene import generators
+from massspring.gradients import differentiable
 from massspring.integrators import INTEGRATORS, taken
 from massspring.scene import SceneError, builtin_scenes, load_scene
 
@@ -158,14 +159,6 @@ def test_info_says_the_limit(capsys):
     assert "strain " not in capsys.readouterr().out
 
 
-def test_gradients_refuse_a_limit():
-    def objective(frames):
-        return 0.0, {}
-
-    with pytest.raises(ValueError, match="strain limit"):
-        ms.gradient(hanging(LIMIT), objective, ["stiffness"], steps=2, integrator="implicit", dt=1e-2)
-
-
 @pytest.mark.parametrize("loops", ["serial", "parallel"])
 def test_a_limit_the_pins_cannot_meet_never_makes_a_spring_worse(loops):
     """Issue 60: a 5-particle chain pinned 1.5 times its rest length apart cannot meet a
@@ -218,3 +211,143 @@ def test_pins_pulling_past_the_limit_do_not_pump_energy(integrator):
     finally:
         limited.close()
         free.close()
+
+
+# Gradients through the limit (issue 60): the pass's adjoint with its active set frozen
+# (``massspring/passes/strain_limit/backward.py``), against central differences of plain runs
+GRADIENT_LIMIT = 0.02
+GRADIENT_RUN = dict(steps=12, every=3, dt=4e-3)
+NEWTON_SOLVED = dict(cg_tol=1e-13, newton_tol=1e-12, newton_max_iter=200)
+SOLVED = {"implicit": dict(cg_tol=1e-13), "backward-euler": NEWTON_SOLVED, "bdf2": NEWTON_SOLVED,
+          "midpoint": NEWTON_SOLVED}
+
+
+def shaken(colliders=(), seed=3, **changes):
+    """A 4 x 4 cloth hanging from one corner, jittered, with random masses, rest lengths
+    and velocities and a limit of 2%: its springs pass the limit in most steps, and the
+    pass meets it."""
+    args = generators.grid(resolution=4, size=0.3, mass=0.2, stiffness=30.0, damping=0.2, shear=1.0, bend=0.0,
+                           pin="corners", gravity=[0.0, 0.0, -9.81])
+    rng = np.random.default_rng(seed)
+    n, m = len(args["positions"]), len(args["springs"])
+    args["fixed"] = args["fixed"][:1]
+    values = dict(positions=args["positions"] + rng.normal(0.0, 0.002, (n, 3)), masses=rng.uniform(0.01, 0.02, n),
+                  rest_lengths=rng.uniform(0.98, 1.0, m) * ms.Model(**args).rest_lengths,
+                  velocities=rng.normal(0.0, 0.3, (n, 3)))
+    values.update(changes)
+    return ms.Model(**dict(args, **values), strain_limit=GRADIENT_LIMIT, colliders=list(colliders))
+
+
+def weighted(frames):
+    """L = sum C . X + |V|^2 / 2 over the frames."""
+    c = np.random.default_rng(11).normal(size=frames.positions.shape)
+    value = np.sum(c * frames.positions) + 0.5 * np.sum(frames.velocities ** 2)
+    return value, {"positions": c, "velocities": frames.velocities}
+
+
+def plain_value(model, integrator, sizes=None):
+    """``weighted`` of the run ``ms.gradient`` takes (``GRADIENT_RUN``, or steps of
+    ``sizes`` with frames every 3), as plain steps; and the steps the limit moved
+    particles in."""
+    at = np.arange(0, GRADIENT_RUN["steps"] + 1, GRADIENT_RUN["every"])
+    dt = GRADIENT_RUN["dt"] if sizes is None else float(sizes[0])
+    sim = ms.Simulation(model, integrator, dt=dt, **SOLVED.get(integrator, {}))
+    positions, velocities = [], []
+    try:
+        if sizes is not None:
+            sim.replay(sizes[:0])
+        for k in at:
+            if sizes is None:
+                sim.step(k - sim.steps)
+            else:
+                sim.replay(sizes[sim.steps:k])
+            positions.append(sim.positions)
+            velocities.append(sim.velocities)
+        acted = sim.strain_limit_stats["steps"]
+    finally:
+        sim.close()
+    frames = ms.Frames(np.array(positions), np.array(velocities), None, at)
+    return weighted(frames)[0], acted
+
+
+WRT = ("positions", "velocities", "rest_lengths", "masses", "stiffness")
+# Central differences' step, relative to the largest value: 1e-6 crossed a switch of the
+# pass's active set (the implicit run's positions: -857.6 against -490.97 at 1e-7, 1e-8 and
+# 1e-9); the stiffness, whose effect the limit mostly takes away (its derivative 1e4 times
+# smaller), 1e-5. The noise of a run's value, relative to it, that a difference divides by
+# the step: round-off through the run (measured: 2e-15 of symplectic Euler's, its
+# velocities' derivative 1e-6 off at a step of 9e-8 and 5e-10 at 9e-6; 2e-14 of RK4's), and
+# for the implicit and Newton-solved steps their equations met to about 1e-13 (backward
+# Euler's stiffness derivative 2e-8 off at a step of 3e-5)
+DIFFERENCE_STEP = {"stiffness": 1e-5}
+NOISE = {"implicit": 1e-12, "backward-euler": 1e-12, "bdf2": 1e-12, "midpoint": 1e-12}
+ROUND_OFF_NOISE = 1e-13
+
+
+def check_against_differences(make, integrator, acted_at_least=GRADIENT_RUN["steps"] // 2, sizes=None):
+    """Directional derivatives of ``weighted`` in each of ``WRT`` (random directions)
+    against central differences of plain runs: within 1e-6 relative, or the noise that
+    the difference's step lifts the run's value's to."""
+    model = make()
+    run = GRADIENT_RUN if sizes is None else dict(dts=sizes, every=list(range(3, len(sizes) + 1, 3)))
+    value, grads = ms.gradient(model, weighted, list(WRT), integrator=integrator, checkpoint=5, **run,
+                               **SOLVED.get(integrator, {}))
+    plain, acted = plain_value(model, integrator, sizes)
+    assert acted >= acted_at_least  # the limit acted
+    assert value == pytest.approx(plain, rel=1e-12)
+    rng = np.random.default_rng(5)
+    for name in WRT:
+        base = getattr(model, name)
+        direction = rng.normal(size=base.shape)
+        if name in ("positions", "velocities"):
+            direction[model.fixed] = 0.0
+        eps = DIFFERENCE_STEP.get(name, 1e-7) * np.abs(base).max()
+        ends = [plain_value(make(**{name: base + sign * eps * direction}), integrator, sizes)[0]
+                for sign in (1, -1)]
+        difference = (ends[0] - ends[1]) / (2 * eps)
+        derivative = float(np.sum(grads[name] * direction))
+        noise = NOISE.get(integrator, ROUND_OFF_NOISE) * abs(value) / eps
+        assert derivative == pytest.approx(difference, rel=1e-6, abs=noise), name
+
+
+@pytest.mark.fast_sample(integrator=["symplectic"])
+@pytest.mark.parametrize("integrator", sorted(differentiable()))
+def test_gradients_through_the_limit_match_central_differences(integrator):
+    check_against_differences(shaken, integrator)
+
+
+def draped(seed=3, **changes):
+    """The 4 x 4 cloth of ``shaken``, free, laid on a ball of radius 0.15 m (0.1 mm above
+    it), its springs 2-4% shorter than the chords between their ends: the pass shortens
+    chords of the ball, moving their ends into it, and ``project`` puts them back."""
+    args = generators.grid(resolution=4, size=0.3, mass=0.2, stiffness=30.0, damping=0.2, shear=1.0, bend=0.0,
+                           pin="none", gravity=[0.0, 0.0, -9.81])
+    rng = np.random.default_rng(seed)
+    radius, centre = 0.15, np.array([0.15, 0.15, -0.15])
+    flat = np.asarray(args["positions"]) - centre
+    on_ball = centre + radius * (1 + 1e-3) * flat / np.linalg.norm(flat, axis=1)[:, None]
+    ends = np.asarray(args["springs"])
+    chords = np.linalg.norm(on_ball[ends[:, 1]] - on_ball[ends[:, 0]], axis=1)
+    n, m = len(on_ball), len(ends)
+    values = dict(positions=on_ball, masses=rng.uniform(0.01, 0.02, n), rest_lengths=rng.uniform(0.96, 0.98, m) * chords,
+                  velocities=rng.normal(0.0, 0.05, (n, 3)))
+    values.update(changes)
+    ball = ms.Sphere(center=centre, radius=radius)
+    return ms.Model(**dict(args, **values), strain_limit=GRADIENT_LIMIT, colliders=[ball])
+
+
+@pytest.mark.fast_sample(integrator=["symplectic"])
+@pytest.mark.parametrize("integrator", ["symplectic", "implicit"])
+def test_gradients_through_the_limit_on_a_collider(integrator):
+    """The pass moving particles into a ball and putting them back (``project``'s Jacobian
+    in ``strain_limit_adjoint``: without it, this test fails)."""
+    check_against_differences(draped, integrator, acted_at_least=2)
+
+
+@pytest.mark.fast_sample(integrator=["symplectic"])
+@pytest.mark.parametrize("integrator", ["symplectic", "bdf2"])
+def test_gradients_through_the_limit_with_steps_of_varying_size(integrator):
+    """Twelve steps of 2 to 6 ms in no order (``dts``): each step's pass runs backwards
+    with its own size (BDF2 with its variable-step coefficients)."""
+    sizes = np.random.default_rng(2).uniform(2e-3, 6e-3, GRADIENT_RUN["steps"])
+    check_against_differences(shaken, integrator, sizes=sizes)

@@ -228,9 +228,10 @@ def _plan(model, integrator, steps, every, dt, precision, dts, tol, times, min_d
     """The run ``gradient``'s arguments ask for (ValueError naming the argument); with
     ``tol``, after the error-controlled run that chooses its steps."""
     variable = dts is not None or tol is not None or times is not None
-    if variable and any(True for _ in for_model(model)):
-        raise ValueError("dts: gradients through a pass between steps (self-collision) with steps of varying size "
-                         "are not built yet; give steps of dt")
+    fixed = [kind.name for kind in for_model(model) if not kind.steps_may_vary]
+    if variable and fixed:
+        raise ValueError(f"dts: gradients through a pass between steps ({', '.join(fixed)}) with steps of varying "
+                         f"size are not built yet; give steps of dt")
     if tol is not None or times is not None:
         for name, value, unset in (("tol", tol, None), ("times", times, None)):
             if value is unset:
@@ -342,10 +343,12 @@ def history_stride(n) -> int:
 def host_bytes(model, integrator, steps, frames, checkpoint) -> int:
     """Bytes a gradient holds in numpy beside its fields: the states kept at the starts of
     its stretches of ``checkpoint`` steps but the last (``_forward``, with what the
-    integrator carries) and the ``frames`` the objective sees."""
+    integrator carries), the ``frames`` the objective sees and what the passes' runs
+    backwards hold (``Pass.gradient_bytes``)."""
     n = model.n_particles
     kept = (steps - 1) // checkpoint * (STATE_BYTES + INTEGRATORS[integrator].kept_bytes(model)) * n
-    return kept + frames * STATE_BYTES * n
+    passes = sum(kind.gradient_bytes(model, checkpoint) for kind in for_model(model))
+    return kept + frames * STATE_BYTES * n + passes
 
 
 def default_checkpoint(n, steps, state_bytes=STATE_BYTES) -> int:
@@ -523,6 +526,8 @@ def _adjoint_bundle(sim, checkpoint):
     if sim.model.has_colliders:
         layout.vectors("cx", ti.f64)  # the contact response's gradient in the step's start position
     INTEGRATORS[sim.integrator].declare_adjoint(layout, sim.model, stride, rows)
+    for kind in for_model(sim.model):
+        kind.declare_adjoint(layout, sim.model)
     return layout.allocate(f"model: {n:,} particles and {m:,} springs; the fields of its gradient "
                            f"with {checkpoint:,} states kept (give a smaller checkpoint)")
 

@@ -8,12 +8,16 @@ A pass class declares, for a ``Model``:
   allocated or compiled);
 * ``bytes(model)``: its fields' bytes as (per particle, per spring) for the run's
   memory estimate (``engine.footprint``), and ``declare(layout, model)`` those fields;
+* where ``differentiable``: ``declare_adjoint(layout, model)`` the fields of its run
+  backwards in a gradient's adjoint bundle, and ``gradient_bytes(model, checkpoint)``
+  what that run holds on the host (for the gradient's memory check);
 * ``name`` (its registry key), ``term`` (its entry in ``Simulation.info()["terms"]``,
   or None), ``stats_property`` (the ``Simulation`` property that returns its
   ``stats()``, or None), ``carried`` (name -> (dtype, shape per particle) of what a
   restart needs of it, as ``Simulation.carried_state`` gives it),
   ``differentiable`` (``gradient`` runs through it; else ``refusal`` names it in the
-  ValueError).
+  ValueError), ``steps_may_vary`` (its run backwards takes steps of varying size: a
+  gradient of an error-controlled run or of ``dts``).
 
 An instance, built once per run with ``(dev, cfg, model, serial, dt)`` (the device
 bundle, its config, the run's model in its inner numbering, serial loops or not, the
@@ -47,6 +51,7 @@ class Pass:
     stats_property = None
     carried = {}
     differentiable = False
+    steps_may_vary = False
     refusal = ""  # what gradient's "not built yet" error calls a run with this pass
 
     @staticmethod
@@ -60,6 +65,16 @@ class Pass:
     @staticmethod
     def declare(layout, model):
         """Declare the pass's fields in ``layout`` (a ``device.Layout``)."""
+
+    @staticmethod
+    def declare_adjoint(layout, model):
+        """Declare the fields of the pass's run backwards in a gradient's adjoint bundle."""
+
+    @staticmethod
+    def gradient_bytes(model, checkpoint) -> int:
+        """Host bytes of the pass's run backwards in a gradient whose stretches are
+        ``checkpoint`` steps long."""
+        return 0
 
     def __init__(self, dev, cfg, model, serial, dt):
         self.dev, self.cfg, self.serial, self.dt = dev, cfg, serial, dt

@@ -58,16 +58,32 @@ class GradientError(RuntimeError):
                          f"({reason}, relative residual {self.residual:.3g}); no gradient is returned. {advice}")
 
 
-class SelfCollisionGradientError(GradientError):
-    """A gradient's backward pass stopped at a step (``step``, 0-based) whose
-    self-collision it cannot run backwards (``why``): a pass the host could not replay as
-    the run took it, or pairs of the linearised step's solve that it could not solve again
-    (``massspring.gradients``). ``reason`` is "self-collision", ``residual`` NaN."""
+class PassGradientError(GradientError):
+    """A gradient's backward pass stopped at a step (``step``, 0-based) whose pass
+    (``reason``: "self-collision" or "strain limit") it cannot run backwards (``why``)
+    (``massspring.gradients``). ``residual`` is NaN."""
+
+    reason_text = ""
 
     def __init__(self, step, integrator, why):
-        self.step, self.reason, self.residual = int(step), "self-collision", math.nan
-        RuntimeError.__init__(self, f"{integrator} gradient: the self-collision of step {self.step + 1} could not be "
+        self.step, self.reason, self.residual = int(step), self.reason_text, math.nan
+        RuntimeError.__init__(self, f"{integrator} gradient: the {self.reason} of step {self.step + 1} could not be "
                                     f"run backwards: {why}. No gradient is returned: take fewer steps or a smaller dt")
+
+
+class SelfCollisionGradientError(PassGradientError):
+    """The self-collision pass of a step could not be run backwards: a pass the host could
+    not replay as the run took it, or pairs of the linearised step's solve that it could
+    not solve again. ``reason`` is "self-collision"."""
+
+    reason_text = "self-collision"
+
+
+class StrainLimitGradientError(PassGradientError):
+    """The strain limit of a step could not be run backwards: its iterations run again
+    from the step's state did not give the state the run kept. ``reason`` is "strain limit"."""
+
+    reason_text = "strain limit"
 
 
 class KinkWarning(RuntimeWarning):

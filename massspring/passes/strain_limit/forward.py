@@ -52,6 +52,8 @@ class StrainLimitPass(Pass):
     name = "strain-limit"
     stats_property = "strain_limit_stats"
     refusal = "a strain limit"
+    differentiable = True
+    steps_may_vary = True  # its records keep each step's size
 
     @staticmethod
     def wanted(model) -> bool:
@@ -63,11 +65,30 @@ class StrainLimitPass(Pass):
 
     declare = staticmethod(declare)
 
+    @staticmethod
+    def declare_adjoint(layout, model):
+        """The fields of its run backwards (``backward.PassSteps``) in a gradient's adjoint
+        bundle (float64): the state an iteration starts from (``sl_x``, ``sl_v``), dL/d(an
+        iteration's moved positions before the collider projection) (``sl_gy``, a vec3 per
+        particle) and dL/d(each spring's x_j - x_i) (``sl_gd``, a vec3 per spring)."""
+        for name in ("sl_x", "sl_v", "sl_gy"):
+            layout.vectors(name, layout.real)
+        layout.vectors("sl_gd", layout.real, "spring")
+
+    @staticmethod
+    def gradient_bytes(model, checkpoint) -> int:
+        """Host bytes of its run backwards: the state before the pass of each step of a
+        stretch of ``checkpoint`` steps, and one step's iterations run again."""
+        from massspring.passes.strain_limit.backward import host_bytes
+
+        return host_bytes(model.n_particles, checkpoint)
+
     def __init__(self, dev, cfg, model, serial, dt):
         super().__init__(dev, cfg, model, serial, dt)
         self.limit = model.strain_limit
         self.last = (0, 0.0, 0.0)
         self.unmet = self.steps = self.most = self.undone = 0
+        self.recorder = None  # a gradient's run: the steps whose pass moved particles go to this (``watch``)
 
     def stats(self) -> dict:
         """At the last step: "iterations" (Jacobi iterations it ran), "before" and "after"
@@ -99,13 +120,30 @@ class StrainLimitPass(Pass):
                 first = worst if first is None else first
                 if worst <= self.limit:
                     break
+        undone = False
         if worst > self.limit:  # unmet: what the last launch left, measured (a limit of inf moves nothing)
             worst = strain_limit_iteration(self.dev, self.cfg, state, math.inf, TOLERANCE, self.dt, t, 0)
             if worst > first:
                 strain_limit_restore(self.dev, state)
-                worst = first
+                worst, undone = first, True
                 self.undone += 1
         self.unmet += worst > self.limit
         self.steps += k > 1
         self.most = max(self.most, k - 1)
         self.last = (k - 1, first, worst)
+        if self.recorder is not None and first > self.limit and not undone:  # it moved particles
+            self.recorder(state, t, self.dt)
+
+    def watch(self, recorder):
+        """From now on (a gradient's run: ``massspring.gradients``), a step whose pass moved
+        particles (and was not undone) calls ``recorder(state, t, dt)`` at its end: the
+        state it left, the time the step ended at and its size (s); the state it started
+        from is in the bundle's ``x_sl_before``, ``v_sl_before``."""
+        self.recorder = recorder
+
+    def adjoint(self, sim, adj):
+        """A gradient's record and run backwards of the steps this pass moved particles in
+        (``backward.PassSteps``)."""
+        from massspring.passes.strain_limit.backward import PassSteps
+
+        return PassSteps(sim, adj, self)
