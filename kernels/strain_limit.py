@@ -166,7 +166,9 @@ def strain_limit_adjoint(dev: ti.template(), cfg: ti.template(), adj: ti.templat
     b = (1 + limit - tol) l0),
     y_i = x_i + w_i (sum of +-c), x' = P(y) (``project``): dL/dy = P^T (dL/dx' + dL/dv' / dt),
     dL/dc = w_i dL/dy_i - w_j dL/dy_j, and dL/d(x_j - x_i) = a ((1 - b / l) dL/dc +
-    (b / l) (u . dL/dc) u). Uses ``sl_gy`` (dL/dy) and ``sl_gd`` (dL/d(x_j - x_i))."""
+    (b / l) (u . dL/dc) u). Uses ``sl_gy`` (dL/dy), ``sl_gd`` (dL/d(x_j - x_i)) and ``sl_gw``
+    (dL/dw of either end through a); each particle gathers its springs' in a fixed order
+    (no atomics: the same bits at any thread count)."""
     s_limit = ti.cast(limit, cfg.real)
     s_tol = ti.cast(tol, cfg.real)
     h = ti.cast(dt, ti.f64)
@@ -185,6 +187,7 @@ def strain_limit_adjoint(dev: ti.template(), cfg: ti.template(), adj: ti.templat
             adj.gm[i] -= w * w * g.dot(moved)
     for s in range(dev.size[1]):
         adj.sl_gd[s] = ti.Vector.zero(ti.f64, 3)
+        adj.sl_gw[s] = ti.cast(0, ti.f64)
         c = dev.sl_dx[s]
         if go and c.dot(c) > 0:
             i = dev.ends[s][0]
@@ -198,9 +201,12 @@ def strain_limit_adjoint(dev: ti.template(), cfg: ti.template(), adj: ti.templat
             along = unit.dot(gc)
             adj.sl_gd[s] = a * ((1 - b / length) * gc + b / length * along * unit)
             adj.gl0[s] -= stretch * a * along
-            through = -a / (wi + wj) * (length - b) * along  # dL/dw_i (and dL/dw_j) through a
-            ti.atomic_add(adj.gm[i], -wi * wi * through)
-            ti.atomic_add(adj.gm[j], -wj * wj * through)
+            adj.sl_gw[s] = -a / (wi + wj) * (length - b) * along  # dL/dw_i (and dL/dw_j) through a
     for i in range(dev.size[0]):
         if go and dev.sl_k[i] > 0:
             adj.lx[i] = adj.sl_gy[i] - adj.lv[i] / h - spring_sum(i, dev, adj.sl_gd)
+            w = ti.cast(inverse_mass(i, dev, cfg), ti.f64)
+            through = ti.cast(0, ti.f64)
+            for e in range(dev.offsets[i], dev.offsets[i + 1]):  # its springs, in a fixed order
+                through += adj.sl_gw[ti.select(dev.entry[e] >= 0, dev.entry[e], -1 - dev.entry[e])]
+            adj.gm[i] -= w * w * through

@@ -684,6 +684,13 @@ digest = hashlib.sha256(np.float64(value).tobytes())
 for name in sorted(grads):
     digest.update(grads[name].tobytes())
 print("sheets-implicit", digest.hexdigest())
+shaken = model.replaced(strain_limit=1e-3, velocities=np.random.default_rng(0).normal(0.0, 0.5, (model.n_particles, 3)))
+value, grads = ms.gradient(shaken, last, ["rest_lengths", "masses", "positions"], steps=6, every=2,
+                           integrator="implicit", dt=1e-3, loops="parallel", checkpoint=4)
+digest = hashlib.sha256(np.float64(value).tobytes())
+for name in sorted(grads):
+    digest.update(grads[name].tobytes())
+print("strain-limit", digest.hexdigest())
 """
 
 
@@ -696,7 +703,8 @@ def test_gradients_do_not_depend_on_the_thread_count(tmp_path):
     1/60 s, where compressed springs make its adjoint MINRES's); and the implicit
     gradient through the sheets scene's self-collision (the upper sheet landing: the
     pass acting, pairs in the solve), whose pairs the backward pass takes in the order
-    of their particles, not the threads' order."""
+    of their particles, not the threads' order; and the implicit gradient through a strain
+    limit (its iterations' adjoint gathers each particle's springs in order)."""
     import os
     import subprocess
     import sys
@@ -708,8 +716,9 @@ def test_gradients_do_not_depend_on_the_thread_count(tmp_path):
                               cwd=tmp_path, timeout=600)
         assert proc.returncode == 0, proc.stderr
         out.append([line for line in proc.stdout.splitlines()
-                    if line.split()[0] in ("symplectic", "rk4", "implicit", "backward-euler", "sheets-implicit")])
-    assert len(out[0]) == 5 and out[0] == out[1], out
+                    if line.split()[0] in ("symplectic", "rk4", "implicit", "backward-euler", "sheets-implicit",
+                                           "strain-limit")])
+    assert len(out[0]) == 6 and out[0] == out[1], out
 
 
 @pytest.mark.full

@@ -351,3 +351,17 @@ def test_gradients_through_the_limit_with_steps_of_varying_size(integrator):
     with its own size (BDF2 with its variable-step coefficients)."""
     sizes = np.random.default_rng(2).uniform(2e-3, 6e-3, GRADIENT_RUN["steps"])
     check_against_differences(shaken, integrator, sizes=sizes)
+
+
+def test_a_gradients_memory_check_counts_the_limits_records():
+    """``gradients.host_bytes`` (the memory check before a gradient runs) adds the limit's
+    records of a stretch and one step's iterations (``backward.host_bytes``)."""
+    from massspring.gradients import host_bytes
+    from massspring.passes.strain_limit import ITERATIONS
+    from massspring.passes.strain_limit.backward import host_bytes as pass_bytes
+
+    limited = shaken()
+    free = limited.replaced(strain_limit=None)
+    n = limited.n_particles
+    assert pass_bytes(n, 40) == n * (48 * 40 + 24 * (ITERATIONS + 2))
+    assert host_bytes(limited, "implicit", 100, 5, 40) - host_bytes(free, "implicit", 100, 5, 40) == pass_bytes(n, 40)

@@ -70,10 +70,12 @@ class StrainLimitPass(Pass):
         """The fields of its run backwards (``backward.PassSteps``) in a gradient's adjoint
         bundle (float64): the state an iteration starts from (``sl_x``, ``sl_v``), dL/d(an
         iteration's moved positions before the collider projection) (``sl_gy``, a vec3 per
-        particle) and dL/d(each spring's x_j - x_i) (``sl_gd``, a vec3 per spring)."""
+        particle), dL/d(each spring's x_j - x_i) (``sl_gd``, a vec3 per spring) and
+        dL/d(its ends' inverse masses) through its correction's share (``sl_gw``, per spring)."""
         for name in ("sl_x", "sl_v", "sl_gy"):
             layout.vectors(name, layout.real)
         layout.vectors("sl_gd", layout.real, "spring")
+        layout.add("sl_gw", layout.real, "spring")
 
     @staticmethod
     def gradient_bytes(model, checkpoint) -> int:
