@@ -205,9 +205,35 @@ def test_a_timed_run_compiles_nothing_after_its_warm_up(integrator, monkeypatch)
     study._warm_up(model, integrator, dt, None)
     monkeypatch.setattr(kernel_impl.Kernel, "materialize", counting)
     monkeypatch.setattr(ms.Simulation, "step", timed_step)
-    run = study._measure(model, integrator, dt, {}, None, np.array([3, 8, 15]) * dt, 1.0, 3, 10.0)
-    assert not run.diverged and run.steps == 15 and run.timed_runs == 3
+    times = np.array([3, 8, 15]) * dt
+    run = study._measure(model, integrator, dt, {}, None, times, 1.0)
+    walls = [study._time(model, integrator, dt, {}, None, times) for _ in range(2)]
+    assert not run.diverged and run.steps == 15 and run.timed_runs == 1 and min(walls) > 0
     assert compiled == []
+
+
+def test_repeats_are_timed_in_rounds_over_every_run(monkeypatch):
+    """Issue 60: a run's repeats came one after the other, so a shared machine's load that
+    drifted over a study fell on some runs and not others. Now the measured runs come
+    first, then each round times every run once more in the study's order: with
+    ``repeats`` 3, runs A B C D are timed A B C D, A B C D, A B C D; each run's time is
+    the least of its three."""
+    order = []
+    fake = np.linspace(8e-9, 1e-9, 8)  # below any measured run's time: the least is the last round's
+    walls = iter(fake)
+
+    def timed(model, integrator, dt, tol, preconditioner, times):
+        order.append((integrator, dt))
+        return float(next(walls))
+
+    monkeypatch.setattr(study, "_time", timed)
+    ladders = {"symplectic": [1e-3, 5e-4], "explicit": [1e-3, 5e-4]}
+    result = study.run_study(ms.load_scene("spring"), integrators=["symplectic", "explicit"], duration=0.02,
+                             ladders=ladders, repeats=3, time_budget=60.0, use_cache=False)
+    runs = [(r.integrator, r.dt) for r in result.runs]
+    assert len(runs) == 4 and order == runs + runs
+    assert [r.timed_runs for r in result.runs] == [3, 3, 3, 3]
+    assert [r.wall_s for r in result.runs] == list(fake[4:])
 
 
 @FULL

@@ -17,8 +17,10 @@ Measures of a run (all dimensionless unless stated):
 * ``wall_s``: seconds of stepping alone (``Simulation.step``): after one warm-up run
   per integrator (compilation), the minimum over timed runs. The first timed run is the
   measured one (it steps between save instants; readbacks are not timed); more runs,
-  each after one untimed step on its fresh Simulation, follow while fewer than
-  ``repeats`` were timed and their total is under ``time_budget`` seconds.
+  each after one untimed step on its fresh Simulation, follow in rounds, interleaved:
+  each round times every run once more, in the study's order, while fewer than
+  ``repeats`` were timed and their total is under ``time_budget`` seconds, so that a
+  shared machine's load, which drifts over minutes, falls on every run alike.
 * ``steps``, ``cg_iterations`` (total over the run; 0 for the explicit integrators).
 * ``diverged``: the run raised ``DivergenceError``, reached a non-finite state, or
   its RMS error at a save instant exceeded the scene's size (runaway). Its error,
@@ -265,6 +267,7 @@ def run_study(scene, *, integrators=DEFAULT_INTEGRATORS, duration=None, rungs=DE
 
     results = cluster.run_tasks(_task, tasks, client=client, on_result=finished)
     runs = results[len(reference_dts):]
+    _repeat(runs, [args for kind, args in tasks if kind == "run"], repeats, time_budget, client)
     known = dict(zip(reference_dts, results[:len(reference_dts)]))
     ref, check = (exact, ReferenceCheck("exact")) if exact is not None else _reference(
         model, times, first, runs, size, cache, use_cache, reference_ratio, known)
@@ -282,14 +285,32 @@ def line_preconditioners(model, integrator, names) -> list:
 
 
 def _task(kind, args):
-    """One task of the study: an RK4 reference trajectory (``reference.rk4``), or a run:
-    ``_warm_up`` (at once when this process has compiled the kernels already), then
-    ``_measure``."""
+    """One task of the study: an RK4 reference trajectory (``reference.rk4``), or a run
+    (``kind`` "run": ``_measure``; "time": ``_time``) after ``_warm_up`` (at once when
+    this process has compiled the kernels already)."""
     if kind == "reference":
         return reference.rk4(*args)
     model, integrator, warm_dt, dt, tol, preconditioner, times, size, repeats, time_budget = args
     _warm_up(model, integrator, warm_dt, preconditioner)
-    return _measure(model, integrator, dt, tol, preconditioner, times, size, repeats, time_budget)
+    if kind == "time":
+        return _time(model, integrator, dt, tol, preconditioner, times)
+    return _measure(model, integrator, dt, tol, preconditioner, times, size)
+
+
+def _repeat(runs, args, repeats, time_budget, client):
+    """The timed runs after the measured ones, in rounds (each of ``runs``, with its task's
+    ``args``, timed once more a round while fewer than ``repeats`` were timed and their
+    total is under ``time_budget`` s); each run's ``wall_s`` the least of its times."""
+    walls = [[] if run.diverged else [run.wall_s] for run in runs]
+    for _ in range(repeats - 1):
+        due = [k for k, times in enumerate(walls) if times and sum(times) < time_budget]
+        if not due:
+            break
+        for k, wall in zip(due, cluster.run_tasks(_task, [("time", args[k]) for k in due], client=client)):
+            walls[k].append(wall)
+    for run, times in zip(runs, walls):
+        if times:
+            run.wall_s, run.timed_runs = min(times), len(times)
 
 
 def _warm_up(model, integrator, dt, preconditioner):
@@ -322,8 +343,8 @@ def _advance(sim, until, steps):
         sim.advance(until - sim.time)
 
 
-def _measure(model, integrator, dt, tol, preconditioner, times, size, repeats, time_budget) -> Run:
-    """The measured run (states at the save instants, stepping timed) and the extra timed runs."""
+def _measure(model, integrator, dt, tol, preconditioner, times, size) -> Run:
+    """The measured run: states at the save instants, its stepping timed (``wall_s``)."""
     kwargs = _solver(tol, preconditioner)
     run = Run(integrator, dt, tol.get("cg_tol"), preconditioner, tol.get("newton_tol"), tol.get("tol"))
     if run.tol is not None:
@@ -356,16 +377,26 @@ def _measure(model, integrator, dt, tol, preconditioner, times, size, repeats, t
     if not np.all(np.isfinite(run.velocities)):
         run.diverged, run.status = True, "diverged (non-finite)"
         return run
-    walls = [wall]
-    while len(walls) < repeats and sum(walls) < time_budget:
-        timed = Simulation(model, integrator=integrator, dt=dt, **kwargs)
-        timed.step(1)  # untimed: first launch on this Simulation's arrays
-        start = time.perf_counter()
-        _advance(timed, times[-1], counts[-1] + 1)
-        walls.append(time.perf_counter() - start)
-        timed.close()
-    run.wall_s, run.timed_runs = min(walls), len(walls)
+    run.wall_s, run.timed_runs = wall, 1
     return run
+
+
+def _time(model, integrator, dt, tol, preconditioner, times) -> float:
+    """Seconds of stepping of one more run like ``_measure``'s, to the last save instant
+    without stopping at the others, after one untimed step on its fresh Simulation (the
+    first launch on its arrays)."""
+    kwargs = _solver(tol, preconditioner)
+    if "tol" in kwargs:
+        kwargs["horizon"] = float(times[-1])
+    steps = 0 if "tol" in kwargs else reference.steps_between(times, dt)[-1]
+    timed = Simulation(model, integrator=integrator, dt=dt, **kwargs)
+    try:
+        timed.step(1)
+        start = time.perf_counter()
+        _advance(timed, times[-1], steps + 1)
+        return time.perf_counter() - start
+    finally:
+        timed.close()
 
 
 def _rms(diff):
