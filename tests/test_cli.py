@@ -11,7 +11,7 @@ from conftest import FULL, one_line_error, sampled
 from massspring.cli import main
 from massspring.integrators import INTEGRATORS
 from massspring.scene import builtin_scenes, load_scene
-from test_scene_energy import WHOLE_RUNS
+from test_scene_energy import ENERGY_RUNS, WHOLE_RUNS
 
 # The fast tier: each scene once with its default integrator, each integrator on two scenes.
 TWO_SCENES = {"explicit": ("chain", "cloth"), "symplectic": ("spring", "chain"), "rk4": ("chain", "heavychain"),
@@ -30,12 +30,16 @@ def run_cli(*args):
 
 # test_scene_energy runs these whole (every small scene, every integrator, its whole duration
 # at its default dt): here only those of the fast tier, for the CLI's side
-WHOLE = set(WHOLE_RUNS) - FAST_RUNS
+WHOLE = set(WHOLE_RUNS + ENERGY_RUNS) - FAST_RUNS
+# The self-collision scenes' 3-step backward-Euler runs (5-6 s each, their compiles) are
+# BDF2's, whose first step is backward Euler's; test_self_collision runs backward Euler
+# on self-collision at length
+SHARED = {(scene, "backward-euler") for scene in ("ledge", "sheets", "tablecloth", "thrown")} - FAST_RUNS
 
 
 @pytest.mark.parametrize("scene, integrator", sampled(
     [(scene, integrator) for scene in sorted(builtin_scenes()) for integrator in sorted(INTEGRATORS)
-     if (scene, integrator) not in WHOLE], FAST_RUNS))
+     if (scene, integrator) not in WHOLE | SHARED], FAST_RUNS))
 def test_run_every_scene(scene, integrator, tmp_path, capsys):
     """Every scene runs with every integrator at its default dt from the CLI. Integrators
     with a stability limit run the scene at its own size for 100 steps (a default dt that

@@ -7,7 +7,7 @@ particle with, counted by the tests' own numpy counter (``tests/crossings.py``),
 the project's detection. The draws are derandomised (the same cases on every run); a
 case that ever fails is kept below as an ``@example``, its cause fixed.
 
-The full suite draws 12 cases for every integrator (every drawn model falls in one
+The full suite draws 8 cases for every integrator (every drawn model falls in one
 capacity class, so each integrator's kernels compile once); the fast tier none (about
 25 s for any integrator's first case, most of it compiling)."""
 
@@ -66,7 +66,7 @@ def check(integrator, case):
 @pytest.mark.full
 @pytest.mark.parametrize("integrator", sorted(INTEGRATORS))
 def test_no_crossing_on_drawn_stacked_sheets(integrator):
-    draws = 12
+    draws = 8
 
     @settings(max_examples=draws, deadline=None, derandomize=True, database=None,
               suppress_health_check=list(HealthCheck))
