@@ -132,7 +132,8 @@ def test_a_simulation_collected_after_a_reset_does_not_return_dead_fields():
     assert np.all(np.isfinite(runs[0].positions)) and runs[0].positions[2, 2] < 0
 
 
-def test_parallel_results_do_not_depend_on_the_thread_count(request):
+@FULL
+def test_parallel_results_do_not_depend_on_the_thread_count():
     """Reductions sum fixed blocks in order (kernels/blocks.py), multigrid kernels write
     each entry from one thread and its cycle's r . z is a fixed-block sum too: 1 and 2
     threads give the same bits for every integrator and preconditioner, on cloth at
@@ -142,7 +143,7 @@ def test_parallel_results_do_not_depend_on_the_thread_count(request):
     offline cache keys them by the thread count too, so a shared one never hits)."""
     import os
 
-    cases = THREAD_CASES if request.config.getoption("--all") else [THREAD_CASES[0], THREAD_CASES[5]]
+    cases = THREAD_CASES
     out = []
     for threads in ("1", "2"):
         env = dict(os.environ, TI_CPU_MAX_NUM_THREADS=threads, TI_OFFLINE_CACHE="0")

@@ -13,6 +13,7 @@ from massspring.solvers import aggregation
 from test_multigrid import DT, swinging_cloth
 
 
+@FULL
 def test_f32_cycle_is_the_f64_cycle_rounded():
     """On a swung 40^2 cloth (three levels), B32 r is B64 r to f32's precision, and not
     bit for bit (the cycle really runs in f32); and B32 is symmetric to that precision and

@@ -84,6 +84,7 @@ def sheets_with_both_passes():
 SHEETS = ms.load_scene("sheets").with_params(resolution=8)
 
 
+@pytest.mark.fast_sample(integrator=["symplectic"])
 @pytest.mark.parametrize("integrator", ["symplectic", "implicit", "bdf2"])
 def test_a_restored_snapshot_continues_to_the_bit(integrator):
     """Snapshot after 15 steps, 10 more, restore, the same 10 again: the same positions,
