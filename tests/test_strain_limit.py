@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 import massspring as ms
+from conftest import FULL
 from massspring.scene import generators
 from massspring.gradients import differentiable
 from massspring.integrators import INTEGRATORS, taken
@@ -337,7 +338,7 @@ def draped(seed=3, **changes):
     return ms.Model(**dict(args, **values), strain_limit=GRADIENT_LIMIT, colliders=[ball])
 
 
-@pytest.mark.fast_sample(integrator=["symplectic"])
+@FULL
 @pytest.mark.parametrize("integrator", ["symplectic", "implicit"])
 def test_gradients_through_the_limit_on_a_collider(integrator):
     """The pass moving particles into a ball and putting them back (``project``'s Jacobian
@@ -345,7 +346,7 @@ def test_gradients_through_the_limit_on_a_collider(integrator):
     check_against_differences(draped, integrator, acted_at_least=2)
 
 
-@pytest.mark.fast_sample(integrator=["symplectic"])
+@FULL
 @pytest.mark.parametrize("integrator", ["symplectic", "bdf2"])
 def test_gradients_through_the_limit_with_steps_of_varying_size(integrator):
     """Twelve steps of 2 to 6 ms in no order (``dts``): each step's pass runs backwards
