@@ -227,11 +227,6 @@ class Plan:
 def _plan(model, integrator, steps, every, dt, precision, dts, tol, times, min_dt, max_dt, options) -> Plan:
     """The run ``gradient``'s arguments ask for (ValueError naming the argument); with
     ``tol``, after the error-controlled run that chooses its steps."""
-    variable = dts is not None or tol is not None or times is not None
-    fixed = [kind.name for kind in for_model(model) if not kind.steps_may_vary]
-    if variable and fixed:
-        raise ValueError(f"dts: gradients through a pass between steps ({', '.join(fixed)}) with steps of varying "
-                         f"size are not built yet; give steps of dt")
     if tol is not None or times is not None:
         for name, value, unset in (("tol", tol, None), ("times", times, None)):
             if value is unset:

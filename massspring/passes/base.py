@@ -16,8 +16,8 @@ A pass class declares, for a ``Model``:
   ``stats()``, or None), ``carried`` (name -> (dtype, shape per particle) of what a
   restart needs of it, as ``Simulation.carried_state`` gives it),
   ``differentiable`` (``gradient`` runs through it; else ``refusal`` names it in the
-  ValueError), ``steps_may_vary`` (its run backwards takes steps of varying size: a
-  gradient of an error-controlled run or of ``dts``).
+  ValueError; its run backwards takes each step's own size: a gradient of an
+  error-controlled run or of ``dts``).
 
 An instance, built once per run with ``(dev, cfg, model, serial, dt)`` (the device
 bundle, its config, the run's model in its inner numbering, serial loops or not, the
@@ -51,7 +51,6 @@ class Pass:
     stats_property = None
     carried = {}
     differentiable = False
-    steps_may_vary = False
     refusal = ""  # what gradient's "not built yet" error calls a run with this pass
 
     @staticmethod

@@ -28,15 +28,15 @@ class PassSteps:
         self.free = dev.read("free") != 0 if sim.stepper.cfg.fixed else np.ones(self.n, bool)
         self.thickness, friction, self.repulsion = guard.parameters
         self.penalty = sim.stepper.cfg.self_pairs
-        self.replay = Replay(dev.read("mass"), self.free, sim.dt, self.thickness, friction, self.repulsion,
-                             penalty=self.penalty)
+        self.masses, self.friction = dev.read("mass"), friction
         self.records, self.solves, self.first, self.k_r = {}, {}, 0, 0.0
+        self.sizes = {}  # step -> its size (s): an error-controlled or ``dts`` run's vary
         self.loaded = False  # the step whose solve's pairs the device holds (None: none; False: unknown)
         guard.watch(self, self.solve_pairs if self.penalty else None)
 
     def start(self, first):
         """Keep the records of step ``first`` on (those before are dropped)."""
-        self.records, self.solves, self.first, self.loaded = {}, {}, first, False
+        self.records, self.solves, self.sizes, self.first, self.loaded = {}, {}, {}, first, False
 
     def __call__(self, state, idx, w, kind, rounds):
         """A step in which the pass acted (``Pass.watch``): ``state`` as it left it, its
@@ -52,12 +52,14 @@ class PassSteps:
             order = np.lexsort(idx.T[::-1])  # by their particles (the list's order depends on the threads')
             self.records[k] = Record(dev.read("sc_end"), dev.read("sc_vend"), idx[order], w[order], kind[order],
                                      rounds[order])
+            self.sizes[k] = integrator.dt
 
     def solve_pairs(self):
         """A step whose implicit solve holds pairs, as it begins (``Pass.watch``)."""
         k = self.sim.steps
         if k >= self.first:
             self.solves[k] = SolvePairs.read(self.sim.stepper.dev, self.n)
+            self.sizes[k] = self.sim.stepper.dt
 
     def any_in(self, low, high) -> bool:
         """Whether a step from ``low`` to ``high`` has a record."""
@@ -83,7 +85,9 @@ class PassSteps:
         xs, vs = np.empty((2, n, 3)), np.empty((2, n, 3))
         state_kernels.read_states(adj.hx, adj.hv, np.array([slot, slot + 1], dtype=np.int32), xs, vs, n, self.stride)
         try:
-            shares = self.replay.backward(record, xs[0], xs[1], vs[1], adj.read("lx", n), adj.read("lv", n))
+            replay = Replay(self.masses, self.free, self.sizes[k], self.thickness, self.friction, self.repulsion,
+                            penalty=self.penalty)
+            shares = replay.backward(record, xs[0], xs[1], vs[1], adj.read("lx", n), adj.read("lv", n))
         except ReplayError as exc:
             raise SelfCollisionGradientError(k, self.sim.integrator, str(exc)) from None
         state_kernels.load_vectors(adj.lx, shares[0])
@@ -107,7 +111,7 @@ class PassSteps:
             x, _ = self._row(adj.hx, adj.hv, slot)
             _, v = self._row(adj.hw, adj.hw, slot) if wants.friction else self._row(adj.hx, adj.hv, slot + 1)
             try:
-                gx, gk, gpin = penalty_adjoint(pairs, x, v, adj.read("w", n), self.free, self.sim.dt,
+                gx, gk, gpin = penalty_adjoint(pairs, x, v, adj.read("w", n), self.free, self.sizes[k],
                                                self.thickness, self.repulsion)
             except ReplayError as exc:
                 raise SelfCollisionGradientError(k, self.sim.integrator, str(exc)) from None

@@ -138,6 +138,7 @@ class SelfCollisionPass(Pass):
         self.last = (0, 0, 0, 0.0, math.inf, self.capacity, 0)
         self.passes = self.steps = self.grown = self.left_out = 0
         self.fresh = True  # x0 and the anchors are not set yet
+        self.pairs_dt = None  # the step size (s) the solve's pairs in the bundle were collected for
         self.recorder = None  # a gradient's run: the steps the pass acted in go to this (``watch``)
         self.solve_recorder = None  # ... and the steps whose implicit solve holds pairs to this
 
@@ -172,6 +173,7 @@ class SelfCollisionPass(Pass):
 
         if self.cfg.self_pairs:
             self_collision_solve_pairs(self.dev, self.cfg, self.list, state, self.dt, self.serial)
+            self.pairs_dt = self.dt
 
     def begin(self, state):
         if self.fresh:
@@ -181,6 +183,8 @@ class SelfCollisionPass(Pass):
                 self._list(state)
             self_collision_begin(self.dev, state, True, self.serial)
             self.fresh = False
+        elif self.cfg.self_pairs and self.pairs_dt != self.dt:  # penalties of h^2 k: collected for another step size
+            self._solve_pairs(state)
         if self.solve_recorder is not None and int(self.dev.sp_count[0]) > 0:
             self.solve_recorder()
 

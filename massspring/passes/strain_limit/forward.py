@@ -53,7 +53,6 @@ class StrainLimitPass(Pass):
     stats_property = "strain_limit_stats"
     refusal = "a strain limit"
     differentiable = True
-    steps_may_vary = True  # its records keep each step's size
 
     @staticmethod
     def wanted(model) -> bool:
