@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 import massspring as ms
+from conftest import FULL
 from massspring.gradients import Frames
 from test_controls import INTERVALS, PER, DT, control_values, controlled
 from test_gradient import (DIFFERENTIABLE, PARAMETERS, REPULSION_STEP, SOLVED, STILL_AIR, model_values, objective, sheet,
@@ -159,7 +160,7 @@ def test_replay_is_for_a_fixed_dt_run_from_its_start():
     assert np.array_equal(sim.step_sizes, SIZES[:4])
 
 
-@pytest.mark.fast_sample(integrator=["symplectic"])
+@FULL
 @pytest.mark.parametrize("integrator", ["symplectic", "implicit", "backward-euler"])
 def test_gradients_through_self_collision_with_steps_of_varying_size(integrator):
     """test_gradient's straddling triangle, repelled every step (sliding friction), over ten

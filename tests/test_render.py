@@ -40,7 +40,9 @@ def drawn(image):
     return np.any(image != BACKGROUND, axis=-1)
 
 
-@pytest.mark.parametrize("scene", sampled(sorted(builtin_scenes()), {"cloth"}))
+# tablecloth and thrown left out: self-collision scenes framed as ledge and sheets are (a box
+# and the ground; the ground), each run compiling the pass (6 s)
+@pytest.mark.parametrize("scene", sampled(sorted(set(builtin_scenes()) - {"tablecloth", "thrown"}), {"cloth"}))
 def test_gif_of_every_scene(scene, tmp_path, capsys):
     gif, png = tmp_path / "run.gif", tmp_path / "last.png"
     code = main(["run", scene, "--steps", "20", "--every", "10", "--size", "160x120", "--fps", "20",

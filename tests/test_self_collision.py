@@ -4,7 +4,6 @@ project's detection), the narrow phase against sampled distances, validation,
 determinism and restart."""
 
 import dataclasses
-import hashlib
 import os
 import subprocess
 import sys
@@ -143,14 +142,16 @@ FALLING_DT = {"implicit": None, "backward-euler": None, "bdf2": None, "midpoint"
 
 
 @pytest.mark.full
-@pytest.mark.parametrize("integrator", sorted(FALLING_DT))
+@pytest.mark.parametrize("integrator", ["backward-euler", "bdf2", "implicit", "midpoint", "symplectic"])
 def test_a_cloth_that_touches_nothing_keeps_the_energy_of_its_run_without_self_collision(integrator):
     """Issue 42: the hanging cloth with a thickness a third of its spacing, no pair of
     its mesh ever within the thickness. Before, the pass held back about 400 particles a
     step of the swinging cloth (every particle's displacement was bounded, not the
     approach of its pairs): springs strained 58% and the implicit run gained 78 J
     (backward Euler 14,690 J) where the run without the pass lost 2.4 J. Now its energy
-    is never above the run's without self-collision, every integrator, every frame."""
+    is never above the run's without self-collision, every frame: the linearised and the
+    Newton-solved steps, and symplectic Euler for the explicit ones (explicit Euler and
+    RK4 meet the pass as it does, after a step into a spare state; they passed too)."""
     scene = ms.load_scene("cloth").with_params(resolution=12)
     spacing = 1.0 / 11
     thickness = spacing / 3
