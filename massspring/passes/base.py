@@ -43,6 +43,17 @@ from __future__ import annotations
 import copy
 
 
+def keep_in_history(integrator, state, n, k):
+    """In a gradient's run, where ``integrator`` stored step k's state in its history before
+    a pass changed it (``records_history``: in the launch that made it), put the pass's
+    ``state`` (n particles) there instead."""
+    if integrator.history is not None and integrator.records_history:
+        from massspring.kernels import state as state_kernels
+
+        adj, first = integrator.history
+        state_kernels.save_state(adj.hx, adj.hv, state, n, k + 1 - first, int(adj.stride[None]))
+
+
 class Pass:
     """Base class of a pass (see the module docstring)."""
 

@@ -8,6 +8,7 @@ from __future__ import annotations
 import numpy as np
 
 from massspring.kernels import state as state_kernels
+from massspring.passes.base import keep_in_history
 from massspring.passes.self_collision.adjoint import Record, Replay, ReplayError
 from massspring.passes.self_collision.penalty_adjoint import SolvePairs, penalty_adjoint
 from massspring.support.errors import SelfCollisionGradientError
@@ -44,9 +45,7 @@ class PassSteps:
         stored the step's state in the history before the pass (``records_history``) gets
         it replaced by the pass's; the others keep it after the step."""
         k, integrator = self.sim.steps, self.sim.stepper
-        if integrator.history is not None and integrator.records_history:
-            adj, first = integrator.history
-            state_kernels.save_state(adj.hx, adj.hv, state, self.n, k + 1 - first, self.stride)
+        keep_in_history(integrator, state, self.n, k)
         if k >= self.first:
             dev = integrator.dev
             order = np.lexsort(idx.T[::-1])  # by their particles (the list's order depends on the threads')

@@ -29,6 +29,7 @@ import numpy as np
 
 from massspring.device import State
 from massspring.kernels import state as state_kernels
+from massspring.passes.base import keep_in_history
 from massspring.passes.strain_limit.forward import ITERATIONS, TOLERANCE
 from massspring.support.errors import StrainLimitGradientError
 
@@ -78,9 +79,7 @@ class PassSteps:
         pass left it. An integrator that stored the step's state in the history before the
         pass (``records_history``) gets it replaced by the pass's."""
         k, integrator = self.sim.steps, self.sim.stepper
-        if integrator.history is not None and integrator.records_history:
-            adj, first = integrator.history
-            state_kernels.save_state(adj.hx, adj.hv, state, self.n, k + 1 - first, self.stride)
+        keep_in_history(integrator, state, self.n, k)
         if k >= self.first:
             dev = integrator.dev
             self.records[k] = Record(dev.read("x_sl_before"), dev.read("v_sl_before"), float(t), float(dt))
