@@ -20,6 +20,8 @@ os.environ.setdefault("ENABLE_TAICHI_HEADER_PRINT", "0")
 from massspring.support.defaults import VERSION  # noqa: E402
 from massspring.support.errors import DivergenceError, KinkWarning, SimulationClosedError  # noqa: E402
 from massspring.model.controls import Controls  # noqa: E402
+from massspring.model.feedback import Controller, ControlState  # noqa: E402
+from massspring.model.network import SineNetwork  # noqa: E402
 from massspring.model import Model  # noqa: E402
 from massspring.model.colliders import Box, Plane, Sphere  # noqa: E402
 from massspring.model.self_collision import SelfCollision  # noqa: E402
@@ -28,6 +30,6 @@ from massspring.engine.simulation import Simulation, run  # noqa: E402
 from massspring.gradients import Frames, gradient  # noqa: E402
 from massspring.analysis.sweep import sweep  # noqa: E402
 
-__all__ = ["Model", "Controls", "Plane", "Sphere", "Box", "SelfCollision", "Simulation", "run", "Scene", "SceneError", "load_scene",
+__all__ = ["Model", "Controls", "Controller", "ControlState", "SineNetwork", "Plane", "Sphere", "Box", "SelfCollision", "Simulation", "run", "Scene", "SceneError", "load_scene",
            "sweep", "gradient", "Frames", "DivergenceError", "KinkWarning", "SimulationClosedError"]
 __version__ = VERSION

@@ -7,6 +7,7 @@ import math
 import numpy as np
 
 from massspring.kernels import state as state_kernels
+from massspring.model import feedback
 
 
 class Schedule:
@@ -14,9 +15,16 @@ class Schedule:
     and rest lengths (``dev.l0``) of ``model.controls`` (``massspring.model.controls``) before
     a run's steps enter it. ``model`` is the model the kernels step (renumbered where
     the run renumbers); ``dt`` must divide the interval (ValueError naming ``dt``); None
-    for an error-controlled run, whose steps land on the intervals' ends (``at``, ``end``)."""
+    for an error-controlled run, whose steps land on the intervals' ends (``at``, ``end``).
 
-    def __init__(self, model, dev, dt):
+    ``feedback`` (optional): called as ``feedback(s)`` when the run enters interval s < S
+    whose values it has not chosen yet, it returns the values of the controls its
+    controller drives (``model.feedback.outputs``: "rest_lengths", "wind"), which replace
+    the model's for that interval (``values``; ``chosen`` the intervals chosen).
+    ``freeze()`` keeps the values chosen so far and calls ``feedback`` no more (a
+    gradient's runs again from kept states)."""
+
+    def __init__(self, model, dev, dt, feedback=None):
         controls = model.controls
         self.controls = controls
         self.per = None if dt is None else controls.steps_per_interval(dt)
@@ -31,6 +39,31 @@ class Schedule:
         self.rest = None
         if controls.rest_lengths is not None and controls.springs.size:
             self.rest = model.rest_lengths.astype(np.float64)
+        self.values = {name: getattr(controls, name).copy() for name in ("wind", "rest_lengths")
+                      if getattr(controls, name) is not None}
+        self.feedback = feedback
+        self.chosen = set()
+
+    def freeze(self):
+        """Call ``feedback`` no more: the values chosen so far are the run's."""
+        self.feedback = None
+
+    def snapshot(self):
+        """The intervals chosen so far (their values stay in ``values``)."""
+        return frozenset(self.chosen)
+
+    def restore(self, chosen):
+        """Back to a ``snapshot()``: intervals chosen since are chosen again when entered."""
+        self.chosen = set(chosen)
+        self.applied = None
+
+    def forget(self, t):
+        """Intervals from the one holding time ``t`` (s) on are chosen again when entered
+        (a run set to another state there); nothing once frozen."""
+        if self.feedback is not None:
+            first = self.at(t)
+            self.chosen = {s for s in self.chosen if s < first}
+            self.applied = None
 
     def interval(self, step) -> int:
         """The interval step ``step`` (from 0) is in; ``count`` and above: after the last."""
@@ -61,16 +94,20 @@ class Schedule:
         s = self.interval(step) if t is None else self.at(t)
         if s == self.applied:
             return
+        if self.feedback is not None and s < self.count and s not in self.chosen:
+            for name, value in self.feedback(s).items():
+                self.values[name][s] = value
+            self.chosen.add(s)
         held = min(s, self.count - 1)  # wind and rest lengths keep their last values
         if self.pins is not None:
             velocities = np.zeros((self.n, 3))
             if s < self.count:  # after the last interval the pins stay at their last targets
                 velocities[self.fixed] = self.pins[s]
             state_kernels.load_vectors(self.dev.pin_velocity, velocities)
-        if self.controls.wind is not None:
-            self.dev.wind[None] = self.controls.wind[held].tolist()
+        if "wind" in self.values:
+            self.dev.wind[None] = self.values["wind"][held].tolist()
         if self.rest is not None:
-            self.rest[self.controls.springs] = self.controls.rest_lengths[held]
+            self.rest[self.controls.springs] = self.values["rest_lengths"][held]
             state_kernels.load_reals(self.dev.l0, self.rest)
         self.applied = s
 
@@ -90,6 +127,10 @@ class ControlShares:
         self.rest = np.zeros((count, 0 if self.controls.springs is None else self.controls.springs.size))
         self.pins = np.zeros((count, sim.model.fixed.size, 3))
         self.seen = self._totals()
+        self.controller = sim.controller
+        self.states = sim.control_states
+        self.parameters = {} if self.controller is None else {
+            name: np.zeros(np.shape(value)) for name, value in self.controller.parameters.items()}
 
     def _totals(self):
         """The accumulators of the controls the model has (zeros for the others: not read)."""
@@ -120,6 +161,23 @@ class ControlShares:
             self.rest[held] += rest[self.schedule.controls.springs]
         if s < self.controls.intervals:
             self.pins[s] += self.sim.to_user(pins)[self.sim.model.fixed]
+        if s in self.states:
+            self._through_controller(s)
+
+    def _through_controller(self, s):
+        """Interval s's shares through the feedback controller that chose its values
+        (``model.feedback``): into its parameters, and into dL/dx, dL/dv of the state it
+        read (the adjoint's ``lx``, ``lv`` at the interval's start; pinned rows dropped)."""
+        cotangents = {name: (self.wind if name == "wind" else self.rest)[s].copy() for name in self.controller.drives}
+        params, dx, dv = feedback.pullback(self.controller, self.states[s], cotangents)
+        for name, share in params.items():
+            self.parameters[name] += share
+        model, n = self.sim.model, self.sim.model.n_particles
+        for field, rows in (("lx", dx), ("lv", dv)):
+            rows = rows.copy()
+            rows[model.fixed] = 0.0
+            total = self.adj.read(field, n) + self.sim.to_inner(rows)
+            state_kernels.load_vectors(getattr(self.adj, field), np.ascontiguousarray(total))
 
     def gradients(self, lv):
         """name -> gradient of each control; ``lv`` dL/dv of the initial state (n, 3), whose
@@ -127,6 +185,7 @@ class ControlShares:
         pins = self.pins.copy()
         pins[0] += self.sim.to_user(lv)[self.sim.model.fixed]
         grads = {"controls.wind": self.wind.copy(), "controls.rest_lengths": self.rest.copy()}
+        grads.update({f"controller.{name}": value.copy() for name, value in self.parameters.items()})
         if self.controls.pin_targets is not None:
             grads["controls.pin_targets"] = self.controls.pin_target_gradient(pins)
         return grads

@@ -22,7 +22,7 @@ from massspring.integrators import DEFAULT, INTEGRATORS, OPTIONS, takers, untake
 from massspring.kernels import divergence
 from massspring.kernels import state as state_kernels
 from massspring.model.terms import active_terms
-from massspring.model import Model
+from massspring.model import Model, feedback
 from massspring.engine.schedule import Schedule
 from massspring.solvers import PRECONDITIONERS, resolve
 from massspring.support.validate import real_array
@@ -82,6 +82,7 @@ class Snapshot:
     passes: tuple
     counters: tuple
     time: float | None = None  # an error-controlled run's time (s)
+    chosen: frozenset | None = None  # the intervals a feedback controller has chosen (``Schedule.snapshot``)
 
 
 def divergence_check(model: Model, factor=DIVERGENCE_FACTOR):
@@ -169,6 +170,12 @@ class Simulation:
         round-off (the two kernels' compilers may contract multiplies and adds
         differently).
 
+    controller : ``massspring.Controller``, optional
+        A feedback controller (``model.feedback``): as the run enters each interval of
+        the model's ``controls``, it chooses that interval's values of the controls it
+        drives from the state then (``control_states``). ``set_state`` has it choose
+        again from the new state's interval on.
+
     Only what the run needs is allocated and compiled: no CG vectors for the
     explicit integrators, no damping term with kd = 0, no gravity term with g = 0,
     no pin filter without pinned particles, no pin-velocity read without moving pins,
@@ -179,9 +186,11 @@ class Simulation:
     """
 
     def __init__(self, model, integrator=DEFAULT, dt=1e-2, precision="f64", arch="cpu", loops="auto",
-                 tol=None, min_dt=None, max_dt=None, horizon=None, **options):
+                 tol=None, min_dt=None, max_dt=None, horizon=None, controller=None, **options):
         if not isinstance(model, Model):
             raise ValueError(f"model: expected a massspring.Model, got {type(model).__name__}")
+        if controller is not None:
+            feedback.check(controller, model.controls)
         unknown = sorted(set(options) - set(OPTIONS))
         if unknown:
             raise TypeError(f"Simulation: unexpected keyword argument {unknown[0]!r} (solver options: "
@@ -262,7 +271,9 @@ class Simulation:
         dev.check[None] = self._check
         self._integrator = cls(dev, inner, self._settings)
         self._inner = inner
-        self._schedule = None if model.controls is None else Schedule(inner, dev, None if tolerance else dt)
+        self._feedback = controller
+        self._control_states = {}  # interval -> the ControlState its controls were chosen from
+        self._schedule = None if model.controls is None else self._new_schedule(dev, None if tolerance else dt)
         self._passes = tuple(kind(dev, self._integrator.cfg, inner, self._integrator.serial, dt) for kind in kinds)
         self._release = weakref.finalize(self, _release, dev, self._integrator, self._passes)
         self._controller = self._estimator = self._read_plan = None
@@ -387,6 +398,25 @@ class Simulation:
         """The control schedule (``engine.schedule.Schedule``), or None without controls."""
         return self._schedule
 
+    @property
+    def controller(self):
+        """The feedback controller (``model.feedback.Controller``), or None."""
+        return self._feedback
+
+    @property
+    def control_states(self) -> dict:
+        """interval -> the ``ControlState`` the controller chose its controls from (a copy)."""
+        return dict(self._control_states)
+
+    def _new_schedule(self, dev, dt):
+        return Schedule(self._inner, dev, dt, None if self._feedback is None else self._choose)
+
+    def _choose(self, s):
+        """Interval s's values from the feedback controller, at the current state."""
+        state = feedback.ControlState(self.positions, self.velocities, self.time, s)
+        self._control_states[s] = state
+        return feedback.outputs(self._feedback, state, self._model.controls)
+
     def snapshot(self) -> "Snapshot":
         """Everything a step changes, kept to come back to (``restore``): the state, what
         the integrator carries, each pass's state and counters, and the run's counters.
@@ -395,7 +425,10 @@ class Simulation:
         return Snapshot(self.positions, self.velocities, self._steps, self.carried_state(),
                         tuple(p.snapshot() for p in self._passes),
                         (len(self._cg_iterations), len(self._newton_iterations), self._cuts, self._cg_failures),
-                        self.time if self._clocked else None)
+                        self.time if self._clocked else None, self._chosen())
+
+    def _chosen(self):
+        return None if self._schedule is None else self._schedule.snapshot()
 
     def restore(self, snapshot: "Snapshot"):
         """Back to ``snapshot`` (a ``snapshot()`` of this run): a run continued from here
@@ -408,6 +441,8 @@ class Simulation:
             self._estimator.points = history  # the estimate's history of the run, not a restart's
         for p, kept in zip(self._passes, snapshot.passes):
             p.restore(self._integrator.state, kept)
+        if snapshot.chosen is not None:
+            self._schedule.restore(snapshot.chosen)
         cg, newton, self._cuts, self._cg_failures = snapshot.counters
         del self._cg_iterations[cg:], self._newton_iterations[newton:]
         return self
@@ -522,6 +557,8 @@ class Simulation:
             integrator.clock = clock
             if self._estimator is not None:
                 self._estimator.points = []  # the history starts afresh at the next step
+        if self._schedule is not None:
+            self._schedule.forget(self.time)  # a feedback controller chooses again from here
         return self
 
     def _pin_velocity_before(self, steps, clock=None):
@@ -585,7 +622,7 @@ class Simulation:
                                  f"{self._steps:,} steps)")
             integrator.clock = 0.0
             if self._schedule is not None:  # the controls by time: an interval need not be whole steps
-                self._schedule = Schedule(self._inner, integrator.dev, None)
+                self._schedule = self._new_schedule(integrator.dev, None)
         try:
             for h in sizes.tolist():
                 integrator.dt = h
@@ -650,7 +687,7 @@ class Simulation:
         ``carried`` only the integrator's ``carried_values``."""
         return Snapshot(None, None, self._steps, self._integrator.carried_values(), tuple(p.snapshot() for p in self._passes),
                         (len(self._cg_iterations), len(self._newton_iterations), self._cuts, self._cg_failures),
-                        self._integrator.clock)
+                        self._integrator.clock, self._chosen())
 
     def _carried_of(self, integrator, rows, kept):
         """``carried_state()`` of the state a try started from: the integrator's arrays

@@ -42,7 +42,7 @@ from massspring.device import POOL, Layout, capacity
 from massspring.support.errors import GradientError, KinkWarning
 from massspring.integrators import INTEGRATORS
 from massspring.kernels import state as state_kernels
-from massspring.model import Model, terms
+from massspring.model import Model, feedback, terms
 from massspring.model import model as model_module
 from massspring.model.controls import NAMES as CONTROL_NAMES
 from massspring.engine.schedule import ControlShares
@@ -81,7 +81,7 @@ def differentiable() -> tuple:
 
 
 def gradient(model, objective, wrt, *, steps=None, every=1, integrator="symplectic", dt=1e-2, precision="f64",
-             checkpoint=None, dts=None, tol=None, times=None, min_dt=None, max_dt=None, **options):
+             checkpoint=None, dts=None, tol=None, times=None, min_dt=None, max_dt=None, controller=None, **options):
     """The value of ``objective`` on a run of ``model`` and its gradient in ``wrt``.
 
     Parameters
@@ -98,7 +98,9 @@ def gradient(model, objective, wrt, *, steps=None, every=1, integrator="symplect
         scalar) and "wind" ((3,)) of a model with drag, "pin_velocity" ((k, 3), a row
         per pinned particle in the order of ``model.fixed``); of a model with
         ``controls`` (``massspring.Controls``), "controls.pin_targets",
-        "controls.wind" and "controls.rest_lengths", shaped as those arrays.
+        "controls.wind" and "controls.rest_lengths", shaped as those arrays; with a
+        ``controller``, "controller.<name>" for each of its ``parameters`` (shaped as
+        it), and not the controls it drives.
     steps : int >= 1
         Steps of ``dt`` (with ``dts``: len(dts), which it may repeat; with ``tol``: none).
     every : int >= 1, or increasing step numbers
@@ -119,6 +121,12 @@ def gradient(model, objective, wrt, *, steps=None, every=1, integrator="symplect
         its Newton and CG tolerances derived from tol) landing on each of ``times`` chooses the steps, then
         the gradient is that of ``dts`` = its ``step_sizes``, with frames at 0 and at
         ``times``; ``newton_tol``, ``cg_tol`` are the frozen run's.
+    controller : ``massspring.Controller``, optional
+        A feedback controller choosing the model's controls from the state
+        (``Simulation(controller=)``); the gradient goes through it, by its ``vjp``, into
+        its parameters and the states it read (not into pinned particles' rows, whose
+        motion is then not differentiable: "pin_velocity" and "controls.pin_targets"
+        are refused).
     **options : the Simulation's (``loops``, ...)
 
     Returns ``(value, grads)``: the float value and a dict of one float64 array per
@@ -126,14 +134,16 @@ def gradient(model, objective, wrt, *, steps=None, every=1, integrator="symplect
     """
     if not callable(objective):
         raise ValueError(f"objective: expected a function of the frames, got {type(objective).__name__}")
-    names = check_arguments(model, wrt, integrator, precision)
+    names = check_arguments(model, wrt, integrator, precision, controller)
+    if controller is not None:
+        options["controller"] = controller
     plan = _plan(model, integrator, steps, every, dt, precision, dts, tol, times, min_dt, max_dt, options)
     steps = plan.steps
     if checkpoint is None:
         checkpoint = default_checkpoint(model.n_particles, steps,
                                         STATE_BYTES + INTEGRATORS[integrator].kept_bytes(model))
     checkpoint = min(validate.count("checkpoint", checkpoint, low=1, high=MAX_STEPS), steps)
-    memory.check(host_bytes(model, integrator, steps, len(plan.frames), checkpoint),
+    memory.check(host_bytes(model, integrator, steps, len(plan.frames), checkpoint, controller is not None),
                  f"checkpoint: a gradient of {steps:,} steps of {model.n_particles:,} particles keeping a state every "
                  f"{checkpoint:,} steps and {len(plan.frames):,} frames (give a larger checkpoint or every)")
 
@@ -148,6 +158,8 @@ def gradient(model, objective, wrt, *, steps=None, every=1, integrator="symplect
         adj = _adjoint_bundle(sim, checkpoint)
         backward = [b for b in (p.adjoint(sim, adj) for p in sim.passes) if b is not None]  # run back where they acted
         frames, kept, last = _forward(sim, adj, plan, checkpoint, backward)
+        if sim.schedule is not None:
+            sim.schedule.freeze()  # runs again from kept states take the controls chosen
         value, partials = _call(objective, frames, model.n_particles)
         wants = Wants(masses="masses" in names, rate_gradient="damping" in names and not model.has_damping,
                       pins="pin_velocity" in names or "controls.pin_targets" in names,
@@ -296,10 +308,13 @@ def chosen_steps(model, integrator, tol, times, dt, min_dt, max_dt, precision, o
         sim.close()
 
 
-def check_arguments(model, wrt, integrator, precision="f64") -> list:
-    """The names of ``wrt``, once ``model``, ``wrt``, ``integrator`` and ``precision`` are
-    checked as ``gradient`` checks them (a ValueError naming the argument otherwise)."""
-    names = _check_wrt(wrt, model)
+def check_arguments(model, wrt, integrator, precision="f64", controller=None) -> list:
+    """The names of ``wrt``, once ``model``, ``wrt``, ``integrator``, ``precision`` and
+    ``controller`` are checked as ``gradient`` checks them (a ValueError naming the
+    argument otherwise)."""
+    if controller is not None and isinstance(model, Model):
+        feedback.check(controller, model.controls)
+    names = _check_wrt(wrt, model, controller)
     validate.choice("integrator", integrator, tuple(INTEGRATORS))
     if not INTEGRATORS[integrator].traits.differentiable:
         raise ValueError(f"integrator: gradients through {integrator!r} steps are not built yet; "
@@ -335,15 +350,17 @@ def history_stride(n) -> int:
     return capacity(n, 64)
 
 
-def host_bytes(model, integrator, steps, frames, checkpoint) -> int:
+def host_bytes(model, integrator, steps, frames, checkpoint, feedback=False) -> int:
     """Bytes a gradient holds in numpy beside its fields: the states kept at the starts of
     its stretches of ``checkpoint`` steps but the last (``_forward``, with what the
-    integrator carries), the ``frames`` the objective sees and what the passes' runs
-    backwards hold (``Pass.gradient_bytes``)."""
+    integrator carries), the ``frames`` the objective sees, what the passes' runs
+    backwards hold (``Pass.gradient_bytes``) and, with a ``feedback`` controller, the
+    state it read at each interval (``Simulation.control_states``)."""
     n = model.n_particles
     kept = (steps - 1) // checkpoint * (STATE_BYTES + INTEGRATORS[integrator].kept_bytes(model)) * n
     passes = sum(kind.gradient_bytes(model, checkpoint) for kind in for_model(model))
-    return kept + frames * STATE_BYTES * n + passes
+    read = model.controls.intervals * STATE_BYTES * n if feedback else 0
+    return kept + frames * STATE_BYTES * n + passes + read
 
 
 def default_checkpoint(n, steps, state_bytes=STATE_BYTES) -> int:
@@ -355,15 +372,25 @@ def default_checkpoint(n, steps, state_bytes=STATE_BYTES) -> int:
     return math.isqrt(steps - 1) + 1
 
 
-def _check_wrt(wrt, model):
+def _check_wrt(wrt, model, controller=None):
     names = [wrt] if isinstance(wrt, str) else list(wrt) if isinstance(wrt, (list, tuple)) else None
     if not isinstance(model, Model):
         raise ValueError(f"model: expected a massspring.Model, got {type(model).__name__}")
     if not names or not all(isinstance(name, str) for name in names):
         raise ValueError(f"wrt: expected a name or a list of names of {', '.join(PARAMETERS)}, got {wrt!r}")
+    own = {} if controller is None else {f"controller.{p}" for p in controller.parameters}
     for name in names:
+        if name in own:
+            continue
         if name not in PARAMETERS:
-            raise ValueError(f"wrt: unknown parameter {name!r}; expected some of {', '.join(PARAMETERS)}")
+            more = "" if controller is None else ", " + ", ".join(sorted(own))
+            raise ValueError(f"wrt: unknown parameter {name!r}; expected some of {', '.join(PARAMETERS)}{more}")
+        if controller is not None and (name in ("pin_velocity", "controls.pin_targets")
+                                       or name.startswith("controls.") and name[9:] in controller.drives):
+            raise ValueError(f"wrt: {name!r}: with a feedback controller, "
+                             + ("pins' motion is not differentiated (the controller's derivative in pinned "
+                                "particles' state is dropped)" if "pin" in name else
+                                "the controller sets it; ask for its parameters (controller.<name>)"))
         if PARAMETERS[name] == "spring" and model.n_springs == 0:
             raise ValueError(f"wrt: {name!r}: the model has no springs")
         if name == "pin_velocity" and not model.has_fixed:

@@ -1,0 +1,256 @@
+"""Feedback controls (``massspring.Controller``, ``massspring.SineNetwork``, issue 63): a
+controller chooses each interval's controls from the state the run enters it in, the run
+equals an open-loop run of the values it chose, and ``massspring.gradient`` goes through
+its vector-Jacobian product into its parameters and the states it read, checked against
+central differences of forward runs; bad controllers are refused by name."""
+
+import numpy as np
+import pytest
+
+import massspring as ms
+from conftest import FULL
+from massspring.model.feedback import ControlState
+from test_gradient import PINNED, SOLVED, STEP, objective, sheet
+
+DT = 2e-3
+PER = 3  # steps an interval
+INTERVALS = 3
+SPRINGS = np.array([0, 5, 7])  # the actuated springs
+RUN = dict(steps=10, every=2, dt=DT, checkpoint=4)  # three intervals and a step after the last
+NAMES = ("controller.w1", "controller.b1", "controller.w2", "controller.b2", "positions", "velocities", "stiffness")
+
+
+def network(**changes):
+    """A network watching six free particles of the sheet, its biases off zero: every
+    parameter and the state it reads move the rest lengths."""
+    free = np.array([i for i in range(sheet().n_particles) if i not in PINNED])
+    options = dict(hidden=5, waves=3, omega=40.0, position_scale=5.0, velocity_scale=1.0, seed=3)
+    options.update(changes)
+    net = ms.SineNetwork(PER * DT, SPRINGS, sheet().rest_lengths[SPRINGS], 0.2, free[:6], **options)
+    net.parameters["b1"][:] = 0.3
+    net.parameters["b2"][:] = -0.2
+    return net
+
+
+def controlled(**changes):
+    return sheet(pin_velocity=None, controls=network().controls_for(INTERVALS), **changes)
+
+
+def run_value(model, controller, integrator, options):
+    """The objective of a plain forward run (frames every ``RUN["every"]`` steps)."""
+    sim = ms.Simulation(model, integrator, dt=DT, controller=controller, **options)
+    positions, velocities, at = [], [], list(range(0, RUN["steps"] + 1, RUN["every"]))
+    try:
+        for k in at:
+            sim.step(k - sim.steps)
+            positions.append(sim.positions)
+            velocities.append(sim.velocities)
+    finally:
+        sim.close()
+    at = np.array(at)
+    return objective(ms.Frames(np.array(positions), np.array(velocities), at * DT, at))[0]
+
+
+def perturbed(name, e, direction):
+    """(model, controller) with ``name`` moved by e * direction."""
+    net = network()
+    if name.startswith("controller."):
+        key = name.split(".", 1)[1]
+        net.parameters[key] = net.parameters[key] + e * direction
+        return controlled(), net
+    return controlled(**{name: getattr(controlled(), name) + e * direction}), net
+
+
+def scale(name):
+    if name.startswith("controller."):
+        return np.abs(network().parameters[name.split(".", 1)[1]]).max()
+    return np.abs(getattr(controlled(), name)).max()
+
+
+@pytest.mark.fast_sample(integrator=["symplectic"])
+@pytest.mark.parametrize("integrator", ms.gradients.differentiable())
+def test_gradients_through_a_feedback_controller_match_central_differences(integrator):
+    """The network's parameters, the initial state (which the network reads at every
+    interval's start) and a model parameter: directional derivatives within 1e-6 of
+    central differences (Richardson-combined for the Newton-solved steps, as
+    ``test_gradient``). Without the controller's share of the state's adjoint, the
+    symplectic run's derivatives are off by 1e-3 to 2.5e-2 relative (measured)."""
+    options = SOLVED.get(integrator, {})
+    value, grads = ms.gradient(controlled(), objective, list(NAMES), integrator=integrator, controller=network(),
+                               **RUN, **options)
+    assert value == pytest.approx(run_value(controlled(), network(), integrator, options), rel=1e-12)
+    rng = np.random.default_rng(0)
+    for name in NAMES:
+        gradient = grads[name]
+        direction = rng.normal(size=gradient.shape)
+        if name in ("positions", "velocities"):
+            direction[PINNED] = 0
+        direction /= np.abs(direction).max()
+        eps = STEP.get(integrator, 1e-6) * max(1.0, scale(name))
+
+        def central(e):
+            ends = [run_value(*perturbed(name, sign * e, direction), integrator, options) for sign in (1, -1)]
+            return (ends[0] - ends[1]) / (2 * e)
+
+        numeric = central(eps) if integrator not in STEP else (4 * central(eps) - central(2 * eps)) / 3
+        exact = float(np.sum(gradient * direction))
+        assert abs(exact - numeric) <= 1e-6 * abs(numeric), (name, exact, numeric)
+
+
+@pytest.mark.fast_sample(integrator=["implicit"])
+@pytest.mark.parametrize("integrator", ["symplectic", "implicit", "backward-euler"])
+def test_a_feedback_run_is_the_open_loop_run_of_the_values_it_chose(integrator):
+    """The controller is called once an interval, with the state at the interval's start,
+    and the run equals to the bit an open-loop run of the rest lengths it chose."""
+    calls = []
+
+    class Recording(ms.SineNetwork):
+        def controls(self, state):
+            calls.append(state)
+            return super().controls(state)
+
+    net = network()
+    recording = Recording(PER * DT, SPRINGS, net.rest, 0.2, net.particles, hidden=5, waves=3, omega=40.0,
+                          position_scale=5.0, velocity_scale=1.0, seed=3)
+    recording.parameters = net.parameters
+    sim = ms.Simulation(controlled(), integrator, dt=DT, controller=recording)
+    starts = []
+    for _ in range(INTERVALS + 1):
+        starts.append((sim.positions, sim.velocities))
+        sim.step(PER)
+    assert [c.interval for c in calls] == list(range(INTERVALS))
+    for call, (x, v) in zip(calls, starts):
+        assert call.time == call.interval * PER * DT
+        assert np.array_equal(call.positions, x) and np.array_equal(call.velocities, v)
+    chosen = sim.schedule.values["rest_lengths"]
+    assert np.all(chosen != net.rest) and np.all(np.abs(chosen / net.rest - 1) < 0.2)
+    plain = ms.Simulation(sheet(pin_velocity=None, controls=ms.Controls(PER * DT, springs=SPRINGS,
+                                                                        rest_lengths=chosen)), integrator, dt=DT)
+    plain.step(sim.steps)
+    assert np.array_equal(plain.positions, sim.positions) and np.array_equal(plain.velocities, sim.velocities)
+    # set back to the start: the controller chooses again, from the state given
+    sim.set_state(*starts[0])
+    sim.step(1)
+    assert len(calls) == INTERVALS + 1 and calls[-1].interval == 0
+    sim.close()
+    plain.close()
+
+
+def test_the_networks_vector_jacobian_product_is_its_jacobians_transpose():
+    """``SineNetwork.vjp`` against central differences of ``controls`` in every parameter
+    and in the state (its centre included), along random directions, to 1e-8."""
+    net = network()
+    rng = np.random.default_rng(2)
+    n = sheet().n_particles
+    state = ControlState(sheet().positions, rng.normal(0, 0.3, (n, 3)), 0.013, 2)
+    cotangent = {"rest_lengths": rng.normal(size=SPRINGS.size)}
+    params, dx, dv = net.vjp(state, cotangent)
+
+    def along(change):
+        e = 1e-6
+        ends = []
+        for sign in (1, -1):
+            trial, where = change(sign * e)
+            ends.append(float(cotangent["rest_lengths"] @ trial.controls(where)["rest_lengths"]))
+        return (ends[0] - ends[1]) / (2 * e)
+
+    for key in net.parameters:
+        d = rng.normal(size=net.parameters[key].shape)
+
+        def change(e, key=key, d=d):
+            trial = network()
+            trial.parameters[key] = trial.parameters[key] + e * d
+            return trial, state
+        assert abs(np.sum(params[key] * d) - along(change)) <= 1e-8 * max(1.0, abs(along(change))), key
+    for which, exact in (("positions", dx), ("velocities", dv)):
+        d = rng.normal(size=(n, 3))
+
+        def change(e, which=which, d=d):
+            rows = {"positions": state.positions, "velocities": state.velocities}
+            rows[which] = rows[which] + e * d
+            return net, ControlState(rows["positions"], rows["velocities"], state.time, state.interval)
+        assert abs(np.sum(exact * d) - along(change)) <= 1e-8 * max(1.0, abs(along(change))), which
+    assert np.all(dx[[0, 3]] == 0)  # particles it does not watch
+
+
+@FULL
+def test_gradients_through_a_feedback_controller_with_chosen_steps():
+    """An error-controlled run chooses the steps (``tol``, ``times``); the gradient of that
+    step sequence through the controller against central differences of replayed runs
+    with the same steps (the controller choosing again in each)."""
+    integrator, options = "implicit", SOLVED["implicit"]
+    times = [0.008, 0.02]
+    value, grads = ms.gradient(controlled(), objective, ["controller.w1", "velocities"], integrator=integrator,
+                               tol=1e-4, times=times, controller=network(), **options)
+    sizes = ms.gradients.chosen_steps(controlled(), integrator, 1e-4, np.array(times), 1e-2, None, None, "f64",
+                                      dict(controller=network()))
+    dts, frames = sizes
+
+    def replayed(model, net):
+        sim = ms.Simulation(model, integrator, dt=PER * DT, controller=net, **options)
+        positions, velocities = [sim.positions], [sim.velocities]
+        for a, b in zip(frames[:-1], frames[1:]):
+            sim.replay(dts[a:b])
+            positions.append(sim.positions)
+            velocities.append(sim.velocities)
+        sim.close()
+        return objective(ms.Frames(np.array(positions), np.array(velocities), np.array([0.0, *times]), frames))[0]
+
+    assert value == pytest.approx(replayed(controlled(), network()), rel=1e-12)
+    rng = np.random.default_rng(4)
+    for name in ("controller.w1", "velocities"):
+        direction = rng.normal(size=grads[name].shape)
+        if name == "velocities":
+            direction[PINNED] = 0
+        direction /= np.abs(direction).max()
+        e = 1e-6 * max(1.0, scale(name))
+        numeric = (replayed(*perturbed(name, e, direction)) - replayed(*perturbed(name, -e, direction))) / (2 * e)
+        exact = float(np.sum(grads[name] * direction))
+        assert abs(exact - numeric) <= 1e-6 * abs(numeric), (name, exact, numeric)
+
+
+class Broken(ms.Controller):
+    """A controller whose answer is given: ``answer`` for every interval."""
+
+    def __init__(self, answer, interval=PER * DT, drives=("rest_lengths",), springs=SPRINGS):
+        self.interval, self.drives, self.springs, self.answer = interval, drives, springs, answer
+        self.parameters = {"k": np.zeros(2)}
+
+    def controls(self, state):
+        return self.answer
+
+    def vjp(self, state, cotangents):
+        return {"k": np.zeros(2)}, None, None
+
+
+def test_bad_controllers_are_refused_naming_what_is_wrong():
+    """Before any step: not a controller, a model without controls, another interval,
+    controls the model lacks, other springs; gradients asked of what it sets; at the
+    interval's start: an answer of the wrong shape or sign."""
+    good = {"rest_lengths": np.full(3, 0.1)}
+    model = controlled()
+    cases = [
+        (dict(model=model, controller=object()), "controller: expected a massspring.Controller"),
+        (dict(model=sheet(pin_velocity=None), controller=network()), "controller: the model has no controls"),
+        (dict(model=model, controller=Broken(good, interval=0.01)), "controller.interval"),
+        (dict(model=model, controller=Broken(good, drives=("wind",))), "controller.drives: 'wind'"),
+        (dict(model=model, controller=Broken(good, drives=("gravity",))), "controller.drives: expected"),
+        (dict(model=model, controller=Broken(good, springs=np.array([0, 5, 8]))), "controller.springs"),
+    ]
+    for kwargs, message in cases:
+        with pytest.raises(ValueError, match=message.replace(".", r"\.").replace("(", r"\(")):
+            ms.Simulation(kwargs["model"], "symplectic", dt=DT, controller=kwargs["controller"])
+        with pytest.raises(ValueError, match=message.replace(".", r"\.").replace("(", r"\(")):
+            ms.gradient(kwargs["model"], objective, "stiffness", steps=2, dt=DT, controller=kwargs["controller"])
+    for name, message in (("controls.rest_lengths", "the controller sets it"), ("controller.w9", "unknown parameter"),
+                          ("pin_velocity", "pins' motion")):
+        with pytest.raises(ValueError, match=message):
+            ms.gradient(sheet(controls=network().controls_for(INTERVALS)), objective, name, steps=2, dt=DT,
+                        controller=network())
+    for answer, message in (({"wind": np.zeros(3)}, "no 'rest_lengths'"),
+                            ({"rest_lengths": np.ones(2)}, r"'rest_lengths' at t = 0 s must be \(3,\)"),
+                            ({"rest_lengths": -np.ones(3)}, "a rest length < 0"), (None, "expected a dict")):
+        sim = ms.Simulation(model, "symplectic", dt=DT, controller=Broken(answer))
+        with pytest.raises(ValueError, match="controller.controls: " + message):
+            sim.step(1)
+        sim.close()
