@@ -26,6 +26,25 @@ def load_reals(field: ti.template(), values: ti.types.ndarray(dtype=ti.f64, ndim
 
 
 @ti.kernel
+def read_reals(field: ti.template(), out: ti.types.ndarray(dtype=ti.f64, ndim=1)):
+    """out[i] = field[i] as float64 for the first len(out) entries (a read without
+    ``to_numpy``'s allocation of the whole field)."""
+    for i in range(out.shape[0]):
+        out[i] = ti.cast(field[i], ti.f64)
+
+
+@ti.kernel
+def add_vector_pair(a: ti.template(), b: ti.template(), da: ti.types.ndarray(dtype=ti.f64, ndim=2),
+                    db: ti.types.ndarray(dtype=ti.f64, ndim=2)):
+    """a[i] += da[i], b[i] += db[i] for the (n, 3) float64 rows (an adjoint's dL/dx and
+    dL/dv given a share from outside the steps: a feedback controller's)."""
+    for i in range(da.shape[0]):
+        for c in ti.static(range(3)):
+            a[i][c] += da[i, c]
+            b[i][c] += db[i, c]
+
+
+@ti.kernel
 def copy_state(dst: ti.template(), src: ti.template(), n: ti.i32):
     """dst.x[i], dst.v[i] = src.x[i], src.v[i] for the n particles (states of one bundle)."""
     for i in range(n):

@@ -137,7 +137,9 @@ class ControlShares:
         n, m = self.sim.model.n_particles, self.sim.model.n_springs
         controls = self.controls
         wind = self.adj.read("gwind", n).sum(axis=0) if controls.wind is not None else np.zeros(3)
-        rest = self.adj.read("gl0", m) if m and controls.rest_lengths is not None else np.zeros(m)
+        rest = np.zeros(m)
+        if m and controls.rest_lengths is not None:
+            state_kernels.read_reals(self.adj.gl0, rest)
         pins = self.adj.read("gp", n) if controls.pin_targets is not None else np.zeros((n, 3))
         return wind, rest, pins
 
@@ -172,12 +174,11 @@ class ControlShares:
         params, dx, dv = feedback.pullback(self.controller, self.states[s], cotangents)
         for name, share in params.items():
             self.parameters[name] += share
-        model, n = self.sim.model, self.sim.model.n_particles
-        for field, rows in (("lx", dx), ("lv", dv)):
-            rows = rows.copy()
-            rows[model.fixed] = 0.0
-            total = self.adj.read(field, n) + self.sim.to_inner(rows)
-            state_kernels.load_vectors(getattr(self.adj, field), np.ascontiguousarray(total))
+        fixed = self.sim.model.fixed
+        dx, dv = dx.copy(), dv.copy()
+        dx[fixed] = dv[fixed] = 0.0
+        state_kernels.add_vector_pair(self.adj.lx, self.adj.lv, np.ascontiguousarray(self.sim.to_inner(dx)),
+                                      np.ascontiguousarray(self.sim.to_inner(dv)))
 
     def gradients(self, lv):
         """name -> gradient of each control; ``lv`` dL/dv of the initial state (n, 3), whose

@@ -413,7 +413,8 @@ class Simulation:
 
     def _choose(self, s):
         """Interval s's values from the feedback controller, at the current state."""
-        state = feedback.ControlState(self.positions, self.velocities, self.time, s)
+        x, v, _ = self._read_state(self._open())
+        state = feedback.ControlState(self.to_user(x), self.to_user(v), self.time, s)
         self._control_states[s] = state
         return feedback.outputs(self._feedback, state, self._model.controls)
 

@@ -27,6 +27,7 @@ when a gradient is asked for: a forward run is as before.
 from __future__ import annotations
 
 import bisect
+import dataclasses
 import math
 import warnings
 from dataclasses import dataclass
@@ -306,6 +307,18 @@ def chosen_steps(model, integrator, tol, times, dt, min_dt, max_dt, precision, o
         return sim.step_sizes, np.array(at, dtype=np.int64)
     finally:
         sim.close()
+
+
+def with_parameters(model, values) -> Model:
+    """``model`` with the arrays of ``values`` (names of ``PARAMETERS`` -> arrays) in place of
+    its own, "controls.<name>" in its ``Controls``; checked as any Model is."""
+    controls = {name.split(".", 1)[1]: value for name, value in values.items() if name.startswith("controls.")}
+    own = {name: value for name, value in values.items() if not name.startswith("controls.")}
+    if controls:
+        if model.controls is None:
+            raise ValueError(f"{next(iter(controls))!r}: the model has no controls")
+        own["controls"] = dataclasses.replace(model.controls, **controls)
+    return model.replaced(**own) if own else model
 
 
 def check_arguments(model, wrt, integrator, precision="f64", controller=None) -> list:
