@@ -19,25 +19,31 @@ def load_integers(field: ti.template(), values: ti.types.ndarray(dtype=ti.i32, n
 
 
 @ti.kernel
-def load_reals(field: ti.template(), values: ti.types.ndarray(dtype=ti.f64, ndim=1)):
-    """field[i] = values[i] for the (n,) float64 ``values``, cast to the field's precision."""
+def load_reals(field: ti.template(), values: ti.types.ndarray(dtype=ti.f64, ndim=1), serial: ti.template()):
+    """field[i] = values[i] for the (n,) float64 ``values``, cast to the field's precision
+    (``serial``: one thread, for a run of serial loops: a small one, whose every launch a
+    parallel loop's start would cost several times over)."""
+    ti.loop_config(serialize=serial)
     for i in range(values.shape[0]):
         field[i] = ti.cast(values[i], field.dtype)
 
 
 @ti.kernel
-def read_reals(field: ti.template(), out: ti.types.ndarray(dtype=ti.f64, ndim=1)):
+def read_reals(field: ti.template(), out: ti.types.ndarray(dtype=ti.f64, ndim=1), serial: ti.template()):
     """out[i] = field[i] as float64 for the first len(out) entries (a read without
-    ``to_numpy``'s allocation of the whole field)."""
+    ``to_numpy``'s allocation of the whole field; ``serial`` as ``load_reals``)."""
+    ti.loop_config(serialize=serial)
     for i in range(out.shape[0]):
         out[i] = ti.cast(field[i], ti.f64)
 
 
 @ti.kernel
 def add_vector_pair(a: ti.template(), b: ti.template(), da: ti.types.ndarray(dtype=ti.f64, ndim=2),
-                    db: ti.types.ndarray(dtype=ti.f64, ndim=2)):
+                    db: ti.types.ndarray(dtype=ti.f64, ndim=2), serial: ti.template()):
     """a[i] += da[i], b[i] += db[i] for the (n, 3) float64 rows (an adjoint's dL/dx and
-    dL/dv given a share from outside the steps: a feedback controller's)."""
+    dL/dv given a share from outside the steps: a feedback controller's; ``serial`` as
+    ``load_reals``)."""
+    ti.loop_config(serialize=serial)
     for i in range(da.shape[0]):
         for c in ti.static(range(3)):
             a[i][c] += da[i, c]
@@ -100,11 +106,13 @@ def restore_state(hx, hv, dst, n, slot, stride):
 
 @ti.kernel
 def read_state(src: ti.template(), out: ti.types.ndarray(dtype=ti.f64, ndim=2), n: ti.i32,
-               extra: ti.template()):
+               extra: ti.template(), serial: ti.template()):
     """out[i] = (x_i, v_i, then the fields of ``extra`` at i) float64 of the state ``src``
     (m, m/s): a state read in one launch (an error-controlled run reads each step's, with
     what its integrator carries from step to step). ``extra``: a tuple of (field, first
-    column, width; 0 for a scalar field), read as float64 (int32 and f32 values exactly)."""
+    column, width; 0 for a scalar field), read as float64 (int32 and f32 values exactly);
+    ``serial`` as ``load_reals``."""
+    ti.loop_config(serialize=serial)
     for i in range(n):
         for c in ti.static(range(3)):
             out[i, c] = ti.cast(src.x[i][c], ti.f64)

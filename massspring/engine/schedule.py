@@ -22,9 +22,10 @@ class Schedule:
     controller drives (``model.feedback.outputs``: "rest_lengths", "wind"), which replace
     the model's for that interval (``values``; ``chosen`` the intervals chosen).
     ``freeze()`` keeps the values chosen so far and calls ``feedback`` no more (a
-    gradient's runs again from kept states)."""
+    gradient's runs again from kept states). ``serial``: the run's loops are serial (its
+    writes then run on one thread)."""
 
-    def __init__(self, model, dev, dt, feedback=None):
+    def __init__(self, model, dev, dt, feedback=None, serial=False):
         controls = model.controls
         self.controls = controls
         self.per = None if dt is None else controls.steps_per_interval(dt)
@@ -43,6 +44,7 @@ class Schedule:
                       if getattr(controls, name) is not None}
         self.feedback = feedback
         self.chosen = set()
+        self.serial = serial
 
     def freeze(self):
         """Call ``feedback`` no more: the values chosen so far are the run's."""
@@ -108,7 +110,7 @@ class Schedule:
             self.dev.wind[None] = self.values["wind"][held].tolist()
         if self.rest is not None:
             self.rest[self.controls.springs] = self.values["rest_lengths"][held]
-            state_kernels.load_reals(self.dev.l0, self.rest)
+            state_kernels.load_reals(self.dev.l0, self.rest, self.serial)
         self.applied = s
 
 
@@ -139,7 +141,7 @@ class ControlShares:
         wind = self.adj.read("gwind", n).sum(axis=0) if controls.wind is not None else np.zeros(3)
         rest = np.zeros(m)
         if m and controls.rest_lengths is not None:
-            state_kernels.read_reals(self.adj.gl0, rest)
+            state_kernels.read_reals(self.adj.gl0, rest, self.schedule.serial)
         pins = self.adj.read("gp", n) if controls.pin_targets is not None else np.zeros((n, 3))
         return wind, rest, pins
 
@@ -178,7 +180,7 @@ class ControlShares:
         dx, dv = dx.copy(), dv.copy()
         dx[fixed] = dv[fixed] = 0.0
         state_kernels.add_vector_pair(self.adj.lx, self.adj.lv, np.ascontiguousarray(self.sim.to_inner(dx)),
-                                      np.ascontiguousarray(self.sim.to_inner(dv)))
+                                      np.ascontiguousarray(self.sim.to_inner(dv)), self.schedule.serial)
 
     def gradients(self, lv):
         """name -> gradient of each control; ``lv`` dL/dv of the initial state (n, 3), whose

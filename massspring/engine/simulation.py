@@ -409,12 +409,16 @@ class Simulation:
         return dict(self._control_states)
 
     def _new_schedule(self, dev, dt):
-        return Schedule(self._inner, dev, dt, None if self._feedback is None else self._choose)
+        return Schedule(self._inner, dev, dt, None if self._feedback is None else self._choose,
+                        self._integrator.serial)
 
     def _choose(self, s):
         """Interval s's values from the feedback controller, at the current state."""
-        x, v, _ = self._read_state(self._open())
-        state = feedback.ControlState(self.to_user(x), self.to_user(v), self.time, s)
+        n = self._model.n_particles
+        rows = np.empty((n, 6))
+        integrator = self._open()
+        state_kernels.read_state(integrator.state, rows, n, (), integrator.serial)  # as it is, unsettled: one launch
+        state = feedback.ControlState(self.to_user(rows[:, :3]), self.to_user(rows[:, 3:]), self.time, s)
         self._control_states[s] = state
         return feedback.outputs(self._feedback, state, self._model.controls)
 
@@ -679,7 +683,7 @@ class Simulation:
             self._read_plan = (tuple(extra), rows, column)
         extra, rows, columns = self._read_plan
         out = np.empty((self._model.n_particles, columns))
-        state_kernels.read_state(integrator.state, out, self._model.n_particles, extra)
+        state_kernels.read_state(integrator.state, out, self._model.n_particles, extra, integrator.serial)
         return out[:, :3], out[:, 3:6], {name: out[:, where] for name, where in rows.items()}
 
     def _kept(self):

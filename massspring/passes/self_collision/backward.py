@@ -104,7 +104,7 @@ class PassSteps:
             gx0, gm, gk = shares
             lx += gx0
             if wants.masses:
-                state_kernels.load_reals(adj.gm, adj.read("gm", n) + gm)
+                state_kernels.load_reals(adj.gm, adj.read("gm", n) + gm, False)
             self.k_r += gk
         if pairs is not None:
             x, _ = self._row(adj.hx, adj.hv, slot)

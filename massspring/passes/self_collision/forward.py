@@ -288,5 +288,5 @@ class SelfCollisionPass(Pass):
             if self.cfg.self_pairs:
                 self._list(state)
             state_kernels.load_vectors(self.dev.sc_anchor, carried["sc_anchor"].astype(np.float64))
-            state_kernels.load_reals(self.dev.sc_free, carried["sc_free"].astype(np.float64))
+            state_kernels.load_reals(self.dev.sc_free, carried["sc_free"].astype(np.float64), False)
             self_collision_begin(self.dev, state, False, self.serial)
