@@ -307,26 +307,26 @@ def main(argv=None):
     sys.path.insert(0, str(Path(__file__).resolve().parent))
     import output
 
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--difftaichi", required=True,
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--difftaichi", required=True,
                         help="the examples/ folder of a difftaichi checkout (mass_spring.py, "
                         "mass_spring_robot_config.py)")
-    parser.add_argument("--robot", type=int, default=2,
+    p.add_argument("--robot", type=int, default=2,
                         help="robot id of mass_spring_robot_config.py (default 2)")
-    parser.add_argument("--iters", type=int, default=100, help="training iterations (default 100)")
-    parser.add_argument("--threads", type=int, default=None,
+    p.add_argument("--iters", type=int, default=100, help="training iterations (default 100)")
+    p.add_argument("--threads", type=int, default=None,
                         help="Taichi CPU threads (arch=cpu, cpu_max_num_threads); default: Taichi's")
-    output.add_json(parser, "difftaichi_runner")
-    args = parser.parse_args(argv)
+    output.add_json(p, "difftaichi_runner")
+    args = p.parse_args(argv)
     try:
         check_arguments(args.difftaichi, args.robot, args.iters, args.threads)
     except ValueError as error:
-        print(f"{parser.prog}: error: {error}", file=sys.stderr)
+        print(f"{p.prog}: error: {error}", file=sys.stderr)
         return 2
     try:
         result = run(args.difftaichi, args.robot, args.iters, args.threads)
     except RuntimeError as error:
-        print(f"{parser.prog}: error: {error}", file=sys.stderr)
+        print(f"{p.prog}: error: {error}", file=sys.stderr)
         return 1
     print()
     width = print_table(result)
