@@ -183,9 +183,15 @@ def lagged_directions(dev, cfg: ti.template(), ahead):
 
 
 @ti.kernel
-def newton_lag(dev: ti.template(), cfg: ti.template(), ahead: ti.f64):
-    """``lagged_directions`` at x_n + ``ahead`` v_n (``ahead`` in s), once a step, before its first refresh."""
-    lagged_directions(dev, cfg, ti.cast(ahead, cfg.real))
+def newton_lag(dev: ti.template(), cfg: ti.template(), ahead: ti.f64, serial: ti.template()):
+    """``lagged_directions`` at x_n + ``ahead`` v_n (``ahead`` in s), once a step, before its
+    first refresh (``serial``: in one thread, as ``newton_start``)."""
+    if ti.static(serial):
+        ti.loop_config(serialize=True)
+        for _ in range(1):
+            lagged_directions(dev, cfg, ti.cast(ahead, cfg.real))
+    else:
+        lagged_directions(dev, cfg, ti.cast(ahead, cfg.real))
 
 
 @ti.func
@@ -297,9 +303,14 @@ def trial(dev, cfg: ti.template(), h, alpha):
 
 
 @ti.kernel
-def newton_direction(dev: ti.template(), cfg: ti.template()):
-    """``direction``."""
-    direction(dev, cfg)
+def newton_direction(dev: ti.template(), cfg: ti.template(), serial: ti.template()):
+    """``direction`` (``serial``: in one thread, as ``newton_start``)."""
+    if ti.static(serial):
+        ti.loop_config(serialize=True)
+        for _ in range(1):
+            direction(dev, cfg)
+    else:
+        direction(dev, cfg)
 
 
 @ti.func

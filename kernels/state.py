@@ -51,8 +51,10 @@ def add_vector_pair(a: ti.template(), b: ti.template(), da: ti.types.ndarray(dty
 
 
 @ti.kernel
-def copy_state(dst: ti.template(), src: ti.template(), n: ti.i32):
-    """dst.x[i], dst.v[i] = src.x[i], src.v[i] for the n particles (states of one bundle)."""
+def copy_state(dst: ti.template(), src: ti.template(), n: ti.i32, serial: ti.template()):
+    """dst.x[i], dst.v[i] = src.x[i], src.v[i] for the n particles (states of one bundle;
+    ``serial`` as ``load_reals``)."""
+    ti.loop_config(serialize=serial)
     for i in range(n):
         dst.x[i] = src.x[i]
         dst.v[i] = src.v[i]

@@ -12,6 +12,7 @@ jax = pytest.importorskip("jax")
 jnp = pytest.importorskip("jax.numpy")
 
 import massspring as ms  # noqa: E402
+from conftest import FULL  # noqa: E402
 from massspring import jax as msjax  # noqa: E402
 from test_feedback import RUN, controlled, network, objective  # noqa: E402
 
@@ -54,6 +55,7 @@ def test_the_bridge_gives_massspring_gradients_value_and_gradients():
     assert np.allclose(dphysics["stiffness"], expected["stiffness"], rtol=1e-12, atol=1e-16)
 
 
+@FULL
 def test_a_physics_gradient_agrees_with_central_differences_of_the_bridges_value():
     """Without a policy: d/d(damping) along a random direction, to 1e-6."""
     model = controlled().replaced(controls=None)
@@ -69,6 +71,7 @@ def test_a_physics_gradient_agrees_with_central_differences_of_the_bridges_value
     assert abs(float(np.sum(grad * direction)) - numeric) <= 1e-6 * abs(numeric)
 
 
+@FULL
 def test_float32_inputs_get_float32_gradients_and_training_lowers_the_loss():
     """JAX's default float32: the policy runs in float32 (the run in float64), the
     gradients come back as float32; five normalised gradient steps (DiffTaichi's update:

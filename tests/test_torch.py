@@ -12,6 +12,7 @@ import pytest
 torch = pytest.importorskip("torch")
 
 import massspring as ms  # noqa: E402
+from conftest import FULL  # noqa: E402
 from massspring import torch as mstorch  # noqa: E402
 from test_feedback import RUN, controlled, network, objective  # noqa: E402
 
@@ -62,6 +63,7 @@ def test_the_bridge_gives_massspring_gradients_value_and_gradients():
     assert np.allclose(stiffness.grad.numpy(), expected["stiffness"], rtol=1e-12, atol=1e-16)
 
 
+@FULL
 def test_a_physics_gradient_agrees_with_central_differences_of_the_bridges_value():
     """Without a policy: d/d(damping) along a random direction, to 1e-6."""
     model = controlled().replaced(controls=None)
@@ -75,6 +77,7 @@ def test_a_physics_gradient_agrees_with_central_differences_of_the_bridges_value
     assert abs(float(torch.sum(damping.grad * direction)) - numeric) <= 1e-6 * abs(numeric)
 
 
+@FULL
 def test_a_float32_module_gets_float32_gradients_and_torch_optim_trains_it():
     """A float32 module (the run in float64): float32 gradients; five steps of
     ``torch.optim.SGD`` on the normalised gradient lower the loss each time."""

@@ -257,5 +257,5 @@ class SwappingStates(Integrator):
 
     def settle(self):
         if self.state is not self.dev.state:
-            state_kernels.copy_state(self.dev.state, self.state, self.dev.n)
+            state_kernels.copy_state(self.dev.state, self.state, self.dev.n, self.serial)
             self.state, self.spare = self.dev.state, self.state

@@ -226,7 +226,7 @@ class BackwardEuler(ImplicitEuler):
         if self.history is not None:
             self.taken[self.steps] = (touching > 0, self.base_is_bdf2())
         if cfg.lagged:
-            newton.newton_lag(dev, cfg, self.ahead(h))
+            newton.newton_lag(dev, cfg, self.ahead(h), self.serial)
         self.tries += 1
         if self.one_launch():
             self._stats = self._newton_in_one_launch(h, t, eps)
@@ -304,7 +304,7 @@ class BackwardEuler(ImplicitEuler):
             if last.reason == "non-finite":
                 norm = math.inf
                 break
-            newton.newton_direction(dev, cfg)
+            newton.newton_direction(dev, cfg, self.serial)
             alpha, tried = 1.0, 0
             while True:
                 change, slope, _ = newton.newton_trial(dev, cfg, h, alpha, serial)
