@@ -10,8 +10,8 @@ walker trained in both engines.
    velocity, 200 symplectic steps of half the predicted stability limit.
 2. Training (with ``--difftaichi PATH``, the ``examples/`` folder of a checkout of
    https://github.com/taichi-dev/difftaichi): DiffTaichi's own ``mass_spring.py`` robot 2
-   (``benchmarks/difftaichi_runner.py``: its source run as it is, GUI stubbed) and
-   ``examples/walker.py``'s copy of the robot, each trained ``--iterations`` iterations
+   (``benchmarks/difftaichi_runner.py``: its source run as it is, GUI stubbed; another
+   with ``--robot``) and ``examples/walker.py``'s copy of the robot, each trained ``--iterations`` iterations
    with DiffTaichi's update (a step of 0.2 along the normalised gradient); the distance
    the head travelled in the last iteration's run (682 steps of 4 ms each) and the median
    CPU and wall seconds per iteration after the first (DiffTaichi's own process, float32;
@@ -65,6 +65,7 @@ def parse_args(argv=None):
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--difftaichi", help="the examples/ folder of a DiffTaichi checkout (the training race)")
     p.add_argument("--iterations", type=int, default=100, help="training iterations of each engine (0: none)")
+    p.add_argument("--robot", type=int, choices=walker.ROBOTS, default=2, help="DiffTaichi's robot (default 2)")
     p.add_argument("--resolution", type=int, default=64, help="the cloth's resolution (default 64)")
     p.add_argument("--repeats", type=int, default=5)
     output.add_json(p, "walker")
@@ -112,7 +113,7 @@ def cloth_case(resolution):
     return model, controller, steps, dt, objective
 
 
-def train_massspring(iterations):
+def train_massspring(iterations, number):
     """Per-iteration distance (m) and CPU and wall seconds of ``walker.train``'s loop."""
     cpu, marks = [], []
 
@@ -121,7 +122,7 @@ def train_massspring(iterations):
         marks.append(time.perf_counter())
 
     start_cpu, start_wall = time.process_time(), time.perf_counter()
-    distances, _ = walker.train(iterations, report=report)
+    distances, _ = walker.train(iterations, report=report, number=number)
     cpu_s = np.diff([start_cpu, *cpu])
     wall_s = np.diff([start_wall, *marks])
     return {"distances": distances.tolist(), "cpu_s": cpu_s.tolist(), "wall_s": wall_s.tolist()}
@@ -136,8 +137,9 @@ def summary(distance, cpu_s, wall_s):
 def main(argv=None):
     args = parse_args(argv)
     out = {"cost": {}, "training": {}}
-    net = walker.network()
-    out["cost"]["walker"] = cost(walker.model(net), net, walker.STEPS, walker.DT, walker.head_x, args.repeats)
+    net = walker.network(number=args.robot)
+    out["cost"]["walker"] = cost(walker.model(net, number=args.robot), net, walker.STEPS, walker.DT, walker.head_x,
+                                 args.repeats)
     out["cost"][f"cloth {args.resolution}"] = cost(*cloth_case(args.resolution), repeats=args.repeats)
     print(f"{'run':<14} {'forward s':>10} {'gradient s':>11} {'ratio':>7}")
     for name, row in out["cost"].items():
@@ -146,11 +148,11 @@ def main(argv=None):
         if args.difftaichi:
             import difftaichi_runner
 
-            theirs = difftaichi_runner.run(args.difftaichi, 2, args.iterations, quiet=True)
+            theirs = difftaichi_runner.run(args.difftaichi, args.robot, args.iterations, quiet=True)
             out["training"]["difftaichi"] = {**summary(theirs["distance"], [i["cpu_s"] for i in theirs["iterations"]],
                                                       [i["wall_s"] for i in theirs["iterations"]]),
                                              "source": theirs["difftaichi"], "losses": [i["loss"] for i in theirs["iterations"]]}
-        ours = train_massspring(args.iterations)
+        ours = train_massspring(args.iterations, args.robot)
         out["training"]["massspring"] = {**summary(ours["distances"][-1], ours["cpu_s"], ours["wall_s"]),
                                          "distances": ours["distances"]}
         print(f"\n{args.iterations} training iterations, 682 steps of 4 ms each")

@@ -1,10 +1,11 @@
 """DiffTaichi's mass-spring walker, trained with a feedback controller through massspring.
 
-The robot is robot 2 of DiffTaichi's ``mass_spring.py`` (Hu et al., "DiffTaichi:
-Differentiable Programming for Physical Simulation", ICLR 2020), written down here as
-data: nine squares of 5 cm on a 2-D grid, each with its two vertical sides, its
-horizontal sides and both diagonals as springs (ks = 3e4 N/m, unit masses), the vertical
-sides of four squares actuated (eight muscles) (their rest lengths move within +-15%). It stands in the
+The robot is one of the four of DiffTaichi's ``mass_spring.py`` (Hu et al., "DiffTaichi:
+Differentiable Programming for Physical Simulation", ICLR 2020; ``--robot``, 2 by
+default), written down here as data (``robot``): robot 2 is nine squares of 5 cm on a
+2-D grid, each with its vertical and horizontal sides and both diagonals as springs (ks
+= 3e4 N/m, unit masses), the vertical sides of four squares actuated (eight muscles,
+their rest lengths moving within +-15%). It stands in the
 x-y plane (z = 0) on a ground at y = 0.1 m with friction, under gravity 4.8 m/s^2 and an
 air drag of 15 N s/m per particle (DiffTaichi's damping: its velocities shrink by
 exp(-15 dt) a step). A ``SineNetwork`` (DiffTaichi's controller: a clock of 10 sine
@@ -15,7 +16,7 @@ symplectic steps (2.7 s). Each iteration takes ``massspring.gradient`` through t
 the contacts and the controller, and DiffTaichi's update: a step of 0.2 along the
 normalised gradient.
 
-    python examples/walker.py [--iterations 100] [--small]
+    python examples/walker.py [--iterations 100] [--robot 2] [--small]
 """
 
 import argparse
@@ -26,27 +27,47 @@ import numpy as np
 
 import massspring as ms
 
-SIDE = 0.05  # m, a square's side
+SIDE = 0.05  # m, a grid square's side
 ORIGIN = (0.1, 0.1)  # m, where grid point (0, 0) is
 GROUND = 0.1  # m
-STIFFNESS = 3e4  # N/m
+GRID_STIFFNESS = 3e4  # N/m, the grid robots' springs
 DRAG = 15.0  # N s/m, on unit masses: DiffTaichi's damping rate, 1/s
 GRAVITY = 4.8  # m/s^2
 FRICTION = 2.5
 DT = 0.004  # s
 STEPS = 2048 // 3  # DiffTaichi's training run
-ACTUATION = 0.15
-# (column, row, actuated) of each square, in the order the robot is built
-SQUARES = ((2, 0, True), (0, 0, True), (0, 1, True), (0, 2, False), (1, 2, False), (2, 1, True), (2, 2, False),
-           (2, 3, False), (2, 4, False))
+# DiffTaichi's robots, written down as data: robot 0 as its particles (m) and links (all
+# muscles, ks 1.4e4 N/m, actuation 0.1); the others as grid squares (column, row,
+# actuation of their vertical sides) and triangles (column, row: its apex at the square's
+# centre, its base the square's top side), in the order the robot is built
+ROBOT_0 = dict(points=((0.2, 0.1), (0.3, 0.13), (0.4, 0.1), (0.2, 0.2), (0.3, 0.2), (0.4, 0.2)),
+               links=((0, 1), (1, 2), (3, 4), (4, 5), (0, 3), (2, 5), (0, 4), (1, 4), (2, 4), (3, 1), (5, 1)),
+               stiffness=1.4e4, actuation=0.1)
+GRID_ROBOTS = {
+    1: (("triangle", 2, 0, 0.0), ("triangle", 0, 0, 0.0), ("square", 0, 1, 0.15), ("square", 0, 2, 0.0),
+        ("square", 1, 2, 0.0), ("square", 2, 1, 0.15), ("square", 2, 2, 0.0)),
+    2: (("square", 2, 0, 0.15), ("square", 0, 0, 0.15), ("square", 0, 1, 0.15), ("square", 0, 2, 0.0),
+        ("square", 1, 2, 0.0), ("square", 2, 1, 0.15), ("square", 2, 2, 0.0), ("square", 2, 3, 0.0),
+        ("square", 2, 4, 0.0)),
+}
+GRID_ROBOTS[3] = GRID_ROBOTS[2] + (("square", 3, 1, 0.0), ("square", 4, 0, 0.15), ("square", 4, 1, 0.15))
+ROBOTS = (0, 1, 2, 3)
 
 
-def robot():
-    """positions (n, 3) m, springs (m, 2), the actuated springs (c,): the grid points in the
-    order the squares first use them, and each square's springs (its left and right
-    sides first, actuated if the square is, then every pair of its corners) unless an
-    earlier square has the pair."""
-    points, springs, actuated = [], [], []
+def robot(number=2):
+    """DiffTaichi's robot ``number``: positions (n, 3) m, springs (m, 2), stiffness (m,)
+    N/m, the actuated springs (c,) and their actuation (c,), the largest relative change
+    of each rest length. A grid robot's points are numbered as its shapes first use them;
+    a shape's springs are its vertical sides (a square's; muscles where it is actuated),
+    then every pair of its corners, each pair once (the first shape to join two points
+    sets whether their spring is a muscle)."""
+    if number == 0:
+        springs = np.array(ROBOT_0["links"])
+        positions = np.array([[x, y, 0.0] for x, y in ROBOT_0["points"]])
+        count = len(springs)
+        return (positions, springs, np.full(count, ROBOT_0["stiffness"]), np.arange(count),
+                np.full(count, ROBOT_0["actuation"]))
+    points, springs, actuation = [], [], []
 
     def point(i, j):
         if (i, j) not in points:
@@ -54,40 +75,43 @@ def robot():
         return points.index((i, j))
 
     def spring(a, b, act):
-        if [a, b] in springs or [b, a] in springs:
-            return
-        if act:
-            actuated.append(len(springs))
-        springs.append([a, b])
+        if [a, b] not in springs and [b, a] not in springs:
+            springs.append([a, b])
+            actuation.append(act)
 
-    for i, j, act in SQUARES:
-        a, b, c, d = point(i, j), point(i, j + 1), point(i + 1, j), point(i + 1, j + 1)
-        spring(a, b, act)
-        spring(c, d, act)
-        for p in (a, b, c, d):
-            for q in (a, b, c, d):
+    for shape, i, j, act in GRID_ROBOTS[number]:
+        if shape == "square":
+            corners = a, b, c, d = point(i, j), point(i, j + 1), point(i + 1, j), point(i + 1, j + 1)
+            spring(a, b, act)
+            spring(c, d, act)
+        else:
+            corners = point(i + 0.5, j + 0.5), point(i, j + 1), point(i + 1, j + 1)
+        for p in corners:
+            for q in corners:
                 if p != q:
-                    spring(p, q, False)
+                    spring(p, q, 0.0)
     positions = np.array([[ORIGIN[0] + i * SIDE, ORIGIN[1] + j * SIDE, 0.0] for i, j in points])
-    return positions, np.array(springs), np.array(actuated)
+    actuation = np.array(actuation)
+    actuated = np.flatnonzero(actuation)
+    return positions, np.array(springs), np.full(len(springs), GRID_STIFFNESS), actuated, actuation[actuated]
 
 
-def network(seed=0):
-    """DiffTaichi's controller for the robot, its initial weights scaled as DiffTaichi's
-    (x2 and x3 the Glorot-like draw)."""
-    positions, springs, actuated = robot()
+def network(seed=0, number=2):
+    """DiffTaichi's controller for robot ``number``, its initial weights scaled as
+    DiffTaichi's (x2 and x3 the Glorot-like draw)."""
+    positions, springs, _, actuated, actuation = robot(number)
     rest = np.linalg.norm(positions[springs[actuated, 1]] - positions[springs[actuated, 0]], axis=1)
-    net = ms.SineNetwork(DT, actuated, rest, ACTUATION, np.arange(len(positions)), hidden=32, waves=10,
+    net = ms.SineNetwork(DT, actuated, rest, actuation, np.arange(len(positions)), hidden=32, waves=10,
                          omega=10.0, position_scale=0.05, velocity_scale=0.05, seed=seed)
     net.parameters["w1"] *= 2.0
     net.parameters["w2"] *= 3.0
     return net
 
 
-def model(net, steps=STEPS):
-    positions, springs, _ = robot()
+def model(net, steps=STEPS, number=2):
+    positions, springs, stiffness, _, _ = robot(number)
     ground = ms.Plane(point=(0.0, GROUND, 0.0), normal=(0.0, 1.0, 0.0), friction=FRICTION)
-    return ms.Model(positions, springs, masses=1.0, stiffness=STIFFNESS, damping=0.0, gravity=(0.0, -GRAVITY, 0.0),
+    return ms.Model(positions, springs, masses=1.0, stiffness=stiffness, damping=0.0, gravity=(0.0, -GRAVITY, 0.0),
                     drag=DRAG, colliders=[ground], controls=net.controls_for(steps))
 
 
@@ -98,12 +122,12 @@ def head_x(frames):
     return -frames.positions[-1, 0, 0], {"positions": partials}
 
 
-def train(iterations, steps=STEPS, seed=0, report=print):
-    """DiffTaichi's loop: ``iterations`` gradients, each followed by a step of 0.2 along
-    the normalised gradient. Returns (distances (iterations,) m the head moved in each
-    iteration's run, wall seconds of each iteration)."""
-    net = network(seed)
-    walker = model(net, steps)
+def train(iterations, steps=STEPS, seed=0, report=print, number=2):
+    """DiffTaichi's loop for robot ``number``: ``iterations`` gradients, each followed by a
+    step of 0.2 along the normalised gradient. Returns (distances (iterations,) m the head
+    moved in each iteration's run, wall seconds of each iteration)."""
+    net = network(seed, number)
+    walker = model(net, steps, number)
     start = walker.positions[0, 0]
     names = [f"controller.{name}" for name in net.parameters]
     distances, walls = [], []
@@ -123,14 +147,15 @@ def train(iterations, steps=STEPS, seed=0, report=print):
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--iterations", type=int, default=100, help="training iterations (default 100)")
+    parser.add_argument("--robot", type=int, choices=ROBOTS, default=2, help="DiffTaichi's robot (default 2)")
     parser.add_argument("--small", action="store_true", default=bool(os.environ.get("MASSSPRING_EXAMPLE_SMALL")),
                         help="a quick run: 10 iterations of 200 steps (also with MASSSPRING_EXAMPLE_SMALL=1)")
     args = parser.parse_args(argv)
     iterations, steps = (10, 200) if args.small else (args.iterations, STEPS)
-    positions, springs, actuated = robot()
-    print(f"walker: {len(positions)} particles, {len(springs)} springs, {len(actuated)} muscles; {steps} steps of "
-          f"{DT * 1e3:g} ms ({steps * DT:.2f} s) a run, the controller choosing the muscles at each step")
-    distances, walls = train(iterations, steps)
+    positions, springs, _, actuated, _ = robot(args.robot)
+    print(f"robot {args.robot}: {len(positions)} particles, {len(springs)} springs, {len(actuated)} muscles; {steps} "
+          f"steps of {DT * 1e3:g} ms ({steps * DT:.2f} s) a run, the controller choosing the muscles at each step")
+    distances, walls = train(iterations, steps, number=args.robot)
     print(f"after {iterations} iterations: the head moved {distances[-1] * 100:.2f} cm (first run "
           f"{distances[0] * 100:.2f} cm); median {np.median(walls[1:] if iterations > 1 else walls):.3f} s an iteration")
     return distances

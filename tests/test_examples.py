@@ -125,3 +125,19 @@ def test_the_walker_learns_to_walk(tmp_path):
     out = run_example("walker.py", cwd=tmp_path)
     last, first = map(float, re.search(r"the head moved ([-\d.]+) cm \(first run ([-\d.]+) cm\)", out).groups())
     assert first == pytest.approx(0.27, abs=0.01) and last == pytest.approx(7.17, rel=0.25), out
+
+
+def test_the_walkers_robots_are_difftaichis():
+    """DiffTaichi's four robots as ``examples/walker.py`` writes them down: the particle
+    and spring counts its ``mass_spring.py`` prints for each (n_objects, n_springs: 6/11,
+    14/30, 20/46, 26/61, run from its commit 9f4ee52), each spring joining two particles
+    once, muscles only where a shape is actuated."""
+    sys.path.insert(0, str(EXAMPLES))
+    import walker
+
+    for number, (particles, springs, muscles) in {0: (6, 11, 11), 1: (14, 30, 4), 2: (20, 46, 8),
+                                                   3: (26, 61, 11)}.items():
+        positions, pairs, stiffness, actuated, actuation = walker.robot(number)
+        assert (len(positions), len(pairs), len(actuated)) == (particles, springs, muscles), number
+        assert len({tuple(sorted(p)) for p in pairs.tolist()}) == springs and np.all(pairs[:, 0] != pairs[:, 1])
+        assert np.all(actuation == (0.1 if number == 0 else 0.15)) and stiffness.shape == (springs,)
