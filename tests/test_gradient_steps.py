@@ -186,3 +186,30 @@ def test_gradients_through_self_collision_with_steps_of_varying_size(integrator)
                               SIZES, AT, options, dict(REPULSION_STEP, positions=1e-6).get(name, 1e-4))
         exact = float(np.sum(grads[name] * direction))
         assert abs(exact - numeric) <= 1e-6 * abs(numeric), (name, exact, numeric)
+
+
+def test_a_gradients_memory_check_counts_the_self_collision_records(monkeypatch):
+    """``gradients.host_bytes`` (the memory check before a gradient runs) adds, for each step
+    of a stretch, the self-collision pass's ``Record`` (48 bytes a particle, 56 a listed pair
+    at the pair list's first capacity of 8 a particle) and with the linearised step its
+    solve's pairs (104 bytes a pair at the solve's capacity of 16 a particle, 4 a particle);
+    the records a run keeps stay within that, step by step."""
+    from massspring.gradients import host_bytes
+    from massspring.passes.self_collision.backward import PassSteps
+
+    model = straddling(0.05)
+    free = model.replaced(self_collision=None)
+    n = model.n_particles
+    for integrator, solve in (("symplectic", 0), ("implicit", 4 + 104 * 16)):
+        counted = host_bytes(model, integrator, 100, 5, 40) - host_bytes(free, integrator, 100, 5, 40)
+        assert counted == 40 * n * (48 + 56 * 8 + solve), integrator
+    kept = []
+    record = PassSteps.__call__
+
+    def spy(self, *args):
+        record(self, *args)
+        step = self.records[self.sim.steps]
+        kept.append(sum(value.nbytes for value in vars(step).values()))
+    monkeypatch.setattr(PassSteps, "__call__", spy)
+    ms.gradient(model, objective, "stiffness", steps=10, integrator="symplectic", dt=2e-3)
+    assert len(kept) == 10 and max(kept) <= n * (48 + 56 * 8)

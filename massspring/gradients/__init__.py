@@ -371,7 +371,7 @@ def host_bytes(model, integrator, steps, frames, checkpoint, feedback=False) -> 
     state it read at each interval (``Simulation.control_states``)."""
     n = model.n_particles
     kept = (steps - 1) // checkpoint * (STATE_BYTES + INTEGRATORS[integrator].kept_bytes(model)) * n
-    passes = sum(kind.gradient_bytes(model, checkpoint) for kind in for_model(model))
+    passes = sum(kind.gradient_bytes(model, checkpoint, integrator) for kind in for_model(model))
     read = model.controls.intervals * STATE_BYTES * n if feedback else 0
     return kept + frames * STATE_BYTES * n + passes + read
 

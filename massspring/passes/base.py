@@ -9,7 +9,7 @@ A pass class declares, for a ``Model``:
 * ``bytes(model)``: its fields' bytes as (per particle, per spring) for the run's
   memory estimate (``engine.footprint``), and ``declare(layout, model)`` those fields;
 * where ``differentiable``: ``declare_adjoint(layout, model)`` the fields of its run
-  backwards in a gradient's adjoint bundle, and ``gradient_bytes(model, checkpoint)``
+  backwards in a gradient's adjoint bundle, and ``gradient_bytes(model, checkpoint, integrator)``
   what that run holds on the host (for the gradient's memory check);
 * ``name`` (its registry key), ``term`` (its entry in ``Simulation.info()["terms"]``,
   or None), ``stats_property`` (the ``Simulation`` property that returns its
@@ -81,9 +81,9 @@ class Pass:
         """Declare the fields of the pass's run backwards in a gradient's adjoint bundle."""
 
     @staticmethod
-    def gradient_bytes(model, checkpoint) -> int:
+    def gradient_bytes(model, checkpoint, integrator) -> int:
         """Host bytes of the pass's run backwards in a gradient whose stretches are
-        ``checkpoint`` steps long."""
+        ``checkpoint`` steps long, with ``integrator`` (its name) stepping."""
         return 0
 
     def __init__(self, dev, cfg, model, serial, dt):

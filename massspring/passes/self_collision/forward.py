@@ -76,6 +76,8 @@ def pair_list(pairs, real):
 
 
 SOLVE_PAIRS_PER_PARTICLE = 16  # capacity of the implicit solve's pairs per particle (``declare_solve``)
+PAIR_RECORD_BYTES = 4 * 4 + 4 * 8 + 4 + 4  # a listed pair in a gradient's Record: idx, w, kind, rounds
+SOLVE_PAIR_RECORD_BYTES = 4 * 4 + 4 * 8 + 5 * 8 + 4 * 4  # a solve's pair in SolvePairs: idx, w, nf, 4 entries
 # Bytes per particle of ``declare_solve``: first, fill, friction; per pair 4 particles, 4 weights,
 # 5 coefficients, 4 entries.
 SOLVE_BYTES = 4 + 4 + 32 + SOLVE_PAIRS_PER_PARTICLE * (16 + 4 * 8 + 5 * 8 + 4 * 4)
@@ -129,6 +131,22 @@ class SelfCollisionPass(Pass):
         return (PASS_BYTES, 0)
 
     declare = staticmethod(declare)
+
+    @staticmethod
+    def gradient_bytes(model, checkpoint, integrator) -> int:
+        """Host bytes of its run backwards (``backward.PassSteps``): in each of a stretch's
+        ``checkpoint`` steps, a ``Record`` (the candidate state, 48 bytes a particle, and
+        56 a listed pair, counted at the pair list's first capacity, ``PAIRS_PER_PARTICLE``
+        a particle: a list that grew holds more) and, with the pairs in the linearised
+        step's solve, its ``SolvePairs`` (104 bytes a pair at that solve's capacity, 4 a
+        particle)."""
+        from massspring.integrators import INTEGRATORS
+
+        n = model.n_particles
+        step = n * (48 + PAIR_RECORD_BYTES * PAIRS_PER_PARTICLE)
+        if getattr(INTEGRATORS[integrator], "pairs_in_solve", lambda _: False)(model):
+            step += n * (4 + SOLVE_PAIR_RECORD_BYTES * SOLVE_PAIRS_PER_PARTICLE)
+        return checkpoint * step
 
     def __init__(self, dev, cfg, model, serial, dt):
         super().__init__(dev, cfg, model, serial, dt)

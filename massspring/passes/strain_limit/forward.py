@@ -77,7 +77,7 @@ class StrainLimitPass(Pass):
         layout.add("sl_gw", layout.real, "spring")
 
     @staticmethod
-    def gradient_bytes(model, checkpoint) -> int:
+    def gradient_bytes(model, checkpoint, integrator) -> int:
         """Host bytes of its run backwards: the state before the pass of each step of a
         stretch of ``checkpoint`` steps, and one step's iterations run again."""
         from massspring.passes.strain_limit.backward import host_bytes
