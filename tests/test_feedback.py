@@ -254,3 +254,43 @@ def test_bad_controllers_are_refused_naming_what_is_wrong():
         with pytest.raises(ValueError, match="controller.controls: " + message):
             sim.step(1)
         sim.close()
+
+
+class Pumping(ms.Controller):
+    """Two particles' spring made 0.5x then 1.5x its length, interval after interval; with
+    ``speed`` as its ``top_speed`` (None: unknown)."""
+
+    drives = ("rest_lengths",)
+
+    def __init__(self, speed):
+        self.interval, self.springs, self.speed = 1e-3, np.array([0]), speed
+        self.parameters = {}
+
+    def controls(self, state):
+        return {"rest_lengths": np.array([0.05 if state.interval % 2 else 0.15])}
+
+    def vjp(self, state, cotangents):
+        return {}, None, None
+
+    def top_speed(self):
+        return self.speed
+
+
+def test_the_divergence_check_counts_what_a_controller_drives():
+    """A controller pumping a stiff spring puts far more energy in than its model's
+    controls (the placeholder, constant rest length) say: with its ``top_speed`` (2 x 0.05
+    m a millisecond: 100 m/s) the check's floor counts it and the run goes on; without,
+    the check calls the pumped run runaway."""
+    model = ms.Model([[0.0, 0.0, 0.0], [0.1, 0.0, 0.0]], [[0, 1]], masses=0.01, stiffness=1e4, damping=0.0,
+                     gravity=(0.0, 0.0, 0.0), controls=ms.Controls(1e-3, springs=[0], rest_lengths=np.full((40, 1), 0.1)))
+    sim = ms.Simulation(model, "symplectic", dt=1e-4, controller=Pumping(100.0))
+    sim.step(400)
+    assert sim.steps == 400 and np.all(np.isfinite(sim.positions))
+    sim.close()
+    sim = ms.Simulation(model, "symplectic", dt=1e-4, controller=Pumping(None))
+    with pytest.raises(ms.DivergenceError, match="runaway"):
+        sim.step(400)
+    sim.close()
+    with pytest.raises(ValueError, match="controller.top_speed"):
+        ms.Simulation(model, "symplectic", dt=1e-4, controller=Pumping(-1.0))
+    assert network().top_speed() == pytest.approx(np.max(0.4 * network().rest) / (PER * DT))

@@ -85,7 +85,7 @@ class Snapshot:
     chosen: frozenset | None = None  # the intervals a feedback controller has chosen (``Schedule.snapshot``)
 
 
-def divergence_check(model: Model, factor=DIVERGENCE_FACTOR):
+def divergence_check(model: Model, factor=DIVERGENCE_FACTOR, driven=0.0):
     """The (base, gx0, factor) of the per-step divergence check (kernels/divergence.py).
 
     A state is rejected if a position or velocity is not finite, or if its kinetic
@@ -97,7 +97,8 @@ def divergence_check(model: Model, factor=DIVERGENCE_FACTOR):
     the initial bounding box, or the longest rest length if larger; 1 m if both are 0)
     plus the fastest drive: the wind speed, the fastest pin or twice the fastest
     collider (what the air, a moving pin or a collider can give the particles; the
-    controls' pins, wind and rest lengths of every interval included: ``Controls.speeds``).
+    controls' pins, wind and rest lengths of every interval included: ``Controls.speeds``;
+    ``driven`` m/s, what a feedback controller can drive: ``Controller.top_speed``).
     Physically kinetic energy never exceeds base - floor + W (springs only store and
     dampers only dissipate), so ``factor`` = 100 leaves room for the energy error of a
     stable integrator (symplectic Euler's oscillates by up to ~40x just below its limit)
@@ -109,7 +110,7 @@ def divergence_check(model: Model, factor=DIVERGENCE_FACTOR):
     drive = max([float(np.linalg.norm(model.wind))] + [float(np.linalg.norm(v)) for v in model.pin_velocity]
                 + [2 * float(np.linalg.norm(c.velocity)) for c in model.colliders]
                 + ([model.controls.speeds(model.positions[model.fixed], model.rest_lengths)]
-                   if model.controls is not None else []))
+                   if model.controls is not None else []) + [float(driven)])
     floor = 0.5 * float(model.masses.sum()) * (size + drive) ** 2
     return (energy["kinetic"] + energy["spring"] + floor, model.external_work(model.positions), float(factor))
 
@@ -243,7 +244,7 @@ class Simulation:
         self._settings = Settings(integrator, dt, precision, arch, loops, **options,
                                   **({"tol": None, "min_dt": None, "max_dt": None, "horizon": None}
                                      if tolerance is None else vars(tolerance)))
-        self._check = divergence_check(model)
+        self._check = divergence_check(model, driven=feedback.top_speed(controller))
         self._pin_work = pin_work(model)
         self._steps = 0
         self._cg_iterations = []

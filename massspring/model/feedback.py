@@ -63,6 +63,27 @@ class Controller:
     def vjp(self, state: ControlState, cotangents: dict) -> tuple:
         raise NotImplementedError
 
+    def top_speed(self):
+        """The fastest (m/s) the controls it sets can drive the particles, for the run's
+        divergence check (its floor counts it as it counts ``Controls.speeds``): a wind's
+        speed, or an actuated rest length's largest change over an interval by the
+        interval. None (the default): unknown; the check then counts the model's controls'
+        values as given."""
+        return None
+
+
+def top_speed(controller) -> float:
+    """``controller.top_speed()`` checked (0 for no controller or an unknown speed)."""
+    if controller is None:
+        return 0.0
+    speed = controller.top_speed()
+    if speed is None:
+        return 0.0
+    speed = float(speed)
+    if not np.isfinite(speed) or speed < 0:
+        raise ValueError(f"controller.top_speed: expected a finite speed >= 0 m/s or None, got {speed!r}")
+    return speed
+
 
 def check(controller, controls) -> None:
     """``controller`` against a model's ``controls`` (``massspring.Controls`` or None):

@@ -75,6 +75,11 @@ class SineNetwork(Controller):
             "b2": np.zeros(c),
         }
 
+    def top_speed(self) -> float:
+        """The largest change of a rest length from one interval to the next, 2 actuation
+        rest, by the interval (m/s)."""
+        return float(np.max(2.0 * self.actuation * self.rest)) / self.interval
+
     def controls_for(self, intervals) -> Controls:
         """The model's ``Controls`` for a run of ``intervals`` intervals that this network
         drives (the values before it chooses them: the rest lengths at zero activation)."""
