@@ -10,6 +10,7 @@ import pytest
 import massspring as ms
 from conftest import FULL
 from massspring.model.feedback import ControlState
+from test_controls import KEYFRAMED
 from test_gradient import PINNED, SOLVED, STEP, objective, sheet
 
 DT = 2e-3
@@ -234,6 +235,7 @@ def test_bad_controllers_are_refused_naming_what_is_wrong():
         (dict(model=sheet(pin_velocity=None), controller=network()), "controller: the model has no controls"),
         (dict(model=model, controller=Broken(good, interval=0.01)), "controller.interval"),
         (dict(model=model, controller=Broken(good, drives=("wind",))), "controller.drives: 'wind'"),
+        (dict(model=model, controller=Broken(good, drives=("pin_targets",))), "controller.drives: 'pin_targets'"),
         (dict(model=model, controller=Broken(good, drives=("gravity",))), "controller.drives: expected"),
         (dict(model=model, controller=Broken(good, springs=np.array([0, 5, 8]))), "controller.springs"),
     ]
@@ -294,3 +296,98 @@ def test_the_divergence_check_counts_what_a_controller_drives():
     with pytest.raises(ValueError, match="controller.top_speed"):
         ms.Simulation(model, "symplectic", dt=1e-4, controller=Pumping(-1.0))
     assert network().top_speed() == pytest.approx(np.max(0.4 * network().rest) / (PER * DT))
+
+
+class Tug(ms.Controller):
+    """Pins set from the state: each interval's targets, P_s = start + b + A f, with f the
+    mean position (about the start's) and the mean velocity of every particle, pinned
+    ones included (so that the pins' own motion feeds back)."""
+
+    drives = ("pin_targets",)
+
+    def __init__(self):
+        rng = np.random.default_rng(2)
+        self.interval = PER * DT
+        self.start = sheet(pin_velocity=None).positions[PINNED]
+        self.centre = sheet(pin_velocity=None).positions.mean(axis=0)
+        self.parameters = {"a": rng.normal(0, 0.05, (3, 6)), "b": rng.normal(0, 0.002, (len(PINNED), 3))}
+
+    def features(self, state):
+        return np.concatenate([state.positions.mean(axis=0) - self.centre, state.velocities.mean(axis=0)])
+
+    def controls(self, state):
+        return {"pin_targets": self.start + self.parameters["b"] + (self.parameters["a"] @ self.features(state))[None]}
+
+    def vjp(self, state, cotangents):
+        c = cotangents["pin_targets"].sum(axis=0)
+        n = state.positions.shape[0]
+        df = self.parameters["a"].T @ c
+        return ({"a": np.outer(c, self.features(state)), "b": cotangents["pin_targets"].copy()},
+                np.tile(df[:3] / n, (n, 1)), np.tile(df[3:] / n, (n, 1)))
+
+
+def tugged(**changes):
+    start = sheet(pin_velocity=None).positions[PINNED]
+    return sheet(pin_velocity=None, controls=ms.Controls(PER * DT, pin_targets=np.repeat(start[None], INTERVALS, axis=0)),
+                 **changes)
+
+
+@pytest.mark.fast_sample(integrator=["symplectic"])
+@pytest.mark.parametrize("integrator", KEYFRAMED)
+def test_gradients_through_a_controller_that_moves_the_pins(integrator):
+    """A controller choosing where the pins go from the state, which the pins' own motion
+    changes: the gradient in its parameters, the initial state and the stiffness within
+    1e-6 of central differences. The pinned particles' rows of its share of the state's
+    adjoint go back through the pins' motion (dropping them, the derivatives were 3% to
+    150% off, measured on the symplectic run)."""
+    options = SOLVED.get(integrator, {})
+    names = ["controller.a", "controller.b", "positions", "velocities", "stiffness"]
+    _, grads = ms.gradient(tugged(), objective, names, integrator=integrator, controller=Tug(), **RUN, **options)
+    rng = np.random.default_rng(0)
+    for name in names:
+        direction = rng.normal(size=grads[name].shape)
+        if name in ("positions", "velocities"):
+            direction[PINNED] = 0
+        direction /= np.abs(direction).max()
+        key = name.split(".", 1)[-1]
+        size = np.abs(Tug().parameters[key] if name.startswith("controller.") else getattr(tugged(), name)).max()
+        eps = STEP.get(integrator, 1e-6) * max(1.0, size)
+
+        def moved(e):
+            tug = Tug()
+            if name.startswith("controller."):
+                tug.parameters[key] = tug.parameters[key] + e * direction
+                return tugged(), tug
+            return tugged(**{name: getattr(tugged(), name) + e * direction}), tug
+
+        def central(e):
+            return (run_value(*moved(e), integrator, options) - run_value(*moved(-e), integrator, options)) / (2 * e)
+
+        numeric = central(eps) if integrator not in STEP else (4 * central(eps) - central(2 * eps)) / 3
+        exact = float(np.sum(grads[name] * direction))
+        assert abs(exact - numeric) <= 1e-6 * abs(numeric), (name, exact, numeric)
+
+
+def test_pins_a_controller_moves_reach_its_targets_as_keyframed_pins_do():
+    """The pins reach each target the controller chose at its interval's end and move at
+    (P_s - P_s-1) / T over it: from the end of the first step on, the run equals to the
+    bit the open-loop run of those targets set to that state (``set_state`` checks a
+    pin's velocity against the one it last moved with: the chosen one). At the start a pin
+    has the model's pin velocity, the placeholders' (here 0), which the controller reads."""
+    tug = Tug()
+    sim = ms.Simulation(tugged(), "symplectic", dt=DT, controller=tug)
+    assert np.all(sim.velocities[PINNED] == 0)
+    sim.step(1)
+    first = (sim.positions, sim.velocities)
+    sim.step(PER * INTERVALS - 1)
+    chosen = np.array([tug.controls(sim.control_states[s])["pin_targets"] for s in range(INTERVALS)])
+    assert np.abs(sim.positions[PINNED] - chosen[-1]).max() <= 1e-15
+    assert np.abs(chosen - tug.start).max() > 1e-3  # the pins moved
+    assert np.allclose(first[1][PINNED], (chosen[0] - tug.start) / (PER * DT), rtol=1e-12)
+    plain = ms.Simulation(sheet(pin_velocity=None, controls=ms.Controls(PER * DT, pin_targets=chosen)), "symplectic",
+                          dt=DT)
+    plain.set_state(*first, steps=1)
+    plain.step(PER * INTERVALS - 1)
+    assert np.array_equal(plain.positions, sim.positions) and np.array_equal(plain.velocities, sim.velocities)
+    sim.close()
+    plain.close()

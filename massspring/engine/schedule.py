@@ -19,8 +19,9 @@ class Schedule:
 
     ``feedback`` (optional): called as ``feedback(s)`` when the run enters interval s < S
     whose values it has not chosen yet, it returns the values of the controls its
-    controller drives (``model.feedback.outputs``: "rest_lengths", "wind"), which replace
-    the model's for that interval (``values``; ``chosen`` the intervals chosen).
+    controller drives (``model.feedback.outputs``: "rest_lengths", "wind", "pin_targets"
+    with rows in this model's order of pins), which replace the model's for that interval
+    (``values``; ``pins`` the pins' velocities; ``chosen`` the intervals chosen).
     ``freeze()`` keeps the values chosen so far and calls ``feedback`` no more (a
     gradient's runs again from kept states). ``serial``: the run's loops are serial (its
     writes then run on one thread)."""
@@ -40,8 +41,9 @@ class Schedule:
         self.rest = None
         if controls.rest_lengths is not None and controls.springs.size:
             self.rest = model.rest_lengths.astype(np.float64)
-        self.values = {name: getattr(controls, name).copy() for name in ("wind", "rest_lengths")
+        self.values = {name: getattr(controls, name).copy() for name in ("wind", "rest_lengths", "pin_targets")
                       if getattr(controls, name) is not None}
+        self.start = model.positions[model.fixed]  # the pins' positions at time 0
         self.feedback = feedback
         self.chosen = set()
         self.serial = serial
@@ -99,6 +101,9 @@ class Schedule:
         if self.feedback is not None and s < self.count and s not in self.chosen:
             for name, value in self.feedback(s).items():
                 self.values[name][s] = value
+                if name == "pin_targets" and self.pins is not None:  # the interval's pin velocity
+                    before = self.start if s == 0 else self.values["pin_targets"][s - 1]
+                    self.pins[s] = (value - before) / self.controls.interval
             self.chosen.add(s)
         held = min(s, self.count - 1)  # wind and rest lengths keep their last values
         if self.pins is not None:
@@ -171,14 +176,23 @@ class ControlShares:
     def _through_controller(self, s):
         """Interval s's shares through the feedback controller that chose its values
         (``model.feedback``): into its parameters, and into dL/dx, dL/dv of the state it
-        read (the adjoint's ``lx``, ``lv`` at the interval's start; pinned rows dropped)."""
-        cotangents = {name: (self.wind if name == "wind" else self.rest)[s].copy() for name in self.controller.drives}
+        read (the adjoint's ``lx``, ``lv`` at the interval's start; pinned rows dropped
+        unless it drives the pins, whose targets' share is the difference of the shares of
+        the velocities of intervals s and s + 1 over the interval)."""
+        cotangents = {}
+        for name in self.controller.drives:
+            if name == "pin_targets":  # P_s sets the velocity of intervals s (+) and s + 1 (-)
+                later = self.pins[s + 1] if s + 1 < self.controls.intervals else 0.0
+                cotangents[name] = (self.pins[s] - later) / self.controls.interval
+            else:
+                cotangents[name] = (self.wind if name == "wind" else self.rest)[s].copy()
         params, dx, dv = feedback.pullback(self.controller, self.states[s], cotangents)
         for name, share in params.items():
             self.parameters[name] += share
-        fixed = self.sim.model.fixed
         dx, dv = dx.copy(), dv.copy()
-        dx[fixed] = dv[fixed] = 0.0
+        if "pin_targets" not in self.controller.drives:  # else they go back through the pins' motion
+            fixed = self.sim.model.fixed
+            dx[fixed] = dv[fixed] = 0.0
         state_kernels.add_vector_pair(self.adj.lx, self.adj.lv, np.ascontiguousarray(self.sim.to_inner(dx)),
                                       np.ascontiguousarray(self.sim.to_inner(dv)), self.schedule.serial)
 
@@ -186,7 +200,8 @@ class ControlShares:
         """name -> gradient of each control; ``lv`` dL/dv of the initial state (n, 3), whose
         pinned rows are the first interval's pin velocity's share."""
         pins = self.pins.copy()
-        pins[0] += self.sim.to_user(lv)[self.sim.model.fixed]
+        if self.controller is None or "pin_targets" not in self.controller.drives:  # else the start's are constants
+            pins[0] += self.sim.to_user(lv)[self.sim.model.fixed]
         grads = {"controls.wind": self.wind.copy(), "controls.rest_lengths": self.rest.copy()}
         grads.update({f"controller.{name}": value.copy() for name, value in self.parameters.items()})
         if self.controls.pin_targets is not None:

@@ -115,19 +115,20 @@ def divergence_check(model: Model, factor=DIVERGENCE_FACTOR, driven=0.0):
     return (energy["kinetic"] + energy["spring"] + floor, model.external_work(model.positions), float(factor))
 
 
-def pin_work(model: Model) -> float:
+def pin_work(model: Model, driven=0.0) -> float:
     """c (J/s^2) such that c t^2 bounds the energy moving pins can have put into the model
     by time t (s), which ``base`` of ``divergence_check`` grows by as the run goes: pins
     at most s m/s fast (their velocities, the controls' of every interval) are at most 2 s t
     further apart than at the start, which stores at most (sum of the stiffnesses) (2 s t)^2
     / 2 in the springs, and does about as much work. 0 without moving pins. Before, pins
-    pulling a chain apart at 1 m/s ended its run as "diverged" (issue 60)."""
+    pulling a chain apart at 1 m/s ended its run as "diverged" (issue 60). ``driven``: what
+    a feedback controller can drive (m/s, ``Controller.top_speed``), counted as a pin's speed."""
     if not model.has_fixed or not model.n_springs:
         return 0.0
     speeds = [float(np.linalg.norm(v)) for v in model.pin_velocity]
     if model.controls is not None and model.controls.pin_targets is not None:
         speeds.append(float(np.linalg.norm(model.controls.pin_velocities(model.positions[model.fixed]), axis=-1).max()))
-    speed = max(speeds, default=0.0)
+    speed = max(speeds + [float(driven)], default=0.0)
     return 2.0 * float(model.stiffness.sum()) * speed * speed
 
 
@@ -245,7 +246,7 @@ class Simulation:
                                   **({"tol": None, "min_dt": None, "max_dt": None, "horizon": None}
                                      if tolerance is None else vars(tolerance)))
         self._check = divergence_check(model, driven=feedback.top_speed(controller))
-        self._pin_work = pin_work(model)
+        self._pin_work = pin_work(model, feedback.top_speed(controller))
         self._steps = 0
         self._cg_iterations = []
         self._newton_iterations = []
@@ -260,6 +261,8 @@ class Simulation:
                      f"model: {model.n_particles:,} particles and {model.n_springs:,} springs; "
                      f"a run of it ({integrator})")
         self._order = ordering.plan(model)
+        # the pins' rows inside: the model's rows in this order (``ordering.renumbered``'s)
+        self._pin_order = None if self._order is None else np.argsort(self._order.inverse[model.fixed], kind="stable")
         inner = model if self._order is None else self._order.model
         layout = model_layout(inner, precision)
         cls.declare(layout, inner, self._settings)
@@ -421,7 +424,10 @@ class Simulation:
         state_kernels.read_state(integrator.state, rows, n, (), integrator.serial)  # as it is, unsettled: one launch
         state = feedback.ControlState(self.to_user(rows[:, :3]), self.to_user(rows[:, 3:]), self.time, s)
         self._control_states[s] = state
-        return feedback.outputs(self._feedback, state, self._model.controls)
+        out = feedback.outputs(self._feedback, state, self._model.controls)
+        if "pin_targets" in out and self._pin_order is not None:
+            out["pin_targets"] = out["pin_targets"][self._pin_order]
+        return out
 
     def snapshot(self) -> "Snapshot":
         """Everything a step changes, kept to come back to (``restore``): the state, what
@@ -577,7 +583,12 @@ class Simulation:
         s = schedule.interval(steps - 1) if clock is None else schedule.before(clock)
         if s >= schedule.count:
             return np.zeros_like(model.pin_velocity)
-        return model.controls.pin_velocities(model.positions[model.fixed])[s]
+        velocities = schedule.pins[s]  # the run's rows (a feedback controller's choice, where it drives the pins)
+        if self._pin_order is None:
+            return velocities
+        out = np.empty_like(velocities)
+        out[self._pin_order] = velocities
+        return out
 
     # ------------------------------------------------------------------ stepping
 

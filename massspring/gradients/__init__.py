@@ -162,8 +162,9 @@ def gradient(model, objective, wrt, *, steps=None, every=1, integrator="symplect
         if sim.schedule is not None:
             sim.schedule.freeze()  # runs again from kept states take the controls chosen
         value, partials = _call(objective, frames, model.n_particles)
+        driven = controller is not None and "pin_targets" in controller.drives  # the pins' motion goes back
         wants = Wants(masses="masses" in names, rate_gradient="damping" in names and not model.has_damping,
-                      pins="pin_velocity" in names or "controls.pin_targets" in names,
+                      pins="pin_velocity" in names or "controls.pin_targets" in names or driven,
                       friction=model.has_friction and INTEGRATORS[integrator].traits.linear_solver)
         shares = ControlShares(sim, adj) if model.controls is not None else None
         with np.errstate(over="ignore", invalid="ignore"):  # an overflow is refused below, by name

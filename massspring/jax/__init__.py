@@ -16,7 +16,7 @@ its memory). ``params`` is a pytree of the ``policy``'s parameters, ``physics`` 
 ``loss(positions, velocities)`` is a JAX function of the frames (F, n, 3) m and m/s (frame
 0 the initial state, then every ``every``-th step) returning a scalar; ``policy(params,
 positions, velocities, time)`` a JAX function returning, for each control the model's
-``Controls`` hold among "rest_lengths" ((c,) m) and "wind" ((3,) m/s), that interval's
+``Controls`` hold among "rest_lengths" ((c,) m), "wind" ((3,) m/s) and "pin_targets" ((k, 3) m), that interval's
 values from the state (n, 3) at its start, time s: a feedback controller
 (``massspring.Controller``), differentiated by ``jax.vjp``. Both run under ``jax.jit``, once
 compiled per shape. Arrays reach massspring as float64; gradients come back in each
@@ -87,7 +87,7 @@ def simulation(model, loss, *, policy=None, **run):
                          f"{type(policy).__name__}")
     if policy is not None and model.controls is None:
         raise ValueError("policy: the model has no controls; give it Controls with the intervals and the "
-                         "rest lengths or wind the policy sets")
+                         "rest lengths, wind or pin targets the policy sets")
     for name in ("objective", "wrt", "controller"):
         if name in run:
             raise ValueError(f"{name}: the bridge sets it (loss, params and physics, policy)")

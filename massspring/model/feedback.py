@@ -6,16 +6,21 @@ A model's ``Controls`` give the intervals (``interval`` s each, S of them), the 
 ``springs`` and which controls there are; a :class:`Controller` given to the run
 (``Simulation(..., controller=)``, ``gradient(..., controller=)``) replaces the values of
 the controls it ``drives`` ("rest_lengths": (c,) m of the actuated springs, "wind": (3,)
-m/s) for interval s < S by ``controller.controls(state)``, called once as the run enters
-interval s, with the state at the interval's start (:class:`ControlState`: positions and
-velocities (n, 3) in the model's numbering, time s T). After the last interval the last
-values hold, as open-loop controls do. Keyframed pins (``pin_targets``) stay open loop.
+m/s, "pin_targets": (k, 3) m, where the pins are at the interval's end, a row per pin in
+the order of ``Model.fixed``) for interval s < S by ``controller.controls(state)``, called
+once as the run enters interval s, with the state at the interval's start
+(:class:`ControlState`: positions and velocities (n, 3) in the model's numbering, time
+s T). After the last interval the last values hold, as open-loop controls do (pins stand
+at their last targets). A pin moves to the target chosen for an interval at a constant
+velocity over it, as keyframed pins do; at the start it has the model's pin velocity
+(its controls' first interval's, the values before the controller chooses).
 
 In a gradient's backward pass, once the adjoint has reached the start of interval s, the
 objective's derivative in that interval's values, c_s (``cotangents``), goes through
 ``controller.vjp(state, cotangents)``: its parameters' share (dL/dtheta += c_s du/dtheta)
-and the state's (dL/dx_s += c_s du/dx, dL/dv_s += c_s du/dv; rows of pinned particles
-are dropped: a pin's state is the run's, not a free variable).
+and the state's (dL/dx_s += c_s du/dx, dL/dv_s += c_s du/dv). Rows of pinned particles
+go back through the pins' motion when the controller drives the pins; otherwise they are
+dropped (a pin's state is then the run's, not a free variable).
 """
 
 from __future__ import annotations
@@ -24,7 +29,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-DRIVEN = ("rest_lengths", "wind")  # the controls a controller may drive
+DRIVEN = ("rest_lengths", "wind", "pin_targets")  # the controls a controller may drive
 
 
 @dataclass(frozen=True, eq=False)
@@ -45,7 +50,7 @@ class Controller:
     define ``controls`` and ``vjp``.
 
     ``controls(state)`` returns a dict holding, for each name of ``drives``, the
-    interval's values: "rest_lengths" (c,) m (>= 0), "wind" (3,) m/s.
+    interval's values: "rest_lengths" (c,) m (>= 0), "wind" (3,) m/s, "pin_targets" (k, 3) m.
     ``vjp(state, cotangents)`` takes dL/d(those values) (same keys and shapes) and
     returns ``(parameters, positions, velocities)``: dL/d(each parameter) as a dict of
     arrays shaped like them, and dL/dx, dL/dv (n, 3) of the state, each the transpose of
@@ -122,7 +127,8 @@ def outputs(controller, state, controls) -> dict:
     for name in controller.drives:
         if name not in out:
             raise ValueError(f"controller.controls: no {name!r} in its answer at t = {state.time:g} s")
-        shape = (3,) if name == "wind" else controls.springs.shape
+        shape = {"wind": (3,), "rest_lengths": getattr(controls.springs, "shape", None),
+                 "pin_targets": getattr(controls.pin_targets, "shape", (0, 0, 3))[1:]}[name]
         value = np.asarray(out[name], dtype=np.float64)
         if value.shape != shape or not np.all(np.isfinite(value)):
             raise ValueError(f"controller.controls: {name!r} at t = {state.time:g} s must be {shape} finite "

@@ -18,7 +18,7 @@ memory). ``physics`` is a dict of ``massspring.gradient`` parameter names ("stif
 scalar. ``policy`` is a ``torch.nn.Module`` called as ``policy(positions, velocities,
 time)`` at each interval's start (the state (n, 3) as tensors of its parameters' dtype,
 time a float, s), returning a dict with, for each control the model's ``Controls`` hold
-among "rest_lengths" ((c,) m) and "wind" ((3,) m/s), that interval's values: a feedback
+among "rest_lengths" ((c,) m), "wind" ((3,) m/s) and "pin_targets" ((k, 3) m), that interval's values: a feedback
 controller (``massspring.Controller``) differentiated by ``torch.autograd.grad``.
 Gradients come back in each tensor's dtype (float32 or float64); the run is float64.
 """
@@ -104,7 +104,7 @@ def simulation(model, loss, *, policy=None, **run):
         raise ValueError(f"policy: expected a torch.nn.Module, got {type(policy).__name__}")
     if policy is not None and model.controls is None:
         raise ValueError("policy: the model has no controls; give it Controls with the intervals and the "
-                         "rest lengths or wind the policy sets")
+                         "rest lengths, wind or pin targets the policy sets")
     for name in ("objective", "wrt", "controller"):
         if name in run:
             raise ValueError(f"{name}: the bridge sets it (loss, policy and physics)")
