@@ -16,7 +16,7 @@ symplectic steps (2.7 s). Each iteration takes ``massspring.gradient`` through t
 the contacts and the controller, and DiffTaichi's update: a step of 0.2 along the
 normalised gradient.
 
-    python examples/walker.py [--iterations 100] [--robot 2] [--small]
+    python examples/walker.py [--iterations 100] [--robot 2] [--gif walker.gif] [--small]
 """
 
 import argparse
@@ -122,10 +122,11 @@ def head_x(frames):
     return -frames.positions[-1, 0, 0], {"positions": partials}
 
 
-def train(iterations, steps=STEPS, seed=0, report=print, number=2):
+def train(iterations, steps=STEPS, seed=0, report=print, number=2, trained=None):
     """DiffTaichi's loop for robot ``number``: ``iterations`` gradients, each followed by a
     step of 0.2 along the normalised gradient. Returns (distances (iterations,) m the head
-    moved in each iteration's run, wall seconds of each iteration)."""
+    moved in each iteration's run, wall seconds of each iteration); ``trained``, a list,
+    gets the network and the model."""
     net = network(seed, number)
     walker = model(net, steps, number)
     start = walker.positions[0, 0]
@@ -141,13 +142,33 @@ def train(iterations, steps=STEPS, seed=0, report=print, number=2):
         walls.append(time.perf_counter() - began)
         distances.append(-value - start)
         report(f"iteration {it:3d}: head moved {distances[-1] * 100:7.2f} cm  ({walls[-1]:.3f} s)")
+    if trained is not None:
+        trained += [net, walker]
     return np.array(distances), np.array(walls)
+
+
+def write_gif(path, net, walker, steps):
+    """A GIF of the trained walker's run (a frame every 8 steps, 30 frames/s), seen from +z."""
+    from massspring.io import render
+    from massspring.io.camera import View
+
+    sim = ms.Simulation(walker, "symplectic", dt=DT, controller=net)
+    recording = render.Recording()
+    ms.run(sim, steps, frames=range(0, steps + 1, 8), on_frame=recording.record)
+    sim.close()
+    renderer = render.FrameRenderer(walker, np.stack(recording.positions), View(azimuth=-90.0, elevation=90.0),
+                                    label="walker", times=recording.times)
+    done = render.export(renderer, recording, gif=path, fps=30)
+    for option, message in done.errors.items():
+        raise SystemExit(f"{option}: {message}")
+    print(f"wrote {path} ({done.count} frames)")
 
 
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--iterations", type=int, default=100, help="training iterations (default 100)")
     parser.add_argument("--robot", type=int, choices=ROBOTS, default=2, help="DiffTaichi's robot (default 2)")
+    parser.add_argument("--gif", metavar="PATH", help="write a GIF of the trained walker's run")
     parser.add_argument("--small", action="store_true", default=bool(os.environ.get("MASSSPRING_EXAMPLE_SMALL")),
                         help="a quick run: 10 iterations of 200 steps (also with MASSSPRING_EXAMPLE_SMALL=1)")
     args = parser.parse_args(argv)
@@ -155,9 +176,14 @@ def main(argv=None):
     positions, springs, _, actuated, _ = robot(args.robot)
     print(f"robot {args.robot}: {len(positions)} particles, {len(springs)} springs, {len(actuated)} muscles; {steps} "
           f"steps of {DT * 1e3:g} ms ({steps * DT:.2f} s) a run, the controller choosing the muscles at each step")
-    distances, walls = train(iterations, steps, number=args.robot)
+    if args.gif and not args.gif.lower().endswith(".gif"):
+        parser.error(f"--gif: {args.gif!r} does not end in .gif")
+    trained = []
+    distances, walls = train(iterations, steps, number=args.robot, trained=trained)
     print(f"after {iterations} iterations: the head moved {distances[-1] * 100:.2f} cm (first run "
           f"{distances[0] * 100:.2f} cm); median {np.median(walls[1:] if iterations > 1 else walls):.3f} s an iteration")
+    if args.gif:
+        write_gif(args.gif, *trained, steps)
     return distances
 
 

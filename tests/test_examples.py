@@ -121,8 +121,9 @@ def test_the_walker_learns_to_walk(tmp_path):
     gradient through its steps, its contacts and its feedback controller moves the head
     further forward than the first run: docs/gradients.md's figures for the small run, 0.27 cm
     at first and 7.17 cm after 10 iterations (the test: within 25%, as ten normalised steps
-    of a run with contacts amplify round-off)."""
-    out = run_example("walker.py", cwd=tmp_path)
+    of a run with contacts amplify round-off); its GIF of the trained run is written."""
+    out = run_example("walker.py", "--gif", "walker.gif", cwd=tmp_path)
+    assert "wrote walker.gif (26 frames)" in out and (tmp_path / "walker.gif").stat().st_size > 0
     last, first = map(float, re.search(r"the head moved ([-\d.]+) cm \(first run ([-\d.]+) cm\)", out).groups())
     assert first == pytest.approx(0.27, abs=0.01) and last == pytest.approx(7.17, rel=0.25), out
 
