@@ -391,3 +391,40 @@ def test_pins_a_controller_moves_reach_its_targets_as_keyframed_pins_do():
     assert np.array_equal(plain.positions, sim.positions) and np.array_equal(plain.velocities, sim.velocities)
     sim.close()
     plain.close()
+
+
+def test_a_controller_moving_the_pins_of_a_renumbered_model(monkeypatch):
+    """A scrambled sheet that the run renumbers, with the pin-moving controller: its pin
+    rows follow the renumbering, so the value and the gradients are the sheet's own (the
+    targets' rows permuted)."""
+    from massspring.model import ordering
+
+    monkeypatch.setattr(ordering, "WINDOW", 4)
+    model = tugged()
+    rng = np.random.default_rng(0)  # the pins' rows swap
+    particles, springs = rng.permutation(model.n_particles), rng.permutation(model.n_springs)
+    inverse = np.argsort(particles)
+    rows = np.argsort(inverse[PINNED])  # the sheet's pin rows in the scrambled model's order of pins
+    scrambled = ms.Model(model.positions[particles], inverse[model.springs][springs], masses=model.masses[particles],
+                         stiffness=model.stiffness[springs], damping=model.damping[springs],
+                         rest_lengths=model.rest_lengths[springs], velocities=model.velocities[particles],
+                         gravity=model.gravity, fixed=inverse[PINNED], drag=model.drag, wind=model.wind,
+                         controls=ms.Controls(PER * DT, pin_targets=model.controls.pin_targets[:, rows]))
+    plan = ordering.plan(scrambled)
+    assert plan is not None and list(rows) == [1, 0]
+    tug = Tug()
+    tug.start, tug.parameters["b"] = tug.start[rows], tug.parameters["b"][rows]
+
+    def scrambled_objective(frames):
+        value, partials = objective(type(frames)(frames.positions[:, inverse], frames.velocities[:, inverse],
+                                                 frames.times, frames.steps))
+        return value, {key: rows_[:, particles] for key, rows_ in partials.items()}
+
+    names = ["controller.a", "controller.b", "stiffness"]
+    want_value, want = ms.gradient(model, objective, names, controller=Tug(), **RUN)
+    got_value, got = ms.gradient(scrambled, scrambled_objective, names, controller=tug, **RUN)
+    assert got_value == pytest.approx(want_value, rel=1e-12)
+    got["controller.b"][rows] = got["controller.b"].copy()
+    got["stiffness"] = got["stiffness"][np.argsort(springs)]
+    for name in names:
+        assert np.allclose(got[name], want[name], rtol=1e-9, atol=1e-12 * np.abs(want[name]).max()), name
