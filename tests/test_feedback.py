@@ -12,6 +12,7 @@ from conftest import FULL
 from massspring.model.feedback import ControlState
 from test_controls import KEYFRAMED
 from test_gradient import PINNED, SOLVED, STEP, objective, sheet
+from test_gradient import run_value as forward_value
 
 DT = 2e-3
 PER = 3  # steps an interval
@@ -38,18 +39,8 @@ def controlled(**changes):
 
 
 def run_value(model, controller, integrator, options):
-    """The objective of a plain forward run (frames every ``RUN["every"]`` steps)."""
-    sim = ms.Simulation(model, integrator, dt=DT, controller=controller, **options)
-    positions, velocities, at = [], [], list(range(0, RUN["steps"] + 1, RUN["every"]))
-    try:
-        for k in at:
-            sim.step(k - sim.steps)
-            positions.append(sim.positions)
-            velocities.append(sim.velocities)
-    finally:
-        sim.close()
-    at = np.array(at)
-    return objective(ms.Frames(np.array(positions), np.array(velocities), at * DT, at))[0]
+    """The objective of a plain forward run (``test_gradient.run_value``) with ``controller``."""
+    return forward_value(model, objective, dict(RUN, integrator=integrator, controller=controller, **options))
 
 
 def perturbed(name, e, direction):

@@ -310,6 +310,21 @@ def chosen_steps(model, integrator, tol, times, dt, min_dt, max_dt, precision, o
         sim.close()
 
 
+def check_bridge(model, policy, run):
+    """A bridge's (``massspring.jax``, ``massspring.torch``) arguments that are
+    ``gradient``'s: ``model``, a ``policy`` (None or given) that needs the model's
+    controls, and ``run`` without the keywords the bridge sets. ValueError naming them."""
+    if not isinstance(model, Model):
+        raise ValueError(f"model: expected a massspring.Model, got {type(model).__name__}")
+    if policy is not None and model.controls is None:
+        raise ValueError("policy: the model has no controls; give it Controls with the intervals and the "
+                         "rest lengths, wind or pin targets the policy sets")
+    for name in ("objective", "wrt", "controller"):
+        if name in run:
+            raise ValueError(f"{name}: the bridge sets it (the loss, the policy's parameters and the physics, "
+                             f"the policy)")
+
+
 def with_parameters(model, values) -> Model:
     """``model`` with the arrays of ``values`` (names of ``PARAMETERS`` -> arrays) in place of
     its own, "controls.<name>" in its ``Controls``; checked as any Model is."""

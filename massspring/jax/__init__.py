@@ -33,8 +33,7 @@ try:
 except ImportError as exc:  # pragma: no cover - the message is the point
     raise ImportError("massspring.jax needs JAX: pip install 'massspring-taichi[jax]'") from exc
 
-from massspring.gradients import PARAMETERS, gradient, with_parameters
-from massspring.model import Model
+from massspring.gradients import PARAMETERS, check_bridge, gradient, with_parameters
 from massspring.model.feedback import DRIVEN, Controller
 
 
@@ -78,19 +77,12 @@ def simulation(model, loss, *, policy=None, **run):
     both (see the module). ``run``: ``massspring.gradient``'s keywords (``steps``,
     ``every``, ``integrator``, ``dt``, ``checkpoint``, ``dts``, ``tol`` and ``times``,
     solver options). Bad arguments raise ValueError naming them, before any step."""
-    if not isinstance(model, Model):
-        raise ValueError(f"model: expected a massspring.Model, got {type(model).__name__}")
+    check_bridge(model, policy, run)
     if not callable(loss):
         raise ValueError(f"loss: expected a JAX function of (positions, velocities), got {type(loss).__name__}")
     if policy is not None and not callable(policy):
         raise ValueError(f"policy: expected a JAX function of (params, positions, velocities, time), got "
                          f"{type(policy).__name__}")
-    if policy is not None and model.controls is None:
-        raise ValueError("policy: the model has no controls; give it Controls with the intervals and the "
-                         "rest lengths, wind or pin targets the policy sets")
-    for name in ("objective", "wrt", "controller"):
-        if name in run:
-            raise ValueError(f"{name}: the bridge sets it (loss, params and physics, policy)")
     partials = jax.jit(jax.value_and_grad(loss, argnums=(0, 1)))
 
     def objective(frames):

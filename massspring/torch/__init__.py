@@ -32,8 +32,7 @@ try:
 except ImportError as exc:  # pragma: no cover - the message is the point
     raise ImportError("massspring.torch needs PyTorch: pip install 'massspring-taichi[torch]'") from exc
 
-from massspring.gradients import PARAMETERS, gradient, with_parameters
-from massspring.model import Model
+from massspring.gradients import PARAMETERS, check_bridge, gradient, with_parameters
 from massspring.model.feedback import DRIVEN, Controller
 
 
@@ -96,18 +95,11 @@ def simulation(model, loss, *, policy=None, **run):
     ``massspring.gradient``'s keywords (``steps``, ``every``, ``integrator``, ``dt``,
     ``checkpoint``, ``dts``, ``tol`` and ``times``, solver options). Bad arguments raise
     ValueError naming them, before any step."""
-    if not isinstance(model, Model):
-        raise ValueError(f"model: expected a massspring.Model, got {type(model).__name__}")
-    if not callable(loss):
-        raise ValueError(f"loss: expected a torch function of (positions, velocities), got {type(loss).__name__}")
     if policy is not None and not isinstance(policy, torch.nn.Module):
         raise ValueError(f"policy: expected a torch.nn.Module, got {type(policy).__name__}")
-    if policy is not None and model.controls is None:
-        raise ValueError("policy: the model has no controls; give it Controls with the intervals and the "
-                         "rest lengths, wind or pin targets the policy sets")
-    for name in ("objective", "wrt", "controller"):
-        if name in run:
-            raise ValueError(f"{name}: the bridge sets it (loss, policy and physics)")
+    check_bridge(model, policy, run)
+    if not callable(loss):
+        raise ValueError(f"loss: expected a torch function of (positions, velocities), got {type(loss).__name__}")
 
     def objective(frames):
         x = torch.tensor(frames.positions, dtype=torch.float64, requires_grad=True)
