@@ -52,7 +52,7 @@ forward pass: ``-loss_last - head_x0``, with ``head_x0 = x[0, head_id][0]``.
 last gradient step; it simulates ``2 * steps`` steps in all).
 
     python benchmarks/difftaichi_runner.py --difftaichi ~/src/difftaichi/examples --robot 2 --iters 100
-    python benchmarks/difftaichi_runner.py --difftaichi PATH --iters 5 --threads 1 --json /tmp/dt.json
+    python benchmarks/difftaichi_runner.py --difftaichi PATH --iters 5 --threads 1 --json benchmarks/out/dt.json
 
 Another benchmark can ``import difftaichi_runner`` (with ``benchmarks/`` on the path)
 and call ``run(examples_dir, robot, iters, threads=None)``, which returns the dict
@@ -182,11 +182,13 @@ def _git(examples, *args):
 
 
 def source_info(examples):
-    """Path, git commit (None outside a git checkout), local changes to the two files, sha256s."""
+    """Path (relative to this repository's root, so that a result names no machine's
+    folders), git commit (None outside a git checkout), local changes to the two files,
+    sha256s."""
     commit = _git(examples, "rev-parse", "HEAD")
     status = _git(examples, "status", "--porcelain", "--", *REQUIRED_FILES) if commit else None
     return {
-        "path": str(examples),
+        "path": os.path.relpath(examples, Path(__file__).resolve().parents[1]),
         "commit": commit,
         "modified": None if status is None else bool(status),
         "sha256": {name: hashlib.sha256((examples / name).read_bytes()).hexdigest()
