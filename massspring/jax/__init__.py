@@ -37,37 +37,47 @@ from massspring.gradients import PARAMETERS, check_bridge, gradient, with_parame
 from massspring.model.feedback import DRIVEN, Controller
 
 
-class PolicyController(Controller):
-    """A JAX ``policy(params, positions, velocities, time)`` as a ``massspring.Controller``
-    of the controls ``controls`` holds (``DRIVEN``): its parameters the leaves of the
-    pytree ``params`` as float64 arrays "0", "1", ... in ``jax.tree_util`` order."""
+class CompiledPolicy:
+    """A JAX ``policy(params, positions, velocities, time)`` setting ``drives``, under
+    ``jax.jit`` once for a ``simulation`` (compiled once per shape of its arguments, not
+    again for each call of the bridge's function): ``outputs`` and its ``pullback``."""
 
-    def __init__(self, policy, params, controls):
-        self.interval = controls.interval
-        self.drives = tuple(name for name in DRIVEN if getattr(controls, name) is not None)
-        self.springs = controls.springs
-        leaves, self.tree = jax.tree_util.tree_flatten(params)
-        self.parameters = {str(i): np.asarray(leaf, dtype=np.float64) for i, leaf in enumerate(leaves)}
-        drives = self.drives
+    def __init__(self, policy, drives):
+        self.drives = drives
 
-        def outputs(leaves, x, v, t):
-            out = policy(jax.tree_util.tree_unflatten(self.tree, leaves), x, v, t)
+        def outputs(params, x, v, t):
+            out = policy(params, x, v, t)
             return {name: jnp.asarray(out[name], dtype=jnp.result_type(float)) for name in drives}
 
-        self._outputs = jax.jit(outputs)
-        self._pullback = jax.jit(lambda leaves, x, v, t, cot: jax.vjp(
-            lambda p, a, b: outputs(p, a, b, t), leaves, x, v)[1](cot))
+        self.outputs = jax.jit(outputs)
+        self.pullback = jax.jit(lambda params, x, v, t, cot: jax.vjp(
+            lambda p, a, b: outputs(p, a, b, t), params, x, v)[1](cot))
 
-    def _leaves(self):
-        return [self.parameters[str(i)] for i in range(len(self.parameters))]
+
+class PolicyController(Controller):
+    """A ``CompiledPolicy`` with the parameters ``params`` (a pytree) as a
+    ``massspring.Controller`` of the controls ``controls`` holds: its parameters the
+    pytree's leaves as float64 arrays "0", "1", ... in ``jax.tree_util`` order."""
+
+    def __init__(self, compiled, params, controls):
+        self.interval = controls.interval
+        self.drives = compiled.drives
+        self.springs = controls.springs
+        self.compiled = compiled
+        leaves, self.tree = jax.tree_util.tree_flatten(params)
+        self.parameters = {str(i): np.asarray(leaf, dtype=np.float64) for i, leaf in enumerate(leaves)}
+
+    def _params(self):
+        return jax.tree_util.tree_unflatten(self.tree, [self.parameters[str(i)] for i in range(len(self.parameters))])
 
     def controls(self, state):
-        out = self._outputs(self._leaves(), state.positions, state.velocities, state.time)
+        out = self.compiled.outputs(self._params(), state.positions, state.velocities, state.time)
         return {name: np.asarray(value, dtype=np.float64) for name, value in out.items()}
 
     def vjp(self, state, cotangents):
-        leaves, dx, dv = self._pullback(self._leaves(), state.positions, state.velocities, state.time,
-                                        {name: cotangents[name] for name in self.drives})
+        params, dx, dv = self.compiled.pullback(self._params(), state.positions, state.velocities, state.time,
+                                                {name: cotangents[name] for name in self.drives})
+        leaves = jax.tree_util.tree_leaves(params)
         return ({str(i): np.asarray(g, dtype=np.float64) for i, g in enumerate(leaves)},
                 np.asarray(dx, dtype=np.float64), np.asarray(dv, dtype=np.float64))
 
@@ -84,6 +94,8 @@ def simulation(model, loss, *, policy=None, **run):
         raise ValueError(f"policy: expected a JAX function of (params, positions, velocities, time), got "
                          f"{type(policy).__name__}")
     partials = jax.jit(jax.value_and_grad(loss, argnums=(0, 1)))
+    compiled = None if policy is None else CompiledPolicy(
+        policy, tuple(name for name in DRIVEN if getattr(model.controls, name) is not None))
 
     def objective(frames):
         value, (dx, dv) = partials(frames.positions, frames.velocities)
@@ -97,7 +109,7 @@ def simulation(model, loss, *, policy=None, **run):
                 raise ValueError(f"physics: unknown parameter {name!r}; expected some of {', '.join(PARAMETERS)}")
         controller = None
         if policy is not None:
-            controller = PolicyController(policy, params, model.controls)
+            controller = PolicyController(compiled, params, model.controls)
         elif params is not None and jax.tree_util.tree_leaves(params):
             raise ValueError("params: without a policy there is nothing for them to set")
         run_model = with_parameters(model, {name: np.asarray(value, dtype=np.float64) for name, value in physics.items()})
