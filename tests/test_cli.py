@@ -12,6 +12,7 @@ from massspring.cli import main
 from massspring.integrators import INTEGRATORS
 from massspring.scene import builtin_scenes, load_scene
 from test_scene_energy import ENERGY_RUNS, WHOLE_RUNS
+from test_self_collision import SHIPPED_RUNS
 
 # The fast tier: each scene once with its default integrator, each integrator on two scenes.
 TWO_SCENES = {"explicit": ("chain", "cloth"), "symplectic": ("spring", "chain"), "rk4": ("chain", "heavychain"),
@@ -35,8 +36,10 @@ def run_cli(*args):
 WHOLE = set(WHOLE_RUNS + ENERGY_RUNS) - FAST_RUNS
 # The self-collision scenes' 3-step backward-Euler runs (5-6 s each, their compiles) are
 # BDF2's, whose first step is backward Euler's; test_self_collision runs backward Euler
-# on self-collision at length
-SHARED = {(scene, "backward-euler") for scene in ("ledge", "sheets", "tablecloth", "thrown")} - FAST_RUNS
+# on self-collision at length, and runs these scenes and integrators longer, at their
+# default dt, checking every sampled frame for crossings (its SHIPPED_RUNS)
+SHARED = ({(scene, "backward-euler") for scene in ("ledge", "sheets", "tablecloth", "thrown")}
+          | {(name, integrator) for name, _, integrator, _, _ in SHIPPED_RUNS}) - FAST_RUNS
 
 
 @pytest.mark.parametrize("scene, integrator", sampled(

@@ -86,10 +86,14 @@ def test_a_fast_sheet_does_not_tunnel_through_a_resting_one(integrator, dt, spee
         sim.close()
 
 
+# (scene, resolution, integrator, frames, steps), each at the scene's default dt for it:
+# test_cli's every-scene runs leave these scenes and integrators to this test
+SHIPPED_RUNS = [("thrown", 10, "implicit", 4, 30), ("thrown", 8, "symplectic", 3, 1000), ("thrown", 8, "bdf2", 4, 30),
+                ("ledge", 24, "implicit", 12, 60)]
+
+
 @pytest.mark.fast_sample(integrator=["symplectic"])
-@pytest.mark.parametrize("name, resolution, integrator, frames, steps", [
-    ("thrown", 10, "implicit", 4, 30), ("thrown", 8, "symplectic", 3, 1000), ("thrown", 8, "bdf2", 4, 30),
-    ("ledge", 24, "implicit", 12, 60)])
+@pytest.mark.parametrize("name, resolution, integrator, frames, steps", SHIPPED_RUNS)
 def test_the_shipped_scenes_never_cross(name, resolution, integrator, frames, steps):
     """``ledge`` at its shipped size: without the pass the cloth that slid off lies on the
     ground through itself (91 crossings from 1 s on, docs/self-collision.md), with it never."""
