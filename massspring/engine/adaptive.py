@@ -210,7 +210,7 @@ class Estimator:
         staying = (d0 <= margin) & (d <= margin)
         return (np.minimum(d0, d) <= h * speed + margin) & ~staying, staying
 
-    def error(self, t, x, v):
+    def error(self, t, x, v, moved=None):
         """(the weighted RMS of the estimate of the step to (t, x, v), its order in h).
 
         Contact (``_contacts``). A particle that may have hit or left a collider in any of
@@ -225,14 +225,27 @@ class Estimator:
         whose error accumulates with a smooth trajectory a higher-order estimate cannot
         see: it counts the trapezoidal companion's estimate, as the first-order
         integrators do. Either is of order 1 in h, which the estimate is where they are
-        the larger part; the impact's is returned in the units of the others (times h / H)."""
+        the larger part; the impact's is returned in the units of the others (times h / H).
+
+        ``moved``: the particles (inner numbering) a pass changed the velocities of at the
+        end of this step (``Pass.moved``: the self-collision pass's impulses) count no
+        error in any estimate spanning it. The pass's response is not an integration error
+        that a shorter step makes smaller: it moves a close pair apart within the step by
+        a fraction of its gap, whatever the step's size, so its velocity change grows as
+        1 / h (counted as an impact, h |v' - v| / 2 does not shrink with h: the steps of
+        ``sheets`` fell below min_dt as its upper sheet landed, each shorter step's
+        impulses putting in more energy, until the divergence check refused them)."""
         y, d = self._y(x, v), self._distance(t, x)
         t0, y0 = self.points[-1][:2]
         h = t - t0
         if y.size == 0:
             return 0.0, 1
         touched, staying = self._contacts(self.points[-1], t, y, d)
-        self._tried = (float(t), y, d, touched)  # what ``push`` adds if the step is accepted
+        passed = None if moved is None or not len(moved) else np.isin(self.moving, moved)
+        if passed is not None and touched is None:
+            touched, staying = np.zeros_like(passed), np.zeros_like(passed)
+        record = touched if passed is None else touched | passed
+        self._tried = (float(t), y, d, record)  # what ``push`` adds if the step is accepted
         if self.order == 1 or len(self.points) == 1 or touched is not None:
             companion = y[:, :3] - y0[:, :3] - 0.5 * h * (y[:, 3:] + y0[:, 3:])
         if self.order == 1 or len(self.points) == 1:
@@ -249,10 +262,14 @@ class Estimator:
         squares = np.sum(e * e, axis=1)
         if touched is None:
             return math.sqrt(float(np.mean(squares))) / self.size, q
+        if passed is not None:
+            touched, staying = touched & ~passed, staying & ~passed
         jump = np.sum((y[touched, 3:] - y0[touched, 3:]) ** 2, axis=1)
         impact = 0.5 * h * math.sqrt(float(np.sum(jump)) / len(y)) / self.size * h / self.horizon
+        touched = record
         for p in spanned:
-            touched = touched | p[3]
+            if p[3] is not None:
+                touched = touched | p[3]
         sliding = staying & ~touched
         squares[touched | staying] = 0.0
         smooth = math.sqrt(float(np.mean(squares))) / self.size

@@ -289,6 +289,8 @@ class Simulation:
             cls = self._integrator.traits
             self._estimator = adaptive.Estimator(cls.order, cls.error_constant, np.flatnonzero(inner.free_mask()),
                                                  size, tolerance.horizon, model.colliders)
+            for p in self._passes:
+                p.watch_moves()
 
     # ------------------------------------------------------------------ settings
 
@@ -760,7 +762,7 @@ class Simulation:
                 failure = "solver"
             else:
                 x, v, rows = self._read_state(integrator)
-                estimate, order = est.error(t + h, x, v)
+                estimate, order = est.error(t + h, x, v, self._moved())
             kinks = ctl.kinks
             if ctl.judge(h, estimate, order, failure, t):
                 if ctl.kinks > kinks:
@@ -787,6 +789,12 @@ class Simulation:
                                              None if self._min_dt_given else tolerance.horizon)
             if ctl.in_a_row >= adaptive.DROP_AFTER and len(est.points) > 1:
                 est.points = est.points[-1:]  # a kink: the history before it does not help
+
+    def _moved(self):
+        """The particles (inner numbering) the passes changed the velocities of at the end
+        of the step just taken (``Pass.moved``), None if no pass tells."""
+        moved = [rows for rows in (p.moved() for p in self._passes) if rows is not None]
+        return np.concatenate(moved) if moved else None
 
     def _back_to(self, integrator, kept):
         """Back to the state a rejected try started from (``_current``) and ``kept`` (``_kept``)."""

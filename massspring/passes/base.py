@@ -95,6 +95,16 @@ class Pass:
     def end(self, state, t):
         raise NotImplementedError
 
+    def moved(self):
+        """The particles (inner numbering, int array) whose velocities this pass changed
+        at the end of the step just taken, when it was asked to watch for them
+        (``watch_moves``: an error-controlled run, whose estimate treats such a change as
+        an impact); None when it does not tell."""
+        return None
+
+    def watch_moves(self):
+        """From now on, keep what ``moved`` returns (nothing to keep by default)."""
+
     def stats(self) -> dict:
         return {}
 

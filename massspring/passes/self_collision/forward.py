@@ -159,6 +159,7 @@ class SelfCollisionPass(Pass):
         self.pairs_dt = None  # the step size (s) the solve's pairs in the bundle were collected for
         self.recorder = None  # a gradient's run: the steps the pass acted in go to this (``watch``)
         self.solve_recorder = None  # ... and the steps whose implicit solve holds pairs to this
+        self._moved = None  # an error-controlled run: the particles the last step's pass acted on (``moved``)
 
     @property
     def capacity(self) -> int:
@@ -212,6 +213,9 @@ class SelfCollisionPass(Pass):
                                                        self_collision_restore)
 
         self.steps += 1
+        watching = self._moved is not None
+        if watching:
+            self._moved = np.empty(0, np.int64)
         if self_collision_check(self.dev, state, self.serial) == 0:
             return
         self.passes += 1
@@ -235,6 +239,9 @@ class SelfCollisionPass(Pass):
             rounds += 1
         if acted:
             self.recorder(state, *self.pairs(count)[:3], set_in)
+        if watching and (int(out[1]) > 0 or bounded):
+            idx = self.pairs(count)[0]
+            self._moved = np.unique(idx[idx >= 0])
         self._solve_pairs(state)
         self.last = (int(out[0]), int(out[1]), int(held), float(out[3]), float(out[4]), self.capacity, bounded)
         if self.cfg.self_pairs:
@@ -251,6 +258,14 @@ class SelfCollisionPass(Pass):
         if count:
             self_collision_read_pairs(self.list, count, *out)
         return out
+
+    def moved(self):
+        """The particles of the listed pairs, if the last step's pass repelled a pair or
+        bounded one (``Pass.moved``); empty if it did neither."""
+        return self._moved
+
+    def watch_moves(self):
+        self._moved = np.empty(0, np.int64)
 
     def watch(self, recorder, solve_recorder=None):
         """From now on (a gradient's run: ``massspring.gradients``), a step in which the
