@@ -25,6 +25,9 @@ step in s), then:
 
 * ``begin(state)`` before each step, ``end(state, t)`` after it (t: the time the step
   ended at, s);
+* ``watch_moves()`` / ``moved()``: in an error-controlled run, the particles whose
+  velocities it changed at the end of the step just taken, which the run's error
+  estimate leaves out (``engine.adaptive``; None by default: it tells nothing);
 * ``stats()``: a dict of plain numbers;
 * ``carried_state()`` / ``load(state, carried)``: its restart state, out and in
   (``carried`` None: start afresh);
