@@ -396,3 +396,15 @@ def test_the_cli_exits_3_below_min_dt(capsys):
     assert code == 3
     err = capsys.readouterr().err
     assert "below min_dt 1 ms" in err or "below min_dt" in err
+
+
+def test_a_run_whose_short_steps_diverged_is_told_to_bound_its_steps():
+    """Where the last tries diverged however short (``flag`` at tol 0.1 after a 0.52 s
+    linearised step: docs/solvers.md), a smaller min_dt or a looser tol cannot help;
+    the command line's advice names --max-dt first. Where the estimate refused them, not."""
+    from massspring.cli.run import adaptive_hint
+
+    diverged = StepSizeError(188, 2.05, 8e-10, 3e-9, "the state diverged", "implicit")
+    refused = StepSizeError(76, 0.17, 8e-10, 3e-9, "error estimate 52.1 x its bound", "implicit")
+    assert adaptive_hint(diverged).startswith("give a --max-dt below the largest step")
+    assert "--max-dt" not in adaptive_hint(refused) and "--min-dt" in adaptive_hint(refused)

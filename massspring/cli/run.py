@@ -18,6 +18,17 @@ from massspring.cli.common import (
 from massspring.cli.pictures import finish_export, finish_pictures, plan_export, plan_frames, plan_pictures
 
 
+def adaptive_hint(error) -> str:
+    """What to try after an error-controlled run stopped below min_dt (``StepSizeError``):
+    where its steps diverged however short, a bound on the steps before it (a long step
+    of the linearised implicit Euler can end in a state no shorter step recovers from:
+    docs/solvers.md, "Error-controlled steps"), else a smaller --min-dt or a looser --tol."""
+    tips = "give a smaller --min-dt, a looser --tol or another --integrator"
+    if getattr(error, "cause", "") == "the state diverged":
+        return f"give a --max-dt below the largest step above, {tips.replace('give ', '', 1)}"
+    return tips
+
+
 def run_steps(args, scene, sim, start_steps=0):
     """The number of steps of ``run``, checked: --steps, or --duration / dt; neither:
     what is left of the scene's duration after ``start_steps`` (a restart's)."""
@@ -118,8 +129,7 @@ def cmd_run(args):
                       start_steps)
         done = sim.steps - start_steps
         if diverged is not None:
-            hint = ("give a smaller --min-dt, a looser --tol or another --integrator" if sim.tol is not None
-                    else divergence_hint(sim, diverged))
+            hint = (adaptive_hint(diverged) if sim.tol is not None else divergence_hint(sim, diverged))
             print(f"massspring: {diverged}; {hint}", file=sys.stderr)
             return EXIT_DIVERGED
         if stopped is not None:
