@@ -23,10 +23,10 @@ def adaptive_hint(error) -> str:
     where its steps diverged however short, a bound on the steps before it (a long step
     of the linearised implicit Euler can end in a state no shorter step recovers from:
     docs/solvers.md, "Error-controlled steps"), else a smaller --min-dt or a looser --tol."""
-    tips = "give a smaller --min-dt, a looser --tol or another --integrator"
+    tips = "a smaller --min-dt, a looser --tol or another --integrator"
     if getattr(error, "cause", "") == "the state diverged":
-        return f"give a --max-dt below the largest step above, {tips.replace('give ', '', 1)}"
-    return tips
+        return f"give a --max-dt below the largest step above, {tips}"
+    return f"give {tips}"
 
 
 def run_steps(args, scene, sim, start_steps=0):

@@ -101,8 +101,8 @@ class Pass:
     def moved(self):
         """The particles (inner numbering, int array) whose velocities this pass changed
         at the end of the step just taken, when it was asked to watch for them
-        (``watch_moves``: an error-controlled run, whose estimate treats such a change as
-        an impact); None when it does not tell."""
+        (``watch_moves``: an error-controlled run, whose estimate leaves them out of the
+        steps it spans); None when it does not tell."""
         return None
 
     def watch_moves(self):

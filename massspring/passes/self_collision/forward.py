@@ -237,11 +237,13 @@ class SelfCollisionPass(Pass):
                 set_in[(self.pairs(count)[3] == OWN) & (set_in < 0)] = rounds
                 acted = True
             rounds += 1
-        if acted:
-            self.recorder(state, *self.pairs(count)[:3], set_in)
-        if watching and (int(out[1]) > 0 or bounded):
-            idx = self.pairs(count)[0]
-            self._moved = np.unique(idx[idx >= 0])
+        moved = watching and (int(out[1]) > 0 or bounded)
+        if acted or moved:
+            pairs = self.pairs(count)
+            if acted:
+                self.recorder(state, *pairs[:3], set_in)
+            if moved:
+                self._moved = np.unique(pairs[0][pairs[0] >= 0])
         self._solve_pairs(state)
         self.last = (int(out[0]), int(out[1]), int(held), float(out[3]), float(out[4]), self.capacity, bounded)
         if self.cfg.self_pairs:
