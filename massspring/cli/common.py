@@ -59,7 +59,8 @@ def add_tolerance_arguments(p, frozen=False):
     p.add_argument("--min-dt", type=float, help="with --tol: the smallest step in s (default 1e-9 x the duration); "
                    "a run whose step would fall below it stops with exit 3")
     p.add_argument("--max-dt", type=float, help="with --tol: the largest step in s (default the duration; explicit, "
-                   "symplectic, rk4: the dt they suggest, half the predicted stability limit)")
+                   "symplectic, rk4: the dt they suggest, half the predicted stability limit; implicit: a frame, "
+                   "1/60 s)")
 
 
 def tolerance_options(args, frozen=False):

@@ -34,7 +34,11 @@ class Traits:
     scales by. ``stability_limited``: explicit, stable only below a step size set by the
     stiffest mode, which an error estimate does not see until the instability has grown:
     an error-controlled run keeps its steps at most its ``suggest_dt`` (half the limit
-    predicted at the initial state) unless given ``max_dt``.
+    predicted at the initial state) unless given ``max_dt``. ``linearised``: solves each
+    step's equations linearised once (Eq. 15: one Newton iteration of backward Euler),
+    whose error grows with the step and which the error estimate does not see: an
+    error-controlled run keeps its steps at most its ``suggest_dt`` (a frame) unless given
+    ``max_dt``.
     """
 
     order: int = 1
@@ -50,6 +54,7 @@ class Traits:
     limit_reference: bool = False
     error_constant: float = 0.5
     stability_limited: bool = False
+    linearised: bool = False
 
 
 class Integrator:

@@ -52,7 +52,7 @@ class ImplicitEuler(Integrator):
 
     name = "implicit"
     description = "linearised implicit Euler (Eq. 15), matrix-free preconditioned CG"
-    traits = Traits(order=1, has_stats=True, linear_solver=True, differentiable=True)
+    traits = Traits(order=1, has_stats=True, linear_solver=True, differentiable=True, linearised=True)
     options = LINEAR_OPTIONS
 
     def __init__(self, dev, model, settings):

@@ -60,7 +60,7 @@ class BackwardEuler(ImplicitEuler):
     name = "backward-euler"
     description = "backward Euler solved by Newton's method with a line search (CG per iteration)"
     traits = dataclasses.replace(
-        ImplicitEuler.traits, order=1, newton=True,
+        ImplicitEuler.traits, order=1, newton=True, linearised=False,
         checked_energy="kinetic and spring energy",  # cg.advance_positions with springs
         differentiable=True,  # kernels/newton_adjoint.py: the true Jacobian at the converged iterate
         extra_bytes=7 * 24,  # xb, vb, xk, vk, dir, res and a contact's carrier: f64 3-vectors
