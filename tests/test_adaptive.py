@@ -83,7 +83,7 @@ def bouncing_height(t):
         start, z, v = start + flight, 0.0, BOUNCE * (G * flight - v)
 
 
-@pytest.mark.fast_sample(integrator=["bdf2", "symplectic"])
+@pytest.mark.fast_sample(integrator=["symplectic"])
 @pytest.mark.parametrize("integrator", list(INTEGRATORS))
 def test_impacts_are_stepped_across_within_the_tolerance(integrator):
     """Through two impacts (at 0.20 s and 0.40 s) to 0.45 s, every integrator ends within
@@ -240,15 +240,15 @@ def test_controls_boundaries_are_landed_on():
 
 def test_frames_of_run_for_are_at_their_times():
     """``run(sim, duration=...)`` calls on_frame at each given instant, the run landing there."""
-    sim = ms.Simulation(spring_model(), integrator="midpoint", dt=1e-2, tol=1e-3, horizon=0.5)
+    sim = ms.Simulation(spring_model(), integrator="bdf2", dt=1e-2, tol=1e-3, horizon=0.5)
     seen = []
     ms.run(sim, duration=0.5, frames=[0.0, 0.125, 0.25, 0.5], on_frame=lambda s: seen.append(s.time))
     np.testing.assert_allclose(seen, [0.0, 0.125, 0.25, 0.5], rtol=0, atol=1e-15)
     # run_for's progress points (1/200 of the run) are not landed on: the steps of
     # sim.advance(0.5), which lands once
-    again = ms.Simulation(spring_model(), integrator="midpoint", dt=1e-2, tol=1e-3, horizon=0.5)
+    again = ms.Simulation(spring_model(), integrator="bdf2", dt=1e-2, tol=1e-3, horizon=0.5)
     ms.run(again, duration=0.5, progress=lambda done, total: None)
-    alone = ms.Simulation(spring_model(), integrator="midpoint", dt=1e-2, tol=1e-3, horizon=0.5).advance(0.5)
+    alone = ms.Simulation(spring_model(), integrator="bdf2", dt=1e-2, tol=1e-3, horizon=0.5).advance(0.5)
     assert again.steps == alone.steps < 200 and np.array_equal(again.step_sizes, alone.step_sizes)
 
 

@@ -141,7 +141,7 @@ NEWTON_CONTACT_CASES = [("backward-euler", case) for case in ("slide", "stick", 
     [("bdf2", case) for case in ("stick", "box")] + [("midpoint", case) for case in ("slide", "groove")]
 
 
-@pytest.mark.fast_sample(integrator_case=[("backward-euler", "slide")])
+@pytest.mark.full  # the fast tier's Newton contact gradient: the definiteness fix's, below
 @pytest.mark.parametrize("integrator_case", NEWTON_CONTACT_CASES, ids=["-".join(pair) for pair in NEWTON_CONTACT_CASES])
 def test_contact_in_a_newton_solved_step_has_the_gradient_of_its_branches(integrator_case):
     """Backward Euler's, BDF2's and the midpoint rule's contact constraints and friction,

@@ -93,6 +93,7 @@ def test_iteration_counts_as_the_f64_cycle(stiffness):
     assert np.abs(counts["multigrid-f32"] - counts["multigrid"]).max() <= 1, counts
 
 
+@FULL
 def test_gradient_through_the_f32_cycle_matches_the_f64_one():
     """The adjoint solves run with the run's preconditioner: with the f32 cycle and CG
     to 1e-12, the implicit step's gradient is the f64 cycle's."""

@@ -585,7 +585,7 @@ def test_a_too_thick_scene_is_one_line_at_the_command_line(tmp_path, capsys):
     one_line_error(capsys, "thickness 0.03 m is more than half the mesh's spacing")
 
 
-@pytest.mark.fast_sample(integrator=["backward-euler"])
+@FULL
 @pytest.mark.parametrize("integrator", [name for name, cls in INTEGRATORS.items() if cls.traits.newton])
 def test_a_newton_solved_step_starts_from_the_velocities_the_pass_left(integrator):
     """The pass changes velocities after a step; a Newton-solved step takes its v_n from
