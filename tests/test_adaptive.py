@@ -350,6 +350,7 @@ def test_the_cli_refuses_bad_tolerances_in_one_line(capsys, tmp_path, monkeypatc
     assert not (tmp_path / "frames-dir").exists()
 
 
+@pytest.mark.fast_sample(integrator=["symplectic"])
 @pytest.mark.parametrize("integrator", ["rk4", "symplectic"])
 def test_explicit_steps_stay_below_the_predicted_stability_limit(integrator):
     """A free-falling rope (rope-drop with 10 particles, before it lands at 0.32 s) is

@@ -84,6 +84,7 @@ def test_shipped_scene_files_run(scene, steps, tmp_path, capsys):
     assert json.loads((tmp_path / "manifest.json").read_text())["status"] == "complete"
 
 
+@FULL  # the fast tier's fit: tests/test_fit.py
 def test_fit_stiffness_recovers_both_factors(tmp_path):
     """Issue 39's fit: from 0.5x and 2x, L-BFGS-B with ``ms.gradient`` as its gradient finds
     the recorded run's stiffness and damping to 1e-4 relative in at most 30 iterations."""

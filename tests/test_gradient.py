@@ -251,6 +251,7 @@ def test_steps_run_backwards_in_one_launch_give_the_step_by_step_bits(integrator
     assert scale > 0 and gap <= 1e-13 * scale  # measured 2.5e-16 (explicit) and 4.9e-16 (symplectic)
 
 
+@pytest.mark.fast_sample(integrator=["symplectic"])
 @pytest.mark.parametrize("integrator", ["explicit", "symplectic"])
 def test_steps_with_controls_and_a_ground_run_backwards_in_one_launch_a_control_interval(integrator, monkeypatch):
     """Issue 60 (the creature's gradient cost 14x its run, one adjoint launch a step):

@@ -185,7 +185,7 @@ def test_a_limit_the_pins_cannot_meet_never_makes_a_spring_worse(loops):
         free.close()
 
 
-@pytest.mark.fast_sample(integrator=["bdf2"])
+@FULL
 @pytest.mark.parametrize("integrator", ["bdf2", "midpoint"])
 def test_pins_pulling_past_the_limit_do_not_pump_energy(integrator):
     """Issue 60: the chain above with its pins pulling apart at 1 m/s (0.5 m/s each):
