@@ -219,6 +219,10 @@ for path in sys.argv[1:]:
     code = open(path).read()
     try:
         exec(compile(code, path, "exec"), {"__name__": "__main__"})
+    except SystemExit as done:  # as from python FILE: exit 0 is success
+        if done.code not in (None, 0):
+            print("FAILED", path, file=sys.stderr)
+            sys.exit(1)
     except BaseException:
         traceback.print_exc()
         print("FAILED", path, file=sys.stderr)

@@ -160,10 +160,13 @@ def stable_bound(tolerance: Tolerance, integrator_class, model) -> Tolerance:
     the initial state, ``engine.spectrum``), whose error estimate does not see an
     instability until it has grown (a free fall, integrated exactly, lets the steps grow
     past the limit); the linearised step's (a frame), whose estimate does not see its
-    linearisation's error (module docstring, "Stability")."""
+    linearisation's error (module docstring, "Stability"). Another integrator's
+    ``tolerance`` is returned as it is."""
     from massspring.engine.spectrum import predict
 
     traits = integrator_class.traits
+    if not (traits.stability_limited or traits.linearised):
+        return tolerance
     bound = integrator_class.suggest_dt(predict(model) if traits.stability_limited else None)
     return replace(tolerance, max_dt=max(min(tolerance.max_dt, bound), tolerance.min_dt))
 

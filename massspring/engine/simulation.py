@@ -215,8 +215,7 @@ class Simulation:
                 if options.get(name) is not None:
                     raise ValueError(f"{name}: an error-controlled run (tol) derives it from tol; give one or "
                                      f"the other")
-            traits = INTEGRATORS[integrator].traits
-            if max_dt is None and (traits.stability_limited or traits.linearised):
+            if max_dt is None:
                 tolerance = adaptive.stable_bound(tolerance, INTEGRATORS[integrator], model)
         if model.controls is not None:
             if tolerance is None:
