@@ -92,7 +92,7 @@ def main(argv=None):
         end = study.default_duration(scene) if args.fraction is None else args.fraction * scene.duration
         for integrator in args.integrators:
             dt = scene.default_dt(integrator)
-            fixed = attempt(lambda: scene.simulation(integrator), round(end / dt) * dt, args.budget)
+            fixed = attempt(lambda: scene.simulation(integrator, tol=None), round(end / dt) * dt, args.budget)
             controlled = attempt(lambda: scene.simulation(integrator, tol=args.tol, horizon=end), end, args.budget)
             rows.append({"scene": name, "integrator": integrator, "end_s": end, "dt": dt, "fixed": fixed,
                          "controlled": controlled})

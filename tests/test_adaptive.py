@@ -316,6 +316,54 @@ def test_the_cli_runs_a_scene_to_a_tolerance(capsys):
     assert "tol 0.001 (dt " in out and "(0.5 s simulated)" in out and "from --tol" in out
 
 
+def test_a_scene_with_a_tol_runs_to_it_unless_fixed_steps_are_asked_for(capsys):
+    """`zerolength` ships [tol] backward-euler = 0.1: its default run is error-controlled
+    to the scene's duration; --steps, --dt and --newton-tol run fixed steps; `info`
+    names the tol; another integrator keeps the scene's fixed dt."""
+    from massspring.cli import main
+
+    assert main(["run", "zerolength", "--quiet"]) == 0
+    out = capsys.readouterr().out
+    assert "backward-euler, tol 0.1 (dt " in out and "(2 s simulated)" in out
+    for fixed in (["--steps", "3"], ["--dt", "0.02", "--duration", "0.06"], ["--newton-tol", "1e-4", "--steps", "3"]):
+        assert main(["run", "zerolength", "--quiet", *fixed]) == 0, fixed
+        out = capsys.readouterr().out
+        assert "tol" not in out.split("integrator", 1)[1].split("\n", 1)[0] and "steps       3 (" in out, fixed
+    assert main(["info", "zerolength"]) == 0
+    out = capsys.readouterr().out
+    assert "backward-euler, tol 0.1 (error-controlled steps, the first dt = 1/100 s)" in out
+    assert "tol defaults backward-euler 0.1 (" in out
+    assert main(["info", "zerolength", "--integrator", "bdf2"]) == 0
+    assert "bdf2, dt = 1/100 s" in capsys.readouterr().out
+
+
+def test_a_run_held_to_tiny_steps_is_named_before_it_starts(capsys, monkeypatch):
+    """Explicit Euler on the undamped stiff chain is held below 2.3e-11 s (half its
+    predicted stability limit; the default min_dt, 1e-9 x the horizon, above it): `run`
+    says so, with the steps ahead, before the run (here, with the warning's threshold
+    lowered, on symplectic Euler's 125 steps of at most 8.1e-6 s over 1 ms)."""
+    import argparse
+
+    from massspring.cli import main, run
+
+    scene = ms.load_scene("stiffchain")
+    sim = scene.simulation("explicit", tol=1e-3, horizon=0.2)
+    note = run.bound_note(argparse.Namespace(max_dt=None), sim, 0.2)
+    assert note.startswith("explicit's steps are held at most 2e-10 s (--min-dt, above the 2.29e-11 s of half its "
+                           "stability limit predicted here): at least 1e+09 steps for the 0.2 s"), note
+    given = scene.simulation("explicit", tol=1e-3, horizon=0.2, max_dt=1e-9)
+    assert "at most 1e-09 s (--max-dt): at least 2e+08 steps" in run.bound_note(argparse.Namespace(max_dt=1e-9),
+                                                                                 given, 0.2)
+    for quiet in (scene.simulation("backward-euler", tol=1e-3, horizon=0.2), scene.simulation("explicit")):
+        assert run.bound_note(argparse.Namespace(max_dt=None), quiet, 0.2) is None
+    for s in (sim, given):
+        s.close()
+    monkeypatch.setattr(run, "LONG_RUN_STEPS", 100)
+    assert main(["run", "stiffchain", "--integrator", "symplectic", "--tol", "1e-3", "--duration", "1e-3"]) == 0
+    assert ("massspring: run stiffchain: symplectic's steps are held at most 8.14e-06 s (half its stability limit "
+            "predicted here): at least 123 steps for the 0.001 s") in capsys.readouterr().err
+
+
 def test_an_obj_mesh_runs_as_a_scene_to_a_tolerance(capsys, tmp_path):
     """An OBJ file where a scene goes: the mesh scene with the defaults (implicit, 2 s, no
     dt table); `massspring run my.obj --tol 1e-2` runs it with the steps it picks."""

@@ -105,6 +105,22 @@ def test_divergence_keeps_the_frames_and_the_manifest_says_where_it_stopped(tmp_
     assert f"the run stopped at step {stopped} of 200" in capsys.readouterr().err
 
 
+def test_an_error_controlled_run_says_in_time_where_it_stopped(tmp_path, capsys):
+    """A run with --tol counts no steps ahead: run to its end its pictures are written
+    as complete; stopped (steps held at a min_dt above symplectic Euler's limit on the
+    stiff chain: StepSizeError) the CLI names the time it reached of the time asked."""
+    png, out = tmp_path / "end.png", tmp_path / "frames"
+    assert main(["run", "stiffchain", "--integrator", "symplectic", "--tol", "1e-2", "--duration", "2e-3",
+                 "--png", str(png)]) == 0
+    captured = capsys.readouterr()
+    assert "pictures    wrote" in captured.out and "stopped" not in captured.err and png.is_file()
+    assert main(["run", "stiffchain", "--integrator", "symplectic", "--tol", "1e-2", "--duration", "0.05",
+                 "--min-dt", "1e-3", "--max-dt", "1e-3", "--quiet", "--png", str(png), "--export", str(out)]) == 3
+    err = capsys.readouterr().err
+    assert err.count("massspring: the run stopped at t = ") == 2 and err.count(" s of 0.05 s; wrote ") == 2, err
+    assert manifest(out)["status"] == "diverged"
+
+
 def test_interrupted_run_keeps_its_frames(tmp_path, capsys, monkeypatch):
     calls = []
     step = ms.Simulation.step

@@ -61,7 +61,7 @@ def test_bad_values_exit_2_before_the_run(args, word, tmp_path, capsys, monkeypa
      "--preconditioner: explicit solves no linear system"),
     (["info", "chain", "--integrator", "symplectic", "--cg-tol", "1e-3", "--no-definiteness-fix"],
      "--cg-tol/--no-definiteness-fix: symplectic solves no linear system"),
-    (["run", "cloth", "--duration", "0.001"], "--duration: 0.001 s is shorter than one step (dt = 1/60 s)"),
+    (["run", "drape", "--duration", "0.001"], "--duration: 0.001 s is shorter than one step (dt = 1/60 s)"),
 ])
 def test_errors_name_the_option_given_not_internal_names(args, message, capsys):
     assert main(args) == 2

@@ -1,9 +1,12 @@
 """Scenes: generators keep total mass and physics across resolutions; loading and overrides."""
 
+import re
+
 import numpy as np
 import pytest
 
 import massspring as ms
+from massspring.integrators import INTEGRATORS
 from massspring.scene import generators
 
 
@@ -144,6 +147,48 @@ def test_solver_table_sets_simulation_defaults_that_arguments_override(tmp_path)
     sim = scene.simulation(preconditioner="none", cg_tol=1e-4)
     assert (sim.preconditioner, sim.cg_tol, sim.cg_max_iter) == ("none", 1e-4, 500)
     sim.close()
+
+
+def test_a_scenes_tol_is_the_default_that_fixed_step_arguments_give_way_to(tmp_path):
+    """``tol``: a number is every integrator's, a [tol] table the named ones'; a run
+    given dt, newton_tol or cg_tol (options of fixed steps) or tol=None steps fixed."""
+    chain = '[model]\ngenerator = "chain"\ncount = 5\n'
+    every, named = tmp_path / "every.toml", tmp_path / "named.toml"
+    every.write_text(f'integrator = "implicit"\nduration = 2.0\ntol = 0.01\n{chain}')
+    named.write_text(f'integrator = "implicit"\nduration = 2.0\n[tol]\nbdf2 = 0.001\n{chain}')
+
+    def settings(scene, *args, **kwargs):
+        sim = scene.simulation(*args, **kwargs)
+        try:
+            return sim.settings.tol, sim.settings.horizon, sim.dt
+        finally:
+            sim.close()
+
+    scene = ms.load_scene(every)
+    assert scene.tol == dict.fromkeys(INTEGRATORS, 0.01)
+    assert settings(scene) == (0.01, 2.0, scene.default_dt())
+    assert settings(scene, "symplectic") == (0.01, 2.0, scene.default_dt("symplectic"))
+    assert settings(scene, horizon=1.0, tol=1e-3) == (1e-3, 1.0, scene.default_dt())
+    for fixed in ({"dt": 1e-3}, {"cg_tol": 1e-4}, {"tol": None}, {"tol": None, "horizon": 1.0}):
+        assert settings(scene, **fixed)[:2] == (None, None), fixed
+    assert settings(scene, "bdf2", newton_tol=1e-4)[:2] == (None, None)
+    assert settings(scene, dt=1e-3, tol=0.01) == (0.01, 2.0, 1e-3)  # tol given: dt is its first step
+    scene = ms.load_scene(named)
+    assert scene.tol == {"bdf2": 0.001}
+    assert settings(scene)[:2] == (None, None)
+    assert settings(scene, "bdf2")[:2] == (0.001, 2.0)
+
+
+@pytest.mark.parametrize("body, message", [
+    ('tol = "fine"', "tol: expected a number or a table, got str"), ("tol = 0", "tol: "),
+    ("tol = 1e-15", "tol: .*below 1e-14"), ("[tol]\nfast = 0.1", "tol.fast: unknown integrator"),
+    ("[tol]\nbdf2 = -1.0", "tol.bdf2: "), ('[tol]\nbdf2 = "0.1"', "tol.bdf2: expected a number"),
+])
+def test_bad_tol_names_the_key(body, message, tmp_path):
+    path = tmp_path / "bad.toml"
+    path.write_text(f'integrator = "implicit"\nduration = 1.0\n{body}\n[model]\ngenerator = "spring"\n')
+    with pytest.raises(ms.SceneError, match=f"^{re.escape(str(path))}: {message}"):
+        ms.load_scene(path)
 
 
 @pytest.mark.parametrize("body, key", [

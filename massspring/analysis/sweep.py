@@ -181,11 +181,12 @@ def setup_text(scene, integrator=None, dt=None, duration=None, steps=None, optio
     ``integrator``, ``dt``, ``duration``, ``steps`` and the Simulation ``options`` that
     are set (sorted, ``key=value``), then ``scene=`` and a digest of the scene's model
     (``Model.fingerprint``: two models with one fingerprint step identically) with the
-    scene's default integrator, dts, duration and [solver] table, so that a changed
+    scene's default integrator, dts, duration, [solver] table and tols, so that a changed
     scene file, ``--set`` or option makes another setup."""
     run = {"integrator": integrator, "dt": dt, "duration": duration, "steps": steps, **(options or {})}
     fields = [f"{key}={value_text(value)}" for key, value in sorted(run.items()) if value is not None]
     defaults = (scene.integrator, sorted(scene.dt.items()), scene.duration, sorted(scene.solver.items()))
+    defaults += (sorted(scene.tol.items()),) if scene.tol else ()  # a scene without one keeps its digest
     digest = hashlib.sha256(f"{scene.model().fingerprint()} {defaults!r}".encode()).hexdigest()[:16]
     return " ".join([*fields, f"scene={digest}"])
 
@@ -209,8 +210,8 @@ def run_case(scene, case, integrator=None, dt=None, duration=None, steps=None, o
     for key in ("preconditioner", "tol"):
         if key in values:
             options[key] = values[key]
-    if options.get("tol") is not None and duration is not None:
-        options.setdefault("horizon", duration)
+    if duration is not None:
+        options.setdefault("horizon", duration)  # an error-controlled case's (the scene's tol, or one given)
     row = {"status": "ok", "message": "", **{k: "" for k in NUMBERS}}
     start = time.perf_counter()
     sim = None

@@ -114,6 +114,8 @@ def make_simulation(args):
         raise UsageError(str(exc)) from None
     check_taken(args.integrator or scene.integrator, options)
     options.update(tolerance_options(args))
+    if any(getattr(args, name, None) is not None for name in ("steps", "every")):
+        options.setdefault("tol", None)  # counting steps asks for fixed ones, as --dt does: the scene's tol gives way
     with progress.phase(f"{args.command} {scene.name}: building the model and the simulation",
                         show=not getattr(args, "quiet", False)):
         sim = scene.simulation(integrator=args.integrator, dt=args.dt, precision=args.precision, arch=args.arch,

@@ -150,9 +150,10 @@ def plan_export(args, scene, sim, steps, steps_at):
     return export
 
 
-def finish_export(export, sim, end_step, diverged, stopped):
+def finish_export(export, sim, reached, diverged, stopped):
     """Mark the manifest with how the run ended and say what was written (on stderr if
-    the run stopped early or a file failed). Returns ["--export"] if a file failed."""
+    the run stopped early, at ``reached``, or a file failed). Returns ["--export"] if a
+    file failed."""
     if diverged is not None:
         status, message = "diverged", str(diverged)
     elif stopped is not None:
@@ -166,8 +167,7 @@ def finish_export(export, sim, end_step, diverged, stopped):
         print(f"massspring: --export: {error}; {where}", file=sys.stderr)
         return ["--export"]
     if status != "complete":
-        print(f"massspring: the run stopped at step {sim.steps} of {end_step}; wrote {where}, the frames up to "
-              "then", file=sys.stderr)
+        print(f"massspring: the run stopped at {reached}; wrote {where}, the frames up to then", file=sys.stderr)
     else:
         print(f"frames      wrote {where}")
     return []
@@ -192,20 +192,21 @@ def _number(text):
         raise ValueError(f"expected a number, got {text.strip()!r}") from None
 
 
-def finish_pictures(plan, scene, sim, end_step, stop=None):
+def finish_pictures(plan, scene, sim, reached=None, stop=None):
     """Render what was recorded, write the GIF/PNG and say what was written (on stderr
-    if the run or the rendering stopped early). Returns the options whose file failed."""
+    if the run stopped early, at ``reached``, or the rendering did). Returns the options
+    whose file failed."""
     from massspring.io import render
 
     rec = plan.recording
-    early = sim.steps < end_step
     if not len(rec):
         print("massspring: no frame was recorded: nothing written to " +
               " or ".join(p for p in (plan.gif, plan.png) if p), file=sys.stderr)
         return []
     start = time.perf_counter()
     renderer = render.FrameRenderer(sim.model, np.stack(rec.positions), plan.view, plan.size,
-                                    label=f"{scene.name}  {sim.integrator}  dt = {format_seconds(sim.dt)}",
+                                    label=f"{scene.name}  {sim.integrator}  " + (
+                                        f"dt = {format_seconds(sim.dt)}" if sim.tol is None else f"tol {sim.tol:g}"),
                                     framing=plan.framing, times=rec.times)
     result = render.export(renderer, rec, gif=plan.gif, png=plan.png, fps=plan.fps, stop=stop)
     wall = time.perf_counter() - start
@@ -226,9 +227,9 @@ def finish_pictures(plan, scene, sim, end_step, stop=None):
         note += f"; {rec.skipped} frame(s) with non-finite positions left out"
     if result.interrupted:
         print(f"massspring: rendering interrupted; wrote the frames rendered so far: {note}", file=sys.stderr)
-    elif early:
-        print(f"massspring: the run stopped at step {sim.steps} of {end_step}; wrote the frames recorded up to "
-              f"then: {note}", file=sys.stderr)
+    elif reached is not None:
+        print(f"massspring: the run stopped at {reached}; wrote the frames recorded up to then: {note}",
+              file=sys.stderr)
     else:
         print(f"pictures    wrote {note}")
     return list(result.errors)

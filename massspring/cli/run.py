@@ -29,6 +29,32 @@ def adaptive_hint(error) -> str:
     return f"give {tips}"
 
 
+LONG_RUN_STEPS = 10**7  # an error-controlled run whose step bound means at least this many steps is named first
+
+
+def bound_note(args, sim, seconds) -> str | None:
+    """The warning before an error-controlled run of ``seconds`` s whose largest step
+    (``max_dt``) means at least ``LONG_RUN_STEPS`` steps, naming the bound and where it
+    comes from (an explicit integrator on an undamped stiff model: half a stability
+    limit of 1e-10 s), else None."""
+    from massspring.engine.spectrum import predict
+    from massspring.integrators import INTEGRATORS
+
+    bound, cls = sim.settings.max_dt, INTEGRATORS[sim.integrator]
+    if sim.tol is None or not seconds / bound >= LONG_RUN_STEPS:
+        return None
+    if args.max_dt is not None:
+        why = "--max-dt"
+    elif cls.traits.stability_limited:
+        suggested = cls.suggest_dt(predict(sim.model))
+        why = ("half its stability limit predicted here" if suggested >= bound else
+               f"--min-dt, above the {suggested:.3g} s of half its stability limit predicted here")
+    else:
+        why = "--min-dt"
+    return (f"{sim.integrator}'s steps are held at most {bound:.3g} s ({why}): at least {seconds / bound:.3g} steps "
+            f"for the {seconds:g} s; an implicit --integrator is not held so")
+
+
 def run_steps(args, scene, sim, start_steps=0):
     """The number of steps of ``run``, checked: --steps, or --duration / dt; neither:
     what is left of the scene's duration after ``start_steps`` (a restart's)."""
@@ -95,7 +121,10 @@ def cmd_run(args):
         for callback in callbacks:
             callback(state)
 
-    energy0 = sim.energy()
+    note = bound_note(args, sim, seconds) if controlled else None
+    if note is not None and not args.quiet:
+        print(f"massspring: run {scene.name}: {note}", file=sys.stderr)
+    energy0, end_time = sim.energy(), sim.time + (seconds if controlled else 0.0)
     with RunSignals() as signals:
         start = time.perf_counter()
         stopped, diverged = None, None
@@ -122,9 +151,13 @@ def cmd_run(args):
         wall = time.perf_counter() - start
         if pictures is not None and (diverged or stopped):
             pictures.recording.record_last(sim)  # the picture ends on the last good state
-        failed = write_outputs(args, scene, sim, start_steps + steps, pictures, signals.arrived)
+        reached = None  # where a run that ended early stopped
+        if diverged or stopped:
+            reached = (f"t = {sim.time:.6g} s of {end_time:g} s" if controlled
+                       else f"step {sim.steps} of {start_steps + steps}")
+        failed = write_outputs(args, scene, sim, reached, pictures, signals.arrived)
         if export is not None:
-            failed += finish_export(export, sim, start_steps + steps, diverged, stopped)
+            failed += finish_export(export, sim, reached, diverged, stopped)
         print_summary(scene, sim, wall, energy0, args.out if args.out and "--out" not in failed else None,
                       start_steps)
         done = sim.steps - start_steps
@@ -134,7 +167,8 @@ def cmd_run(args):
             return EXIT_DIVERGED
         if stopped is not None:
             what = "terminated" if isinstance(stopped, Terminated) else "interrupted"
-            print(f"massspring: {what} after {done} of {steps} steps; the state reached so far "
+            where = f"{done} steps, at {reached}" if controlled else f"{done} of {steps} steps"
+            print(f"massspring: {what} after {where}; the state reached so far "
                   f"{'was written' if args.out and '--out' not in failed else 'is above'}", file=sys.stderr)
             return 128 + stopped.signum if isinstance(stopped, Terminated) else EXIT_INTERRUPTED
         if signals.signum is not None:  # the run had ended; a signal cut the pictures short
@@ -204,11 +238,11 @@ class RunSignals:
             signal.signal(sig, handler)
 
 
-def write_outputs(args, scene, sim, end_step, pictures, stop=None):
+def write_outputs(args, scene, sim, reached, pictures, stop=None):
     """Write --out, then the pictures, each on its own: one failing does not stop the
-    others (``end_step``: the step the run was to reach; ``stop()``: true when the
-    rendering should end early). Returns the options whose output failed (each
-    reported on stderr)."""
+    others (``reached``: where a run that ended early stopped, as text, None if it ran
+    to its end; ``stop()``: true when the rendering should end early). Returns the
+    options whose output failed (each reported on stderr)."""
     from massspring.io.state import write_state
 
     failed = []
@@ -219,7 +253,7 @@ def write_outputs(args, scene, sim, end_step, pictures, stop=None):
             print(f"massspring: --out: could not write {args.out!r}: {exc.strerror or exc}", file=sys.stderr)
             failed.append("--out")
     if pictures is not None:
-        failed += finish_pictures(pictures, scene, sim, end_step, stop)
+        failed += finish_pictures(pictures, scene, sim, reached, stop)
     return failed
 
 

@@ -18,12 +18,12 @@ def cmd_scenes(args):
         for name in names:
             print(f"{name:12s} {load_scene(name).description}")
         return EXIT_OK
-    print("| scene | what | particles | springs | integrator, dt |\n|---|---|---|---|---|")
+    print("| scene | what | particles | springs | integrator, dt, tol |\n|---|---|---|---|---|")
     for name in names:
         scene = load_scene(name)
         model = scene.model()
         print(f"| {name} | {scene.description} | {model.n_particles:,} | {model.n_springs:,} | "
-              f"{scene.integrator}, {format_seconds(scene.default_dt())} |")
+              f"{scene.integrator}, {format_seconds(scene.default_dt())}{_tol_note(scene)} |")
     return EXIT_OK
 
 
@@ -50,10 +50,14 @@ def cmd_info(args):
         if term.parameters:
             print(f"{term.name:<11} " + ", ".join(f"{p.name} {_shown(getattr(sim.model, p.name))} {p.unit}"
                                                    for p in term.parameters))
-    print(f"integrator  {sim.integrator}, dt = {format_seconds(sim.dt)}, precision {sim.precision}; "
-          f"default duration {scene.duration:g} s")
+    steps = (f"dt = {format_seconds(sim.dt)}" if sim.tol is None
+             else f"tol {sim.tol:g} (error-controlled steps, the first dt = {format_seconds(sim.dt)})")
+    print(f"integrator  {sim.integrator}, {steps}, precision {sim.precision}; default duration {scene.duration:g} s")
     print("dt defaults " + ", ".join(f"{k} {format_seconds(scene.default_dt(k))}" + _dt_note(scene, k)
                                      for k in integrator_names()))
+    if scene.tol:
+        print("tol defaults " + ", ".join(f"{k} {scene.tol[k]:g}" for k in integrator_names() if k in scene.tol)
+              + " (error-controlled by default; --dt or --steps asks for fixed steps)")
     if info["options"]:
         levels = info.get("levels")
         hierarchy = f" ({len(levels)} levels: {', '.join(f'{n:,}' for n in levels)} unknowns)" if levels else ""
@@ -65,6 +69,12 @@ def cmd_info(args):
              else "particles renumbered in Z-order (the given order scatters the springs' accesses)")
     print(f"kernels     {info['loops']} loops, {order}")
     return EXIT_OK
+
+
+def _tol_note(scene) -> str:
+    """The scenes table's note of the default integrator's tol, if the scene has one."""
+    tol = scene.tol.get(scene.integrator)
+    return "" if tol is None else f", tol {tol:g}"
 
 
 def _dt_note(scene, name) -> str:

@@ -55,7 +55,7 @@ def cmd_stability(args):
     options = dict(precision=args.precision, **solver_options(args))
     model, positions = scene.model(), None
     if args.at > 0:
-        settle = scene.simulation(DEFAULT, **options)
+        settle = scene.simulation(DEFAULT, tol=None, **options)  # in steps: fixed ones
         steps = args.at / settle.dt
         if not steps <= MAX_STEPS:
             raise UsageError(f"--at: {args.at:g} s at the {DEFAULT} dt {format_seconds(settle.dt)} is {steps:.3g} steps, "

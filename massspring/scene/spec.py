@@ -96,7 +96,7 @@ class SceneError(ValueError):
 MAX_FLOAT = sys.float_info.max
 MAX_SCENE_BYTES = 64 * 2**20  # a scene file's size limit (a hand-made [particles] table of about a million rows)
 SIZE_KEYS = {"chain": ("count",), "grid": ("resolution",), "lattice": ("resolution",)}
-TOP_KEYS = {"description": str, "integrator": str, "duration": float, "tol": float, "dt": dict, "model": dict,
+TOP_KEYS = {"description": str, "integrator": str, "duration": float, "tol": (float, dict), "dt": dict, "model": dict,
             "solver": dict, "view": dict, "particles": dict, "springs": dict, "collider": list, "pin": list,
             "self_collision": dict, "controls": dict}
 # [solver]: the integrators' solver options a scene may set (``integrators.OPTIONS``; the
@@ -174,7 +174,7 @@ class Scene:
     pins: tuple = ()
     self_collision: object = None
     controls: object = None
-    tol: float | None = None  # an error-controlled run's tolerance (``Simulation(tol=...)``), None: fixed dt
+    tol: dict = field(default_factory=dict)  # integrator -> its error-controlled default (``Simulation(tol=...)``)
     set_keys: tuple = ()
     builtin: bool = False
     _suggested: dict = field(default_factory=dict, repr=False, compare=False)  # default dts, and the prediction
@@ -324,9 +324,12 @@ class Scene:
 
     def simulation(self, integrator=None, dt=None, **kwargs):
         """A Simulation with the scene's defaults (integrator, dt, [solver], tol); any
-        Simulation argument may be overridden. With a tolerance (``tol``: the scene's or
-        given), the run is error-controlled over the scene's duration (``horizon``) and the
-        scene's [solver] newton_tol and cg_tol give way to those tol derives."""
+        Simulation argument may be overridden. With a tolerance (``tol`` given, else the
+        scene's for ``integrator`` unless ``dt``, ``newton_tol`` or ``cg_tol`` is given:
+        they ask for fixed steps), the
+        run is error-controlled over ``horizon`` (default: the scene's duration; without a
+        tolerance it is not used) and the scene's [solver] newton_tol and cg_tol give way
+        to those tol derives."""
         from massspring.engine import footprint
         from massspring.engine.footprint import Sketch
         from massspring.engine.simulation import Simulation
@@ -334,7 +337,8 @@ class Scene:
         integrator = integrator or self.integrator
         validate.choice("integrator", integrator, tuple(INTEGRATORS))
         options = {**taken(integrator, self.solver), **kwargs}  # of the scene's [solver] keys, those it takes
-        tol = options.setdefault("tol", self.tol)
+        fixed = dt is not None or any(kwargs.get(name) is not None for name in ("newton_tol", "cg_tol"))
+        tol = options.setdefault("tol", None if fixed else self.tol.get(integrator))
         if tol is not None:
             options.setdefault("horizon", self.duration)
             for name in ("newton_tol", "cg_tol"):
@@ -342,6 +346,7 @@ class Scene:
                     options.pop(name, None)
         else:
             options.pop("tol")
+            options.pop("horizon", None)
         particles, springs = self.counts()
         sketch = Sketch(particles, springs, particles, self.self_collision is not None, bool(self.common["strain_limit"]))
         name, precision = options.get("preconditioner") or "auto", options.get("precision", "f64")
@@ -439,12 +444,7 @@ def parse_scene(data: dict, name: str, source: str) -> Scene:
     duration = float(data["duration"])
     if not (math.isfinite(duration) and duration > 0):
         raise SceneError(f"{source}: duration: must be a finite number > 0, got {data['duration']}")
-    tol = None
-    if "tol" in data:
-        try:
-            tol = Tolerance.of(data["tol"]).tol
-        except ValueError as exc:
-            raise SceneError(f"{source}: {exc}") from None
+    tol = _tolerances(data.get("tol", {}), source)
     dt = {}
     for key, value in data.get("dt", {}).items():
         if key not in INTEGRATORS:
@@ -695,23 +695,42 @@ def _check_kind(prefix, value, kind):
     return value
 
 
-def _check_type(key, value, expected, source):
-    if expected is float:
-        ok = isinstance(value, (int, float)) and not isinstance(value, bool)
-        what = "a number"
-    elif expected is int:
-        ok = isinstance(value, int) and not isinstance(value, bool)
-        what = "an integer"
-    elif expected is dict:
-        ok, what = isinstance(value, dict), "a table"
-    elif expected is list:
-        ok, what = isinstance(value, list), "a list (a vector is written [0, 0, -9.81])"
-    elif expected is bool:
-        ok, what = isinstance(value, bool), "true or false"
+def _tolerances(value, source) -> dict:
+    """``tol``: a number (every integrator's) or a table of integrator -> number, checked
+    as ``Simulation(tol=...)`` checks it; the integrators it names run error-controlled
+    by default."""
+    if not isinstance(value, dict):
+        value = dict.fromkeys(INTEGRATORS, value)
+        names = dict.fromkeys(INTEGRATORS, "tol")
     else:
-        ok, what = isinstance(value, expected), "a string"
+        names = {key: f"tol.{key}" for key in value}
+    tols = {}
+    for key, tol in value.items():
+        if key not in INTEGRATORS:
+            raise SceneError(f"{source}: tol.{key}: unknown integrator (expected {', '.join(INTEGRATORS)})")
+        _check_type(names[key], tol, float, source)
+        try:
+            tols[key] = Tolerance.of(tol).tol
+        except ValueError as exc:
+            raise SceneError(f"{source}: {names[key]}{str(exc).removeprefix('tol')}") from None
+    return tols
+
+
+KINDS = {float: (lambda v: isinstance(v, (int, float)) and not isinstance(v, bool), "a number"),
+         int: (lambda v: isinstance(v, int) and not isinstance(v, bool), "an integer"),
+         dict: (lambda v: isinstance(v, dict), "a table"),
+         list: (lambda v: isinstance(v, list), "a list (a vector is written [0, 0, -9.81])"),
+         bool: (lambda v: isinstance(v, bool), "true or false"),
+         str: (lambda v: isinstance(v, str), "a string")}
+
+
+def _check_type(key, value, expected, source):
+    """A SceneError unless ``value`` is of the ``KINDS`` ``expected`` (a tuple: any of them)."""
+    kinds = expected if isinstance(expected, tuple) else (expected,)
+    ok = any(KINDS[kind][0](value) for kind in kinds)
+    what = " or ".join(KINDS[kind][1] for kind in kinds)
     where = f"{source}: {key}" if source else key
     if not ok:
         raise SceneError(f"{where}: expected {what}, got {type(value).__name__} {brief(value)}")
-    if expected is float and isinstance(value, int) and not -MAX_FLOAT <= value <= MAX_FLOAT:
+    if float in kinds and isinstance(value, int) and not -MAX_FLOAT <= value <= MAX_FLOAT:
         raise SceneError(f"{where}: {brief(value)} is beyond the range of a number (|value| <= {MAX_FLOAT:.4g})")
