@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 import massspring as ms
+from massspring.engine import adaptive
 from massspring.engine.adaptive import StepSizeError
 from massspring.integrators import INTEGRATORS
 
@@ -304,6 +305,65 @@ def test_a_restart_continues_from_its_time():
     assert end_error(again, again.time) <= 30 * 1e-3
     with pytest.raises(ValueError, match="^time: only"):
         ms.Simulation(spring_model(), integrator="bdf2", dt=1e-2).set_state(x, v, 10, time=0.1)
+
+
+@pytest.mark.fast_sample(integrator=["bdf2", "symplectic"])
+@pytest.mark.parametrize("integrator", list(INTEGRATORS))
+def test_a_restart_with_its_control_state_continues_to_the_bit(integrator):
+    """``set_state(..., time=, control=control_state())`` continues an error-controlled
+    run to the bit: the same steps, states and controller statistics as the unbroken
+    run (in two parts, the first landing where the restart starts); without ``control``
+    the estimate starts afresh and the run is another one."""
+    def start():
+        return ms.Simulation(spring_model(), integrator=integrator, dt=1e-3, tol=1e-3, horizon=1.0)
+
+    whole = start().advance(0.4)
+    x, v, t, carried, control = (whole.positions, whole.velocities, whole.time, whole.carried_state(),
+                                 whole.control_state())
+    assert sorted(control) == sorted(adaptive.CONTROL_KEYS) and control["est_y"].shape[1:] == (1, 6)
+    again = start().set_state(x, v, whole.steps, carried, time=t, control=control)
+    afresh = start().set_state(x, v, whole.steps, carried, time=t)
+    for sim in (whole, again, afresh):
+        sim.advance(0.6)
+    assert again.steps == whole.steps and again.time == whole.time == 1.0
+    assert np.array_equal(again.positions, whole.positions) and np.array_equal(again.velocities, whole.velocities)
+    assert again.control_stats() == whole.control_stats()
+    assert afresh.control_stats() != whole.control_stats()
+    with pytest.raises(ValueError, match=r"^control: only for an error-controlled run"):
+        ms.Simulation(spring_model(), integrator=integrator, dt=1e-3).set_state(x, v, control=control)
+    with pytest.raises(ValueError, match=r"^control: expected the keys"):
+        start().set_state(x, v, time=t, control={"controller": control["controller"]})
+    with pytest.raises(ValueError, match=r"^control\['est_y'\]: expected shape"):
+        start().set_state(x, v, time=t, control={**control, "est_y": control["est_y"][:, :, :3]})
+    with pytest.raises(ValueError, match=r"^control\['controller'\]: expected 15 finite numbers"):
+        start().set_state(x, v, time=t, control={**control, "controller": control["controller"][:-1]})
+
+
+def test_the_cli_restarts_an_error_controlled_run_at_its_time(capsys, tmp_path):
+    """`run --restart` of a state saved by an error-controlled run continues from the
+    saved time (not steps x dt) to the scene's end, to the bit as the unbroken run (its
+    controller saved with it); fixed steps are refused it (exit 2, naming --restart and
+    --tol), and a fixed run's state continues under --tol too."""
+    from massspring.cli import main
+
+    state, fixed = tmp_path / "half.npz", tmp_path / "fixed.npz"
+    assert main(["run", "spring", "--tol", "1e-2", "--duration", "0.5", "--out", str(state), "--quiet"]) == 0
+    saved = np.load(state)
+    assert float(saved["time"]) == pytest.approx(0.5, abs=1e-12) and int(saved["steps"]) * 0.01 != 0.5
+    capsys.readouterr()
+    end = tmp_path / "end.npz"
+    assert main(["run", "spring", "--tol", "1e-2", "--restart", str(state), "--quiet", "--out", str(end)]) == 0
+    out = capsys.readouterr().out
+    assert f"from the restart at step {int(saved['steps'])} to step " in out and "(t = 0.5 to 5 s)" in out, out
+    unbroken = ms.load_scene("spring").simulation(tol=1e-2).advance(0.5).advance(4.5)  # as the CLI's, to the bit
+    assert int(np.load(end)["steps"]) == unbroken.steps and np.array_equal(np.load(end)["positions"],
+                                                                            unbroken.positions)
+    assert main(["run", "spring", "--restart", str(state), "--steps", "3", "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"massspring: error: --restart: {state} is at t = 0.5 s after ") and "give --tol" in err
+    assert main(["run", "spring", "--steps", "20", "--out", str(fixed), "--quiet"]) == 0
+    assert main(["run", "spring", "--tol", "1e-2", "--restart", str(fixed), "--duration", "0.1", "--quiet"]) == 0
+    assert "(t = 0.2 to 0.3 s)" in capsys.readouterr().out
 
 
 def test_the_cli_runs_a_scene_to_a_tolerance(capsys):

@@ -6,6 +6,7 @@ import pytest
 
 import massspring as ms
 from massspring.cli import main
+from massspring.engine import adaptive
 from massspring.integrators import INTEGRATORS
 from massspring.io.state import read_state
 from conftest import FULL, PATHS, one_line_error, random_system
@@ -155,6 +156,51 @@ def test_broken_state_files_are_refused(tmp_path, capsys):
         one_line_error(capsys, "--restart", str(path), words[name])
     assert main(["run", *CLOTH, "--steps", "2", "--restart", str(tmp_path / "none.npz")]) == 2
     one_line_error(capsys, "--restart", "cannot be read")
+
+
+def test_an_error_controlled_state_file_carries_its_controller(tmp_path, capsys):
+    """A state saved by an error-controlled run holds its control_<name> members (its
+    controller and the states its estimate draws on), a fixed run's none; a file with
+    only some of them, another, a name that is none, more numbers than a run of its size
+    keeps, or shapes that do not fit the run is refused (exit 2, one line naming the
+    file and key)."""
+    controlled, fixed = tmp_path / "tol.npz", tmp_path / "fixed.npz"
+    assert main(["run", "spring", "--tol", "1e-2", "--duration", "0.5", "--out", str(controlled), "--quiet"]) == 0
+    assert main(["run", "spring", "--steps", "5", "--out", str(fixed), "--quiet"]) == 0
+    capsys.readouterr()
+    assert sorted(read_state(controlled).control) == sorted(adaptive.CONTROL_KEYS)
+    assert read_state(fixed).control is None
+    data = dict(np.load(controlled))
+    cases = {"part.npz": ({k: v for k, v in data.items() if k != "control_est_y"}, "control: expected the keys"),
+             "other.npz": ({**data, "control_extra": np.zeros(3)}, "control: expected the keys"),
+             "deep.npz": ({**data, "control_extra": np.zeros((1, 1, 1, 1))}, "control_extra: expected at most 3"),
+             "name.npz": ({**data, "control_not-a-name": np.zeros(3)}, "'control_not-a-name.npy': not a key"),
+             "big.npz": ({**data, "control_est_y": np.zeros((3, 200, 6))}, "control_<name> members hold"),
+             "shape.npz": ({**data, "control_est_y": data["control_est_y"][:, :, :3]},
+                           "control['est_y']: expected shape")}
+    for name, (content, words) in cases.items():
+        path = tmp_path / name
+        np.savez(path, **content)
+        assert main(["run", "spring", "--tol", "1e-2", "--restart", str(path), "--quiet"]) == 2, name
+        one_line_error(capsys, "--restart", str(path), words)
+
+
+@FULL
+def test_an_error_controlled_run_with_impacts_restarts_to_the_bit(tmp_path, capsys):
+    """The rope landing on its ball (midpoint, tol 1e-2): 0.3 s, saved, then 0.3 s more
+    from the file equal the unbroken run of two 0.3 s parts to the bit, its estimate's
+    distances to the colliders and contacts carried in the file."""
+    first, second = tmp_path / "first.npz", tmp_path / "second.npz"
+    args = ["run", "rope-drop", "--integrator", "midpoint", "--tol", "1e-2", "--duration", "0.3", "--quiet"]
+    assert main([*args, "--out", str(first)]) == 0
+    assert main([*args, "--restart", str(first), "--out", str(second)]) == 0
+    assert np.load(first)["control_est_has"][:, 0].all()  # each point with its distances
+    unbroken = ms.load_scene("rope-drop").simulation("midpoint", tol=1e-2).advance(0.3).advance(0.3)
+    end = np.load(second)
+    assert int(end["steps"]) == unbroken.steps and float(end["time"]) == unbroken.time
+    assert np.array_equal(end["positions"], unbroken.positions)
+    assert np.array_equal(end["velocities"], unbroken.velocities)
+    assert unbroken.control_stats()["rejected"]["error"] > 0  # it did control its steps
 
 
 def test_restart_without_a_length_finishes_the_scene(tmp_path, capsys):

@@ -210,6 +210,8 @@ def run_case(scene, case, integrator=None, dt=None, duration=None, steps=None, o
     for key in ("preconditioner", "tol"):
         if key in values:
             options[key] = values[key]
+    if steps is not None:
+        options.setdefault("tol", None)  # a step count asks for fixed steps: the scene's tol gives way
     if duration is not None:
         options.setdefault("horizon", duration)  # an error-controlled case's (the scene's tol, or one given)
     row = {"status": "ok", "message": "", **{k: "" for k in NUMBERS}}
@@ -399,7 +401,8 @@ def sweep(scene, vary, *, integrator=None, dt=None, duration=None, steps=None, o
     error-controlled runs): for every case, unless varied (``tol`` may be varied: a
     ladder of tolerances). ``duration`` (s) or ``steps``: each run's length (default: the
     scene's duration; an error-controlled case runs for a duration, ending on it
-    exactly, its ``steps`` column the steps it chose). ``out``: the CSV (a row appended as each case finishes; cases
+    exactly, its ``steps`` column the steps it chose; a scene's own tol gives way to
+    ``steps``, ``dt``, cg_tol and newton_tol, as in ``Scene.simulation``). ``out``: the CSV (a row appended as each case finishes; cases
     already in it are skipped and their rows returned as read; one holding a case with
     another number, values or setup is refused, ``Results.check``). ``states``: a directory
     for each case's final state (``case0001.npz``...). ``client``: a

@@ -124,7 +124,8 @@ def cmd_run(args):
     note = bound_note(args, sim, seconds) if controlled else None
     if note is not None and not args.quiet:
         print(f"massspring: run {scene.name}: {note}", file=sys.stderr)
-    energy0, end_time = sim.energy(), sim.time + (seconds if controlled else 0.0)
+    energy0, start_time = sim.energy(), sim.time
+    end_time = start_time + (seconds if controlled else 0.0)
     with RunSignals() as signals:
         start = time.perf_counter()
         stopped, diverged = None, None
@@ -159,7 +160,7 @@ def cmd_run(args):
         if export is not None:
             failed += finish_export(export, sim, reached, diverged, stopped)
         print_summary(scene, sim, wall, energy0, args.out if args.out and "--out" not in failed else None,
-                      start_steps)
+                      start_steps, start_time)
         done = sim.steps - start_steps
         if diverged is not None:
             hint = (adaptive_hint(diverged) if sim.tol is not None else divergence_hint(sim, diverged))
@@ -180,7 +181,9 @@ def cmd_run(args):
 
 def restart(args, scene, sim):
     """With --restart, put the saved state into ``sim`` after checking that it belongs to
-    this model and dt; returns the steps it had taken (0 without --restart)."""
+    this model and (for fixed steps) dt; an error-controlled ``sim`` continues from the
+    saved time, with the saved run's controller if it was one of the same integrator.
+    Returns the steps it had taken (0 without --restart)."""
     from massspring.io.state import read_state
 
     if args.restart is None:
@@ -194,12 +197,18 @@ def restart(args, scene, sim):
         raise UsageError(f"--restart: {path} was saved from another model (scene {state.scene!r}, fingerprint "
                          f"{state.fingerprint[:12]}) than this run's (scene {scene.name!r}, {model.fingerprint()[:12]}):"
                          f" a different scene file or --set")
-    if state.dt != sim.dt:
+    clocked = sim.tol is not None  # an error-controlled run continues from the saved time
+    if not clocked and not math.isclose(state.time, state.steps * state.dt, rel_tol=1e-12, abs_tol=1e-300):
+        raise UsageError(f"--restart: {path} is at t = {state.time:.6g} s after {state.steps} steps, not "
+                         f"{state.steps} x dt = {state.steps * state.dt:.6g} s: an error-controlled run's state, which "
+                         f"fixed steps cannot continue; give --tol (and --duration, not --steps)")
+    if not clocked and state.dt != sim.dt:
         raise UsageError(f"--restart: {path} was computed with dt = {state.dt!r} s and this run's dt is "
                          f"{sim.dt!r} s; time is counted in steps of dt, so pass --dt {state.dt!r}")
     try:
-        carried = state.carried if state.integrator == sim.integrator else None
-        sim.set_state(state.positions, state.velocities, state.steps, carried)
+        same = state.integrator == sim.integrator
+        sim.set_state(state.positions, state.velocities, state.steps, state.carried if same else None,
+                      time=state.time if clocked else None, control=state.control if same and clocked else None)
     except ValueError as exc:
         raise UsageError(f"--restart: {path}: {exc}") from None
     return state.steps
@@ -286,7 +295,7 @@ def divergence_hint(sim, exc):
             f"or --integrator {DEFAULT} (no stability limit)")
 
 
-def print_summary(scene, sim, wall, energy0, out, start_steps=0):
+def print_summary(scene, sim, wall, energy0, out, start_steps=0, start_time=0.0):
     info = sim.info()
     energy1 = sim.energy()
     done = sim.steps - start_steps
@@ -303,7 +312,7 @@ def print_summary(scene, sim, wall, energy0, out, start_steps=0):
         print(f"integrator  {sim.integrator}, tol {sim.tol:g} ({span}; rejected: {rejected}{batched}), {sim.precision}")
     if start_steps:
         print(f"steps       {done} from the restart at step {start_steps} to step {sim.steps} (t = "
-              f"{start_steps * sim.dt:g} to {sim.time:g} s) in {wall:.2f} s wall, {rate:.3g} steps/s")
+              f"{start_time:g} to {sim.time:g} s) in {wall:.2f} s wall, {rate:.3g} steps/s")
     else:
         print(f"steps       {sim.steps} ({sim.time:g} s simulated) in {wall:.2f} s wall, {rate:.3g} steps/s")
     if sim.newton_iterations:

@@ -67,8 +67,6 @@ def cmd_sweep(args):
         ensure_taichi(args.arch, "--arch")
     except ValueError as exc:
         raise UsageError(str(exc)) from None
-    if args.steps is not None:
-        tolerance.setdefault("tol", None)  # a step count asks for fixed steps: the scene's tol gives way
     options = dict(precision=args.precision, arch=args.arch, **solver_options(args), **tolerance)
     setup = sweep.setup_text(scene, args.integrator, args.dt, args.duration, args.steps, options)
     try:

@@ -299,6 +299,39 @@ class Estimator:
         self.points.append(point)
         del self.points[:-max(self.order + 1, 2)]
 
+    def state(self) -> dict:
+        """The accepted states it estimates from, as arrays (``load`` takes them back):
+        "est_t" (p,) s, "est_y" (p, k, 6) positions and velocities of the k moving
+        particles, "est_d" (p, k) m and "est_touched" (p, k) 0/1 (zeros where a point has
+        none), "est_has" (p, 2) 0/1: whether the point has a distance and a touched row."""
+        k, p = len(self.moving), len(self.points)
+        out = {"est_t": np.array([q[0] for q in self.points], dtype=np.float64),
+               "est_y": np.zeros((p, k, 6)), "est_d": np.zeros((p, k)), "est_touched": np.zeros((p, k)),
+               "est_has": np.zeros((p, 2))}
+        for i, (_, y, d, touched) in enumerate(self.points):
+            out["est_y"][i] = y
+            for j, (name, rows) in enumerate((("est_d", d), ("est_touched", touched))):
+                if rows is not None:
+                    out[name][i], out["est_has"][i, j] = rows, 1.0
+        return out
+
+    def load(self, state):
+        """Take back a ``state()`` of a run of the same model (ValueError naming the
+        key if its shapes do not fit)."""
+        k = len(self.moving)
+        times = np.asarray(state["est_t"], dtype=np.float64)
+        p = times.shape[0] if times.ndim == 1 else -1
+        shapes = {"est_t": (p,), "est_y": (p, k, 6), "est_d": (p, k), "est_touched": (p, k), "est_has": (p, 2)}
+        for name, shape in shapes.items():
+            if np.shape(state[name]) != shape or not 0 <= p <= max(self.order + 1, 2):
+                raise ValueError(f"control[{name!r}]: expected shape {shape} (at most {max(self.order + 1, 2)} "
+                                 f"points of {k} moving particles), got {np.shape(state[name])}")
+        has = np.asarray(state["est_has"]) != 0
+        self.points = [(float(times[i]), np.array(state["est_y"][i], dtype=np.float64),
+                        np.array(state["est_d"][i], dtype=np.float64) if has[i, 0] else None,
+                        (np.asarray(state["est_touched"][i]) != 0) if has[i, 1] else None) for i in range(p)]
+        self._tried = None
+
     def velocity_change(self) -> float:
         """RMS (m/s) of the last accepted step's velocity change over its moving particles
         (0 before one)."""
@@ -306,6 +339,14 @@ class Estimator:
             return 0.0
         dv = self.points[-1][1][:, 3:] - self.points[-2][1][:, 3:]
         return math.sqrt(float(np.mean(np.sum(dv * dv, axis=1))))
+
+
+# Simulation.control_state()'s keys: the controller's state, the calm batches', the estimator's
+CONTROL_KEYS = ("controller", "batching", "est_t", "est_y", "est_d", "est_touched", "est_has")
+# Controller.state(): what each of its numbers is
+CONTROLLER_FIELDS = ("dt", "previous_ratio", "after_rejection", "in_a_row", "last_try_t", "last_try_h",
+                     "last_try_ratio", "kinks", "accepted", "batched", "rejected_error", "rejected_solver",
+                     "rejected_divergence", "smallest_dt", "largest_dt")
 
 
 class Controller:
@@ -325,6 +366,31 @@ class Controller:
         self.batched = 0  # accepted without an estimate (``accept_unjudged``)
         self.rejected = {"error": 0, "solver": 0, "divergence": 0}
         self.smallest, self.largest = math.inf, 0.0
+
+    def state(self) -> np.ndarray:
+        """Its state, numbers in the order of ``CONTROLLER_FIELDS`` (float64; ``load``
+        takes it back): the next step, the PI memory, the last rejected try, and the
+        statistics. None and infinity are written as 0 (a ratio kept is at least 1e-10, a
+        try's h > 0, the smallest step is read only once one was accepted)."""
+        t, h, ratio = self.last_try or (0.0, 0.0, 0.0)
+        return np.array([self.dt, self.previous_ratio or 0.0, self.after_rejection, self.in_a_row, t, h, ratio,
+                         self.kinks, self.accepted, self.batched, *self.rejected.values(),
+                         self.smallest if self.accepted else 0.0, self.largest], dtype=np.float64)
+
+    def load(self, state):
+        """Take back a ``state()`` (ValueError if it is not one)."""
+        state = np.asarray(state, dtype=np.float64)
+        if state.shape != (len(CONTROLLER_FIELDS),) or not np.all(np.isfinite(state)) or not state[0] > 0:
+            raise ValueError(f"control['controller']: expected {len(CONTROLLER_FIELDS)} finite numbers (a "
+                             f"Controller.state()), got shape {state.shape}")
+        (self.dt, ratio, after, in_a_row, t, h, try_ratio, kinks, accepted, batched, *rejected, smallest,
+         self.largest) = state.tolist()
+        self.previous_ratio = ratio or None
+        self.after_rejection, self.in_a_row = bool(after), int(in_a_row)
+        self.last_try = (t, h, try_ratio) if h > 0 else None
+        self.kinks, self.accepted, self.batched = int(kinks), int(accepted), int(batched)
+        self.rejected = dict(zip(self.rejected, map(int, rejected)))
+        self.smallest = smallest if self.accepted else math.inf
 
     def bound(self, h) -> float:
         """The estimate's bound for a step of h (s): tol h / H (error per unit step)."""

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import math
 import textwrap
@@ -504,24 +505,39 @@ class Simulation:
             carried.update(p.carried_state())
         return {name: self.to_user(rows) for name, rows in carried.items()}
 
+    def control_state(self) -> dict:
+        """An error-controlled run's step-size controller and the accepted states its error
+        estimate draws on, as numpy arrays (``adaptive.CONTROL_KEYS``; empty for a run of fixed
+        steps): "controller" (``adaptive.CONTROLLER_FIELDS``), "batching" (calm steps in a
+        row, the next batch's size) and the estimator's "est_*" (``Estimator.state``,
+        inner numbering). With ``carried_state()`` and ``time``, what ``set_state`` needs
+        to continue the run to the bit."""
+        if self._controller is None:
+            return {}
+        return {"controller": self._controller.state(),
+                "batching": np.array([self._calm, self._batch_size], dtype=np.float64), **self._estimator.state()}
+
     def _carried_names(self, integrator) -> dict:
         names = dict(integrator.carried_names())
         for p in self._passes:
             names.update(p.carried)
         return names
 
-    def set_state(self, positions, velocities, steps=0, carried=None, time=None):
+    def set_state(self, positions, velocities, steps=0, carried=None, time=None, control=None):
         """Continue from a given state (a restart): ``positions`` (n, 3) in m,
         ``velocities`` (n, 3) in m/s, ``steps`` taken so far (``time`` is steps x dt:
         where moving pins and colliders are; an error-controlled run's ``time``, s, is
         given, by default steps x dt), ``carried``: a ``carried_state()`` of the
         same model and integrator (None: such memory starts afresh, e.g. no contact
-        sticks yet).
+        sticks yet), ``control``: an error-controlled run's ``control_state()`` (None:
+        its error estimate starts afresh from here, its next step is the one it was
+        given as ``dt``).
 
         The Model stays as it is (rest lengths, pins, the divergence check), so a run
-        of k steps, saved and set here (with its ``carried_state()``), then continued
-        for j steps equals an unbroken run of k + j steps to the bit (in f64, with the
-        same integrator and dt). Values must be finite (and within an f32 run's range);
+        of k steps, saved and set here (with its ``carried_state()``; an
+        error-controlled run with its ``time`` and ``control_state()`` too), then
+        continued for j steps equals an unbroken run of k + j steps to the bit (in f64,
+        with the same integrator and dt or tol). Values must be finite (and within an f32 run's range);
         a pinned particle's velocity must be its pin velocity (``Model.pin_velocity``,
         0 by default; with keyframed pins the velocity it last moved with). Raises
         ValueError naming the argument.
@@ -551,6 +567,22 @@ class Simulation:
             raise ValueError(f"velocities: particle {int(fixed[k])} is pinned, so its velocity must be its pin "
                              f"velocity {pinned[k].tolist()}, got {arrays['velocities'][fixed[k]].tolist()}")
         carried = _check_carried(carried, self._carried_names(integrator), n)
+        if control is not None and self._controller is None:
+            raise ValueError("control: only for an error-controlled run (tol)")
+        if control is not None:
+            if not isinstance(control, dict) or set(control) != set(adaptive.CONTROL_KEYS):
+                got = sorted(control) if isinstance(control, dict) else type(control).__name__
+                raise ValueError(f"control: expected the keys {sorted(adaptive.CONTROL_KEYS)} "
+                                 f"(Simulation.control_state() of an error-controlled run of this model), got {got}")
+            controller = adaptive.Controller(self._controller.tolerance, self.dt, self._controller.size)
+            estimator = copy.copy(self._estimator)
+            controller.load(control["controller"])
+            estimator.load(control)  # both checked before either is taken
+            batching = np.asarray(control["batching"], dtype=np.float64)
+            if batching.shape != (2,) or not (0 <= batching[0] <= adaptive.CALM_TRIES
+                                              and adaptive.BATCH_FIRST <= batching[1] <= adaptive.BATCH_MOST):
+                raise ValueError(f"control['batching']: expected (calm steps, batch size) within (0..."
+                                 f"{adaptive.CALM_TRIES}, {adaptive.BATCH_FIRST}...{adaptive.BATCH_MOST})")
         arrays = {name: self.to_inner(rows) for name, rows in arrays.items()}
         if carried is not None:
             carried = {name: self.to_inner(rows) for name, rows in carried.items()}
@@ -571,6 +603,10 @@ class Simulation:
             integrator.clock = clock
             if self._estimator is not None:
                 self._estimator.points = []  # the history starts afresh at the next step
+        if control is not None:
+            self._controller, self._estimator = controller, estimator
+            self._calm, self._batch_size = int(batching[0]), int(batching[1])
+            self._current = self._read_state(integrator)  # what a rejected first try goes back to
         if self._schedule is not None:
             self._schedule.forget(self.time)  # a feedback controller chooses again from here
         return self

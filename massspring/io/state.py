@@ -7,7 +7,9 @@ Keys: ``positions``, ``velocities`` (n, 3) float64 (m, m/s); ``springs`` (m, 2) 
 none was given), ``integrator``, ``triangles`` (t, 3) int (the surface, possibly empty);
 ``carried_<name>`` for each array of ``Simulation.carried_state()`` (the implicit
 step's contact memory, a Newton run's previous state, the self-collision pass's
-anchors), so that a restart continues to the bit.
+anchors) and, from an error-controlled run, ``control_<name>`` for each of
+``Simulation.control_state()`` (its step-size controller and the accepted states its
+error estimate draws on), so that a restart continues to the bit.
 """
 
 from __future__ import annotations
@@ -31,6 +33,8 @@ KEYS = {"positions": ("f", ("n", 3)), "velocities": ("f", ("n", 3)), "springs": 
         "time": ("f", ()), "steps": ("i", ()), "dt": ("f", ()), "fingerprint": ("U", ()),
         "scene": ("U", ()), "integrator": ("U", ())}
 CARRIED = "carried_"  # prefix of the keys of Simulation.carried_state()
+CONTROL = "control_"  # prefix of the keys of Simulation.control_state() (which set_state checks)
+CONTROL_NUMBERS = (64, 64)  # a state's control_ members hold at most 64 n + 64 numbers (n particles)
 TRIANGLES = "triangles"  # the surface, for drawing; (t, 3) integers
 HEADER_LIMIT = 10_000  # bytes of a member's .npy header
 ITEM_LIMIT = 8  # bytes of a number
@@ -53,9 +57,10 @@ def write_state(sim, path, scene=""):
 def save_state(sim, fh, scene=""):
     """Write ``sim``'s current state as .npz to the binary file object ``fh``."""
     carried = {f"{CARRIED}{name}": values for name, values in sim.carried_state().items()}
+    control = {f"{CONTROL}{name}": values for name, values in sim.control_state().items()}
     np.savez(fh, positions=sim.positions, velocities=sim.velocities, springs=sim.model.springs,
              time=sim.time, steps=sim.steps, dt=sim.dt, fingerprint=sim.model.fingerprint(),
-             scene=str(scene), integrator=sim.integrator, triangles=sim.model.triangles, **carried)
+             scene=str(scene), integrator=sim.integrator, triangles=sim.model.triangles, **carried, **control)
 
 
 @dataclass(frozen=True)
@@ -73,6 +78,7 @@ class State:
     scene: str
     integrator: str
     carried: dict | None = None  # Simulation.carried_state() at the save, if it had any
+    control: dict | None = None  # Simulation.control_state() at the save, if it was error-controlled
 
     @property
     def n_particles(self) -> int:
@@ -94,16 +100,18 @@ def read_state(path, model=None, model_name="this run's model") -> State:
        (which bounds the count of members; the format itself puts none on the
        ``carried_<name>`` ones);
     3. the zip directory: with ``model``, the file no larger than a state of ``model``
-       with as many carried members as the directory lists, stored uncompressed
-       (``_file_limit``); every member ``<key>.npy`` with a key of ``KEYS``,
-       ``triangles`` or ``carried_<name>`` (any count), each once, stored or deflated,
-       not encrypted; every key of ``KEYS`` present;
+       with as many carried and control members as the directory lists, stored
+       uncompressed (``_file_limit``); every member ``<key>.npy`` with a key of
+       ``KEYS``, ``triangles``, ``carried_<name>`` or ``control_<name>`` (any count),
+       each once, stored or deflated, not encrypted; every key of ``KEYS`` present;
     4. each member's .npy header (format 1.0 or 2.0): a plain dtype of the key's kind
        (numbers of at most 8 bytes, strings of at most ``STRING_LIMIT`` characters; no
        Python objects, so no pickles), a data size equal to the member's uncompressed
        size less its header;
     5. the shapes: each key's (``n``, ``m`` the same across keys; ``carried_<name>``
-       a row per particle, one number or 3 each); with ``model``, its particle, spring
+       a row per particle, one number or 3 each; the ``control_<name>`` ones at most 3
+       dimensions and ``CONTROL_NUMBERS`` numbers together, which
+       ``Simulation.set_state`` checks further); with ``model``, its particle, spring
        and triangle counts; the sum of the declared sizes, twice over, within the
        memory available;
     6. the data, each member read by itself as its header declared: numbers finite,
@@ -114,7 +122,8 @@ def read_state(path, model=None, model_name="this run's model") -> State:
             _check_end_record(path, fh)
             with zipfile.ZipFile(fh) as archive:
                 carried = sum(info.filename.startswith(CARRIED) for info in archive.infolist())
-                _check_size(path, fh, model, model_name, carried)
+                control = sum(info.filename.startswith(CONTROL) for info in archive.infolist())
+                _check_size(path, fh, model, model_name, carried, control)
                 members = _check_directory(path, archive)
                 headers = {key: _check_header(path, archive, info, key) for key, info in members.items()}
                 _check_shapes(path, headers, model, model_name)
@@ -165,7 +174,8 @@ def _check_directory(path, archive):
         key = info.filename[:-4] if info.filename.endswith(".npy") else None
         if key is None or not _allowed(key):
             raise ValueError(f"{path}: {info.filename[:80]!r}: not a key of a massspring state file (keys: "
-                             f"{', '.join(KEYS)}, {TRIANGLES} and {CARRIED}<name>, each a .npy member)")
+                             f"{', '.join(KEYS)}, {TRIANGLES}, {CARRIED}<name> and {CONTROL}<name>, each a .npy "
+                             "member)")
         if key in members:
             raise ValueError(f"{path}: {key}: stored twice")
         if info.compress_type not in (zipfile.ZIP_STORED, zipfile.ZIP_DEFLATED):
@@ -182,8 +192,9 @@ def _check_directory(path, archive):
 
 
 def _allowed(key):
-    name = key[len(CARRIED):]
-    return key in KEYS or key == TRIANGLES or (key.startswith(CARRIED) and name.isidentifier() and len(name) <= 64)
+    prefix = next((p for p in (CARRIED, CONTROL) if key.startswith(p)), None)
+    name = key[len(prefix or ""):]
+    return key in KEYS or key == TRIANGLES or (prefix is not None and name.isidentifier() and len(name) <= 64)
 
 
 @contextmanager
@@ -240,6 +251,12 @@ def _check_shapes(path, headers, model, model_name):
         if key.startswith(CARRIED) and (len(shape) not in (1, 2) or shape[0] != n or shape[1:] not in ((), (3,))):
             raise ValueError(f"{path}: {key}: expected a row per particle ({n}), one number or 3 each; "
                              f"got shape {shape}")
+        if key.startswith(CONTROL) and len(shape) > 3:
+            raise ValueError(f"{path}: {key}: expected at most 3 dimensions, got shape {shape}")
+    numbers = sum(math.prod(shape) for key, (_, shape, _) in headers.items() if key.startswith(CONTROL))
+    if numbers > CONTROL_NUMBERS[0] * n + CONTROL_NUMBERS[1]:
+        raise ValueError(f"{path}: its {CONTROL}<name> members hold {numbers:,} numbers; an error-controlled "
+                         f"run of {n} particles keeps at most {CONTROL_NUMBERS[0] * n + CONTROL_NUMBERS[1]:,}")
     if TRIANGLES in headers:
         rows = headers[TRIANGLES][1]
         if len(rows) != 2 or rows[1] != 3 or (model is not None and rows[0] != len(model.triangles)):
@@ -274,27 +291,30 @@ def _check_values(path, arrays) -> State:
     if not dt > 0:
         raise ValueError(f"{path}: dt: must be > 0, got {dt:g}")
     carried = {key[len(CARRIED):]: arr for key, arr in arrays.items() if key.startswith(CARRIED)}
+    control = {key[len(CONTROL):]: arr for key, arr in arrays.items() if key.startswith(CONTROL)}
     return State(str(path), arrays["positions"].astype(np.float64, copy=False),
                  arrays["velocities"].astype(np.float64, copy=False), arrays["springs"], float(arrays["time"]),
                  steps, dt, str(arrays["fingerprint"]), str(arrays["scene"]), str(arrays["integrator"]),
-                 carried or None)
+                 carried or None, control or None)
 
 
-def _check_size(path, fh, model, model_name, carried):
+def _check_size(path, fh, model, model_name, carried, control=0):
     """With ``model``, the file no larger than a state of ``model`` with ``carried``
-    carried_<name> members (``_file_limit``; step 3)."""
+    carried_<name> and ``control`` control_<name> members (``_file_limit``; step 3)."""
     size = os.fstat(fh.fileno()).st_size
-    if model is not None and size > _file_limit(model, carried):
+    if model is not None and size > _file_limit(model, carried, control):
         raise ValueError(f"{path}: {size:,} bytes, more than a state file of {model_name} takes "
-                         f"(at most {_file_limit(model, carried):,} bytes)")
+                         f"(at most {_file_limit(model, carried, control):,} bytes)")
 
 
-def _file_limit(model, carried):
-    """Bytes of the largest state file of ``model`` with ``carried`` carried_<name> members:
-    every array at its largest (a carried one 3 numbers per particle), stored."""
+def _file_limit(model, carried, control=0):
+    """Bytes of the largest state file of ``model`` with ``carried`` carried_<name> and
+    ``control`` control_<name> members: every array at its largest (a carried one 3
+    numbers per particle, the control ones ``CONTROL_NUMBERS`` together), stored."""
     n, m, t = model.n_particles, model.n_springs, len(model.triangles)
-    data = ITEM_LIMIT * (2 * 3 * n + 2 * m + 3 * t + carried * 3 * n + 3) + 3 * 4 * STRING_LIMIT
-    return int(1.01 * data) + (len(KEYS) + 1 + carried) * MEMBER_OVERHEAD + DIRECTORY_LIMIT
+    kept = CONTROL_NUMBERS[0] * n + CONTROL_NUMBERS[1] if control else 0
+    data = ITEM_LIMIT * (2 * 3 * n + 2 * m + 3 * t + carried * 3 * n + kept + 3) + 3 * 4 * STRING_LIMIT
+    return int(1.01 * data) + (len(KEYS) + 1 + carried + control) * MEMBER_OVERHEAD + DIRECTORY_LIMIT
 
 
 def _file_kind(mode):
