@@ -326,10 +326,9 @@ class Scene:
         """A Simulation with the scene's defaults (integrator, dt, [solver], tol); any
         Simulation argument may be overridden. With a tolerance (``tol`` given, else the
         scene's for ``integrator`` unless ``dt``, ``newton_tol`` or ``cg_tol`` is given:
-        they ask for fixed steps), the
-        run is error-controlled over ``horizon`` (default: the scene's duration; without a
-        tolerance it is not used) and the scene's [solver] newton_tol and cg_tol give way
-        to those tol derives."""
+        they ask for fixed steps), the run is error-controlled over ``horizon`` (default:
+        the scene's duration; without a tolerance it is not used) and the scene's
+        [solver] newton_tol and cg_tol give way to those tol derives."""
         from massspring.engine import footprint
         from massspring.engine.footprint import Sketch
         from massspring.engine.simulation import Simulation
@@ -699,20 +698,17 @@ def _tolerances(value, source) -> dict:
     """``tol``: a number (every integrator's) or a table of integrator -> number, checked
     as ``Simulation(tol=...)`` checks it; the integrators it names run error-controlled
     by default."""
-    if not isinstance(value, dict):
-        value = dict.fromkeys(INTEGRATORS, value)
-        names = dict.fromkeys(INTEGRATORS, "tol")
-    else:
-        names = {key: f"tol.{key}" for key in value}
+    table = isinstance(value, dict)
     tols = {}
-    for key, tol in value.items():
+    for key, tol in (value if table else dict.fromkeys(INTEGRATORS, value)).items():
+        name = f"tol.{key}" if table else "tol"
         if key not in INTEGRATORS:
-            raise SceneError(f"{source}: tol.{key}: unknown integrator (expected {', '.join(INTEGRATORS)})")
-        _check_type(names[key], tol, float, source)
+            raise SceneError(f"{source}: {name}: unknown integrator (expected {', '.join(INTEGRATORS)})")
+        _check_type(name, tol, float, source)
         try:
             tols[key] = Tolerance.of(tol).tol
         except ValueError as exc:
-            raise SceneError(f"{source}: {names[key]}{str(exc).removeprefix('tol')}") from None
+            raise SceneError(f"{source}: {name}{str(exc).removeprefix('tol')}") from None
     return tols
 
 
